@@ -1,0 +1,20 @@
+# `make demo` sets up everything and runs the built-in demo; `make test` runs the test suite.
+VENV ?= .venv
+OUT ?= out/demo
+# Real data for the tests that use it (they skip without it).
+OCTOLOG_DATA ?= $(firstword $(wildcard ../shared/data))
+
+.PHONY: setup demo test bench
+setup: $(VENV)/.installed
+
+$(VENV)/.installed: pyproject.toml requirements.lock .ci/setup.sh
+	VENV=$(VENV) bash .ci/setup.sh
+
+demo: setup
+	$(VENV)/bin/octolog demo --out $(OUT)
+
+test: setup
+	OCTOLOG_DATA=$(OCTOLOG_DATA) $(VENV)/bin/python -m pytest -q
+
+bench: setup
+	OCTOLOG_DATA=$(OCTOLOG_DATA) $(VENV)/bin/python bench/pipeline.py

@@ -1,0 +1,318 @@
+"""Dense colour point clouds: back-projection, the two filter layers, the global cloud, PLY output.
+
+Pure NumPy/SciPy (no Open3D in the data path): every function here gives byte-identical output for
+byte-identical input, in any process, because ordering is fixed by sorting on integer keys and all
+sums are sequential (`np.bincount`), never thread- or hash-order dependent.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from octolog.errors import MapError
+from octolog.geometry import Intrinsics
+
+__all__ = [
+    "DenseCloud",
+    "backproject",
+    "keyframe_cloud",
+    "ply_bytes",
+    "statistical_outlier_removal",
+    "transform",
+    "voxel_downsample",
+    "write_bytes_atomic",
+    "write_ply",
+]
+
+_EMPTY_POINTS = np.zeros((0, 3), dtype=np.float64)
+_EMPTY_COLOURS = np.zeros((0, 3), dtype=np.uint8)
+
+
+def _check_cloud(points: np.ndarray, colours: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Validate an (N,3) point array and its (N,3) uint8 colours; return contiguous copies-or-views."""
+    points = np.asarray(points)
+    colours = np.asarray(colours)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise MapError(f"points must have shape (N, 3), got {points.shape}")
+    if colours.shape != points.shape:
+        raise MapError(f"colours must have shape {points.shape}, got {colours.shape}")
+    if colours.dtype != np.uint8:
+        raise MapError(f"colours must be uint8, got {colours.dtype}")
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    if not np.isfinite(points).all():
+        raise MapError("points contain NaN or infinite coordinates")
+    return points, np.ascontiguousarray(colours)
+
+
+def backproject(
+    depth: np.ndarray,
+    rgb: np.ndarray,
+    intrinsics: Intrinsics,
+    depth_scale_m: float,
+    *,
+    max_range_m: float = 4.0,
+    stride: int = 1,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame points (N,3) float64 and their colours (N,3) uint8 from a registered RGB-D pair.
+
+    Pixels with depth 0 (no reading) or beyond `max_range_m` are dropped; `stride` keeps every
+    stride-th row and column (pixel coordinates stay those of the full image, so the intrinsics are
+    used unchanged). Points are ordered row-major by pixel. Lens distortion is ignored: the pinhole
+    model is applied to the raw pixel grid (RealSense colour streams are near-distortion-free; TUM
+    depth is registered and undistorted).
+    """
+    depth = np.asarray(depth)
+    rgb = np.asarray(rgb)
+    if depth.ndim != 2:
+        raise MapError(f"depth must be a (H, W) image, got shape {depth.shape}")
+    if not np.issubdtype(depth.dtype, np.integer):
+        raise MapError(f"depth must be an integer image (sensor units), got {depth.dtype}")
+    h, w = depth.shape
+    if rgb.shape != (h, w, 3) or rgb.dtype != np.uint8:
+        raise MapError(f"rgb must be ({h}, {w}, 3) uint8 to match depth, got {rgb.shape} {rgb.dtype}")
+    if (intrinsics.width, intrinsics.height) != (w, h):
+        raise MapError(
+            f"intrinsics are for {intrinsics.width}x{intrinsics.height}, images are {w}x{h}"
+        )
+    if not (np.isfinite(depth_scale_m) and depth_scale_m > 0):
+        raise MapError(f"depth_scale_m must be a positive number, got {depth_scale_m}")
+    if not (max_range_m > 0):
+        raise MapError(f"max_range_m must be positive, got {max_range_m}")
+    if not isinstance(stride, (int, np.integer)) or stride < 1:
+        raise MapError(f"stride must be a positive integer, got {stride!r}")
+    if not all(np.isfinite([intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy])) or (
+        intrinsics.fx <= 0 or intrinsics.fy <= 0
+    ):
+        raise MapError(f"invalid intrinsics: {intrinsics}")
+
+    d = depth[::stride, ::stride]
+    # Range test in integer sensor units: no float rounding decides which pixels survive.
+    max_units = int(np.floor(max_range_m / depth_scale_m))
+    valid = (d > 0) & (d <= max_units)
+    rows, cols = np.nonzero(valid)  # row-major order
+    z = d[rows, cols].astype(np.float64) * float(depth_scale_m)
+    u = (cols * stride).astype(np.float64)
+    v = (rows * stride).astype(np.float64)
+    points = np.empty((z.shape[0], 3), dtype=np.float64)
+    points[:, 0] = (u - intrinsics.cx) * z / intrinsics.fx
+    points[:, 1] = (v - intrinsics.cy) * z / intrinsics.fy
+    points[:, 2] = z
+    colours = np.ascontiguousarray(rgb[::stride, ::stride][rows, cols])
+    return points, colours
+
+
+def statistical_outlier_removal(
+    points: np.ndarray,
+    colours: np.ndarray,
+    *,
+    nb_neighbors: int = 20,
+    std_ratio: float = 2.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """First filter layer: drop points whose mean distance to their k nearest neighbours is large.
+
+    As PCL's StatisticalOutlierRemoval: for each point the mean distance to its `nb_neighbors`
+    nearest other points; points above mean + std_ratio * std (over all points) are removed.
+    Order of the kept points is preserved. Exact k-NN (cKDTree), so the result is deterministic.
+    """
+    points, colours = _check_cloud(points, colours)
+    if nb_neighbors < 1:
+        raise MapError(f"nb_neighbors must be >= 1, got {nb_neighbors}")
+    if not np.isfinite(std_ratio):
+        raise MapError(f"std_ratio must be finite, got {std_ratio}")
+    n = points.shape[0]
+    if n <= nb_neighbors:
+        return points.copy(), colours.copy()
+    tree = cKDTree(points, balanced_tree=False, compact_nodes=False)
+    dist, _ = tree.query(points, k=nb_neighbors + 1, workers=-1)
+    # Column 0 is the point itself (distance 0); sum the rest in a fixed order.
+    mean_d = dist[:, 1:].sum(axis=1) / nb_neighbors
+    mu = float(mean_d.mean())
+    sigma = float(mean_d.std(ddof=1))
+    keep = mean_d <= mu + std_ratio * sigma
+    return points[keep], colours[keep]
+
+
+def _voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """(N,3) int64 voxel indices floor(p / voxel_m)."""
+    return np.floor(points / voxel_m).astype(np.int64)
+
+
+def _linear_keys(keys: np.ndarray) -> np.ndarray:
+    """One int64 per (kx, ky, kz) whose order is the lexicographic order of the triples."""
+    lo = keys.min(axis=0)
+    span = keys.max(axis=0) - lo + 1
+    if float(span[0]) * float(span[1]) * float(span[2]) >= 2.0**62:
+        raise MapError("cloud extent too large for the voxel size (more than 2^62 voxels)")
+    k = keys - lo
+    return (k[:, 0] * span[1] + k[:, 1]) * span[2] + k[:, 2]
+
+
+def voxel_downsample(
+    points: np.ndarray, colours: np.ndarray, voxel_m: float = 0.01
+) -> tuple[np.ndarray, np.ndarray]:
+    """Second filter layer: one point per occupied voxel, the mean of its points and colours.
+
+    Output is sorted by voxel index (x, then y, then z); colours are rounded means. Deterministic:
+    sums are accumulated sequentially in input order.
+    """
+    points, colours = _check_cloud(points, colours)
+    if not (np.isfinite(voxel_m) and voxel_m > 0):
+        raise MapError(f"voxel_m must be a positive number, got {voxel_m}")
+    if points.shape[0] == 0:
+        return _EMPTY_POINTS.copy(), _EMPTY_COLOURS.copy()
+    lin = _linear_keys(_voxel_keys(points, voxel_m))
+    _, inverse, counts = np.unique(lin, return_inverse=True, return_counts=True)
+    m = counts.shape[0]
+    out_p = np.empty((m, 3), dtype=np.float64)
+    out_c = np.empty((m, 3), dtype=np.float64)
+    for j in range(3):
+        out_p[:, j] = np.bincount(inverse, weights=points[:, j], minlength=m)
+        out_c[:, j] = np.bincount(inverse, weights=colours[:, j].astype(np.float64), minlength=m)
+    out_p /= counts[:, None]
+    out_c /= counts[:, None]
+    out_c = np.clip(np.rint(out_c), 0, 255).astype(np.uint8)
+    return out_p, out_c
+
+
+def transform(points: np.ndarray, world_from_camera: np.ndarray) -> np.ndarray:
+    """Points (N,3) mapped by a rigid 4x4 transform: R @ p + t, as float64."""
+    T = np.asarray(world_from_camera, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise MapError(f"pose must be a 4x4 matrix, got shape {T.shape}")
+    if not np.isfinite(T).all():
+        raise MapError("pose contains NaN or infinite values")
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise MapError(f"points must have shape (N, 3), got {points.shape}")
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def keyframe_cloud(
+    depth: np.ndarray,
+    rgb: np.ndarray,
+    intrinsics: Intrinsics,
+    depth_scale_m: float,
+    world_from_camera: np.ndarray,
+    *,
+    max_range_m: float = 4.0,
+    stride: int = 2,
+    nb_neighbors: int = 20,
+    std_ratio: float = 2.0,
+    voxel_m: float = 0.01,
+    sor_first: bool = False,
+) -> tuple[np.ndarray, np.ndarray]:
+    """A keyframe's filtered world-frame cloud: back-project, filter, transform.
+
+    Filtering happens in the camera frame, so a later pose correction only needs `transform`.
+    By default the voxel grid runs before SOR: SOR's k-NN search dominates the cost and the 1 cm
+    grid shrinks its input 2-3x (640x480, stride 2: ~50 ms instead of ~115 ms); `sor_first=True`
+    keeps the paper's order (SOR, then voxel grid). The second voxel layer is applied again across
+    keyframes by `DenseCloud`. Returns (points_world, colours).
+    """
+    p, c = backproject(depth, rgb, intrinsics, depth_scale_m, max_range_m=max_range_m, stride=stride)
+    if sor_first:
+        p, c = statistical_outlier_removal(p, c, nb_neighbors=nb_neighbors, std_ratio=std_ratio)
+        p, c = voxel_downsample(p, c, voxel_m)
+    else:
+        p, c = voxel_downsample(p, c, voxel_m)
+        p, c = statistical_outlier_removal(p, c, nb_neighbors=nb_neighbors, std_ratio=std_ratio)
+    return transform(p, world_from_camera), c
+
+
+class DenseCloud:
+    """The global colour cloud: per-keyframe filtered world points, merged at `voxel_m` on demand.
+
+    Contributions are keyed by keyframe id, so re-adding an id (after a pose correction) replaces
+    that keyframe's points. The merge concatenates keyframes in ascending id order, so the result
+    depends only on the set of contributions, never on the order they arrived in.
+    """
+
+    def __init__(self, voxel_m: float = 0.01) -> None:
+        if not (np.isfinite(voxel_m) and voxel_m > 0):
+            raise MapError(f"voxel_m must be a positive number, got {voxel_m}")
+        self.voxel_m = float(voxel_m)
+        self._parts: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._cache: tuple[np.ndarray, np.ndarray] | None = None
+
+    def add(self, keyframe_id: int, points_world: np.ndarray, colours: np.ndarray) -> None:
+        """Set (or replace) keyframe `keyframe_id`'s contribution."""
+        points_world, colours = _check_cloud(points_world, colours)
+        self._parts[int(keyframe_id)] = (points_world.copy(), colours.copy())
+        self._cache = None
+
+    def remove(self, keyframe_id: int) -> None:
+        """Drop a keyframe's contribution (no error if absent)."""
+        if self._parts.pop(int(keyframe_id), None) is not None:
+            self._cache = None
+
+    def keyframe_ids(self) -> list[int]:
+        """Ids of the contributing keyframes, ascending."""
+        return sorted(self._parts)
+
+    def __len__(self) -> int:
+        return len(self._parts)
+
+    def cloud(self) -> tuple[np.ndarray, np.ndarray]:
+        """The merged cloud (points (N,3) float64, colours (N,3) uint8), voxel-down-sampled."""
+        if self._cache is None:
+            ids = sorted(self._parts)
+            if not ids:
+                self._cache = (_EMPTY_POINTS.copy(), _EMPTY_COLOURS.copy())
+            else:
+                pts = np.concatenate([self._parts[i][0] for i in ids])
+                col = np.concatenate([self._parts[i][1] for i in ids])
+                self._cache = voxel_downsample(pts, col, self.voxel_m)
+        return self._cache[0].copy(), self._cache[1].copy()
+
+
+_PLY_DTYPE = np.dtype(
+    [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
+)
+
+
+def ply_bytes(points: np.ndarray, colours: np.ndarray) -> bytes:
+    """Binary little-endian PLY (x y z float32, red green blue uchar) as bytes."""
+    points, colours = _check_cloud(points, colours)
+    n = points.shape[0]
+    header = (
+        "ply\n"
+        "format binary_little_endian 1.0\n"
+        f"element vertex {n}\n"
+        "property float x\n"
+        "property float y\n"
+        "property float z\n"
+        "property uchar red\n"
+        "property uchar green\n"
+        "property uchar blue\n"
+        "end_header\n"
+    ).encode("ascii")
+    body = np.empty(n, dtype=_PLY_DTYPE)
+    body["x"], body["y"], body["z"] = points[:, 0], points[:, 1], points[:, 2]
+    body["red"], body["green"], body["blue"] = colours[:, 0], colours[:, 1], colours[:, 2]
+    return header + body.tobytes()
+
+
+def write_ply(path: str | os.PathLike[str], points: np.ndarray, colours: np.ndarray) -> None:
+    """Write a binary PLY atomically (temporary file then rename), so readers never see half a file."""
+    data = ply_bytes(points, colours)
+    write_bytes_atomic(path, data)
+
+
+def write_bytes_atomic(path: str | os.PathLike[str], data: bytes) -> None:
+    """Write bytes to `path` via a sibling temporary file; OSError becomes a one-line MapError."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except OSError as e:
+        try:
+            tmp.unlink()
+        except OSError:
+            pass
+        raise MapError(f"cannot write {path}: {e.strerror or e}") from None

@@ -1,0 +1,5 @@
+import sys
+
+from octolog.cli import main
+
+sys.exit(main())

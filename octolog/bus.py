@@ -1,0 +1,231 @@
+"""The Zenoh transport: the only module that imports zenoh.
+
+Pipeline topics are reliable with congestion control BLOCK; subscribers feed one bounded inbox per
+stage, so a slow consumer slows its producers and nothing is dropped. Stages announce themselves
+with liveliness tokens: a producer waits until its consumers are ready, and every stage notices
+when a peer stage disappears (process died, link cut) instead of waiting forever.
+"""
+
+from __future__ import annotations
+
+import json
+import queue
+import threading
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any
+
+from octolog.errors import BusError, StageError
+from schemas import codec
+from schemas.topics import Topic, stage_token
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    """Transport settings shared by every stage (see `octolog <cmd> --help`)."""
+
+    mode: str = "peer"
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ()
+    namespace: str = ""
+    zenoh_config: str | None = None
+    multicast_scouting: bool = True
+
+    def validate(self) -> None:
+        if self.mode not in ("peer", "client", "router"):
+            raise BusError(f"--mode {self.mode!r}: want peer, client or router")
+
+
+def zenoh_config(cfg: BusConfig) -> Any:
+    import zenoh
+
+    try:
+        zc = zenoh.Config.from_file(cfg.zenoh_config) if cfg.zenoh_config else zenoh.Config()
+        zc.insert_json5("mode", json.dumps(cfg.mode))
+        if cfg.connect:
+            zc.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
+        if cfg.listen:
+            zc.insert_json5("listen/endpoints", json.dumps(list(cfg.listen)))
+        if not cfg.multicast_scouting:
+            zc.insert_json5("scouting/multicast/enabled", "false")
+    except Exception as exc:  # zenoh raises ZError with the parser's message
+        raise BusError(f"invalid Zenoh configuration: {exc}") from None
+    return zc
+
+
+@dataclass(frozen=True)
+class Received:
+    """One sample taken from the inbox: its topic and raw CDR payload."""
+
+    topic: Topic
+    payload: bytes
+
+    def decode(self) -> Any:
+        return codec.decode(self.payload, self.topic.msgtype)
+
+
+class Publisher:
+    """A reliable, blocking publisher of one topic; counts what it sent."""
+
+    def __init__(self, pub: Any, topic: Topic) -> None:
+        self._pub = pub
+        self.topic = topic
+        self.count = 0
+
+    def put(self, msg: Any) -> bytes:
+        data = codec.encode(msg, self.topic.msgtype)
+        self.put_raw(data)
+        return data
+
+    def put_raw(self, data: bytes) -> None:
+        self._pub.put(data)
+        self.count += 1
+
+
+class Bus:
+    """One Zenoh session for one stage. Use as a context manager."""
+
+    def __init__(self, cfg: BusConfig, stage: str, *, inbox_size: int = 8) -> None:
+        self.cfg = cfg
+        self.stage = stage
+        self.namespace = cfg.namespace
+        self._inbox: queue.Queue[Received] = queue.Queue(maxsize=inbox_size)
+        self._session: Any = None
+        self._keep: list[Any] = []
+        self._alive: set[str] = set()
+        self._lost: list[str] = []
+        self._watched: set[str] = set()
+        self._alive_changed = threading.Condition()
+
+    # --- lifecycle -------------------------------------------------------------------------
+
+    def __enter__(self) -> Bus:
+        import zenoh
+
+        try:
+            self._session = zenoh.open(zenoh_config(self.cfg))
+        except Exception as exc:
+            raise BusError(f"cannot open Zenoh session ({self.cfg.mode}): {exc}") from None
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self._session is not None:
+            self._keep.clear()
+            try:
+                self._session.close()
+            finally:
+                self._session = None
+
+    @property
+    def session(self) -> Any:
+        if self._session is None:
+            raise BusError("bus is not open")
+        return self._session
+
+    # --- data ------------------------------------------------------------------------------
+
+    def publisher(self, topic: Topic) -> Publisher:
+        import zenoh
+
+        pub = self.session.declare_publisher(
+            topic.key(self.namespace),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            reliability=zenoh.Reliability.RELIABLE,
+        )
+        self._keep.append(pub)
+        return Publisher(pub, topic)
+
+    def subscribe(self, topics: Iterable[Topic]) -> None:
+        """Feed these topics into this stage's bounded inbox, in arrival order."""
+        import zenoh
+
+        for topic in topics:
+
+            def on_sample(sample: Any, topic: Topic = topic) -> None:
+                # Blocking put in Zenoh's receive thread: back-pressure, never a drop.
+                self._inbox.put(Received(topic, sample.payload.to_bytes()))
+
+            sub = self.session.declare_subscriber(
+                topic.key(self.namespace), zenoh.handlers.Callback(on_sample, indirect=False)
+            )
+            self._keep.append(sub)
+
+    def receive(self, timeout_s: float = 0.25) -> Received | None:
+        """The next sample, or None after `timeout_s`; raises StageError if a watched peer died."""
+        try:
+            return self._inbox.get(timeout=timeout_s)
+        except queue.Empty:
+            self.check_peers()
+            return None
+
+    # --- stages: readiness and liveness ----------------------------------------------------
+
+    def announce(self) -> None:
+        """Declare this stage ready (call after subscribing)."""
+        token = self.session.liveliness().declare_token(stage_token(self.stage, self.namespace))
+        self._keep.append(token)
+
+    def watch(self, stages: Iterable[str]) -> None:
+        """Track the liveliness of peer stages; `check_peers` raises once one disappears."""
+        import zenoh
+
+        stages = set(stages)
+        self._watched |= stages
+        prefix = stage_token("", self.namespace)
+
+        def on_token(sample: Any) -> None:
+            name = str(sample.key_expr)[len(prefix):]
+            if name not in self._watched:
+                return
+            with self._alive_changed:
+                if sample.kind == zenoh.SampleKind.PUT:
+                    self._alive.add(name)
+                else:
+                    self._alive.discard(name)
+                    self._lost.append(name)
+                self._alive_changed.notify_all()
+
+        sub = self.session.liveliness().declare_subscriber(
+            stage_token("*", self.namespace), zenoh.handlers.Callback(on_token, indirect=False), history=True
+        )
+        self._keep.append(sub)
+
+    def wait_for(self, stages: Iterable[str], timeout_s: float = 30.0) -> None:
+        """Block until every named stage has announced itself (they must be watched)."""
+        stages = set(stages)
+        deadline = time.monotonic() + timeout_s
+        with self._alive_changed:
+            while not stages <= self._alive:
+                self._raise_if_lost()
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    missing = ", ".join(sorted(stages - self._alive))
+                    raise StageError(f"{self.stage}: no {missing} stage appeared within {timeout_s:.0f} s "
+                                     f"(namespace {self.namespace or '(none)'!r}; are the stages connected?)")
+                self._alive_changed.wait(min(left, 0.5))
+
+    def unwatch(self, stage: str) -> None:
+        """Stop caring about a peer (it finished its stream and may leave)."""
+        with self._alive_changed:
+            self._watched.discard(stage)
+            self._lost = [s for s in self._lost if s != stage]
+
+    def check_peers(self) -> None:
+        with self._alive_changed:
+            self._raise_if_lost()
+
+    def _raise_if_lost(self) -> None:
+        if self._lost:
+            raise StageError(f"{self.stage}: the {self._lost[0]} stage disappeared (process died or link cut)")
+
+
+def serve_router(listen: tuple[str, ...], *, zenoh_config: str | None = None,
+                 stop: threading.Event | None = None) -> None:
+    """Host a Zenoh router in this process until `stop` is set (or forever)."""
+    cfg = BusConfig(mode="router", listen=listen, zenoh_config=zenoh_config, multicast_scouting=False)
+    with Bus(cfg, "router"):
+        (stop or threading.Event()).wait()

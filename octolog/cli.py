@@ -1,0 +1,248 @@
+"""The one entry point: `octolog <command>`. Commands parse, load config and call a stage's run().
+
+Known errors (OctologError) print one line and exit 1; anything else shows its traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import uuid
+from pathlib import Path
+from typing import Any
+
+from octolog.errors import OctologError
+
+
+# --- shared flags ------------------------------------------------------------------------------
+
+
+def add_bus_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("transport (Zenoh)")
+    g.add_argument("--mode", choices=("peer", "client", "router"), default="peer", help="Zenoh mode (default peer)")
+    g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="e.g. tcp/10.0.0.2:7447")
+    g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT", help="e.g. tcp/0.0.0.0:7447")
+    g.add_argument("--namespace", default="", help="key prefix for every topic (e.g. robot1)")
+    g.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config (TLS, access control, ...)")
+    g.add_argument("--no-multicast", action="store_true", help="disable multicast scouting")
+
+
+def bus_config(args: argparse.Namespace) -> Any:
+    from octolog.bus import BusConfig
+
+    cfg = BusConfig(mode=args.mode, connect=tuple(args.connect), listen=tuple(args.listen),
+                    namespace=args.namespace, zenoh_config=args.zenoh_config,
+                    multicast_scouting=not args.no_multicast)
+    cfg.validate()
+    return cfg
+
+
+def add_viz_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("Rerun")
+    g.add_argument("--rerun", default="off", metavar="SPEC", help="off (default), save:DIR or connect[:URL]")
+    g.add_argument("--recording-id", default=None, help="shared by all stages of one session")
+
+
+def add_config_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", metavar="FILE", help="TOML file with [replay] [tracker] [mapper] sections")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
+
+
+def _recording_id(args: argparse.Namespace) -> str:
+    return args.recording_id or str(uuid.uuid4())
+
+
+def _progress(done: int, total: int, elapsed: float) -> None:
+    if done % 10 and done != total:
+        return
+    rate = done / elapsed if elapsed > 0 else 0.0
+    left = (total - done) / rate if rate > 0 else 0.0
+    print(f"\r  {done}/{total} frames  {rate:5.1f} fps  {left:5.0f} s left", end="", file=sys.stderr, flush=True)
+    if done == total:
+        print(file=sys.stderr)
+
+
+# --- commands ----------------------------------------------------------------------------------
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from octolog.config import load
+    from replay import node
+    from replay.config import ReplayConfig
+
+    cfg = load(ReplayConfig, args.config, args.set, section="replay")
+    if args.source:
+        cfg = dataclasses.replace(cfg, source=args.source)
+    res = node.run(cfg, bus_config(args), rerun=args.rerun, recording_id=_recording_id(args),
+                   progress=None if args.quiet else _progress)
+    print(f"replay: {res.frames} frames in {res.wall_s:.1f} s "
+          f"(real-time factor {res.duration_s / res.wall_s if res.wall_s else 0:.2f})")
+    return 0
+
+
+def cmd_track(args: argparse.Namespace) -> int:
+    from octolog.config import load
+    from tracker import node
+    from tracker.config import TrackerConfig
+
+    cfg = load(TrackerConfig, args.config, args.set, section="tracker")
+    res = node.run(cfg, bus_config(args), trajectory=Path(args.trajectory) if args.trajectory else None,
+                   rerun=args.rerun, recording_id=_recording_id(args))
+    print(f"tracker: {res.frames} frames, {res.tracked} tracked, {res.lost} lost, {res.skipped} skipped, "
+          f"{res.keyframes} keyframes")
+    return 0
+
+
+def cmd_map(args: argparse.Namespace) -> int:
+    from mapper import node
+    from mapper.config import MapperConfig
+    from octolog.config import load
+
+    cfg = load(MapperConfig, args.config, args.set, section="mapper")
+    res = node.run(cfg, bus_config(args), out_dir=Path(args.out), rerun=args.rerun,
+                   recording_id=_recording_id(args))
+    print(f"mapper: {res.keyframes} keyframes ({res.skipped} skipped), {res.stats.get('occupied_voxels', 0)} occupied "
+          f"and {res.stats.get('free_voxels', 0)} free voxels, {res.cloud_points} cloud points → {args.out}")
+    return 0
+
+
+def cmd_log(args: argparse.Namespace) -> int:
+    from recorder import buslog
+
+    metadata = json.loads(Path(args.metadata).read_text()) if args.metadata else None
+    res = buslog.run(bus_config(args), Path(args.out), compression=args.compression, metadata=metadata)
+    print(f"log: {sum(res.counts.values())} messages → {res.path}")
+    return 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from octolog import run
+
+    summary = run.run_session(
+        source=args.source, out=Path(args.out), config=args.config, overrides=args.set, rerun=args.rerun,
+        recording_id=_recording_id(args), quiet=args.quiet,
+    )
+    print(run.format_summary(summary))
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    args.source = f"synthetic:{args.frames}"
+    return cmd_run(args)
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from octolog import metrics
+
+    est, gt = metrics.read_tum(args.trajectory), metrics.read_tum(args.groundtruth)
+    a = metrics.ate(est, gt, max_dt_ns=int(args.max_dt * 1e9))
+    r = metrics.rpe(est, gt, max_dt_ns=int(args.max_dt * 1e9))
+    print(metrics.format_report(a, r))
+    return 0
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    from octolog.info import describe
+
+    print(describe(Path(args.file)))
+    return 0
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    from octolog.bus import serve_router
+
+    listen = tuple(args.listen) or ("tcp/0.0.0.0:7447",)
+    print(f"router: listening on {', '.join(listen)} (Ctrl-C to stop)", flush=True)
+    serve_router(listen, zenoh_config=args.zenoh_config)
+    return 0
+
+
+# --- parser ------------------------------------------------------------------------------------
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="octolog", description="RGB-D record/replay and mapping over Zenoh.")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    def stage(name: str, help_: str) -> argparse.ArgumentParser:
+        p = sub.add_parser(name, help=help_, description=help_)
+        add_config_arguments(p)
+        add_bus_arguments(p)
+        add_viz_arguments(p)
+        return p
+
+    def session(p: argparse.ArgumentParser) -> None:
+        add_config_arguments(p)
+        p.add_argument("--rerun", default="save", metavar="SPEC",
+                       help="save (default: one .rrd per stage in OUT/rerun), off, save:DIR or connect[:URL]")
+        p.add_argument("--recording-id", default=None, help="Rerun recording id (default: a new one)")
+        p.add_argument("--quiet", action="store_true", help="no progress line")
+
+    p = sub.add_parser("run", help="whole pipeline as separate processes on one machine")
+    p.add_argument("--source", required=True, help="tum:PATH, mcap:PATH or synthetic[:N]")
+    p.add_argument("--out", required=True, help="output folder")
+    session(p)
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("demo", help="the pipeline on the built-in synthetic room")
+    p.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
+    p.add_argument("--frames", type=int, default=150, help="synthetic frames (default 150, 5 s)")
+    session(p)
+    p.set_defaults(func=cmd_demo)
+
+    p = stage("replay", "publish a source's frames on the bus")
+    p.add_argument("--source", help="tum:PATH, mcap:PATH or synthetic[:N]")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_replay)
+
+    p = stage("track", "run the tracker on frames from the bus")
+    p.add_argument("--trajectory", help="write the TUM-format trajectory here at the end")
+    p.set_defaults(func=cmd_track)
+
+    p = stage("map", "run the mapper on keyframes from the bus")
+    p.add_argument("--out", default=".", help="folder for map.bt, cloud.ply, map_stats.json")
+    p.set_defaults(func=cmd_map)
+
+    p = sub.add_parser("log", help="record every pipeline topic on the bus into an MCAP file")
+    add_bus_arguments(p)
+    p.add_argument("--out", required=True, help="MCAP file to write")
+    p.add_argument("--compression", choices=("none", "lz4", "zstd"), default="zstd")
+    p.add_argument("--metadata", metavar="JSON", help="file of {name: {key: value}} metadata records")
+    p.set_defaults(func=cmd_log)
+
+    p = sub.add_parser("eval", help="ATE and RPE of a TUM trajectory against ground truth")
+    p.add_argument("trajectory")
+    p.add_argument("groundtruth")
+    p.add_argument("--max-dt", type=float, default=0.02, help="association window in seconds (default 0.02)")
+    p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("info", help="summary of an MCAP file")
+    p.add_argument("file")
+    p.set_defaults(func=cmd_info)
+
+    p = sub.add_parser("router", help="host a Zenoh router (no zenohd needed)")
+    p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT")
+    p.add_argument("--zenoh-config", metavar="FILE")
+    p.set_defaults(func=cmd_router)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args))
+    except OctologError as exc:
+        print(f"octolog {args.command}: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"octolog {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        os._exit(1)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

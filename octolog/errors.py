@@ -1,0 +1,35 @@
+"""One base exception for every error octolog knows how to explain in one line."""
+
+from __future__ import annotations
+
+
+class OctologError(Exception):
+    """A known error: the CLI prints its message on one line and exits 1."""
+
+
+class ConfigError(OctologError):
+    """An invalid configuration key or value."""
+
+
+class InputError(OctologError):
+    """Unreadable or malformed input data (dataset folders, images, files)."""
+
+
+class McapError(InputError):
+    """An MCAP file that cannot be read or written."""
+
+
+class BusError(OctologError):
+    """A Zenoh session or transport problem."""
+
+
+class StageError(OctologError):
+    """A pipeline stage failed or a peer stage disappeared."""
+
+
+class TrackingError(OctologError):
+    """The tracker cannot run on the given input."""
+
+
+class MapError(OctologError):
+    """The mapper cannot integrate its input or write its outputs."""

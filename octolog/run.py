@@ -1,0 +1,238 @@
+"""`octolog run` / `octolog demo`: the whole pipeline as separate OS processes on one machine.
+
+The orchestrator hosts a Zenoh router on a free loopback port, starts the session logger, mapper,
+tracker and replay as child processes (peers that connect to the router, multicast off, so two runs
+never cross-talk), watches them, and evaluates the result. If any child dies, the others notice it
+through liveliness and stop; this process names the culprit and exits 1.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from octolog import __version__
+from octolog.errors import ConfigError, StageError
+
+STAGES = ("log", "mapper", "tracker", "replay")
+
+
+@dataclass
+class SessionSummary:
+    out: Path
+    source: str
+    frames: int = 0
+    wall_s: float = 0.0
+    duration_s: float = 0.0
+    tracker: dict = field(default_factory=dict)
+    map: dict = field(default_factory=dict)
+    ate: dict | None = None
+    files: dict[str, str] = field(default_factory=dict)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _split_overrides(overrides: list[str]) -> dict[str, list[str]]:
+    """`tracker.n_features=800` goes to the tracker as `n_features=800`."""
+    per: dict[str, list[str]] = {"replay": [], "tracker": [], "mapper": []}
+    for item in overrides:
+        section, dot, rest = item.partition(".")
+        if not dot or section not in per:
+            raise ConfigError(f"--set {item!r}: want replay.KEY=V, tracker.KEY=V or mapper.KEY=V")
+        per[section].append(rest)
+    return per
+
+
+def _resolve_configs(source: str, config: str | None, per: dict[str, list[str]]) -> dict[str, object]:
+    import dataclasses
+
+    from mapper.config import MapperConfig
+    from octolog.config import load
+    from replay.config import ReplayConfig
+    from tracker.config import TrackerConfig
+
+    replay = dataclasses.replace(load(ReplayConfig, config, per["replay"], section="replay"), source=source,
+                                 wait_for=("tracker", "mapper", "log"))
+    return {
+        "replay": replay,
+        "tracker": load(TrackerConfig, config, per["tracker"], section="tracker"),
+        "mapper": load(MapperConfig, config, per["mapper"], section="mapper"),
+    }
+
+
+class _Children:
+    """The stage processes; stops them all on the first failure or on exit."""
+
+    def __init__(self, logs: Path) -> None:
+        self.logs = logs
+        self.procs: dict[str, subprocess.Popen] = {}
+
+    def start(self, name: str, argv: list[str], *, show_stderr: bool = False) -> None:
+        log = open(self.logs / f"{name}.log", "wb")  # noqa: SIM115 - owned by the child
+        env = {**os.environ, "PYTHONHASHSEED": "0", "PYTHONUNBUFFERED": "1"}
+        self.procs[name] = subprocess.Popen(
+            [sys.executable, "-m", "octolog", *argv], stdout=log, stderr=None if show_stderr else log, env=env,
+            start_new_session=True)
+
+    def wait_all(self) -> None:
+        pending = dict(self.procs)
+        while pending:
+            for name, proc in list(pending.items()):
+                code = proc.poll()
+                if code is None:
+                    continue
+                del pending[name]
+                if code != 0:
+                    self.stop_all()
+                    why = f"killed by signal {-code}" if code < 0 else f"exited with code {code}"
+                    raise StageError(f"the {name} stage {why}: {self.last_line(name)} (log: {self.logs / name}.log)")
+            time.sleep(0.1)
+
+    def last_line(self, name: str) -> str:
+        lines = [ln for ln in (self.logs / f"{name}.log").read_text(errors="replace").splitlines() if ln.strip()]
+        errors = [ln for ln in lines if "error" in ln.lower()]
+        return (errors or lines or ["(no output)"])[-1].strip()
+
+    def stop_all(self) -> None:
+        for proc in self.procs.values():
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGTERM)
+        deadline = time.monotonic() + 5
+        for proc in self.procs.values():
+            try:
+                proc.wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+
+
+def run_session(*, source: str, out: Path, config: str | None = None, overrides: list[str] | None = None,
+                rerun: str = "save", recording_id: str, quiet: bool = False) -> SessionSummary:
+    from octolog.config import to_dict
+    from octolog.viz import parse_spec
+    from replay.sources import open_source
+
+    cfgs = _resolve_configs(source, config, _split_overrides(overrides or []))
+    src = open_source(source)  # fail fast on a bad source, before any process starts
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "logs").mkdir(exist_ok=True)
+    if rerun == "save":
+        rerun = f"save:{out / 'rerun'}"
+    parse_spec(rerun)
+    gt = src.groundtruth_tum()
+    if gt:
+        (out / "groundtruth.txt").write_text(gt)
+    config_path = out / "config.toml"
+    config_path.write_text(_to_toml({k: to_dict(v) for k, v in cfgs.items()}))
+    metadata = {"octolog": {"version": __version__, "source": source, "recording_id": recording_id},
+                "config": {k: json.dumps(to_dict(v), sort_keys=True) for k, v in cfgs.items()}}
+    if gt:
+        metadata["groundtruth"] = {"tum": gt}
+    (out / "metadata.json").write_text(json.dumps(metadata, indent=2, sort_keys=True))
+
+    port = _free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    bus = ["--mode", "peer", "--connect", endpoint, "--no-multicast"]
+    viz = ["--rerun", rerun, "--recording-id", recording_id]
+    conf = ["--config", str(config_path)]
+    stop_router = threading.Event()
+    router_ready = threading.Event()
+    router_error: list[BaseException] = []
+
+    def router() -> None:
+        from octolog.bus import Bus, BusConfig
+
+        try:
+            with Bus(BusConfig(mode="router", listen=(endpoint,), multicast_scouting=False), "router"):
+                router_ready.set()
+                stop_router.wait()
+        except BaseException as exc:  # reported by the main thread
+            router_error.append(exc)
+            router_ready.set()
+
+    thread = threading.Thread(target=router, daemon=True)
+    thread.start()
+    router_ready.wait()
+    if router_error:
+        raise router_error[0]
+    children = _Children(out / "logs")
+    t0 = time.monotonic()
+    try:
+        children.start("log", ["log", *bus, "--out", str(out / "session.mcap"), "--metadata", str(out / "metadata.json")])
+        children.start("mapper", ["map", *bus, *viz, *conf, "--out", str(out)])
+        children.start("tracker", ["track", *bus, *viz, *conf, "--trajectory", str(out / "trajectory.txt")])
+        children.start("replay", ["replay", *bus, *viz, *conf, *([] if not quiet else ["--quiet"])],
+                       show_stderr=not quiet)
+        children.wait_all()
+    finally:
+        children.stop_all()
+        stop_router.set()
+    wall = time.monotonic() - t0
+    return _summarize(out, source, src, wall, recording_id)
+
+
+def _summarize(out: Path, source: str, src, wall: float, recording_id: str) -> SessionSummary:
+    from octolog import metrics
+
+    s = SessionSummary(out=out, source=source, wall_s=wall, duration_s=src.duration_ns * 1e-9)
+    traj = metrics.read_tum(out / "trajectory.txt")
+    s.frames = len(traj.stamps_ns)
+    s.map = json.loads((out / "map_stats.json").read_text())
+    if (out / "groundtruth.txt").exists():
+        gt = metrics.read_tum(out / "groundtruth.txt")
+        a = metrics.ate(traj, gt)
+        s.ate = {"rmse_m": a.rmse, "mean_m": a.mean, "max_m": a.max, "pairs": a.n_pairs}
+    s.files = {p.name: str(p) for p in sorted(out.glob("*")) if p.is_file()}
+    s.files.update({f"rerun/{p.name}": str(p) for p in sorted((out / "rerun").glob("*.rrd"))})
+    (out / "summary.json").write_text(json.dumps(
+        {"source": source, "frames": s.frames, "wall_s": round(wall, 3), "duration_s": s.duration_s,
+         "ate": s.ate, "map": s.map, "recording_id": recording_id, "octolog": __version__},
+        indent=2, sort_keys=True) + "\n")
+    return s
+
+
+def format_summary(s: SessionSummary) -> str:
+    lines = [f"session {s.out}: {s.frames} frames from {s.source} in {s.wall_s:.1f} s "
+             f"(real-time factor {s.duration_s / s.wall_s if s.wall_s else 0:.2f})"]
+    if s.ate:
+        lines.append(f"  ATE RMSE {s.ate['rmse_m'] * 100:.2f} cm (mean {s.ate['mean_m'] * 100:.2f} cm, "
+                     f"max {s.ate['max_m'] * 100:.2f} cm, {s.ate['pairs']} poses)")
+    m = s.map
+    lines.append(f"  map: {m.get('keyframes', 0)} keyframes, {m.get('occupied_voxels', 0)} occupied / "
+                 f"{m.get('free_voxels', 0)} free voxels at {m.get('resolution_m', 0) * 100:.0f} cm, {m.get('cloud_points', 0)} cloud points")
+    lines.append("  files: " + ", ".join(sorted(s.files)))
+    return "\n".join(lines)
+
+
+def _to_toml(data: dict[str, dict]) -> str:
+    def value(v: object) -> str:
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, (int, float)):
+            return repr(v)
+        if isinstance(v, str):
+            return json.dumps(v)
+        if isinstance(v, (list, tuple)):
+            return "[" + ", ".join(value(x) for x in v) + "]"
+        if v is None:
+            raise ConfigError("config values cannot be None in TOML")
+        raise ConfigError(f"cannot write {v!r} to TOML")
+
+    out = []
+    for section, items in data.items():
+        out.append(f"[{section}]")
+        out.extend(f"{k} = {value(v)}" for k, v in items.items() if v is not None)
+        out.append("")
+    return "\n".join(out)

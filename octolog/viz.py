@@ -1,0 +1,130 @@
+"""Rerun logging: the only module that imports rerun.
+
+`--rerun off` (default), `--rerun save:DIR` (one `<stage>.rrd` per stage) or `--rerun connect:URL`
+(stream to a viewer). All stages of a session share one recording id so their data merges into one
+recording; timelines are `sensor_time` (sensor timestamps) and `frame` (source sequence numbers).
+Entity paths mirror topic names.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from octolog.errors import ConfigError
+from octolog.geometry import Intrinsics, matrix_to_pose
+
+APPLICATION_ID = "octolog"
+
+
+def parse_spec(spec: str) -> tuple[str, str]:
+    """Split `off`, `save:DIR` or `connect[:URL]` into (kind, target)."""
+    kind, _, target = spec.partition(":")
+    if kind == "off" and not target:
+        return "off", ""
+    if kind == "save" and target:
+        return "save", target
+    if kind == "connect":
+        return "connect", target
+    raise ConfigError(f"--rerun {spec!r}: want off, save:DIR or connect[:URL]")
+
+
+class Viz:
+    """One stage's Rerun stream; every method is a no-op when disabled."""
+
+    def __init__(self, spec: str, stage: str, recording_id: str) -> None:
+        self.kind, target = parse_spec(spec)
+        self.stage = stage
+        self.rec: Any = None
+        self.path: Path | None = None
+        if self.kind == "off":
+            return
+        import rerun as rr
+
+        self._rr = rr
+        self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
+        if self.kind == "save":
+            self.path = Path(target) / f"{stage}.rrd"
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self.rec.save(self.path)
+        else:
+            self.rec.connect_grpc(target or None)
+        self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+
+    @property
+    def enabled(self) -> bool:
+        return self.rec is not None
+
+    def close(self) -> None:
+        if self.rec is not None:
+            self.rec.flush()
+            self.rec.disconnect()
+            self.rec = None
+
+    def __enter__(self) -> Viz:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # --- time ------------------------------------------------------------------------------
+
+    def set_time(self, stamp_ns: int, frame: int | None = None) -> None:
+        if self.rec is None:
+            return
+        self.rec.set_time("sensor_time", timestamp=np.datetime64(stamp_ns, "ns"))
+        if frame is not None:
+            self.rec.set_time("frame", sequence=frame)
+
+    # --- archetypes ------------------------------------------------------------------------
+
+    def camera(self, path: str, intr: Intrinsics, *, static: bool = True) -> None:
+        if self.rec is None:
+            return
+        rr = self._rr
+        self.rec.log(path, rr.Pinhole(image_from_camera=intr.matrix, resolution=[intr.width, intr.height],
+                                      camera_xyz=rr.ViewCoordinates.RDF), static=static)
+
+    def pose(self, path: str, world_from_camera: np.ndarray) -> None:
+        if self.rec is None:
+            return
+        t, q = matrix_to_pose(world_from_camera)
+        self.rec.log(path, self._rr.Transform3D(translation=t, quaternion=q))
+
+    def rgb(self, path: str, image: np.ndarray) -> None:
+        if self.rec is not None:
+            self.rec.log(path, self._rr.Image(image))
+
+    def depth(self, path: str, depth: np.ndarray, depth_scale_m: float) -> None:
+        if self.rec is not None:
+            self.rec.log(path, self._rr.DepthImage(depth, meter=1.0 / depth_scale_m))
+
+    def points2d(self, path: str, xy: np.ndarray, colors: Any = None) -> None:
+        if self.rec is not None:
+            self.rec.log(path, self._rr.Points2D(xy, colors=colors, radii=2.0))
+
+    def points3d(self, path: str, xyz: np.ndarray, colors: Any = None, *, radius: float = 0.005,
+                 static: bool = False) -> None:
+        if self.rec is not None:
+            self.rec.log(path, self._rr.Points3D(xyz, colors=colors, radii=radius), static=static)
+
+    def boxes(self, path: str, centers: np.ndarray, size_m: float, colors: Any = None, *,
+              static: bool = False) -> None:
+        if self.rec is not None:
+            half = np.full((len(centers), 3), size_m / 2, dtype=np.float32)
+            self.rec.log(path, self._rr.Boxes3D(centers=centers, half_sizes=half, colors=colors,
+                                                fill_mode="solid"), static=static)
+
+    def path3d(self, path: str, xyz: np.ndarray, color: Any = None) -> None:
+        if self.rec is not None and len(xyz) > 1:
+            self.rec.log(path, self._rr.LineStrips3D([xyz], colors=color))
+
+    def scalar(self, path: str, value: float) -> None:
+        if self.rec is not None:
+            self.rec.log(path, self._rr.Scalars(value))
+
+    def text(self, path: str, text: str) -> None:
+        if self.rec is not None:
+            self.rec.log(path, self._rr.TextLog(text))

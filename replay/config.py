@@ -1,0 +1,29 @@
+"""Replay settings."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from octolog.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class ReplayConfig:
+    source: str = "synthetic"
+    # 0: lockstep, as fast as the tracker consumes (lossless, deterministic); r > 0: r x sensor rate
+    rate: float = 0.0
+    # lockstep: frames published but not yet acknowledged by the tracker
+    window: int = 2
+    start: int = 0
+    end: int = -1  # -1: to the end
+    # stages that must be up before the first frame is published
+    wait_for: tuple[str, ...] = ("tracker",)
+    wait_timeout_s: float = 60.0
+
+    def validate(self) -> None:
+        if self.rate < 0:
+            raise ConfigError(f"replay.rate {self.rate}: want 0 (lockstep) or a positive factor")
+        if self.window < 1:
+            raise ConfigError(f"replay.window {self.window}: want >= 1")
+        if self.start < 0:
+            raise ConfigError(f"replay.start {self.start}: want >= 0")

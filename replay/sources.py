@@ -1,0 +1,144 @@
+"""Frame sources for replay: a TUM RGB-D folder, an octolog MCAP file, or the synthetic scene.
+
+A source spec is `tum:PATH`, `mcap:PATH` or `synthetic[:N_FRAMES]`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+from octolog.errors import ConfigError, InputError
+from octolog.geometry import RgbdFrame
+
+
+class Source(Protocol):
+    name: str
+
+    def __len__(self) -> int: ...
+
+    @property
+    def duration_ns(self) -> int: ...
+
+    def frames(self, start: int = 0, end: int | None = None) -> Iterator[RgbdFrame]: ...
+
+    def groundtruth_tum(self) -> str | None: ...
+
+
+@dataclass
+class TumSource:
+    path: Path
+
+    def __post_init__(self) -> None:
+        from replay.tum import open_tum
+
+        self.seq = open_tum(self.path)
+        self.name = f"tum:{self.path}"
+
+    def __len__(self) -> int:
+        return len(self.seq)
+
+    @property
+    def duration_ns(self) -> int:
+        return self.seq.duration_ns
+
+    def frames(self, start: int = 0, end: int | None = None) -> Iterator[RgbdFrame]:
+        return self.seq.frames(start, end)
+
+    def groundtruth_tum(self) -> str | None:
+        return self.seq.groundtruth.read_text() if self.seq.groundtruth else None
+
+
+@dataclass
+class McapSource:
+    """RGB-D frames from an octolog MCAP (`/camera/rgbd` as `octolog_msgs/msg/RgbdFrame`)."""
+
+    path: Path
+
+    def __post_init__(self) -> None:
+        from octolog.mcaplog import summarize
+        from schemas.topics import RGBD
+
+        self.name = f"mcap:{self.path}"
+        summary = summarize(self.path)
+        if not summary.complete:
+            raise InputError(f"{self.path}: truncated or corrupt MCAP ({summary.problem}); "
+                             f"`octolog info {self.path}` shows what is readable")
+        ts = summary.topics.get(RGBD.name)
+        if ts is None:
+            raise InputError(f"{self.path}: no /{RGBD.name} topic (topics: {', '.join(sorted(summary.topics)) or 'none'})")
+        if ts.msgtype != RGBD.msgtype:
+            raise InputError(f"{self.path}: /{RGBD.name} holds {ts.msgtype}, want {RGBD.msgtype}")
+        self._count = ts.count
+        self._metadata = summary.metadata
+        self._span = (ts.first_ns, ts.last_ns)
+
+    def __len__(self) -> int:
+        return self._count
+
+    @property
+    def duration_ns(self) -> int:
+        return self._span[1] - self._span[0]
+
+    def frames(self, start: int = 0, end: int | None = None) -> Iterator[RgbdFrame]:
+        from octolog.mcaplog import read_messages
+        from schemas import codec
+        from schemas.topics import RGBD
+
+        for i, m in enumerate(read_messages(self.path, [RGBD.name])):
+            if i < start:
+                continue
+            if end is not None and i >= end:
+                return
+            try:
+                yield codec.rgbd_from_msg(codec.decode(m.data, RGBD.msgtype))
+            except InputError as exc:
+                raise InputError(f"{self.path}: message {i} on /{RGBD.name}: {exc}") from None
+
+    def groundtruth_tum(self) -> str | None:
+        return self._metadata.get("groundtruth", {}).get("tum")
+
+
+@dataclass
+class SyntheticSource:
+    n_frames: int = 150
+
+    def __post_init__(self) -> None:
+        from replay.synthetic import SyntheticScene
+
+        self.scene = SyntheticScene(n_frames=self.n_frames)
+        self.name = f"synthetic:{self.n_frames}"
+
+    def __len__(self) -> int:
+        return self.n_frames
+
+    @property
+    def duration_ns(self) -> int:
+        return self.scene.stamp_ns(self.n_frames - 1) - self.scene.stamp_ns(0)
+
+    def frames(self, start: int = 0, end: int | None = None) -> Iterator[RgbdFrame]:
+        for i in range(start, self.n_frames if end is None else min(end, self.n_frames)):
+            yield self.scene.render(i)
+
+    def groundtruth_tum(self) -> str | None:
+        return self.scene.groundtruth_tum()
+
+
+def open_source(spec: str) -> Source:
+    """Open `tum:PATH`, `mcap:PATH` or `synthetic[:N]`; errors name the problem in one line."""
+    kind, _, arg = spec.partition(":")
+    if kind == "tum" and arg:
+        return TumSource(Path(arg))
+    if kind == "mcap" and arg:
+        return McapSource(Path(arg))
+    if kind == "synthetic":
+        try:
+            n = int(arg) if arg else 150
+        except ValueError:
+            raise ConfigError(f"source {spec!r}: synthetic:N wants a frame count") from None
+        if n < 2:
+            raise ConfigError(f"source {spec!r}: want at least 2 frames")
+        return SyntheticSource(n)
+    raise ConfigError(f"source {spec!r}: want tum:PATH, mcap:PATH or synthetic[:N]")

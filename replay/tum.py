@@ -1,0 +1,156 @@
+"""TUM RGB-D folders: rgb.txt, depth.txt, PNG images and an optional groundtruth.txt.
+
+Colour and depth are paired by nearest timestamp within 20 ms (as the TUM tools do); depth keeps
+its units (5000 per metre). Intrinsics come from the sequence name (freiburg1/2/3, the ROS default
+calibration most evaluations use) unless given explicitly.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from decimal import Decimal, InvalidOperation
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from octolog.errors import InputError
+from octolog.geometry import Intrinsics, RgbdFrame
+
+TUM_DEPTH_SCALE_M = 1.0 / 5000.0
+MAX_PAIR_DT_NS = 20_000_000
+
+# The calibration of the TUM benchmark's three Kinects (ROS default intrinsics, 640x480).
+TUM_INTRINSICS = {
+    "freiburg1": Intrinsics(
+        640, 480, 517.306408, 516.469215, 318.643040, 255.313989,
+        (0.262383, -0.953104, -0.005358, 0.002628, 1.163314),
+    ),
+    "freiburg2": Intrinsics(
+        640, 480, 520.908620, 521.007327, 325.141442, 249.701764,
+        (0.231222, -0.784899, -0.003257, -0.000105, 0.917205),
+    ),
+    "freiburg3": Intrinsics(640, 480, 535.4, 539.2, 320.1, 247.6, ()),
+}
+
+
+def seconds_to_ns(text: str) -> int:
+    """Exact integer nanoseconds of a decimal seconds string (no float rounding)."""
+    return int((Decimal(text) * 1_000_000_000).to_integral_value())
+
+
+def _read_list(path: Path) -> list[tuple[int, str]]:
+    if not path.is_file():
+        raise InputError(f"{path}: missing (a TUM RGB-D folder needs rgb.txt and depth.txt)")
+    rows = []
+    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.split()
+        try:
+            if len(parts) != 2:
+                raise InvalidOperation
+            rows.append((seconds_to_ns(parts[0]), parts[1]))
+        except InvalidOperation:
+            raise InputError(f"{path}:{lineno}: malformed line {line!r} (want 'timestamp file')") from None
+    if not rows:
+        raise InputError(f"{path}: lists no images")
+    return rows
+
+
+def associate(a: list[int], b: list[int], max_dt_ns: int = MAX_PAIR_DT_NS) -> list[tuple[int, int]]:
+    """Pair indices of two sorted stamp lists, nearest first, each used once (TUM associate.py)."""
+    a_arr, b_arr = np.asarray(a, dtype=np.int64), np.asarray(b, dtype=np.int64)
+    cands = []
+    for i, t in enumerate(a_arr):
+        j = int(np.searchsorted(b_arr, t))
+        for k in (j - 1, j):
+            if 0 <= k < len(b_arr):
+                dt = abs(int(b_arr[k]) - int(t))
+                if dt < max_dt_ns:
+                    cands.append((dt, i, k))
+    cands.sort()
+    used_a: set[int] = set()
+    used_b: set[int] = set()
+    pairs = []
+    for _, i, k in cands:
+        if i not in used_a and k not in used_b:
+            used_a.add(i)
+            used_b.add(k)
+            pairs.append((i, k))
+    pairs.sort()
+    return pairs
+
+
+def intrinsics_for(folder: Path) -> Intrinsics:
+    name = folder.resolve().name
+    for key, intr in TUM_INTRINSICS.items():
+        if key in name:
+            return intr
+    return TUM_INTRINSICS["freiburg1"]
+
+
+@dataclass(frozen=True)
+class TumSequence:
+    """An opened TUM folder: the paired frame list, ready to be read in order."""
+
+    folder: Path
+    pairs: tuple[tuple[int, str, int, str], ...]  # (rgb_ns, rgb_file, depth_ns, depth_file)
+    intrinsics: Intrinsics
+    groundtruth: Path | None
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+    @property
+    def duration_ns(self) -> int:
+        return self.pairs[-1][0] - self.pairs[0][0] if self.pairs else 0
+
+    def frames(self, start: int = 0, end: int | None = None) -> Iterator[RgbdFrame]:
+        for seq, (rgb_ns, rgb_file, _depth_ns, depth_file) in enumerate(self.pairs[start:end], start):
+            rgb = _read_png(self.folder / rgb_file, cv2.IMREAD_COLOR)
+            depth = _read_png(self.folder / depth_file, cv2.IMREAD_ANYDEPTH)
+            if rgb.ndim != 3 or rgb.shape[2] != 3:
+                raise InputError(f"{self.folder / rgb_file}: not a 3-channel colour image")
+            if depth.dtype != np.uint16 or depth.ndim != 2:
+                raise InputError(f"{self.folder / depth_file}: depth must be a 16-bit single-channel PNG")
+            if rgb.shape[:2] != depth.shape:
+                raise InputError(f"{self.folder / depth_file}: size {depth.shape} differs from colour {rgb.shape[:2]}")
+            yield RgbdFrame(
+                seq=seq,
+                stamp_ns=rgb_ns,
+                rgb=cv2.cvtColor(rgb, cv2.COLOR_BGR2RGB),
+                depth=depth,
+                depth_scale_m=TUM_DEPTH_SCALE_M,
+                intrinsics=self.intrinsics,
+            )
+
+
+def _read_png(path: Path, flags: int) -> np.ndarray:
+    if not path.is_file():
+        raise InputError(f"{path}: image listed but missing")
+    img = cv2.imread(str(path), flags)
+    if img is None:
+        raise InputError(f"{path}: unreadable image (corrupt or not a PNG)")
+    return img
+
+
+def open_tum(folder: str | Path, intrinsics: Intrinsics | None = None) -> TumSequence:
+    """Open a TUM RGB-D folder; raises InputError naming the file that is missing or malformed."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(f"{folder}: not a folder (want a TUM RGB-D sequence folder)")
+    rgb = _read_list(folder / "rgb.txt")
+    depth = _read_list(folder / "depth.txt")
+    pairs = associate([t for t, _ in rgb], [t for t, _ in depth])
+    if not pairs:
+        raise InputError(f"{folder}: no colour/depth pairs within 20 ms")
+    gt = folder / "groundtruth.txt"
+    return TumSequence(
+        folder=folder,
+        pairs=tuple((rgb[i][0], rgb[i][1], depth[k][0], depth[k][1]) for i, k in pairs),
+        intrinsics=intrinsics or intrinsics_for(folder),
+        groundtruth=gt if gt.is_file() else None,
+    )

@@ -1,0 +1,1 @@
+"""octolog message contract: our .msg types, the CDR codec over rosbags, topic names."""

@@ -1,0 +1,207 @@
+"""The typed codec: ROS 2 messages through rosbags' type store, CDR on the wire and in MCAP.
+
+Our own types are `.msg` files beside this module; a schema change is a new type, never an edit.
+"""
+
+from __future__ import annotations
+
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from octolog.errors import InputError
+from octolog.geometry import Intrinsics, RgbdFrame, matrix_to_pose, pose_to_matrix
+
+MSG_DIR = Path(__file__).with_name("msg")
+OWN_PACKAGE = "octolog_msgs"
+# Types from outside ROS 2's core that we vendor as .msg text.
+VENDORED = {"Octomap": "octomap_msgs"}
+
+
+@cache
+def typestore() -> Any:
+    """ROS 2 (Jazzy) type store with octolog's own message types registered."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    types: dict[str, Any] = {}
+    for path in sorted(MSG_DIR.glob("*.msg")):
+        pkg = VENDORED.get(path.stem, OWN_PACKAGE)
+        types.update(get_types_from_msg(path.read_text(), f"{pkg}/msg/{path.stem}"))
+    store.register(types)
+    return store
+
+
+def msgtype(name: str) -> Any:
+    return typestore().types[name]
+
+
+def encode(msg: Any, typename: str) -> bytes:
+    return bytes(typestore().serialize_cdr(msg, typename))
+
+
+def decode(data: bytes | memoryview, typename: str) -> Any:
+    try:
+        return typestore().deserialize_cdr(data, typename)
+    except Exception as exc:  # rosbags raises several types for short or garbled buffers
+        raise InputError(f"cannot decode {typename}: {exc}") from None
+
+
+def msgdef(typename: str) -> str:
+    """The ros2msg schema text MCAP files carry for a type."""
+    return typestore().generate_msgdef(typename, ros_version=2)[0]
+
+
+# --- builders and readers -------------------------------------------------------------------
+
+
+def header(stamp_ns: int, frame_id: str = "") -> Any:
+    Time = msgtype("builtin_interfaces/msg/Time")
+    Header = msgtype("std_msgs/msg/Header")
+    return Header(stamp=Time(sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000), frame_id=frame_id)
+
+
+def stamp_ns(hdr: Any) -> int:
+    return int(hdr.stamp.sec) * 1_000_000_000 + int(hdr.stamp.nanosec)
+
+
+_ENCODINGS = {("uint8", 3): "rgb8", ("uint16", 1): "16UC1", ("uint8", 1): "mono8", ("float32", 1): "32FC1"}
+_DTYPES = {"rgb8": (np.uint8, 3), "bgr8": (np.uint8, 3), "16UC1": (np.uint16, 1), "mono16": (np.uint16, 1),
+           "mono8": (np.uint8, 1), "8UC1": (np.uint8, 1), "32FC1": (np.float32, 1)}
+
+
+def image_msg(array: np.ndarray, stamp: int, frame_id: str) -> Any:
+    channels = 1 if array.ndim == 2 else array.shape[2]
+    encoding = _ENCODINGS[(array.dtype.name, channels)]
+    array = np.ascontiguousarray(array)
+    return msgtype("sensor_msgs/msg/Image")(
+        header=header(stamp, frame_id),
+        height=array.shape[0],
+        width=array.shape[1],
+        encoding=encoding,
+        is_bigendian=0,
+        step=array.shape[1] * channels * array.dtype.itemsize,
+        data=array.reshape(-1).view(np.uint8),
+    )
+
+
+def image_array(msg: Any) -> np.ndarray:
+    """The pixels of a sensor_msgs/Image (RGB order for colour)."""
+    if msg.encoding not in _DTYPES:
+        raise InputError(f"unsupported image encoding {msg.encoding!r}")
+    dtype, channels = _DTYPES[msg.encoding]
+    itemsize = np.dtype(dtype).itemsize
+    expected = msg.height * msg.width * channels * itemsize
+    raw = np.asarray(msg.data, dtype=np.uint8)
+    if msg.step != msg.width * channels * itemsize or raw.size != expected:
+        raise InputError(f"image {msg.width}x{msg.height} {msg.encoding}: {raw.size} bytes, want {expected}")
+    arr = raw.view(dtype).reshape(msg.height, msg.width, channels) if channels > 1 else raw.view(dtype).reshape(msg.height, msg.width)
+    if msg.is_bigendian and itemsize > 1:
+        arr = arr.byteswap()
+    if msg.encoding == "bgr8":
+        arr = arr[..., ::-1]
+    return arr
+
+
+def camera_info_msg(intr: Intrinsics, stamp: int, frame_id: str) -> Any:
+    d = np.asarray(intr.distortion, dtype=np.float64)
+    k = intr.matrix.reshape(-1)
+    p = np.array([intr.fx, 0, intr.cx, 0, 0, intr.fy, intr.cy, 0, 0, 0, 1, 0], dtype=np.float64)
+    return msgtype("sensor_msgs/msg/CameraInfo")(
+        header=header(stamp, frame_id),
+        height=intr.height,
+        width=intr.width,
+        distortion_model="plumb_bob" if d.size else "",
+        d=d,
+        k=k.astype(np.float64),
+        r=np.eye(3).reshape(-1),
+        p=p,
+        binning_x=0,
+        binning_y=0,
+        roi=msgtype("sensor_msgs/msg/RegionOfInterest")(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
+    )
+
+
+def intrinsics_from(msg: Any) -> Intrinsics:
+    k = np.asarray(msg.k, dtype=np.float64)
+    if k.size != 9 or k[0] <= 0 or k[4] <= 0:
+        raise InputError("camera_info has no valid K matrix (missing calibration)")
+    return Intrinsics(int(msg.width), int(msg.height), float(k[0]), float(k[4]), float(k[2]), float(k[5]),
+                      tuple(float(x) for x in msg.d))
+
+
+def pose_msg(T: np.ndarray) -> Any:
+    t, q = matrix_to_pose(T)
+    Point = msgtype("geometry_msgs/msg/Point")
+    Quaternion = msgtype("geometry_msgs/msg/Quaternion")
+    return msgtype("geometry_msgs/msg/Pose")(
+        position=Point(x=float(t[0]), y=float(t[1]), z=float(t[2])),
+        orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
+    )
+
+
+def pose_matrix(msg: Any) -> np.ndarray:
+    p, o = msg.position, msg.orientation
+    return pose_to_matrix(np.array([p.x, p.y, p.z]), np.array([o.x, o.y, o.z, o.w]))
+
+
+def rgbd_msg(frame: RgbdFrame) -> Any:
+    return msgtype("octolog_msgs/msg/RgbdFrame")(
+        seq=frame.seq,
+        header=header(frame.stamp_ns, frame.frame_id),
+        color=image_msg(frame.rgb, frame.stamp_ns, frame.frame_id),
+        depth=image_msg(frame.depth, frame.stamp_ns, frame.frame_id),
+        depth_scale_m=float(frame.depth_scale_m),
+        camera_info=camera_info_msg(frame.intrinsics, frame.stamp_ns, frame.frame_id),
+    )
+
+
+def _rgbd_parts(msg: Any) -> tuple[np.ndarray, np.ndarray, Intrinsics]:
+    rgb, depth = image_array(msg.color), image_array(msg.depth)
+    intr = intrinsics_from(msg.camera_info)
+    if rgb.ndim != 3 or depth.ndim != 2 or depth.dtype != np.uint16:
+        raise InputError(f"want rgb8 colour and 16-bit depth, got {msg.color.encoding} and {msg.depth.encoding}")
+    if rgb.shape[:2] != depth.shape or (intr.height, intr.width) != depth.shape:
+        raise InputError(
+            f"image sizes disagree: colour {rgb.shape[1]}x{rgb.shape[0]}, depth {depth.shape[1]}x{depth.shape[0]}, "
+            f"camera_info {intr.width}x{intr.height}"
+        )
+    if not msg.depth_scale_m > 0:
+        raise InputError(f"depth_scale_m must be > 0 metres per unit, got {msg.depth_scale_m}")
+    return rgb, depth, intr
+
+
+def rgbd_from_msg(msg: Any) -> RgbdFrame:
+    rgb, depth, intr = _rgbd_parts(msg)
+    return RgbdFrame(int(msg.seq), stamp_ns(msg.header), rgb, depth, float(msg.depth_scale_m), intr,
+                     msg.header.frame_id)
+
+
+def keyframe_msg(kf_id: int, world_from_camera: np.ndarray, frame: RgbdFrame) -> Any:
+    return msgtype("octolog_msgs/msg/Keyframe")(
+        header=header(frame.stamp_ns, "world"),
+        id=kf_id,
+        frame_seq=frame.seq,
+        world_from_camera=pose_msg(world_from_camera),
+        color=image_msg(frame.rgb, frame.stamp_ns, frame.frame_id),
+        depth=image_msg(frame.depth, frame.stamp_ns, frame.frame_id),
+        depth_scale_m=float(frame.depth_scale_m),
+        camera_info=camera_info_msg(frame.intrinsics, frame.stamp_ns, frame.frame_id),
+    )
+
+
+def keyframe_from_msg(msg: Any) -> tuple[int, np.ndarray, RgbdFrame]:
+    rgb, depth, intr = _rgbd_parts(msg)
+    frame = RgbdFrame(int(msg.frame_seq), stamp_ns(msg.header), rgb, depth, float(msg.depth_scale_m), intr,
+                      msg.color.header.frame_id)
+    return int(msg.id), pose_matrix(msg.world_from_camera), frame
+
+
+def pose_stamped_msg(T: np.ndarray, stamp: int, frame_id: str = "world") -> Any:
+    return msgtype("geometry_msgs/msg/PoseStamped")(header=header(stamp, frame_id), pose=pose_msg(T))
+
+
+def stream_end_msg(topic: str, count: int, stamp: int = 0) -> Any:
+    return msgtype("octolog_msgs/msg/StreamEnd")(header=header(stamp, ""), topic=topic, count=count)

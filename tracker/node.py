@@ -1,0 +1,110 @@
+"""The tracker process: RGB-D frames in, a pose and status per frame and keyframes out."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from octolog.bus import Bus, BusConfig
+from octolog.errors import InputError
+from octolog.viz import Viz
+from schemas import codec
+from schemas.topics import KEYFRAME, KEYFRAME_END, POSE, RGBD, RGBD_END, TRACKING_STATUS
+from tracker.config import TrackerConfig, make_odometry
+
+STATE_CODES = {"INIT": 0, "OK": 1, "LOST": 2}
+
+
+@dataclass
+class TrackerResult:
+    frames: int = 0
+    tracked: int = 0
+    lost: int = 0
+    skipped: int = 0
+    keyframes: int = 0
+    stamps_ns: list[int] = field(default_factory=list)
+    poses: list[np.ndarray] = field(default_factory=list)
+    ms: list[float] = field(default_factory=list)
+
+
+def run(cfg: TrackerConfig, bus_cfg: BusConfig, *, trajectory: Path | None = None, rerun: str = "off",
+        recording_id: str = "octolog") -> TrackerResult:
+    odometry = make_odometry(cfg)
+    with Bus(bus_cfg, "tracker") as bus, Viz(rerun, "tracker", recording_id) as viz:
+        result = track(odometry, cfg, bus, viz)
+    if trajectory is not None:
+        from octolog.metrics import write_tum
+
+        write_tum(trajectory, result.stamps_ns, result.poses)
+    return result
+
+
+def track(odometry, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerResult:
+    pub_pose, pub_status = bus.publisher(POSE), bus.publisher(TRACKING_STATUS)
+    pub_kf, pub_kf_end = bus.publisher(KEYFRAME), bus.publisher(KEYFRAME_END)
+    bus.subscribe([RGBD, RGBD_END])
+    bus.watch(cfg.wait_for)
+    bus.wait_for(cfg.wait_for, cfg.wait_timeout_s)
+    bus.announce()
+    bus.watch(["replay"])
+    result = TrackerResult()
+    expected: int | None = None
+    while expected is None or result.frames < expected:
+        r = bus.receive()
+        if r is None:
+            continue
+        if r.topic == RGBD_END:
+            expected = int(r.decode().count)
+            bus.unwatch("replay")  # the source may now leave
+            continue
+        result.frames += 1
+        t0 = time.perf_counter()
+        msg = r.decode()
+        try:
+            frame = codec.rgbd_from_msg(msg)
+        except InputError:
+            # an undecodable frame is consumed and reported LOST, never a crash
+            result.skipped += 1
+            pub_status.put(_status(msg.seq, codec.stamp_ns(msg.header), "LOST", False, -1, 0, 0, 0.0))
+            continue
+        res = odometry.track(frame)
+        ms = (time.perf_counter() - t0) * 1e3
+        result.ms.append(ms)
+        result.stamps_ns.append(frame.stamp_ns)
+        result.poses.append(res.world_from_camera)
+        result.tracked += res.state == "OK"
+        result.lost += res.state == "LOST"
+        pub_pose.put(codec.pose_stamped_msg(res.world_from_camera, frame.stamp_ns))
+        if res.is_keyframe:
+            pub_kf.put(codec.keyframe_msg(res.keyframe_id, res.world_from_camera, frame))
+            result.keyframes += 1
+        pub_status.put(_status(frame.seq, frame.stamp_ns, res.state, res.is_keyframe, res.keyframe_id,
+                               res.n_matches, res.n_inliers, ms))
+        if viz.enabled:
+            _log(viz, frame, res, result)
+    pub_kf_end.put(codec.stream_end_msg(KEYFRAME.name, pub_kf.count))
+    return result
+
+
+def _status(seq: int, stamp: int, state: str, is_kf: bool, kf_id: int, n_matches: int, n_inliers: int, ms: float):
+    return codec.msgtype(TRACKING_STATUS.msgtype)(
+        header=codec.header(stamp, "world"), seq=seq, state=STATE_CODES[state], is_keyframe=is_kf,
+        keyframe_id=kf_id, n_matches=n_matches, n_inliers=n_inliers, processing_ms=ms)
+
+
+def _log(viz: Viz, frame, res, result: TrackerResult) -> None:
+    viz.set_time(frame.stamp_ns, frame.seq)
+    if result.frames == 1:
+        viz.camera("world/tracker/camera", frame.intrinsics)
+    viz.pose("world/tracker/camera", res.world_from_camera)
+    viz.rgb("world/tracker/camera/image", frame.rgb)
+    viz.path3d("world/tracker/trajectory", np.array([p[:3, 3] for p in result.poses]), color=[255, 160, 0])
+    viz.scalar("tracker/inliers", float(res.n_inliers))
+    viz.scalar("tracker/ms", result.ms[-1])
+    if res.is_keyframe:
+        viz.points3d("world/tracker/keyframes", np.array([res.world_from_camera[:3, 3]]), [0, 200, 255],
+                     radius=0.02)
+        viz.text("tracker/events", f"keyframe {res.keyframe_id} at frame {frame.seq}")

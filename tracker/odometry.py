@@ -1,0 +1,627 @@
+"""RGB-D visual odometry: ORB features tracked against a small local map of keyframe points.
+
+Per frame: extract ORB features spread over the image, read their depth, predict the pose with a
+constant-velocity model, match projected local-map points around the prediction, estimate the
+pose with `cv2.solvePnPRansac`, refine it with a robust (Huber) Gauss-Newton on reprojection and
+inverse-depth residuals, then match the local map again with the refined pose and refine once
+more. Keyframes add new map points and fuse repeated depth readings of existing ones, so drift is
+only accumulated when the camera leaves the area the local map covers.
+
+The core sees only `RgbdFrame`s and keyword tunables (no configuration trees, no I/O, no clock),
+and is deterministic: the same frames give byte-identical poses in any process.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from octolog.errors import TrackingError
+from octolog.geometry import Intrinsics, RgbdFrame, invert
+from tracker.features import (
+    DESCRIPTOR_BYTES,
+    FrameFeatures,
+    OrbExtractor,
+    Undistorter,
+    backproject,
+    lookup_depth,
+    match_brute_force,
+    match_by_projection,
+)
+
+STATE_OK = "OK"
+STATE_LOST = "LOST"
+STATE_INIT = "INIT"
+
+# Chi-square 95% quantiles for 2 (pixel) and 3 (pixel + inverse depth) degrees of freedom.
+_CHI2_2 = 5.991
+_CHI2_3 = 7.815
+_RANSAC_SEED = 0x0C70
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    """The tracker's answer for one frame."""
+
+    seq: int
+    stamp_ns: int
+    world_from_camera: np.ndarray  # (4, 4) float64; world = first keyframe's camera frame
+    state: str  # "OK" | "LOST" | "INIT"
+    is_keyframe: bool
+    keyframe_id: int  # -1 unless is_keyframe
+    n_matches: int
+    n_inliers: int
+
+
+# ----------------------------------------------------------------------------------------------
+# Small SO(3) helpers (own Rodrigues so that nothing depends on library-internal branching).
+
+
+def so3_exp(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a rotation vector."""
+    theta = math.sqrt(float(w @ w))
+    W = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if theta < 1e-10:
+        return np.eye(3) + W
+    a = math.sin(theta) / theta
+    b = (1.0 - math.cos(theta)) / (theta * theta)
+    return np.eye(3) + a * W + b * (W @ W)
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """Rotation vector of a rotation matrix (angles below pi)."""
+    c = min(1.0, max(-1.0, (float(np.trace(R)) - 1.0) * 0.5))
+    theta = math.acos(c)
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if theta < 1e-10:
+        return 0.5 * v
+    return v * (theta / (2.0 * math.sin(theta)))
+
+
+def rotation_angle(R: np.ndarray) -> float:
+    """Angle in radians of a rotation matrix."""
+    return math.acos(min(1.0, max(-1.0, (float(np.trace(R)) - 1.0) * 0.5)))
+
+
+# ----------------------------------------------------------------------------------------------
+# Robust pose refinement.
+
+
+def optimize_pose(
+    camera_from_world: np.ndarray,
+    points_w: np.ndarray,
+    uv: np.ndarray,
+    inv_sigma_px: np.ndarray,
+    z_meas: np.ndarray,
+    K: np.ndarray,
+    *,
+    inv_depth_sigma: float,
+    inliers: np.ndarray | None = None,
+    rounds: int = 4,
+    iterations: int = 8,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Refine camera_from_world on 3D-2D matches; returns the pose and the final inlier mask.
+
+    Residuals are the reprojection error in units of the keypoint's pyramid-level sigma and, where
+    the keypoint has a depth reading, the inverse-depth error in units of `inv_depth_sigma`
+    (1/m), which constrains translation along the optical axis that pixels alone see poorly.
+    Gauss-Newton with Huber weights runs `rounds` times; between rounds observations are
+    re-classified by a chi-square test so a wrong match cannot pull the pose (the scheme of
+    ORB-SLAM's pose-only optimisation).
+    """
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    R = camera_from_world[:3, :3].copy()
+    t = camera_from_world[:3, 3].copy()
+    n = points_w.shape[0]
+    has_d = z_meas > 0.0
+    inv_z_meas = np.where(has_d, 1.0 / np.where(has_d, z_meas, 1.0), 0.0)
+    dsig = 1.0 / inv_depth_sigma
+    thr = np.where(has_d, _CHI2_3, _CHI2_2)
+    delta_h = np.sqrt(thr)
+    active = np.ones(n, dtype=bool) if inliers is None else inliers.copy()
+
+    def residuals(Rm: np.ndarray, tv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        p = points_w @ Rm.T + tv
+        z = p[:, 2]
+        iz = 1.0 / np.where(z > 1e-6, z, 1e-6)
+        r = np.empty((n, 3))
+        r[:, 0] = (fx * p[:, 0] * iz + cx - uv[:, 0]) * inv_sigma_px
+        r[:, 1] = (fy * p[:, 1] * iz + cy - uv[:, 1]) * inv_sigma_px
+        r[:, 2] = np.where(has_d, (iz - inv_z_meas) * dsig, 0.0)
+        chi2 = np.where(z > 1e-6, (r * r).sum(axis=1), np.inf)
+        return p, r, chi2
+
+    for rnd in range(rounds):
+        if int(active.sum()) < 6:
+            break
+        for _ in range(iterations):
+            p, r, chi2 = residuals(R, t)
+            a = active & np.isfinite(chi2)
+            if int(a.sum()) < 6:
+                break
+            pa, ra = p[a], r[a]
+            s = inv_sigma_px[a]
+            x, y, z = pa[:, 0], pa[:, 1], pa[:, 2]
+            iz = 1.0 / z
+            # d(residual)/d(point in camera), rows u, v, inverse depth.
+            Jp = np.zeros((pa.shape[0], 3, 3))
+            Jp[:, 0, 0] = fx * iz * s
+            Jp[:, 0, 2] = -fx * x * iz * iz * s
+            Jp[:, 1, 1] = fy * iz * s
+            Jp[:, 1, 2] = -fy * y * iz * iz * s
+            Jp[:, 2, 2] = np.where(has_d[a], -iz * iz * dsig, 0.0)
+            # Left perturbation p' = exp(phi) p + rho: dp/drho = I, dp/dphi = -[p]x, and
+            # row^T (-[p]x) = (p x row)^T.
+            J = np.concatenate([Jp, np.cross(pa[:, None, :], Jp)], axis=2)
+            e = np.sqrt(chi2[a])
+            w = np.where(e <= delta_h[a], 1.0, delta_h[a] / np.maximum(e, 1e-12))
+            H = np.einsum("n,nki,nkj->ij", w, J, J)
+            g = np.einsum("n,nki,nk->i", w, J, ra)
+            H[np.diag_indices(6)] += 1e-9 + 1e-6 * np.diag(H)
+            try:
+                dx = -np.linalg.solve(H, g)
+            except np.linalg.LinAlgError:
+                break
+            dR = so3_exp(dx[3:])
+            R = dR @ R
+            t = dR @ t + dx[:3]
+            if float(dx @ dx) < 1e-14:
+                break
+        _, _, chi2 = residuals(R, t)
+        new_active = chi2 <= thr
+        if rnd > 0 and np.array_equal(new_active, active):
+            break
+        active = new_active
+    # Re-orthonormalise: many small multiplicative updates accumulate rounding.
+    U, _, Vt = np.linalg.svd(R)
+    R = U @ Vt
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    _, _, chi2 = residuals(R, t)
+    return T, chi2 <= thr
+
+
+# ----------------------------------------------------------------------------------------------
+# Map storage.
+
+
+class _MapPoints:
+    """Growable column store of map points (world position, descriptor, bookkeeping)."""
+
+    def __init__(self) -> None:
+        self.size = 0
+        cap = 4096
+        self.xyz = np.zeros((cap, 3))
+        self.desc = np.zeros((cap, DESCRIPTOR_BYTES), np.uint8)
+        self.weight = np.zeros(cap)
+        self.n_obs = np.zeros(cap, np.int32)
+        self.n_visible = np.zeros(cap, np.int32)
+        self.n_found = np.zeros(cap, np.int32)
+        self.bad = np.zeros(cap, bool)
+
+    def _grow(self, need: int) -> None:
+        cap = self.xyz.shape[0]
+        if need <= cap:
+            return
+        new_cap = max(need, 2 * cap)
+        for name in ("xyz", "desc", "weight", "n_obs", "n_visible", "n_found", "bad"):
+            old = getattr(self, name)
+            arr = np.zeros((new_cap,) + old.shape[1:], old.dtype)
+            arr[:cap] = old
+            setattr(self, name, arr)
+
+    def add(self, xyz: np.ndarray, desc: np.ndarray, weight: np.ndarray) -> np.ndarray:
+        n = xyz.shape[0]
+        self._grow(self.size + n)
+        ids = np.arange(self.size, self.size + n)
+        self.xyz[ids] = xyz
+        self.desc[ids] = desc
+        self.weight[ids] = weight
+        self.n_obs[ids] = 1
+        self.size += n
+        return ids
+
+
+@dataclass
+class _Keyframe:
+    id: int
+    seq: int
+    world_from_camera: np.ndarray
+    point_ids: np.ndarray  # sorted unique map point ids this keyframe observes
+
+
+@dataclass
+class _Tracked:
+    """Outcome of matching and pose estimation for one frame."""
+
+    camera_from_world: np.ndarray
+    kp_idx: np.ndarray  # keypoint indices of inlier matches
+    map_idx: np.ndarray  # map point ids of inlier matches
+    n_matches: int
+    n_inliers: int
+
+
+# ----------------------------------------------------------------------------------------------
+
+
+class RgbdOdometry:
+    """Frame-to-local-map RGB-D odometry. Call `track` once per frame, in time order."""
+
+    def __init__(
+        self,
+        *,
+        n_features: int = 1000,
+        grid_cols: int = 8,
+        grid_rows: int = 6,
+        fast_threshold: int = 12,
+        n_levels: int = 8,
+        scale_factor: float = 1.2,
+        min_depth_m: float = 0.2,
+        max_depth_m: float = 6.0,
+        max_new_point_depth_m: float = 4.0,
+        depth_edge_spread: float = 0.04,
+        inv_depth_sigma: float = 0.01,
+        search_radius_px: float = 15.0,
+        refine_radius_px: float = 4.0,
+        max_hamming: int = 80,
+        match_ratio: float = 0.9,
+        ransac_reproj_px: float = 4.0,
+        ransac_iterations: int = 100,
+        min_init_points: int = 100,
+        min_inliers: int = 20,
+        kf_translation_m: float = 0.06,
+        kf_rotation_deg: float = 6.0,
+        kf_min_overlap: float = 0.5,
+        n_local_keyframes: int = 8,
+        n_recent_keyframes: int = 2,
+        cull_min_visible: int = 12,
+        cull_min_found_ratio: float = 0.2,
+    ) -> None:
+        if n_features < 50:
+            raise TrackingError(f"n_features={n_features}: need at least 50 features to track")
+        if not 0.0 < min_depth_m < max_depth_m:
+            raise TrackingError(f"depth range [{min_depth_m}, {max_depth_m}] m is empty")
+        if min_inliers < 6:
+            raise TrackingError(f"min_inliers={min_inliers}: a pose needs at least 6 inliers")
+        if n_local_keyframes < 1 or n_recent_keyframes < 1:
+            raise TrackingError("n_local_keyframes and n_recent_keyframes must be at least 1")
+        if not 0.0 < match_ratio <= 1.0:
+            raise TrackingError(f"match_ratio={match_ratio}: must be in (0, 1]")
+        self._extractor = OrbExtractor(
+            n_features=n_features,
+            grid_cols=grid_cols,
+            grid_rows=grid_rows,
+            fast_threshold=fast_threshold,
+            n_levels=n_levels,
+            scale_factor=scale_factor,
+        )
+        self._scale_factor = scale_factor
+        self._min_depth = min_depth_m
+        self._max_depth = max_depth_m
+        self._max_new_depth = max_new_point_depth_m
+        self._edge_spread = depth_edge_spread
+        self._inv_depth_sigma = inv_depth_sigma
+        self._search_radius = search_radius_px
+        self._refine_radius = refine_radius_px
+        self._max_hamming = max_hamming
+        self._ratio = match_ratio
+        self._ransac_px = ransac_reproj_px
+        self._ransac_iters = ransac_iterations
+        self._min_init = min_init_points
+        self._min_inliers = min_inliers
+        self._kf_trans = kf_translation_m
+        self._kf_rot = math.radians(kf_rotation_deg)
+        self._kf_overlap = kf_min_overlap
+        self._n_local_kf = n_local_keyframes
+        self._n_recent_kf = n_recent_keyframes
+        self._cull_visible = cull_min_visible
+        self._cull_ratio = cull_min_found_ratio
+
+        self._intrinsics: Intrinsics | None = None
+        self._undistort: Undistorter | None = None
+        self._map = _MapPoints()
+        self._keyframes: list[_Keyframe] = []
+        self._kf_pos = np.zeros((0, 3))
+        self._kf_axis = np.zeros((0, 3))
+        self._last_pose: np.ndarray | None = None  # world_from_camera of the previous frame
+        self._last_stamp = 0
+        self._last_ok = False
+        self._last_tracked_pose: np.ndarray | None = None
+        self._velocity: tuple[np.ndarray, np.ndarray, int] | None = None  # rotvec, trans, dt_ns
+
+    # -- public ---------------------------------------------------------------------------------
+
+    @property
+    def n_keyframes(self) -> int:
+        return len(self._keyframes)
+
+    @property
+    def n_map_points(self) -> int:
+        return self._map.size
+
+    def track(self, frame: RgbdFrame) -> TrackResult:
+        """Estimate world_from_camera of `frame`; never raises for bad image content."""
+        gray = self._check_frame(frame)
+        feats = self._features(frame, gray)
+        if not self._keyframes:
+            return self._try_initialise(frame, feats)
+
+        predicted = self._predict(frame.stamp_ns)
+        tracked = self._track_against_map(feats, predicted)
+        if tracked is None:
+            self._remember(frame.stamp_ns, predicted, ok=False)
+            return TrackResult(frame.seq, frame.stamp_ns, predicted.copy(), STATE_LOST, False, -1, 0, 0)
+
+        pose = invert(tracked.camera_from_world)
+        self._remember(frame.stamp_ns, pose, ok=True)
+        kf_id = -1
+        if self._need_keyframe(pose, tracked):
+            kf_id = self._insert_keyframe(frame.seq, pose, feats, tracked)
+        return TrackResult(
+            frame.seq, frame.stamp_ns, pose.copy(), STATE_OK, kf_id >= 0, kf_id, tracked.n_matches, tracked.n_inliers
+        )
+
+    # -- input ----------------------------------------------------------------------------------
+
+    def _check_frame(self, frame: RgbdFrame) -> np.ndarray:
+        """Grey image of the frame; TrackingError when the frame cannot match its intrinsics."""
+        intr = frame.intrinsics
+        rgb, depth = frame.rgb, frame.depth
+        if rgb.ndim not in (2, 3) or (rgb.ndim == 3 and rgb.shape[2] != 3) or rgb.dtype != np.uint8:
+            raise TrackingError(f"frame {frame.seq}: colour must be (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
+        if rgb.shape[:2] != (intr.height, intr.width):
+            raise TrackingError(
+                f"frame {frame.seq}: image is {rgb.shape[1]}x{rgb.shape[0]} but intrinsics say "
+                f"{intr.width}x{intr.height}"
+            )
+        if depth.ndim != 2 or depth.shape != rgb.shape[:2]:
+            raise TrackingError(f"frame {frame.seq}: depth {depth.shape} does not match colour {rgb.shape[:2]}")
+        if not np.issubdtype(depth.dtype, np.integer):
+            raise TrackingError(f"frame {frame.seq}: depth must be integer sensor units, got {depth.dtype}")
+        if not (frame.depth_scale_m > 0.0 and math.isfinite(frame.depth_scale_m)):
+            raise TrackingError(f"frame {frame.seq}: depth_scale_m={frame.depth_scale_m} must be positive")
+        if intr != self._intrinsics:
+            if self._intrinsics is not None and self._keyframes:
+                raise TrackingError(f"frame {frame.seq}: intrinsics changed while tracking")
+            self._intrinsics = intr
+            self._undistort = Undistorter(intr)
+        return rgb if rgb.ndim == 2 else cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+
+    def _features(self, frame: RgbdFrame, gray: np.ndarray) -> FrameFeatures:
+        assert self._undistort is not None
+        pts, octave, desc = self._extractor.extract(gray)
+        z = lookup_depth(
+            frame.depth,
+            frame.depth_scale_m,
+            pts,
+            min_depth_m=self._min_depth,
+            max_depth_m=self._max_depth,
+            max_spread=self._edge_spread,
+        )
+        uv = self._undistort(pts)
+        return FrameFeatures(uv=uv, octave=octave, desc=desc, z=z, xyz=backproject(uv, z, self._undistort.K))
+
+    # -- motion model ---------------------------------------------------------------------------
+
+    def _predict(self, stamp_ns: int) -> np.ndarray:
+        """Constant-velocity prediction of world_from_camera, scaled to the frame interval."""
+        assert self._last_pose is not None
+        if self._velocity is None:
+            return self._last_pose.copy()
+        rotvec, trans, dt_ns = self._velocity
+        dt_new = stamp_ns - self._last_stamp
+        s = dt_new / dt_ns if dt_ns > 0 and dt_new > 0 else 1.0
+        s = min(s, 4.0)  # a long gap is a stall, not a reason to extrapolate far
+        step = np.eye(4)
+        step[:3, :3] = so3_exp(rotvec * s)
+        step[:3, 3] = trans * s
+        return self._last_pose @ step
+
+    def _remember(self, stamp_ns: int, pose: np.ndarray, *, ok: bool) -> None:
+        if ok and self._last_ok and self._last_pose is not None:
+            step = invert(self._last_pose) @ pose
+            self._velocity = (so3_log(step[:3, :3]), step[:3, 3].copy(), stamp_ns - self._last_stamp)
+        elif ok:
+            # Recovered from LOST: the previous pose was a guess, so the velocity is unknown.
+            self._velocity = None
+        if ok:
+            self._last_tracked_pose = pose.copy()
+        self._last_pose = pose.copy()
+        self._last_stamp = stamp_ns
+        self._last_ok = ok
+
+    # -- initialisation -------------------------------------------------------------------------
+
+    def _try_initialise(self, frame: RgbdFrame, feats: FrameFeatures) -> TrackResult:
+        pose = np.eye(4)
+        if int(feats.has_depth.sum()) < self._min_init:
+            return TrackResult(frame.seq, frame.stamp_ns, pose, STATE_LOST, False, -1, 0, 0)
+        empty = np.zeros(0, np.int64)
+        tracked = _Tracked(np.eye(4), empty, empty, 0, 0)
+        kf_id = self._insert_keyframe(frame.seq, pose, feats, tracked)
+        self._remember(frame.stamp_ns, pose, ok=True)
+        return TrackResult(frame.seq, frame.stamp_ns, pose.copy(), STATE_INIT, True, kf_id, 0, 0)
+
+    # -- tracking -------------------------------------------------------------------------------
+
+    def _local_points(self, world_from_camera: np.ndarray) -> np.ndarray:
+        """Sorted ids of good map points seen by the keyframes nearest to a pose plus the newest."""
+        n_kf = len(self._keyframes)
+        axis = world_from_camera[:3, 2]
+        dist = np.linalg.norm(self._kf_pos - world_from_camera[:3, 3], axis=1)
+        angle = np.arccos(np.clip(self._kf_axis @ axis, -1.0, 1.0))
+        # 0.3 m per radian: roughly how far a move changes the view as much as a turn does.
+        score = dist + 0.3 * angle
+        score[max(0, n_kf - self._n_recent_kf) :] = -1.0
+        order = np.lexsort((np.arange(n_kf), score))[: self._n_local_kf]
+        ids = np.unique(np.concatenate([self._keyframes[i].point_ids for i in np.sort(order)]))
+        return ids[~self._map.bad[ids]]
+
+    def _project(self, ids: np.ndarray, camera_from_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Projected pixels of map points and the mask of those in front of and inside the image."""
+        assert self._intrinsics is not None
+        intr = self._intrinsics
+        p = self._map.xyz[ids] @ camera_from_world[:3, :3].T + camera_from_world[:3, 3]
+        z = p[:, 2]
+        front = z > self._min_depth * 0.5
+        zs = np.where(front, z, 1.0)
+        uv = np.empty((ids.size, 2))
+        uv[:, 0] = intr.fx * p[:, 0] / zs + intr.cx
+        uv[:, 1] = intr.fy * p[:, 1] / zs + intr.cy
+        inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < intr.width) & (uv[:, 1] >= 0) & (uv[:, 1] < intr.height)
+        return uv, inside
+
+    def _guided(
+        self, feats: FrameFeatures, ids: np.ndarray, camera_from_world: np.ndarray, radius: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(keypoint idx, map id) matches of local points projected with a pose; also visible ids."""
+        uv, inside = self._project(ids, camera_from_world)
+        vis = ids[inside]
+        mi, ki, _ = match_by_projection(
+            uv[inside],
+            self._map.desc[vis],
+            feats.uv,
+            feats.desc,
+            radius=radius,
+            max_distance=self._max_hamming,
+            ratio=self._ratio,
+        )
+        return ki, vis[mi], vis
+
+    def _solve(
+        self, feats: FrameFeatures, kp_idx: np.ndarray, map_idx: np.ndarray, guess_cw: np.ndarray, use_ransac: bool
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Pose (camera_from_world) and inlier mask from matches, or None when unreliable."""
+        assert self._undistort is not None
+        K = self._undistort.K
+        if kp_idx.size < self._min_inliers:
+            return None
+        pts_w = self._map.xyz[map_idx]
+        uv = feats.uv[kp_idx]
+        init_inl = None
+        guess = guess_cw
+        if use_ransac:
+            cv2.setRNGSeed(_RANSAC_SEED)
+            try:
+                ok, rvec, tvec, inl = cv2.solvePnPRansac(
+                    pts_w.reshape(-1, 1, 3),
+                    uv.reshape(-1, 1, 2),
+                    K,
+                    None,
+                    iterationsCount=self._ransac_iters,
+                    reprojectionError=self._ransac_px,
+                    confidence=0.999,
+                    flags=cv2.SOLVEPNP_EPNP,
+                )
+            except cv2.error:
+                return None
+            if not ok or inl is None or inl.size < self._min_inliers:
+                return None
+            guess = np.eye(4)
+            guess[:3, :3] = cv2.Rodrigues(rvec)[0]
+            guess[:3, 3] = tvec.ravel()
+            init_inl = np.zeros(kp_idx.size, dtype=bool)
+            init_inl[inl.ravel()] = True
+        inv_sigma = self._scale_factor ** (-feats.octave[kp_idx].astype(np.float64))
+        T, inl_mask = optimize_pose(
+            guess,
+            pts_w,
+            uv,
+            inv_sigma,
+            feats.z[kp_idx],
+            K,
+            inv_depth_sigma=self._inv_depth_sigma,
+            inliers=init_inl,
+        )
+        if int(inl_mask.sum()) < self._min_inliers or not np.all(np.isfinite(T)):
+            return None
+        return T, inl_mask
+
+    def _track_against_map(self, feats: FrameFeatures, predicted_wc: np.ndarray) -> _Tracked | None:
+        """Match and estimate the pose; None when the frame cannot be tracked."""
+        if len(feats) < self._min_inliers:
+            return None
+        guess_cw = invert(predicted_wc)
+        local = self._local_points(predicted_wc)
+        ki, mi, _ = self._guided(feats, local, guess_cw, self._search_radius)
+        if ki.size < 3 * self._min_inliers:
+            ki, mi, _ = self._guided(feats, local, guess_cw, 3.0 * self._search_radius)
+        first = self._solve(feats, ki, mi, guess_cw, use_ransac=True) if ki.size >= self._min_inliers else None
+        if first is None:
+            # No usable prior (after LOST or a jolt): match descriptors against the map around the
+            # last tracked pose, which is where tracking resumes.
+            assert self._last_tracked_pose is not None
+            local = self._local_points(self._last_tracked_pose)
+            q, tr, _ = match_brute_force(feats.desc, self._map.desc[local], max_distance=64, ratio=0.8)
+            ki, mi = q, local[tr]
+            first = self._solve(feats, ki, mi, guess_cw, use_ransac=True)
+            if first is None:
+                return None
+        T_cw, _ = first
+
+        # Second pass: with a good pose, all local points can be matched in a tight window.
+        ki2, mi2, visible = self._guided(feats, local, T_cw, self._refine_radius)
+        second = self._solve(feats, ki2, mi2, T_cw, use_ransac=False)
+        if second is not None and int(second[1].sum()) >= int(first[1].sum()) // 2:
+            T_cw, inl = second
+            ki, mi = ki2, mi2
+        else:
+            inl = first[1]
+        self._map.n_visible[visible] += 1
+        self._map.n_found[mi[inl]] += 1
+        return _Tracked(T_cw, ki[inl], mi[inl], int(ki.size), int(inl.sum()))
+
+    # -- keyframes ------------------------------------------------------------------------------
+
+    def _need_keyframe(self, pose: np.ndarray, tracked: _Tracked) -> bool:
+        ref = self._keyframes[-1]
+        rel = invert(ref.world_from_camera) @ pose
+        if float(np.linalg.norm(rel[:3, 3])) > self._kf_trans or rotation_angle(rel[:3, :3]) > self._kf_rot:
+            return True
+        shared = int(np.isin(tracked.map_idx, ref.point_ids, assume_unique=True).sum())
+        return shared < self._kf_overlap * ref.point_ids.size
+
+    def _insert_keyframe(self, seq: int, pose: np.ndarray, feats: FrameFeatures, tracked: _Tracked) -> int:
+        """Add a keyframe: fuse depth into its matched points, create points for the rest."""
+        mp = self._map
+        R, t = pose[:3, :3], pose[:3, 3]
+        z = feats.z
+        # Information of a depth reading: Kinect-type noise grows with the square of the depth.
+        weight_of = lambda zz: 1.0 / (zz * zz) ** 2  # noqa: E731
+
+        kp_m, ids_m = tracked.kp_idx, tracked.map_idx
+        with_d = z[kp_m] > 0.0
+        if np.any(with_d):
+            k, ids = kp_m[with_d], ids_m[with_d]
+            obs = feats.xyz[k] @ R.T + t
+            w_new = weight_of(z[k])
+            w_old = mp.weight[ids]
+            mp.xyz[ids] = (mp.xyz[ids] * w_old[:, None] + obs * w_new[:, None]) / (w_old + w_new)[:, None]
+            mp.weight[ids] = w_old + w_new
+        # The newest appearance matches the next frames best.
+        mp.desc[ids_m] = feats.desc[kp_m]
+        mp.n_obs[ids_m] += 1
+
+        fresh = np.ones(len(feats), dtype=bool)
+        fresh[kp_m] = False
+        fresh &= (z > 0.0) & (z <= self._max_new_depth)
+        k = np.flatnonzero(fresh)
+        new_ids = mp.add(feats.xyz[k] @ R.T + t, feats.desc[k], weight_of(z[k]))
+
+        # Retire points that are seen in view but rarely matched: likely bad depth or repeats.
+        n = mp.size
+        bad = (mp.n_visible[:n] >= self._cull_visible) & (
+            mp.n_found[:n] < self._cull_ratio * mp.n_visible[:n]
+        )
+        mp.bad[:n] |= bad & (mp.n_obs[:n] < 3)
+
+        kf_id = len(self._keyframes)
+        point_ids = np.unique(np.concatenate([ids_m, new_ids]))
+        self._keyframes.append(_Keyframe(kf_id, seq, pose.copy(), point_ids))
+        self._kf_pos = np.vstack([self._kf_pos, t[None, :]])
+        self._kf_axis = np.vstack([self._kf_axis, R[:, 2][None, :]])
+        return kf_id
