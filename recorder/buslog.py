@@ -1,7 +1,9 @@
 """The session logger: every pipeline topic, as published on the bus, into one MCAP file.
 
-It runs as its own process (`octolog log`), subscribes before the source starts, and finishes
-when every stream has ended: the counts announced by the end-of-stream messages are all in.
+It runs as its own process (`octolog log`), subscribes before the source starts, and finishes when
+every producer has sent its end-of-stream message. A producer's end message travels behind all its
+data on the same link, so at that moment the logger holds everything that producer sent, or knows
+exactly how much went missing.
 """
 
 from __future__ import annotations
@@ -14,20 +16,18 @@ from octolog.bus import Bus, BusConfig
 from octolog.mcaplog import McapWriter
 from schemas import topics as T
 
+# end message -> (producing stage, the data topics it closes)
+ENDS = {
+    T.RGBD_END: ("replay", (T.RGBD,)),
+    T.KEYFRAME_END: ("tracker", (T.KEYFRAME,)),
+    T.MAP_END: ("mapper", (T.MAP_UPDATE,)),
+}
+
 
 @dataclass
 class LogResult:
     counts: dict[str, int] = field(default_factory=dict)
     path: str = ""
-
-
-# Which data topics each end-of-stream message closes, and how their counts relate.
-def _expected(ends: dict[str, int]) -> dict[str, int] | None:
-    if not {T.RGBD_END.name, T.KEYFRAME_END.name, T.MAP_END.name} <= set(ends):
-        return None
-    frames, kfs = ends[T.RGBD_END.name], ends[T.KEYFRAME_END.name]
-    return {T.RGBD.name: frames, T.TRACKING_STATUS.name: frames, T.KEYFRAME.name: kfs,
-            T.MAP_UPDATE.name: ends[T.MAP_END.name]}
 
 
 def run(bus_cfg: BusConfig, out: Path, *, compression: str = "zstd", metadata: dict[str, dict[str, str]] | None = None,
@@ -39,19 +39,22 @@ def run(bus_cfg: BusConfig, out: Path, *, compression: str = "zstd", metadata: d
         bus.subscribe(T.ALL)
         bus.announce()
         bus.watch(stages)
-        ends: dict[str, int] = {}
-        while True:
-            expected = _expected(ends)
-            if expected is not None and all(result.counts.get(k, 0) >= v for k, v in expected.items()):
-                break
+        pending = {stage for stage, _ in ENDS.values() if stage in stages}
+        while pending:
             r = bus.receive()
             if r is None:
                 continue
             now = time.time_ns()
             mcap.write(r.topic.name, r.topic.msgtype, r.payload, log_time_ns=now, publish_time_ns=now)
             result.counts[r.topic.name] = result.counts.get(r.topic.name, 0) + 1
-            if r.topic in (T.RGBD_END, T.KEYFRAME_END, T.MAP_END):
-                ends[r.topic.name] = int(r.decode().count)
-                producer = {T.RGBD_END: "replay", T.KEYFRAME_END: "tracker", T.MAP_END: "mapper"}[r.topic]
-                bus.unwatch(producer)
+            if r.topic in ENDS:
+                stage, closes = ENDS[r.topic]
+                announced = int(r.decode().count)
+                for topic in closes:
+                    bus.expect_count(topic, result.counts.get(topic.name, 0), announced)
+                bus.unwatch(stage)
+                pending.discard(stage)
+        if "tracker" in stages and "replay" in stages:  # one status per frame the tracker consumed
+            bus.expect_count(T.TRACKING_STATUS, result.counts.get(T.TRACKING_STATUS.name, 0),
+                             result.counts.get(T.RGBD.name, 0))
     return result

@@ -21,7 +21,7 @@ import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 from fractions import Fraction
-from functools import cached_property
+from functools import cached_property, lru_cache
 from typing import Any
 
 import numpy as np
@@ -100,7 +100,8 @@ class SyntheticConfig:
     cy: float | None = None  # default (height - 1) / 2
     min_depth_m: float = 0.1  # nearer hits read 0
     max_depth_m: float = 8.0  # farther hits read 0 (colour is still rendered)
-    texel_m: float = 0.005  # texture resolution
+    texel_m: float = 0.005  # texture resolution (finest mip level)
+    mip_levels: int = 4  # texture pyramid levels (1 = no mip-mapping)
     start_ns: int = EPOCH_NS  # stamp of frame 0
     nthreads: int = 0  # ray-casting threads, 0 = all
 
@@ -127,7 +128,6 @@ def _trajectory(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         [ax * np.cos(th), ay * np.sin(th), 1.35 + 0.15 * np.sin(2.0 * math.pi * t / 7.0)], axis=1
     )
     heading = np.arctan2(ay * np.cos(th), -ax * np.sin(th))
-    heading = np.unwrap(heading) if heading.size > 1 else heading
     yaw = heading + math.radians(30.0) + math.radians(20.0) * np.sin(2.0 * math.pi * t / 7.3)
     pitch = math.radians(-8.0) + math.radians(7.0) * np.sin(2.0 * math.pi * t / 5.3 + 1.0)
     roll = math.radians(3.0) * np.sin(2.0 * math.pi * t / 4.1)
@@ -179,7 +179,7 @@ def _value_noise(u: np.ndarray, v: np.ndarray, cell: float, salt: int) -> np.nda
 
 
 def _face_texture(face: _Face, index: int, seed: int, texel: float) -> np.ndarray:
-    """The baked (nu, nv, 3) uint8 texture of one face, texel (i, j) at (i, j) * texel."""
+    """The baked (nu, nv, 3) float32 texture (0..255) of one face, texel (i, j) at (i, j) * texel."""
     rng = np.random.default_rng([seed, index, 0x5EED])
     salt = int(rng.integers(0, 2**62))
     lu, lv = float(np.linalg.norm(face.u)), float(np.linalg.norm(face.v))
@@ -224,19 +224,125 @@ def _face_texture(face: _Face, index: int, seed: int, texel: float) -> np.ndarra
 
     img += 0.06 * (_value_noise(uu, vv, 0.012, salt + 99)[..., None] - np.float32(0.5))
 
-    # Separable [1 2 1] / 4 blur against aliasing at a distance.
-    img[1:-1] = 0.25 * img[:-2] + 0.5 * img[1:-1] + 0.25 * img[2:]
-    img[:, 1:-1] = 0.25 * img[:, :-2] + 0.5 * img[:, 1:-1] + 0.25 * img[:, 2:]
+    img = _blur121(img)  # soften texel-sized steps
 
     # View-independent shading: ambient plus a fixed directional light.
     light = np.array([0.35, -0.25, -0.9])
     light /= np.linalg.norm(light)
     shade = 0.55 + 0.45 * abs(float(face.normal @ light))
     img *= np.float32(255.0 * shade)
-    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+    return np.clip(img, 0.0, 255.0)
+
+
+def _blur121(img: np.ndarray) -> np.ndarray:
+    """Separable [1 2 1] / 4 blur with edge replication."""
+    p = np.pad(img, ((1, 1), (1, 1), (0, 0)), mode="edge")
+    p = 0.25 * p[:-2] + 0.5 * p[1:-1] + 0.25 * p[2:]
+    return 0.25 * p[:, :-2] + 0.5 * p[:, 1:-1] + 0.25 * p[:, 2:]
+
+
+def _pyramid(img: np.ndarray, levels: int) -> list[np.ndarray]:
+    """Mip levels: level l+1 texel i sits on level l texel 2i, [1 2 1]-filtered."""
+    out = [img]
+    for _ in range(levels - 1):
+        prev = out[-1]
+        nu, nv = (prev.shape[0] + 2) // 2, (prev.shape[1] + 2) // 2  # ceil((n-1)/2)+1
+        p = np.pad(prev, ((0, 2 * nu - prev.shape[0]), (0, 2 * nv - prev.shape[1]), (0, 0)), mode="edge")
+        out.append(_blur121(p)[: 2 * nu : 2, : 2 * nv : 2])
+    return out
 
 
 # --------------------------------------------------------------------------- the scene
+
+
+@lru_cache(maxsize=1)
+def _scene_faces() -> tuple[_Face, ...]:
+    """Room faces (normals inward) then the visible faces of the objects (normals outward)."""
+    faces: list[_Face] = []
+    room_c = ROOM.centre()
+    for o, u, v in ROOM.faces():
+        n = np.cross(u, v)
+        n /= np.linalg.norm(n)
+        if n @ (room_c - (o + 0.5 * (u + v))) < 0:
+            n = -n
+        faces.append(_Face(o, u, v, n, -1))
+    for k, box in enumerate(OBJECTS):
+        bc = box.centre()
+        for o, u, v in box.faces():
+            fc = o + 0.5 * (u + v)
+            # Faces lying on the room's shell or on another object can never be seen.
+            on_shell = np.any(np.abs(np.abs(fc - room_c) - ROOM.half()) < _EPS)
+            hidden = any(b.contains(fc[None])[0] for j, b in enumerate(OBJECTS) if j != k)
+            if on_shell or hidden:
+                continue
+            n = np.cross(u, v)
+            n /= np.linalg.norm(n)
+            if n @ (fc - bc) < 0:
+                n = -n
+            faces.append(_Face(o, u, v, n, k))
+    return tuple(faces)
+
+
+@lru_cache(maxsize=1)
+def _scene_triangles() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Vertices (4F, 3), triangles (2F, 3) wound towards free space, triangle -> face (2F,)."""
+    verts, tris = [], []
+    for f, face in enumerate(_scene_faces()):
+        o, u, v = face.origin, face.u, face.v
+        verts += [o, o + u, o + u + v, o + v]
+        b = 4 * f
+        if np.cross(u, v) @ face.normal > 0:
+            tris += [[b, b + 1, b + 2], [b, b + 2, b + 3]]
+        else:
+            tris += [[b, b + 2, b + 1], [b, b + 3, b + 2]]
+    out = (
+        np.array(verts, dtype=np.float64),
+        np.array(tris, dtype=np.int32),
+        np.repeat(np.arange(len(verts) // 4), 2),
+    )
+    for a in out:
+        a.setflags(write=False)
+    return out
+
+
+@dataclass(frozen=True)
+class _Textures:
+    atlas: np.ndarray  # (M,) uint32: RGBA texels of every face and mip level
+    info: np.ndarray  # (levels, 2F, 3) int32: per level and triangle (atlas base, nu, nv)
+    coef: np.ndarray  # (2F, 6) float32: level-0 texel coords of vertex 0 and of its two edges
+    normal: np.ndarray  # (2F, 3) float32: triangle normals
+
+
+@lru_cache(maxsize=2)
+def _scene_textures(seed: int, texel: float, levels: int) -> _Textures:
+    """Bake every face's texture pyramid into one flat atlas (shared by scenes alike)."""
+    faces = _scene_faces()
+    verts, tris, tri_face = _scene_triangles()
+    chunks, info, base = [], np.zeros((levels, len(faces), 3), dtype=np.int64), 0
+    for f, face in enumerate(faces):
+        for lv, img in enumerate(_pyramid(_face_texture(face, f, seed, texel), levels)):
+            rgba = np.zeros((img.shape[0] * img.shape[1], 4), dtype=np.uint8)
+            rgba[:, :3] = np.rint(img).reshape(-1, 3)
+            chunks.append(rgba.view(np.uint32).ravel())
+            info[lv, f] = (base, img.shape[0], img.shape[1])
+            base += len(chunks[-1])
+    coef = np.empty((len(tris), 6))
+    for k, (tri, f) in enumerate(zip(tris, tri_face)):
+        face = faces[f]
+        uh = face.u / np.linalg.norm(face.u)
+        vh = face.v / np.linalg.norm(face.v)
+        rel = verts[tri] - face.origin
+        uv = np.stack([rel @ uh, rel @ vh], axis=1) / texel
+        coef[k] = [*uv[0], *(uv[1] - uv[0]), *(uv[2] - uv[0])]
+    out = _Textures(
+        atlas=np.concatenate(chunks),
+        info=np.ascontiguousarray(info[:, tri_face].astype(np.int32)),
+        coef=coef.astype(np.float32),
+        normal=np.array([faces[f].normal for f in tri_face], dtype=np.float32),
+    )
+    for a in (out.atlas, out.info, out.coef, out.normal):
+        a.setflags(write=False)
+    return out
 
 
 class SyntheticScene:
@@ -263,6 +369,8 @@ class SyntheticScene:
         cfg = self.config
         if cfg.n_frames < 0 or cfg.width <= 0 or cfg.height <= 0 or cfg.fps <= 0:
             raise ValueError(f"invalid synthetic scene parameters: {cfg}")
+        if cfg.texel_m <= 0 or cfg.mip_levels < 1:
+            raise ValueError(f"invalid synthetic scene texture parameters: {cfg}")
         f = 525.0 * cfg.width / 640.0
         self.intrinsics = Intrinsics(
             width=cfg.width,
@@ -285,10 +393,6 @@ class SyntheticScene:
         if not 0 <= i < self.config.n_frames:
             raise IndexError(f"frame {i} out of range [0, {self.config.n_frames})")
         return int(i)
-
-    def time_s(self, i: int) -> float:
-        """Seconds since frame 0."""
-        return self._check(i) / self.config.fps
 
     def stamp_ns(self, i: int) -> int:
         """Integer nanosecond stamp of frame i (exact 1/fps spacing, rounded)."""
@@ -326,54 +430,13 @@ class SyntheticScene:
     # ---------------------------------------------------------------- geometry
 
     @cached_property
-    def _faces(self) -> list[_Face]:
-        faces: list[_Face] = []
-        room_c = ROOM.centre()
-        for o, u, v in ROOM.faces():
-            n = np.cross(u, v)
-            n /= np.linalg.norm(n)
-            if n @ (room_c - (o + 0.5 * (u + v))) < 0:
-                n = -n
-            faces.append(_Face(o, u, v, n, -1))
-        for k, box in enumerate(OBJECTS):
-            bc = box.centre()
-            for o, u, v in box.faces():
-                fc = o + 0.5 * (u + v)
-                # Faces lying on the room's shell or on another object can never be seen.
-                on_shell = np.any(np.abs(np.abs(fc - room_c) - ROOM.half()) < _EPS)
-                hidden = any(b.contains(fc[None])[0] for j, b in enumerate(OBJECTS) if j != k)
-                if on_shell or hidden:
-                    continue
-                n = np.cross(u, v)
-                n /= np.linalg.norm(n)
-                if n @ (fc - bc) < 0:
-                    n = -n
-                faces.append(_Face(o, u, v, n, k))
-        return faces
-
-    @cached_property
-    def _triangles(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Vertices (4F, 3), triangles (2F, 3) wound towards free space, triangle -> face."""
-        verts, tris = [], []
-        for f, face in enumerate(self._faces):
-            o, u, v = face.origin, face.u, face.v
-            verts += [o, o + u, o + u + v, o + v]
-            b = 4 * f
-            if np.cross(u, v) @ face.normal > 0:
-                tris += [[b, b + 1, b + 2], [b, b + 2, b + 3]]
-            else:
-                tris += [[b, b + 2, b + 1], [b, b + 3, b + 2]]
-        tri_face = np.repeat(np.arange(len(self._faces)), 2)
-        return np.array(verts, dtype=np.float64), np.array(tris, dtype=np.int32), tri_face
-
-    @cached_property
     def mesh(self) -> Any:
         """The scene as an `open3d.geometry.TriangleMesh` (legacy), normals towards free space."""
         import open3d as o3d
 
-        verts, tris, _ = self._triangles
+        verts, tris, _ = _scene_triangles()
         m = o3d.geometry.TriangleMesh(
-            o3d.utility.Vector3dVector(verts), o3d.utility.Vector3iVector(tris)
+            o3d.utility.Vector3dVector(verts.copy()), o3d.utility.Vector3iVector(tris.copy())
         )
         m.compute_triangle_normals()
         return m
@@ -382,7 +445,7 @@ class SyntheticScene:
     def _raycaster(self) -> Any:
         import open3d as o3d
 
-        verts, tris, _ = self._triangles
+        verts, tris, _ = _scene_triangles()
         scene = o3d.t.geometry.RaycastingScene()
         scene.add_triangles(
             o3d.core.Tensor(verts.astype(np.float32)), o3d.core.Tensor(tris.astype(np.uint32))
@@ -404,7 +467,7 @@ class SyntheticScene:
         if spacing_m <= 0:
             raise ValueError("spacing_m must be positive")
         out = []
-        for face in self._faces:
+        for face in _scene_faces():
             nu = max(1, int(math.ceil(np.linalg.norm(face.u) / spacing_m)))
             nv = max(1, int(math.ceil(np.linalg.norm(face.v) / spacing_m)))
             a = (np.arange(nu) + 0.5) / nu
@@ -421,44 +484,48 @@ class SyntheticScene:
     # ---------------------------------------------------------------- rendering
 
     @cached_property
-    def _texture_atlas(self) -> tuple[np.ndarray, np.ndarray]:
-        """Flat texels (M,) as uint32 RGBA words and per-face (base index, nu, nv)."""
-        texs = [
-            _face_texture(face, f, self.config.seed, self.config.texel_m)
-            for f, face in enumerate(self._faces)
-        ]
-        dims = np.array([t.shape[:2] for t in texs], dtype=np.int64)
-        base = np.concatenate([[0], np.cumsum(dims[:, 0] * dims[:, 1])[:-1]])
-        rgba = np.zeros((int((dims[:, 0] * dims[:, 1]).sum()), 4), dtype=np.uint8)
-        rgba[:, :3] = np.concatenate([t.reshape(-1, 3) for t in texs], axis=0)
-        return rgba.view(np.uint32).ravel(), np.column_stack([base, dims])
+    def _textures(self) -> _Textures:
+        cfg = self.config
+        return _scene_textures(cfg.seed, cfg.texel_m, cfg.mip_levels)
 
     @cached_property
-    def _tri_lookup(self) -> tuple[np.ndarray, np.ndarray]:
-        """Per triangle: float32 (2F, 6) texel coordinates of vertex 0 and of the two edges from
-        it, and int64 (2F, 3) texture (base index, nu, nv)."""
-        verts, tris, tri_face = self._triangles
-        coef = np.empty((len(tris), 6))
-        for k, (tri, f) in enumerate(zip(tris, tri_face)):
-            face = self._faces[f]
-            uh = face.u / np.linalg.norm(face.u)
-            vh = face.v / np.linalg.norm(face.v)
-            rel = verts[tri] - face.origin
-            uv = np.stack([rel @ uh, rel @ vh], axis=1) / self.config.texel_m
-            coef[k] = [*uv[0], *(uv[1] - uv[0]), *(uv[2] - uv[0])]
-        return coef.astype(np.float32), self._texture_atlas[1][tri_face].astype(np.int32)
-
-    @cached_property
-    def _rays_camera(self) -> np.ndarray:
-        """Per-pixel ray directions (H*W, 3) in the camera frame with unit z (so t = depth)."""
+    def _rays_camera(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per-pixel ray directions (H*W, 3) in the camera frame with unit z (so t = depth),
+        and the reciprocal of their lengths."""
         K = self.intrinsics
         u, v = np.meshgrid(np.arange(K.width, dtype=np.float64), np.arange(K.height, dtype=np.float64))
-        d = np.stack([(u - K.cx) / K.fx, (v - K.cy) / K.fy, np.ones_like(u)], axis=-1)
-        return d.reshape(-1, 3).astype(np.float32)
+        d = np.stack([(u - K.cx) / K.fx, (v - K.cy) / K.fy, np.ones_like(u)], axis=-1).reshape(-1, 3)
+        return d.astype(np.float32), (1.0 / np.linalg.norm(d, axis=1)).astype(np.float32)
 
     def prepare(self) -> None:
-        """Build the mesh, textures and ray caster now rather than on the first render."""
-        _ = self._raycaster, self._tri_lookup, self._rays_camera
+        """Build the textures and ray caster now rather than on the first render."""
+        _ = self._raycaster, self._textures, self._rays_camera
+
+    def _sample(self, level: np.ndarray | int, prim: np.ndarray, tu: np.ndarray, tv: np.ndarray) -> np.ndarray:
+        """Bilinear texture samples (N, 4) float32 at level-0 texel coords (tu, tv) on mip `level`."""
+        tx = self._textures
+        ntri = tx.info.shape[1]
+        t = tx.info.reshape(-1, 3).take(prim + level * ntri, axis=0).astype(np.int64)
+        if np.ndim(level) or level:
+            scale = (np.float32(0.5) ** np.arange(self.config.mip_levels, dtype=np.float32))[level]
+            tu, tv = tu * scale, tv * scale
+        nv = t[:, 2]
+        # Texel coordinates are >= 0 up to rounding; clamp to the face's texture.
+        i0 = np.minimum(np.maximum(tu, 0.0).astype(np.int64), t[:, 1] - 2)
+        j0 = np.minimum(np.maximum(tv, 0.0).astype(np.int64), nv - 2)
+        a = np.clip(tu - i0.astype(np.float32), 0.0, 1.0)[:, None]
+        b = np.clip(tv - j0.astype(np.float32), 0.0, 1.0)[:, None]
+        k00 = t[:, 0] + i0 * nv + j0
+
+        def texel(k: np.ndarray) -> np.ndarray:
+            return tx.atlas.take(k).view(np.uint8).reshape(-1, 4).astype(np.float32)
+
+        top = texel(k00)
+        top += (texel(k00 + nv) - top) * a
+        bot = texel(k00 + 1)
+        bot += (texel(k00 + nv + 1) - bot) * a
+        top += (bot - top) * b
+        return top
 
     def render_pose(self, world_from_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Colour (H, W, 3) uint8 and depth (H, W) uint16 mm seen from an arbitrary pose."""
@@ -466,9 +533,10 @@ class SyntheticScene:
 
         cfg, K = self.config, self.intrinsics
         T = np.asarray(world_from_camera, dtype=np.float64)
+        dirs_cam, inv_len = self._rays_camera
         rays = np.empty((K.width * K.height, 6), dtype=np.float32)
         rays[:, :3] = T[:3, 3]
-        rays[:, 3:] = self._rays_camera @ T[:3, :3].T.astype(np.float32)
+        rays[:, 3:] = dirs_cam @ T[:3, :3].T.astype(np.float32)
         ans = self._raycaster.cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=cfg.nthreads)
         z = ans["t_hit"].numpy()
         prim = ans["primitive_ids"].numpy()
@@ -480,37 +548,42 @@ class SyntheticScene:
 
         hit = np.isfinite(z)
         all_hit = bool(hit.all())
+        dirs = rays[:, 3:]
         if not all_hit:
-            prim, bary = prim[hit], bary[hit]
-        coef, tex = self._tri_lookup
-        c = coef.take(prim, axis=0)
+            prim, bary, z, dirs, inv_len = prim[hit], bary[hit], z[hit], dirs[hit], inv_len[hit]
+        prim = prim.astype(np.int64)
+        tx = self._textures
+        c = tx.coef.take(prim, axis=0)
         b1, b2 = bary[:, 0], bary[:, 1]
         tu = c[:, 0] + b1 * c[:, 2] + b2 * c[:, 4]
         tv = c[:, 1] + b1 * c[:, 3] + b2 * c[:, 5]
-        t = tex.take(prim, axis=0)
-        nv = t[:, 2]
-        # Texel coordinates are >= 0 up to rounding; clamp to the face's texture.
-        i0 = np.minimum(np.maximum(tu, 0.0).astype(np.int32), t[:, 1] - 2)
-        j0 = np.minimum(np.maximum(tv, 0.0).astype(np.int32), nv - 2)
-        a = np.clip(tu - i0, 0.0, 1.0, dtype=np.float32)[:, None]
-        b = np.clip(tv - j0, 0.0, 1.0, dtype=np.float32)[:, None]
-        k00 = t[:, 0] + i0 * nv + j0
-        atlas = self._texture_atlas[0]
 
-        def texel(k: np.ndarray) -> np.ndarray:
-            return atlas.take(k).view(np.uint8).reshape(-1, 4).astype(np.float32)
-
-        top = texel(k00)
-        top += (texel(k00 + nv) - top) * a
-        bot = texel(k00 + 1)
-        bot += (texel(k00 + nv + 1) - bot) * a
-        top += (bot - top) * b
-        top += np.float32(0.5)
-        col = top[:, :3].astype(np.uint8)
+        levels = cfg.mip_levels
+        if levels == 1:
+            col = self._sample(0, prim, tu, tv)
+        else:
+            # Mip level from the pixel's footprint on the surface (geometric mean of its axes).
+            cos = np.abs(np.einsum("ij,ij->i", tx.normal.take(prim, axis=0), dirs)) * inv_len
+            foot = z * np.float32(1.0 / (K.fx * cfg.texel_m)) / np.sqrt(np.maximum(cos, np.float32(0.02)))
+            lod = np.clip(np.log2(np.maximum(foot, np.float32(1.0))), 0.0, levels - 1.0)
+            # Blend two levels only in a band around each level change ("brilinear"): smooth in
+            # distance, but most pixels need a single bilinear lookup.
+            l0 = np.minimum(lod.astype(np.int64), levels - 2)
+            w = np.clip((lod - l0.astype(np.float32) - 0.3) * np.float32(2.5), 0.0, 1.0)
+            upper = w >= 0.5
+            col = self._sample(l0 + upper, prim, tu, tv)
+            band = np.flatnonzero((w > 0) & (w < 1))
+            if len(band):
+                wb = w[band]
+                other = np.where(upper[band], wb - 1, wb)  # signed step to the other level's weight
+                lv = l0[band] + ~upper[band]
+                col[band] += (self._sample(lv, prim[band], tu[band], tv[band]) - col[band]) * np.abs(other)[:, None]
+        col += np.float32(0.5)
+        col = col[:, :3].astype(np.uint8)
         if all_hit:
             rgb = col
         else:
-            rgb = np.zeros((len(z), 3), dtype=np.uint8)
+            rgb = np.zeros((len(hit), 3), dtype=np.uint8)
             rgb[hit] = col
         return rgb.reshape(K.height, K.width, 3), depth.reshape(K.height, K.width)
 

@@ -247,23 +247,27 @@ def match_by_projection(
     cand_kp = order[starts[qcell.ravel()][owner] + within]
     cand_map = owner // 9
 
-    duv = kp_uv[cand_kp] - proj_uv[cand_map]
-    near = (duv * duv).sum(axis=1) <= rad[cand_map] ** 2
+    dx = kp_uv[:, 0][cand_kp] - proj_uv[:, 0][cand_map]
+    dy = kp_uv[:, 1][cand_kp] - proj_uv[:, 1][cand_map]
+    near = dx * dx + dy * dy <= (rad * rad)[cand_map]
     cand_map, cand_kp = cand_map[near], cand_kp[near]
     if cand_map.size == 0:
         return empty
     dist = hamming(proj_desc[cand_map], kp_desc[cand_kp])
 
-    # Best and second best per map point (sorted by map, distance, keypoint index).
-    o = np.lexsort((cand_kp, dist, cand_map))
-    cm, ck, cd = cand_map[o], cand_kp[o], dist[o]
-    head = np.ones(cm.size, dtype=bool)
-    head[1:] = cm[1:] != cm[:-1]
+    # Best and second best per map point without sorting: candidates are already grouped by map
+    # index, so a segmented minimum of (distance, keypoint index) packed in one key finds the best
+    # (ties go to the lowest keypoint index); masking it out and repeating gives the second.
+    key = dist * n + cand_kp
+    head = np.ones(cand_map.size, dtype=bool)
+    head[1:] = cand_map[1:] != cand_map[:-1]
     hi = np.flatnonzero(head)
-    second = np.full(hi.size, np.iinfo(np.int64).max)
-    has2 = ~np.append(head[1:], True)[hi]  # the next entry belongs to the same map point
-    second[has2] = cd[hi[has2] + 1]
-    bm, bk, bd = cm[hi], ck[hi], cd[hi]
+    best = np.minimum.reduceat(key, hi)
+    group = np.cumsum(head) - 1
+    rest = np.where(key == best[group], np.iinfo(np.int64).max, key)
+    second_key = np.minimum.reduceat(rest, hi)
+    second = np.where(second_key == np.iinfo(np.int64).max, np.iinfo(np.int64).max, second_key // n)
+    bm, bk, bd = cand_map[hi], best % n, best // n
     good = (bd <= max_distance) & (bd < ratio * second)
     bm, bk, bd = bm[good], bk[good], bd[good]
     if bm.size == 0:

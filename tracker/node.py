@@ -58,6 +58,7 @@ def track(odometry, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerResult:
             continue
         if r.topic == RGBD_END:
             expected = int(r.decode().count)
+            bus.expect_count(RGBD, result.frames, expected)
             bus.unwatch("replay")  # the source may now leave
             continue
         result.frames += 1

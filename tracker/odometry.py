@@ -232,6 +232,9 @@ class _Keyframe:
     seq: int
     world_from_camera: np.ndarray
     point_ids: np.ndarray  # sorted unique map point ids this keyframe observes
+    # Points of this keyframe matched in the first frame tracked after it: the overlap baseline
+    # that later frames are compared with to decide when the view has changed enough.
+    baseline_overlap: int = -1
 
 
 @dataclass
@@ -264,7 +267,7 @@ class RgbdOdometry:
         max_depth_m: float = 6.0,
         max_new_point_depth_m: float = 4.0,
         depth_edge_spread: float = 0.04,
-        inv_depth_sigma: float = 0.01,
+        inv_depth_sigma: float = 0.03,
         search_radius_px: float = 15.0,
         refine_radius_px: float = 4.0,
         max_hamming: int = 80,
@@ -280,6 +283,7 @@ class RgbdOdometry:
         n_recent_keyframes: int = 2,
         cull_min_visible: int = 12,
         cull_min_found_ratio: float = 0.2,
+        fuse_depth: bool = True,
     ) -> None:
         if n_features < 50:
             raise TrackingError(f"n_features={n_features}: need at least 50 features to track")
@@ -320,6 +324,7 @@ class RgbdOdometry:
         self._n_recent_kf = n_recent_keyframes
         self._cull_visible = cull_min_visible
         self._cull_ratio = cull_min_found_ratio
+        self._fuse = fuse_depth
 
         self._intrinsics: Intrinsics | None = None
         self._undistort: Undistorter | None = None
@@ -357,10 +362,10 @@ class RgbdOdometry:
             return TrackResult(frame.seq, frame.stamp_ns, predicted.copy(), STATE_LOST, False, -1, 0, 0)
 
         pose = invert(tracked.camera_from_world)
-        self._remember(frame.stamp_ns, pose, ok=True)
         kf_id = -1
         if self._need_keyframe(pose, tracked):
             kf_id = self._insert_keyframe(frame.seq, pose, feats, tracked)
+        self._remember(frame.stamp_ns, pose, ok=True)
         return TrackResult(
             frame.seq, frame.stamp_ns, pose.copy(), STATE_OK, kf_id >= 0, kf_id, tracked.n_matches, tracked.n_inliers
         )
@@ -448,8 +453,8 @@ class RgbdOdometry:
 
     # -- tracking -------------------------------------------------------------------------------
 
-    def _local_points(self, world_from_camera: np.ndarray) -> np.ndarray:
-        """Sorted ids of good map points seen by the keyframes nearest to a pose plus the newest."""
+    def _local_keyframes(self, world_from_camera: np.ndarray, count: int) -> np.ndarray:
+        """Sorted indices of the `count` keyframes nearest to a pose, always with the newest."""
         n_kf = len(self._keyframes)
         axis = world_from_camera[:3, 2]
         dist = np.linalg.norm(self._kf_pos - world_from_camera[:3, 3], axis=1)
@@ -457,8 +462,12 @@ class RgbdOdometry:
         # 0.3 m per radian: roughly how far a move changes the view as much as a turn does.
         score = dist + 0.3 * angle
         score[max(0, n_kf - self._n_recent_kf) :] = -1.0
-        order = np.lexsort((np.arange(n_kf), score))[: self._n_local_kf]
-        ids = np.unique(np.concatenate([self._keyframes[i].point_ids for i in np.sort(order)]))
+        return np.sort(np.lexsort((np.arange(n_kf), score))[:count])
+
+    def _local_points(self, world_from_camera: np.ndarray) -> np.ndarray:
+        """Sorted ids of good map points seen by the keyframes nearest to a pose plus the newest."""
+        kfs = self._local_keyframes(world_from_camera, self._n_local_kf)
+        ids = np.unique(np.concatenate([self._keyframes[i].point_ids for i in kfs]))
         return ids[~self._map.bad[ids]]
 
     def _project(self, ids: np.ndarray, camera_from_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -583,7 +592,9 @@ class RgbdOdometry:
         if float(np.linalg.norm(rel[:3, 3])) > self._kf_trans or rotation_angle(rel[:3, :3]) > self._kf_rot:
             return True
         shared = int(np.isin(tracked.map_idx, ref.point_ids, assume_unique=True).sum())
-        return shared < self._kf_overlap * ref.point_ids.size
+        if ref.baseline_overlap < 0:
+            ref.baseline_overlap = shared
+        return shared < self._kf_overlap * ref.baseline_overlap
 
     def _insert_keyframe(self, seq: int, pose: np.ndarray, feats: FrameFeatures, tracked: _Tracked) -> int:
         """Add a keyframe: fuse depth into its matched points, create points for the rest."""
@@ -595,7 +606,7 @@ class RgbdOdometry:
 
         kp_m, ids_m = tracked.kp_idx, tracked.map_idx
         with_d = z[kp_m] > 0.0
-        if np.any(with_d):
+        if self._fuse and np.any(with_d):
             k, ids = kp_m[with_d], ids_m[with_d]
             obs = feats.xyz[k] @ R.T + t
             w_new = weight_of(z[k])

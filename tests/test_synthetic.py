@@ -1,0 +1,243 @@
+"""Tests of the synthetic textured room (replay.synthetic)."""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+import subprocess
+import sys
+from decimal import Decimal
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from octolog.geometry import pose_to_matrix
+from replay.synthetic import EPOCH_NS, OBJECTS, ROOM, SyntheticScene
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def small() -> SyntheticScene:
+    """160x120 (same field of view as 640x480), one full 18 s loop."""
+    return SyntheticScene(n_frames=540, width=160, height=120)
+
+
+def _ray_hit(origin: np.ndarray, d: np.ndarray) -> float:
+    """Analytic ray parameter of the first hit: room exit or nearest object entry (slab method)."""
+
+    def slabs(box, o, dd):
+        R = box.axes()
+        lo_ = (o - box.centre()) @ R.T
+        dl = dd @ R.T
+        with np.errstate(divide="ignore"):
+            t1 = (-box.half() - lo_) / dl
+            t2 = (box.half() - lo_) / dl
+        return np.minimum(t1, t2).max(), np.maximum(t1, t2).min()
+
+    best = slabs(ROOM, origin, d)[1]
+    for box in OBJECTS:
+        t_in, t_out = slabs(box, origin, d)
+        if t_in <= t_out and 0 < t_in < best:
+            best = t_in
+    return best
+
+
+def test_intrinsics_defaults() -> None:
+    K = SyntheticScene().intrinsics
+    assert (K.width, K.height, K.fx, K.fy, K.cx, K.cy, K.distortion) == (640, 480, 525.0, 525.0, 319.5, 239.5, ())
+
+
+def test_frame_format(small: SyntheticScene) -> None:
+    f = small.render(7)
+    assert f.seq == 7 and f.stamp_ns == small.stamp_ns(7)
+    assert f.rgb.shape == (120, 160, 3) and f.rgb.dtype == np.uint8
+    assert f.depth.shape == (120, 160) and f.depth.dtype == np.uint16
+    assert f.depth_scale_m == 0.001 and f.intrinsics == small.intrinsics
+
+
+def test_depth_facing_wall_is_constant() -> None:
+    """Looking straight at the -x wall from 2 m, every pixel of that wall reads 2000 mm."""
+    scene = SyntheticScene(n_frames=1, width=160, height=120)
+    T = np.eye(4)
+    T[:3, :3] = np.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # x: +y, y: -z, z: -x
+    T[:3, 3] = (-1.0, 0.3, 1.4)
+    rgb, depth = scene.render_pose(T)
+    assert depth[40:80, 60:100].min() == 2000 and depth[40:80, 60:100].max() == 2000
+    assert rgb.std() > 20
+
+
+def test_depth_matches_analytic_ray_casting(small: SyntheticScene) -> None:
+    K = small.intrinsics
+    rng = np.random.default_rng(1)
+    for i in (0, 130, 260, 400):
+        T = small.pose(i)
+        depth = small.render(i).depth
+        for u, v in rng.integers(0, (K.width, K.height), size=(25, 2)):
+            d_cam = np.array([(u - K.cx) / K.fx, (v - K.cy) / K.fy, 1.0])
+            z = _ray_hit(T[:3, 3], T[:3, :3] @ d_cam)  # unit z in camera: ray parameter = depth
+            got = depth[v, u] * 0.001
+            # Pixels straddling an edge may hit either side; skip those.
+            near = [
+                _ray_hit(T[:3, 3], T[:3, :3] @ (d_cam + np.array([du, dv, 0.0]) * 1e-3))
+                for du, dv in ((1, 0), (-1, 0), (0, 1), (0, -1))
+            ]
+            if max(abs(np.array(near) - z)) > 0.02:
+                continue
+            assert abs(got - z) <= 0.0006, (i, u, v, got, z)
+
+
+def test_backprojected_depth_lies_on_mesh(small: SyntheticScene) -> None:
+    K = small.intrinsics
+    for i in (5, 200, 333):
+        f = small.render(i)
+        z = f.depth_m().astype(np.float64)
+        v, u = np.nonzero(z > 0)
+        assert len(u) > 0.95 * z.size
+        p_cam = np.stack([(u - K.cx) / K.fx * z[v, u], (v - K.cy) / K.fy * z[v, u], z[v, u]], axis=1)
+        T = small.pose(i)
+        p_world = p_cam @ T[:3, :3].T + T[:3, 3]
+        assert small.distance_to_surface(p_world).max() < 0.01
+
+
+def test_mesh_and_surface_samples(small: SyntheticScene) -> None:
+    pts = small.surface_samples(0.05)
+    assert pts.ndim == 2 and pts.shape[1] == 3 and len(pts) > 30_000
+    assert small.distance_to_surface(pts).max() < 1e-4
+    assert np.all(np.abs(pts - ROOM.centre()) <= ROOM.half() + 1e-9)
+    for box in OBJECTS:  # nothing hidden inside or under an object except its own faces
+        inside = box.contains(pts, tol=-1e-3)
+        assert not inside.any()
+    # Denser spacing, more points: about area / spacing^2.
+    assert len(small.surface_samples(0.025)) > 3.5 * len(pts)
+    mesh = small.mesh
+    assert len(mesh.triangles) == len(mesh.vertices) // 2 > 12
+    area = mesh.get_surface_area()
+    assert area == pytest.approx(len(pts) * 0.05**2, rel=0.1)
+
+
+def test_scene_is_viewed_at_a_sensible_distance(small: SyntheticScene) -> None:
+    for i in range(0, len(small), 27):
+        z = small.render(i).depth_m()
+        valid = z[z > 0]
+        assert valid.size > 0.95 * z.size
+        assert 0.5 < np.median(valid) < 4.0
+        assert (valid < 0.5).mean() < 0.05
+
+
+def test_colour_has_trackable_texture() -> None:
+    cv2 = pytest.importorskip("cv2")
+    scene = SyntheticScene(n_frames=100)
+    f = scene.render(60)
+    gray = cv2.cvtColor(f.rgb, cv2.COLOR_RGB2GRAY)
+    assert gray.std() > 25
+    kps = cv2.ORB_create(nfeatures=5000).detect(gray, None)
+    assert len(kps) > 1000
+    # Spread over the image: every cell of a 4x4 grid has features.
+    cells = {(int(k.pt[0] * 4 / 640), int(k.pt[1] * 4 / 480)) for k in kps}
+    assert len(cells) == 16
+
+
+def test_features_track_to_the_ground_truth_motion() -> None:
+    """ORB matches between frames 3 apart, lifted with depth, give the true relative pose by PnP."""
+    cv2 = pytest.importorskip("cv2")
+    scene = SyntheticScene(n_frames=200)
+    K = scene.intrinsics
+    a, b = scene.render(120), scene.render(123)
+    orb = cv2.ORB_create(nfeatures=1500)
+    ka, da = orb.detectAndCompute(cv2.cvtColor(a.rgb, cv2.COLOR_RGB2GRAY), None)
+    kb, db = orb.detectAndCompute(cv2.cvtColor(b.rgb, cv2.COLOR_RGB2GRAY), None)
+    matches = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(da, db)
+    pa = np.array([ka[m.queryIdx].pt for m in matches])
+    pb = np.array([kb[m.trainIdx].pt for m in matches])
+    z = a.depth_m()[np.rint(pa[:, 1]).astype(int), np.rint(pa[:, 0]).astype(int)].astype(np.float64)
+    ok = z > 0
+    pts = np.stack([(pa[:, 0] - K.cx) / K.fx * z, (pa[:, 1] - K.cy) / K.fy * z, z], axis=1)[ok]
+    found, rvec, tvec, inliers = cv2.solvePnPRansac(pts, pb[ok], K.matrix, None, reprojectionError=2.0)
+    assert found and len(inliers) > 0.6 * len(matches) > 400
+    b_from_a = np.eye(4)
+    b_from_a[:3, :3] = cv2.Rodrigues(rvec)[0]
+    b_from_a[:3, 3] = tvec.ravel()
+    truth = np.linalg.inv(scene.pose(123)) @ scene.pose(120)
+    err = np.linalg.inv(truth) @ b_from_a
+    assert np.linalg.norm(err[:3, 3]) < 0.02
+    assert Rotation.from_matrix(err[:3, :3]).magnitude() < math.radians(0.5)
+
+
+def test_render_is_deterministic(small: SyntheticScene) -> None:
+    a = small.render(42)
+    b = small.render(42)
+    assert np.array_equal(a.rgb, b.rgb) and np.array_equal(a.depth, b.depth)
+    other = SyntheticScene(n_frames=540, width=160, height=120).render(42)
+    assert np.array_equal(a.rgb, other.rgb) and np.array_equal(a.depth, other.depth)
+    reseeded = SyntheticScene(n_frames=50, width=160, height=120, seed=3, texel_m=0.02)
+    assert not np.array_equal(a.rgb, reseeded.render(42).rgb)
+
+
+def _digest(f) -> str:
+    return hashlib.sha256(f.rgb.tobytes() + f.depth.tobytes()).hexdigest()
+
+
+def test_render_is_deterministic_across_processes(small: SyntheticScene) -> None:
+    code = (
+        "import hashlib, sys\n"
+        "from replay.synthetic import SyntheticScene\n"
+        "assert 'open3d' not in sys.modules  # lazy: nothing heavy at import\n"
+        "f = SyntheticScene(n_frames=540, width=160, height=120, nthreads=1).render(77)\n"
+        "print(hashlib.sha256(f.rgb.tobytes() + f.depth.tobytes()).hexdigest())\n"
+    )
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=REPO, check=True)
+    assert out.stdout.strip() == _digest(small.render(77))
+
+
+def test_poses_are_rigid_and_smooth(small: SyntheticScene) -> None:
+    P = small.poses()
+    assert P.shape == (540, 4, 4)
+    for T in P:
+        R = T[:3, :3]
+        assert np.allclose(R @ R.T, np.eye(3), atol=1e-12) and np.linalg.det(R) == pytest.approx(1.0)
+        assert np.array_equal(T[3], [0, 0, 0, 1])
+        assert np.all(np.abs(T[:3, 3] - ROOM.centre()) < ROOM.half() - 0.5)
+    fps = 30.0
+    speed = np.linalg.norm(np.diff(P[:, :3, 3], axis=0), axis=1) * fps
+    assert 0.25 < speed.min() and speed.max() < 0.55
+    rot = np.array([Rotation.from_matrix(P[i, :3, :3].T @ P[i + 1, :3, :3]).magnitude() for i in range(len(P) - 1)])
+    assert np.degrees(rot.max()) * fps < 60.0
+    # Smooth: accelerations are small (no jumps).
+    acc = np.linalg.norm(np.diff(P[:, :3, 3], 2, axis=0), axis=1) * fps * fps
+    assert acc.max() < 1.0
+    # Optical convention: the camera's y axis (down) points roughly at the floor.
+    assert np.all(P[:, 2, 1] < -0.9)
+    # Frame i does not depend on the sequence length.
+    assert np.array_equal(SyntheticScene(n_frames=10).pose(9), small.pose(9))
+    with pytest.raises(IndexError):
+        small.pose(540)
+
+
+def test_stamps() -> None:
+    s = SyntheticScene(n_frames=91)
+    assert s.stamp_ns(0) == EPOCH_NS == 1_700_000_000 * 10**9
+    assert s.stamp_ns(30) - s.stamp_ns(0) == 1_000_000_000
+    assert s.stamp_ns(1) - s.stamp_ns(0) == 33_333_333
+    assert s.stamp_ns(2) - s.stamp_ns(0) == 66_666_667
+    frames = list(SyntheticScene(n_frames=3, width=32, height=24).frames())
+    assert [f.stamp_ns for f in frames] == [s.stamp_ns(i) for i in range(3)]
+    assert [f.seq for f in frames] == [0, 1, 2]
+
+
+def test_groundtruth_tum_round_trip() -> None:
+    s = SyntheticScene(n_frames=120)
+    lines = [ln for ln in s.groundtruth_tum().splitlines() if ln and not ln.startswith("#")]
+    assert len(lines) == 120
+    for i, ln in enumerate(lines):
+        parts = ln.split()
+        assert len(parts) == 8 and len(parts[0].split(".")[1]) == 9
+        assert int(Decimal(parts[0]) * 10**9) == s.stamp_ns(i)
+        vals = np.array([float(x) for x in parts[1:]])
+        T = pose_to_matrix(vals[:3], vals[3:])
+        assert np.allclose(T, s.pose(i), atol=1e-8)
+        assert math.isclose(np.linalg.norm(vals[3:]), 1.0, abs_tol=1e-8)
