@@ -23,6 +23,7 @@ from schemas.topics import Topic, stage_token
 
 _BLOCK_CLOSE = "transport/link/tx/queue/congestion_control/block/wait_before_close"
 _ZENOH_DEFAULT_BLOCK_CLOSE_US = 5_000_000
+LOST_GRACE_S = 3.0
 BLOCK_CLOSE_US = 600_000_000  # a consumer stalled for 10 minutes is dead, not slow
 
 
@@ -103,7 +104,7 @@ class Bus:
         self._session: Any = None
         self._keep: list[Any] = []
         self._alive: set[str] = set()
-        self._lost: list[str] = []
+        self._lost: dict[str, float] = {}  # stage -> monotonic time it vanished
         self._watched: set[str] = set()
         self._alive_changed = threading.Condition()
 
@@ -195,7 +196,7 @@ class Bus:
                     self._alive.add(name)
                 else:
                     self._alive.discard(name)
-                    self._lost.append(name)
+                    self._lost.setdefault(name, time.monotonic())
                 self._alive_changed.notify_all()
 
         sub = self.session.liveliness().declare_subscriber(
@@ -221,7 +222,7 @@ class Bus:
         """Stop caring about a peer (it finished its stream and may leave)."""
         with self._alive_changed:
             self._watched.discard(stage)
-            self._lost = [s for s in self._lost if s != stage]
+            self._lost.pop(stage, None)
 
     def expect_count(self, topic: Topic, received: int, announced: int) -> None:
         """At a stream's end message, everything before it has arrived: a shortfall is a loss."""
@@ -234,8 +235,12 @@ class Bus:
             self._raise_if_lost()
 
     def _raise_if_lost(self) -> None:
-        if self._lost:
-            raise StageError(f"{self.stage}: the {self._lost[0]} stage disappeared (process died or link cut)")
+        # Liveliness and data may travel different routes: a producer that sent its last message
+        # and left can be seen leaving before that message lands. Give its data time to arrive.
+        now = time.monotonic()
+        for stage, since in self._lost.items():
+            if now - since > LOST_GRACE_S:
+                raise StageError(f"{self.stage}: the {stage} stage disappeared (process died or link cut)")
 
 
 def serve_router(listen: tuple[str, ...], *, zenoh_config: str | None = None,

@@ -192,8 +192,18 @@ def backproject(uv: np.ndarray, z: np.ndarray, K: np.ndarray) -> np.ndarray:
 
 def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise Hamming distance between two (K, 32) uint8 descriptor arrays."""
-    x = np.bitwise_xor(a.view(np.uint64), b.view(np.uint64))
-    return np.bitwise_count(x).sum(axis=1, dtype=np.int64)
+    return hamming64(as_words(a), as_words(b))
+
+
+def as_words(desc: np.ndarray) -> np.ndarray:
+    """(K, 32) uint8 descriptors viewed as (K, 4) uint64 words (no copy when contiguous)."""
+    return np.ascontiguousarray(desc, dtype=np.uint8).view(np.uint64)
+
+
+def hamming64(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise Hamming distance between two (K, 4) uint64 descriptor arrays."""
+    c = np.bitwise_count(np.bitwise_xor(a, b))
+    return c[:, 0].astype(np.int64) + c[:, 1] + c[:, 2] + c[:, 3]
 
 
 def match_by_projection(
@@ -253,7 +263,7 @@ def match_by_projection(
     cand_map, cand_kp = cand_map[near], cand_kp[near]
     if cand_map.size == 0:
         return empty
-    dist = hamming(proj_desc[cand_map], kp_desc[cand_kp])
+    dist = hamming64(as_words(proj_desc)[cand_map], as_words(kp_desc)[cand_kp])
 
     # Best and second best per map point without sorting: candidates are already grouped by map
     # index, so a segmented minimum of (distance, keypoint index) packed in one key finds the best

@@ -140,26 +140,44 @@ def optimize_pose(
         for _ in range(iterations):
             p, r, chi2 = residuals(R, t)
             a = active & np.isfinite(chi2)
-            if int(a.sum()) < 6:
+            m = int(a.sum())
+            if m < 6:
                 break
-            pa, ra = p[a], r[a]
+            x, y, z = p[a, 0], p[a, 1], p[a, 2]
             s = inv_sigma_px[a]
-            x, y, z = pa[:, 0], pa[:, 1], pa[:, 2]
             iz = 1.0 / z
-            # d(residual)/d(point in camera), rows u, v, inverse depth.
-            Jp = np.zeros((pa.shape[0], 3, 3))
-            Jp[:, 0, 0] = fx * iz * s
-            Jp[:, 0, 2] = -fx * x * iz * iz * s
-            Jp[:, 1, 1] = fy * iz * s
-            Jp[:, 1, 2] = -fy * y * iz * iz * s
-            Jp[:, 2, 2] = np.where(has_d[a], -iz * iz * dsig, 0.0)
-            # Left perturbation p' = exp(phi) p + rho: dp/drho = I, dp/dphi = -[p]x, and
-            # row^T (-[p]x) = (p x row)^T.
-            J = np.concatenate([Jp, np.cross(pa[:, None, :], Jp)], axis=2)
+            xz, yz = x * iz, y * iz
+            # Analytic Jacobians for the left perturbation p' = exp(phi) p + rho, columns
+            # (rho, phi): rows u, v and inverse depth (zeroed where there is no depth).
+            J = np.empty((3 * m, 6))
+            su, sv = s * fx, s * fy
+            J[:m, 0] = su * iz
+            J[:m, 1] = 0.0
+            J[:m, 2] = -su * xz * iz
+            J[:m, 3] = -su * xz * yz
+            J[:m, 4] = su * (1.0 + xz * xz)
+            J[:m, 5] = -su * yz
+            J[m : 2 * m, 0] = 0.0
+            J[m : 2 * m, 1] = sv * iz
+            J[m : 2 * m, 2] = -sv * yz * iz
+            J[m : 2 * m, 3] = -sv * (1.0 + yz * yz)
+            J[m : 2 * m, 4] = sv * xz * yz
+            J[m : 2 * m, 5] = sv * xz
+            c2 = np.where(has_d[a], -iz * iz * dsig, 0.0)
+            J[2 * m :, 0] = 0.0
+            J[2 * m :, 1] = 0.0
+            J[2 * m :, 2] = c2
+            J[2 * m :, 3] = y * c2
+            J[2 * m :, 4] = -x * c2
+            J[2 * m :, 5] = 0.0
+            ra = r[a]
+            rr = np.concatenate([ra[:, 0], ra[:, 1], ra[:, 2]])
             e = np.sqrt(chi2[a])
             w = np.where(e <= delta_h[a], 1.0, delta_h[a] / np.maximum(e, 1e-12))
-            H = np.einsum("n,nki,nkj->ij", w, J, J)
-            g = np.einsum("n,nki,nk->i", w, J, ra)
+            w3 = np.concatenate([w, w, w])
+            Jw = J * w3[:, None]
+            H = Jw.T @ J
+            g = Jw.T @ rr
             H[np.diag_indices(6)] += 1e-9 + 1e-6 * np.diag(H)
             try:
                 dx = -np.linalg.solve(H, g)
@@ -168,7 +186,7 @@ def optimize_pose(
             dR = so3_exp(dx[3:])
             R = dR @ R
             t = dR @ t + dx[:3]
-            if float(dx @ dx) < 1e-14:
+            if float(dx @ dx) < 1e-12:  # below a micrometre / microradian
                 break
         _, _, chi2 = residuals(R, t)
         new_active = chi2 <= thr
@@ -278,7 +296,7 @@ class RgbdOdometry:
         min_inliers: int = 20,
         kf_translation_m: float = 0.06,
         kf_rotation_deg: float = 6.0,
-        kf_min_overlap: float = 0.5,
+        kf_min_overlap: float = 0.3,
         n_local_keyframes: int = 8,
         n_recent_keyframes: int = 2,
         cull_min_visible: int = 12,
@@ -363,7 +381,8 @@ class RgbdOdometry:
 
         pose = invert(tracked.camera_from_world)
         kf_id = -1
-        if self._need_keyframe(pose, tracked):
+        # A frame without enough depth adds no map points, so it must not replace the reference.
+        if int(feats.has_depth.sum()) >= self._min_init and self._need_keyframe(pose, tracked):
             kf_id = self._insert_keyframe(frame.seq, pose, feats, tracked)
         self._remember(frame.stamp_ns, pose, ok=True)
         return TrackResult(

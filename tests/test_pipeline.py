@@ -1,0 +1,186 @@
+"""End to end: the real processes over real Zenoh, on the synthetic scene and on TUM data."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from helpers import ROOT, octolog, rerun_cli, tum_first300
+from test_tum import make_tum
+
+N_FRAMES = 30
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory) -> tuple[Path, Path]:
+    """The same synthetic session twice: with Rerun files, and with Rerun off."""
+    a, b = tmp_path_factory.mktemp("a"), tmp_path_factory.mktemp("b")
+    octolog("run", "--source", f"synthetic:{N_FRAMES}", "--out", str(a), "--quiet")
+    octolog("run", "--source", f"synthetic:{N_FRAMES}", "--out", str(b), "--quiet", "--rerun", "off")
+    return a, b
+
+
+def test_session_leaves_every_output(runs):
+    a, _ = runs
+    for name in ("trajectory.txt", "map.bt", "cloud.ply", "session.mcap", "summary.json", "groundtruth.txt"):
+        assert (a / name).stat().st_size > 0, name
+    assert sorted(p.name for p in (a / "rerun").glob("*.rrd")) == ["mapper.rrd", "replay.rrd", "tracker.rrd"]
+    summary = json.loads((a / "summary.json").read_text())
+    assert summary["frames"] == N_FRAMES
+    assert summary["ate"]["rmse_m"] < 0.01  # synthetic scene, exact depth: sub-centimetre
+    assert summary["map"]["occupied_voxels"] > 1000 and summary["map"]["keyframes"] >= 2
+
+
+def test_outputs_are_deterministic_and_independent_of_rerun(runs):
+    a, b = runs
+    for name in ("trajectory.txt", "map.bt", "cloud.ply"):
+        assert (a / name).read_bytes() == (b / name).read_bytes(), name
+
+
+def test_bt_opens_in_octomap_and_lies_on_the_scene(runs):
+    import octomap
+    from scipy.spatial import cKDTree
+
+    from replay.synthetic import SyntheticScene
+
+    tree = octomap.OcTree(0.05)
+    assert tree.readBinary(str(runs[0] / "map.bt").encode())
+    centres = np.array([it.getCoordinate() for it in tree.begin_leafs() if tree.isNodeOccupied(it)])
+    assert len(centres) > 100
+    scene = SyntheticScene(n_frames=N_FRAMES)
+    # the tracker's world is its first camera frame; the scene's ground truth says where that is
+    T0 = scene.pose(0)
+    dist, _ = cKDTree(scene.surface_samples(0.02)).query(centres @ T0[:3, :3].T + T0[:3, 3])
+    # an occupied leaf (up to a few 5 cm voxels merged) holds surface: its centre is within reach
+    assert np.mean(dist < 0.1) > 0.95
+
+
+def test_session_mcap_reads_back_everywhere(runs):
+    from rosbags.highlevel import AnyReader
+
+    from octolog.mcaplog import read_messages
+
+    a = runs[0]
+    counts: dict[str, int] = {}
+    for m in read_messages(a / "session.mcap"):
+        counts[m.topic] = counts.get(m.topic, 0) + 1
+    summary = json.loads((a / "summary.json").read_text())
+    assert counts["camera/rgbd"] == counts["tracker/pose"] == counts["tracker/status"] == N_FRAMES
+    assert counts["tracker/keyframe"] == counts["mapper/update"] == summary["map"]["keyframes"]
+    with AnyReader([a / "session.mcap"]) as reader:  # no octolog types given: from the file's schemas
+        conn = next(c for c in reader.connections if c.topic == "/tracker/pose")
+        stamps = [reader.deserialize(raw, conn.msgtype).header.stamp.sec for _, _, raw in reader.messages([conn])]
+    assert len(stamps) == N_FRAMES
+    out = a / "mcap.rrd"
+    subprocess.run([rerun_cli(), "mcap", "convert", str(a / "session.mcap"), "-o", str(out)], check=True,
+                   capture_output=True, timeout=300, env={**os.environ, "RERUN_DISABLE_ANALYTICS": "1"})
+    assert out.stat().st_size > 0
+
+
+def test_rrd_files_load_in_rerun(runs):
+    rrds = sorted(str(p) for p in (runs[0] / "rerun").glob("*.rrd"))
+    proc = subprocess.run([rerun_cli(), "rrd", "verify", *rrds], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "RERUN_DISABLE_ANALYTICS": "1"})
+    assert proc.returncode == 0, proc.stderr
+    assert "3 files verified without error" in proc.stderr + proc.stdout
+
+
+def test_eval_and_info_commands(runs):
+    a = runs[0]
+    out = octolog("eval", str(a / "trajectory.txt"), str(a / "groundtruth.txt")).stdout
+    rmse_cm = json.loads((a / "summary.json").read_text())["ate"]["rmse_m"] * 100
+    assert f"ATE RMSE {rmse_cm:.2f} cm" in out and "RPE" in out
+    info = octolog("info", str(a / "session.mcap")).stdout
+    assert "complete" in info and f"/camera/rgbd" in info and "metadata config" in info
+
+
+def test_replaying_the_session_mcap_gives_the_same_trajectory(runs, tmp_path):
+    a = runs[0]
+    octolog("run", "--source", f"mcap:{a / 'session.mcap'}", "--out", str(tmp_path), "--quiet", "--rerun", "off")
+    assert (tmp_path / "trajectory.txt").read_bytes() == (a / "trajectory.txt").read_bytes()
+    assert (tmp_path / "map.bt").read_bytes() == (a / "map.bt").read_bytes()
+
+
+def test_tum_first300_end_to_end(tmp_path):
+    folder = tum_first300()
+    out = octolog("run", "--source", f"tum:{folder}", "--out", str(tmp_path), "--quiet", "--rerun", "off").stdout
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["frames"] == 294  # every colour/depth pair within 20 ms
+    assert summary["ate"]["rmse_m"] < 0.02, out
+    assert summary["map"]["occupied_voxels"] > 1000
+
+
+# --- failures ----------------------------------------------------------------------------------
+
+
+def _children(pid: int) -> list:
+    import psutil
+
+    return psutil.Process(pid).children(recursive=True)
+
+
+def test_a_dead_stage_stops_the_session_with_a_clear_message(tmp_path):
+    import psutil
+
+    env = {**os.environ, "RERUN_DISABLE_ANALYTICS": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "octolog", "run", "--source", "synthetic:600", "--out",
+                             str(tmp_path), "--quiet", "--rerun", "off"], cwd=ROOT, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        # wait (bounded) until frames flow: the tracker is up and has written poses into the log
+        deadline = time.monotonic() + 120
+        tracker = None
+        while time.monotonic() < deadline and proc.poll() is None:
+            tracker = next((c for c in _children(proc.pid) if "track" in c.cmdline()), None)
+            log = tmp_path / "session.mcap"
+            if tracker is not None and log.exists() and log.stat().st_size > 2_000_000:
+                break
+            time.sleep(0.1)  # polling a file size with a deadline, not synchronizing
+        assert tracker is not None and proc.poll() is None
+        others = [c for c in _children(proc.pid) if c.pid != tracker.pid]
+        tracker.send_signal(signal.SIGKILL)
+        _, err = proc.communicate(timeout=90)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 1
+    assert "the tracker stage killed by signal 9" in err
+    assert err.strip().count("\n") == 0, err  # one line
+    gone, alive = psutil.wait_procs(others, timeout=30)
+    assert not alive
+    info = octolog("info", str(tmp_path / "session.mcap")).stdout
+    assert "camera/rgbd" in info  # what was recorded before the failure is readable
+
+
+def test_missing_tum_folder_is_one_line(tmp_path):
+    proc = octolog("run", "--source", f"tum:{tmp_path / 'nope'}", "--out", str(tmp_path / "o"), check=False)
+    assert proc.returncode == 1
+    assert proc.stderr.strip() == f"octolog run: error: {tmp_path / 'nope'}: not a folder (want a TUM RGB-D sequence folder)"
+
+
+def test_unreadable_png_names_the_file(tmp_path):
+    folder = make_tum(tmp_path / "s", n=6)
+    victim = sorted((folder / "depth").iterdir())[3]
+    victim.write_bytes(b"\x89PNG broken")
+    proc = octolog("run", "--source", f"tum:{folder}", "--out", str(tmp_path / "o"), "--quiet", "--rerun", "off",
+                   check=False, timeout=300)
+    assert proc.returncode == 1
+    assert "replay stage exited with code 1" in proc.stderr and f"{victim.name}: unreadable image" in proc.stderr
+
+
+def test_truncated_mcap_is_refused_and_described(runs, tmp_path):
+    data = (runs[0] / "session.mcap").read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) // 2])
+    proc = octolog("run", "--source", f"mcap:{cut}", "--out", str(tmp_path / "o"), check=False)
+    assert proc.returncode == 1
+    assert f"{cut}: truncated or corrupt MCAP" in proc.stderr and proc.stderr.count("\n") == 1
+    info = octolog("info", str(cut)).stdout
+    assert "INCOMPLETE" in info and "readable before the damage" in info

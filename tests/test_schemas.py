@@ -1,0 +1,61 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from octolog.errors import InputError
+from octolog.geometry import Intrinsics, RgbdFrame, pose_to_matrix
+from schemas import codec, topics
+
+
+def _frame(seq: int = 3) -> RgbdFrame:
+    rng = np.random.default_rng(seq)
+    intr = Intrinsics(32, 24, 30.0, 31.0, 15.5, 11.5, (0.1, -0.2, 0.0, 0.0, 0.05))
+    return RgbdFrame(seq, 1_700_000_000_123_456_789, rng.integers(0, 255, (24, 32, 3), dtype=np.uint8),
+                     rng.integers(0, 65535, (24, 32), dtype=np.uint16), 0.0002, intr)
+
+
+def test_rgbd_round_trip_is_exact():
+    f = _frame()
+    g = codec.rgbd_from_msg(codec.decode(codec.encode(codec.rgbd_msg(f), topics.RGBD.msgtype), topics.RGBD.msgtype))
+    assert (g.seq, g.stamp_ns, g.depth_scale_m, g.intrinsics) == (f.seq, f.stamp_ns, f.depth_scale_m, f.intrinsics)
+    assert np.array_equal(g.rgb, f.rgb) and np.array_equal(g.depth, f.depth)
+
+
+def test_keyframe_round_trip_keeps_pose():
+    f = _frame()
+    T = pose_to_matrix(np.array([1.0, -2.0, 0.5]), np.array([0.1, 0.2, 0.3, 0.9]) / np.linalg.norm([0.1, 0.2, 0.3, 0.9]))
+    data = codec.encode(codec.keyframe_msg(7, T, f), topics.KEYFRAME.msgtype)
+    kf_id, T2, g = codec.keyframe_from_msg(codec.decode(data, topics.KEYFRAME.msgtype))
+    assert kf_id == 7 and g.seq == f.seq
+    np.testing.assert_allclose(T2, T, atol=1e-12)
+
+
+@pytest.mark.parametrize("topic", topics.ALL, ids=lambda t: t.name)
+def test_every_topic_type_has_a_schema_for_mcap(topic):
+    from rosbags.typesys import get_types_from_msg
+
+    text = codec.msgdef(topic.msgtype)
+    top = text.split("=" * 80)[0]
+    parsed = get_types_from_msg(top, topic.msgtype)[topic.msgtype]
+    registered = codec.typestore().fielddefs[topic.msgtype]
+    assert [f[0] for f in parsed[1]] == [f[0] for f in registered[1]]
+
+
+def test_size_mismatch_is_an_input_error():
+    f = _frame()
+    msg = codec.rgbd_msg(f)
+    msg.camera_info.width = 64
+    with pytest.raises(InputError, match="image sizes disagree"):
+        codec.rgbd_from_msg(msg)
+
+
+def test_garbage_payload_is_an_input_error():
+    with pytest.raises(InputError, match="cannot decode"):
+        codec.decode(b"\x00\x01\x00\x00\x05", topics.RGBD.msgtype)
+
+
+def test_keys_follow_zenoh_bridge_convention():
+    assert topics.RGBD.key() == "camera/rgbd"
+    assert topics.RGBD.key("/robot1/") == "robot1/camera/rgbd"
+    assert topics.POSE.ros_name("robot1") == "/robot1/tracker/pose"
