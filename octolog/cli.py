@@ -210,7 +210,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("log", help="record every pipeline topic on the bus into an MCAP file")
     add_bus_arguments(p)
     p.add_argument("--out", required=True, help="MCAP file to write")
-    p.add_argument("--compression", choices=("none", "lz4", "zstd"), default="zstd")
+    p.add_argument("--compression", choices=("none", "lz4", "zstd"), default="lz4",
+                   help="chunk compression (default lz4: 3x zstd's write speed, see docs/results.md)")
     p.add_argument("--metadata", metavar="JSON", help="file of {name: {key: value}} metadata records")
     p.set_defaults(func=cmd_log)
 

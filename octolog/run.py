@@ -170,7 +170,8 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     children = _Children(out / "logs")
     t0 = time.monotonic()
     try:
-        children.start("log", ["log", *bus, "--out", str(out / "session.mcap"), "--metadata", str(out / "metadata.json")])
+        children.start("log", ["log", *bus, "--out", str(out / "session.mcap"), "--metadata", str(out / "metadata.json"),
+                               "--compression", "lz4"])
         children.start("mapper", ["map", *bus, *viz, *conf, "--out", str(out)])
         children.start("tracker", ["track", *bus, *viz, *conf, "--trajectory", str(out / "trajectory.txt")])
         children.start("replay", ["replay", *bus, *viz, *conf, *([] if not quiet else ["--quiet"])],

@@ -161,7 +161,7 @@ def _cell_table(iu: np.ndarray, iv: np.ndarray, salt: int) -> np.ndarray:
     gu = np.arange(u0, int(iu.max()) + 1, dtype=np.int64)[:, None]
     gv = np.arange(v0, int(iv.max()) + 1, dtype=np.int64)[None, :]
     table = _hash01(np.broadcast_to(gu, (gu.size, gv.size)), np.broadcast_to(gv, (gu.size, gv.size)), salt)
-    return table[iu - u0, iv - v0]
+    return table.ravel().take((iu - u0) * gv.size + (iv - v0))
 
 
 def _value_noise(u: np.ndarray, v: np.ndarray, cell: float, salt: int) -> np.ndarray:
@@ -194,14 +194,15 @@ def _face_texture(face: _Face, index: int, seed: int, texel: float) -> np.ndarra
     img = palette[0] * (1 - n) + palette[1] * n
 
     # Layers of randomly rotated coloured blocks, coarse to fine: corners at every scale.
+    uu32, vv32 = uu.astype(np.float32), vv.astype(np.float32)
     scale = rng.uniform(0.8, 1.25)
     for k, (cell, p) in enumerate(((0.22, 0.45), (0.11, 0.4), (0.055, 0.3), (0.028, 0.22))):
         cell *= scale
         ang = rng.uniform(0.0, math.pi / 2)
         c, s = math.cos(ang) / cell, math.sin(ang) / cell
         ou, ov = rng.uniform(0.0, 1.0, size=2)
-        iu = np.floor(c * uu + s * vv + ou).astype(np.int64)
-        iv = np.floor(-s * uu + c * vv + ov).astype(np.int64)
+        iu = np.floor(np.float32(c) * uu32 + (np.float32(s) * vv32 + np.float32(ou))).astype(np.int32)
+        iv = np.floor(np.float32(-s) * uu32 + (np.float32(c) * vv32 + np.float32(ov))).astype(np.int32)
         h = _cell_table(iu, iv, salt + 10 + k)
         on = h < p
         r = h[on] / p  # uniform [0, 1) again, given on

@@ -564,6 +564,8 @@ class RgbdOdometry:
             K,
             inv_depth_sigma=self._inv_depth_sigma,
             inliers=init_inl,
+            # After RANSAC the pose only seeds the tight second matching pass: two rounds suffice.
+            rounds=2 if use_ransac else 4,
         )
         if int(inl_mask.sum()) < self._min_inliers or not np.all(np.isfinite(T)):
             return None
