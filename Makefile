@@ -2,7 +2,7 @@
 VENV ?= .venv
 OUT ?= out/demo
 # Real data for the tests that use it (they skip without it).
-OCTOLOG_DATA ?= $(firstword $(wildcard ../shared/data))
+OCTOLOG_DATA ?= $(abspath $(firstword $(wildcard ../shared/data)))
 
 .PHONY: setup demo test bench
 setup: $(VENV)/.installed
