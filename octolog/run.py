@@ -180,6 +180,9 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     finally:
         children.stop_all()
         stop_router.set()
+        # let the router's session close before the interpreter exits: a daemon thread still inside
+        # Zenoh at exit aborts the process
+        thread.join(timeout=10)
     wall = time.monotonic() - t0
     return _summarize(out, source, src, wall, recording_id)
 

@@ -290,6 +290,7 @@ class RgbdOdometry:
         refine_radius_px: float = 4.0,
         max_hamming: int = 80,
         match_ratio: float = 0.9,
+        confident_ratio: float = 0.5,
         ransac_reproj_px: float = 4.0,
         ransac_iterations: int = 100,
         min_init_points: int = 100,
@@ -331,6 +332,7 @@ class RgbdOdometry:
         self._refine_radius = refine_radius_px
         self._max_hamming = max_hamming
         self._ratio = match_ratio
+        self._confident_ratio = confident_ratio
         self._ransac_px = ransac_reproj_px
         self._ransac_iters = ransac_iterations
         self._min_init = min_init_points
@@ -520,6 +522,10 @@ class RgbdOdometry:
         )
         return ki, vis[mi], vis
 
+    def _confident(self, n_inliers: int, n_matches: int) -> bool:
+        """Whether a pose has so many consistent matches that escalating cannot beat it."""
+        return n_inliers >= 3 * self._min_inliers and n_inliers >= self._confident_ratio * n_matches
+
     def _solve(
         self, feats: FrameFeatures, kp_idx: np.ndarray, map_idx: np.ndarray, guess_cw: np.ndarray, use_ransac: bool
     ) -> tuple[np.ndarray, np.ndarray] | None:
@@ -543,7 +549,7 @@ class RgbdOdometry:
                     iterationsCount=self._ransac_iters,
                     reprojectionError=self._ransac_px,
                     confidence=0.999,
-                    flags=cv2.SOLVEPNP_EPNP,
+                    flags=cv2.SOLVEPNP_AP3P,
                 )
             except cv2.error:
                 return None
@@ -577,20 +583,31 @@ class RgbdOdometry:
             return None
         guess_cw = invert(predicted_wc)
         local = self._local_points(predicted_wc)
-        ki, mi, _ = self._guided(feats, local, guess_cw, self._search_radius)
-        if ki.size < 3 * self._min_inliers:
-            ki, mi, _ = self._guided(feats, local, guess_cw, 3.0 * self._search_radius)
-        first = self._solve(feats, ki, mi, guess_cw, use_ransac=True) if ki.size >= self._min_inliers else None
-        if first is None:
-            # No usable prior (after LOST or a jolt): match descriptors against the map around the
-            # last tracked pose, which is where tracking resumes.
-            assert self._last_tracked_pose is not None
-            local = self._local_points(self._last_tracked_pose)
-            q, tr, _ = match_brute_force(feats.desc, self._map.desc[local], max_distance=64, ratio=0.8)
-            ki, mi = q, local[tr]
-            first = self._solve(feats, ki, mi, guess_cw, use_ransac=True)
-            if first is None:
-                return None
+
+        # Escalate only while the answer is weak: a tight window around the prediction, a wide one,
+        # then descriptor matching against the map around the last tracked pose (after LOST or a
+        # jolt the prediction is useless, and that is where tracking resumes). Best inlier count wins.
+        best: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None  # T, inl, ki, mi
+        for attempt in range(3):
+            if attempt < 2:
+                radius = self._search_radius * (1.0 if attempt == 0 else 3.0)
+                ki, mi, _ = self._guided(feats, local, guess_cw, radius)
+            else:
+                assert self._last_tracked_pose is not None
+                around = self._local_points(self._last_tracked_pose)
+                q, tr, _ = match_brute_force(feats.desc, self._map.desc[around], max_distance=64, ratio=0.8)
+                ki, mi = q, around[tr]
+            sol = self._solve(feats, ki, mi, guess_cw, use_ransac=True)
+            if sol is not None and (best is None or int(sol[1].sum()) > int(best[1].sum())):
+                best = (sol[0], sol[1], ki, mi)
+            if best is not None and self._confident(int(best[1].sum()), best[2].size):
+                break
+        if best is None:
+            return None
+        first = (best[0], best[1])
+        ki, mi = best[2], best[3]
+        if attempt > 0:
+            local = self._local_points(invert(best[0]))
         T_cw, _ = first
 
         # Second pass: with a good pose, all local points can be matched in a tight window.
