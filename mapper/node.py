@@ -1,4 +1,4 @@
-"""The mapper process: keyframes in; dense cloud, occupancy octree and map files out."""
+"""The mapper process: keyframes and pose corrections in; map snapshots on the bus; map files out."""
 
 from __future__ import annotations
 
@@ -6,86 +6,78 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from mapper.config import MapperConfig
+from mapper.config import MapperConfig, make_mapper
+from mapper.core import Mapper, bt_payload
 from octolog.bus import Bus, BusConfig
 from octolog.errors import InputError, MapError
 from octolog.viz import Viz
 from schemas import codec
-from schemas.topics import KEYFRAME, KEYFRAME_END, MAP_END, MAP_UPDATE
+from schemas.topics import (
+    KEYFRAME, KEYFRAME_END, KEYFRAME_POSES, MAP_END, MAP_QUERY, MAP_UPDATE, OCCUPIED, OCTOMAP,
+)
 
 
 @dataclass
 class MapperResult:
     keyframes: int = 0
     skipped: int = 0
+    corrections: int = 0
     stats: dict = field(default_factory=dict)
     cloud_points: int = 0
     ms: list[float] = field(default_factory=list)
     files: dict[str, str] = field(default_factory=dict)
+    problems: list[str] = field(default_factory=list)
 
 
-class Mapper:
-    """Keyframes → filtered dense cloud + occupancy octree (the pure core of this stage)."""
+class Publisher:
+    """Map snapshots: published every n keyframes and at the end, and served to late joiners."""
 
-    def __init__(self, cfg: MapperConfig) -> None:
-        from mapper.cloud import DenseCloud
-        from mapper.octree import OccupancyOctree
+    def __init__(self, bus: Bus, mapper: Mapper, every: int) -> None:
+        self.bus, self.mapper, self.every = bus, mapper, every
+        self.pub_octomap, self.pub_occupied = bus.publisher(OCTOMAP), bus.publisher(OCCUPIED)
+        self.latest: bytes | None = None  # immutable bytes: swapped atomically, read by the queryable
+        self.stats: dict = {}
+        bus.serve(MAP_QUERY, lambda: self.latest)
 
-        self.cfg = cfg
-        self.cloud = DenseCloud(voxel_m=cfg.voxel_m)
-        self.octree = OccupancyOctree(resolution=cfg.resolution_m)
+    def maybe(self, n_integrated: int, stamp: int) -> None:
+        if self.every and n_integrated % self.every == 0:
+            self.now(stamp)
 
-    def integrate(self, kf_id: int, world_from_camera: np.ndarray, frame) -> int:
-        from mapper.cloud import keyframe_cloud
-
-        if not np.all(np.isfinite(world_from_camera)):
-            raise InputError(f"keyframe {kf_id}: pose is not finite")
-        if not np.any(frame.depth):
-            raise InputError(f"keyframe {kf_id}: no valid depth")
-        world, cols = keyframe_cloud(
-            frame.depth, frame.rgb, frame.intrinsics, frame.depth_scale_m, world_from_camera,
-            max_range_m=self.cfg.max_range_m, stride=self.cfg.pixel_stride, nb_neighbors=self.cfg.sor_neighbors,
-            std_ratio=self.cfg.sor_std_ratio, voxel_m=self.cfg.voxel_m, sor_first=self.cfg.sor_first)
-        if len(world) == 0:
-            raise InputError(f"keyframe {kf_id}: no valid depth within {self.cfg.max_range_m} m")
-        self.cloud.add(kf_id, world, cols)
-        self.octree.insert(world, world_from_camera[:3, 3], max_range_m=self.cfg.max_range_m)
-        return len(world)
-
-    def write(self, out_dir: Path, stem: str = "map") -> dict[str, str]:
-        from mapper.cloud import write_ply
-
-        out_dir.mkdir(parents=True, exist_ok=True)
-        bt, ply = out_dir / f"{stem}.bt", out_dir / "cloud.ply"
-        self.octree.write_bt(bt)
-        pts, cols = self.cloud.cloud()
-        write_ply(ply, pts, cols)
-        return {"bt": str(bt), "ply": str(ply)}
+    def now(self, stamp: int) -> None:
+        octree = self.mapper.octree
+        msg = codec.octomap_msg(bt_payload(octree.bt_bytes()), self.mapper.resolution_m, stamp)
+        self.latest = self.pub_octomap.put(msg)
+        self.pub_occupied.put(codec.point_cloud_msg(octree.occupied_centres(), stamp))
+        self.stats = octree.stats()
 
 
 def run(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: str = "off",
         recording_id: str = "octolog") -> MapperResult:
-    mapper = Mapper(cfg)
+    mapper = make_mapper(cfg)
     with Bus(bus_cfg, "mapper") as bus, Viz(rerun, "mapper", recording_id) as viz:
-        result = consume(mapper, cfg, bus, viz)
+        publisher = Publisher(bus, mapper, cfg.publish_every)
+        result = consume(mapper, cfg, bus, viz, publisher)
+        last_stamp = max((kf.stamp_ns for kf in mapper.keyframes.values()), default=0)
+        publisher.now(last_stamp)
         result.files = mapper.write(out_dir)
-        result.stats = mapper.octree.stats()
+        result.stats = mapper.stats()
         result.cloud_points = len(mapper.cloud.cloud()[0])
         (out_dir / "map_stats.json").write_text(json.dumps(
-            {**result.stats, "cloud_points": result.cloud_points, "keyframes": result.keyframes,
-             "skipped_keyframes": result.skipped}, indent=2, sort_keys=True) + "\n")
+            {**result.stats, "cloud_points": result.cloud_points, "skipped_keyframes": result.skipped,
+             "corrections": result.corrections}, indent=2, sort_keys=True) + "\n")
         if viz.enabled:
-            _log_map(viz, mapper)
+            _log_map(viz, mapper, last_stamp)
         bus.publisher(MAP_END).put(codec.stream_end_msg(MAP_UPDATE.name, result.keyframes + result.skipped))
     return result
 
 
-def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz) -> MapperResult:
+def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: Publisher) -> MapperResult:
     pub_update = bus.publisher(MAP_UPDATE)
-    bus.subscribe([KEYFRAME, KEYFRAME_END])
+    bus.subscribe([KEYFRAME, KEYFRAME_POSES, KEYFRAME_END])
     bus.watch(cfg.wait_for)
     bus.wait_for(cfg.wait_for, cfg.wait_timeout_s)
     bus.announce()
@@ -102,37 +94,54 @@ def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz) -> MapperResu
             bus.expect_count(KEYFRAME, received, expected)
             bus.unwatch("tracker")
             continue
+        if r.topic == KEYFRAME_POSES:
+            try:
+                result.corrections += mapper.correct(codec.keyframe_poses_from_msg(r.decode()))
+            except InputError as exc:  # the whole correction is refused; the map is unchanged
+                result.problems.append(str(exc))
+            continue
         received += 1
         t0 = time.perf_counter()
         msg = r.decode()
+        stamp = codec.stamp_ns(msg.header)
         try:
             kf_id, pose, frame = codec.keyframe_from_msg(msg)
             n = mapper.integrate(kf_id, pose, frame)
             result.keyframes += 1
-        except (InputError, MapError):
-            # a bad keyframe is counted and skipped; the map is never touched by it
+        except (InputError, MapError) as exc:
+            # a bad keyframe is counted, reported and skipped; the map is never touched by it
             result.skipped += 1
+            result.problems.append(str(exc))
             kf_id, n, frame = int(msg.id), 0, None
         ms = (time.perf_counter() - t0) * 1e3
         result.ms.append(ms)
-        stats = mapper.octree.stats()
-        stamp = codec.stamp_ns(msg.header)
         pub_update.put(codec.msgtype(MAP_UPDATE.msgtype)(
             header=codec.header(stamp, "world"), keyframe_id=kf_id, n_points=n,
-            n_occupied=int(stats["occupied_voxels"]), n_free=int(stats["free_voxels"]), processing_ms=ms))
-        if viz.enabled and frame is not None:
-            viz.set_time(stamp, frame.seq)
-            viz.scalar("mapper/ms", ms)
-            viz.scalar("mapper/occupied", float(stats["occupied_voxels"]))
+            # voxel counts as of the last snapshot: counting every keyframe costs more than integrating it
+            n_occupied=publisher.stats.get("occupied_voxels", 0), n_free=publisher.stats.get("free_voxels", 0),
+            processing_ms=ms))
+        if frame is not None:
+            publisher.maybe(result.keyframes, stamp)
+            if viz.enabled:
+                viz.set_time(stamp, frame.seq)
+                viz.scalar("mapper/ms", ms)
+                if publisher.every and result.keyframes % publisher.every == 0:
+                    _log_map(viz, mapper, stamp)
     return result
 
 
-def _log_map(viz: Viz, mapper: Mapper) -> None:
+def _log_map(viz: Viz, mapper: Mapper, stamp: int) -> None:
+    viz.set_time(stamp)
     pts, cols = mapper.cloud.cloud()
-    viz.points3d("world/mapper/cloud", pts, cols, radius=0.004, static=True)
+    viz.points3d("world/mapper/cloud", pts, cols, radius=0.004)
     centres = mapper.octree.occupied_centres()
     if len(centres):
         z = centres[:, 2]
         t = (z - z.min()) / max(1e-9, float(np.ptp(z)))
         colours = np.stack([255 * t, 80 + 100 * (1 - t), 255 * (1 - t)], axis=1).astype(np.uint8)
-        viz.boxes("world/mapper/occupied", centres, mapper.cfg.resolution_m, colours, static=True)
+        viz.boxes("world/mapper/occupied", centres, mapper.resolution_m, colours)
+
+
+def fetch_map(bus: Bus, timeout_s: float = 10.0) -> Any | None:
+    """What a late joiner does: ask the mapper's queryable for the current map."""
+    return bus.fetch(MAP_QUERY, timeout_s)

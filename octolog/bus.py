@@ -12,7 +12,7 @@ import json
 import queue
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -171,6 +171,27 @@ class Bus:
         except queue.Empty:
             self.check_peers()
             return None
+
+    def serve(self, topic: Topic, latest: Callable[[], bytes | None]) -> None:
+        """Answer `get` on this topic's key with `latest()` (CDR bytes), e.g. the current map."""
+        import zenoh
+
+        key = topic.key(self.namespace)
+
+        def on_query(query: Any) -> None:
+            data = latest()
+            if data is not None:
+                query.reply(key, data)
+
+        q = self.session.declare_queryable(key, zenoh.handlers.Callback(on_query, indirect=False))
+        self._keep.append(q)
+
+    def fetch(self, topic: Topic, timeout_s: float = 10.0) -> Any | None:
+        """`get` a topic from its queryable; the decoded reply, or None if nobody answered."""
+        for reply in self.session.get(topic.key(self.namespace), timeout=timeout_s):
+            if reply.ok is not None:
+                return codec.decode(reply.ok.payload.to_bytes(), topic.msgtype)
+        return None
 
     # --- stages: readiness and liveness ----------------------------------------------------
 

@@ -205,3 +205,39 @@ def pose_stamped_msg(T: np.ndarray, stamp: int, frame_id: str = "world") -> Any:
 
 def stream_end_msg(topic: str, count: int, stamp: int = 0) -> Any:
     return msgtype("octolog_msgs/msg/StreamEnd")(header=header(stamp, ""), topic=topic, count=count)
+
+
+def keyframe_poses_msg(poses: dict[int, np.ndarray], stamp: int = 0) -> Any:
+    ids = sorted(poses)
+    return msgtype("octolog_msgs/msg/KeyframePoses")(
+        header=header(stamp, "world"), ids=np.array(ids, dtype=np.uint64),
+        world_from_camera=[pose_msg(poses[i]) for i in ids])
+
+
+def keyframe_poses_from_msg(msg: Any) -> dict[int, np.ndarray]:
+    if len(msg.ids) != len(msg.world_from_camera):
+        raise InputError(f"keyframe_poses: {len(msg.ids)} ids but {len(msg.world_from_camera)} poses")
+    return {int(i): pose_matrix(p) for i, p in zip(msg.ids, msg.world_from_camera, strict=True)}
+
+
+def octomap_msg(bt_data: bytes, resolution_m: float, stamp: int, frame_id: str = "world") -> Any:
+    """octomap_msgs/Octomap, binary: OctoMap's writeBinaryData bytes (a .bt file without its header)."""
+    return msgtype("octomap_msgs/msg/Octomap")(
+        header=header(stamp, frame_id), binary=True, id="OcTree", resolution=float(resolution_m),
+        data=np.frombuffer(bt_data, dtype=np.int8).copy())
+
+
+def point_cloud_msg(points: np.ndarray, stamp: int, frame_id: str = "world") -> Any:
+    """sensor_msgs/PointCloud2 with float32 x, y, z."""
+    PointField = msgtype("sensor_msgs/msg/PointField")
+    pts = np.ascontiguousarray(points, dtype="<f4").reshape(-1, 3)
+    fields = [PointField(name=n, offset=4 * k, datatype=7, count=1) for k, n in enumerate("xyz")]  # 7: FLOAT32
+    return msgtype("sensor_msgs/msg/PointCloud2")(
+        header=header(stamp, frame_id), height=1, width=len(pts), fields=fields, is_bigendian=False,
+        point_step=12, row_step=12 * len(pts), data=pts.reshape(-1).view(np.uint8), is_dense=True)
+
+
+def point_cloud_xyz(msg: Any) -> np.ndarray:
+    if msg.point_step != 12 or [f.name for f in msg.fields] != ["x", "y", "z"]:
+        raise InputError("point cloud: want packed float32 x, y, z")
+    return np.asarray(msg.data, dtype=np.uint8).view("<f4").reshape(-1, 3)

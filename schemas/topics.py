@@ -29,11 +29,17 @@ POSE = Topic("tracker/pose", "geometry_msgs/msg/PoseStamped")
 TRACKING_STATUS = Topic("tracker/status", "octolog_msgs/msg/TrackingStatus")
 KEYFRAME = Topic("tracker/keyframe", "octolog_msgs/msg/Keyframe")
 KEYFRAME_END = Topic("tracker/keyframe/end", "octolog_msgs/msg/StreamEnd")
+KEYFRAME_POSES = Topic("tracker/keyframe_poses", "octolog_msgs/msg/KeyframePoses")
 MAP_UPDATE = Topic("mapper/update", "octolog_msgs/msg/MapUpdate")
 OCTOMAP = Topic("mapper/octomap", "octomap_msgs/msg/Octomap")
+OCCUPIED = Topic("mapper/occupied", "sensor_msgs/msg/PointCloud2")
+GRID = Topic("mapper/grid", "nav_msgs/msg/OccupancyGrid")
 MAP_END = Topic("mapper/end", "octolog_msgs/msg/StreamEnd")
 
-ALL = (RGBD, RGBD_END, POSE, TRACKING_STATUS, KEYFRAME, KEYFRAME_END, MAP_UPDATE, OCTOMAP, MAP_END)
+ALL = (RGBD, RGBD_END, POSE, TRACKING_STATUS, KEYFRAME, KEYFRAME_END, KEYFRAME_POSES, MAP_UPDATE, OCTOMAP,
+       OCCUPIED, GRID, MAP_END)
+# The mapper's queryable: a late joiner `get`s the current map (octomap_msgs/Octomap, binary).
+MAP_QUERY = Topic("mapper/map", "octomap_msgs/msg/Octomap")
 BY_NAME = {t.name: t for t in ALL}
 
 # Liveliness tokens: a stage declares `<ns>/_octolog/stage/<name>` once it is subscribed and ready.

@@ -1,0 +1,131 @@
+"""The mapper's core: keyframes → filtered dense cloud + occupancy octree, following pose corrections.
+
+Each keyframe's filtered cloud is kept in its camera frame, so a corrected pose only needs a new
+transform. The octree cannot subtract one keyframe's contribution (log-odds are clamped), so a
+correction rebuilds it by re-inserting every keyframe in arrival order with the current poses: the
+result is, byte for byte, the map built from scratch with the corrected poses.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from octolog.errors import InputError
+from octolog.geometry import RgbdFrame
+
+
+@dataclass
+class KeyframeCloud:
+    points_cam: np.ndarray  # (N, 3) float64, filtered, camera frame
+    colours: np.ndarray  # (N, 3) uint8
+    world_from_camera: np.ndarray  # 4x4
+    stamp_ns: int
+    seq: int
+
+
+class Mapper:
+    """Integrates keyframes; `correct` moves keyframes; `write` produces the map files."""
+
+    def __init__(self, *, resolution_m: float = 0.05, voxel_m: float = 0.01, max_range_m: float = 4.0,
+                 pixel_stride: int = 2, sor_neighbors: int = 20, sor_std_ratio: float = 2.0, sor_first: bool = False,
+                 max_extent_m: float = 1000.0) -> None:
+        from mapper.cloud import DenseCloud
+
+        self.resolution_m = resolution_m
+        self.voxel_m = voxel_m
+        self.max_range_m = max_range_m
+        self.pixel_stride = pixel_stride
+        self.sor_neighbors = sor_neighbors
+        self.sor_std_ratio = sor_std_ratio
+        self.sor_first = sor_first
+        self.max_extent_m = max_extent_m
+        self.keyframes: dict[int, KeyframeCloud] = {}  # insertion order = integration order
+        self.cloud = DenseCloud(voxel_m=voxel_m)
+        self.octree = self._new_octree()
+        self.rebuilds = 0
+
+    def _new_octree(self) -> Any:
+        from mapper.octree import OccupancyOctree
+
+        return OccupancyOctree(resolution=self.resolution_m)
+
+    def _check_pose(self, kf_id: int, T: np.ndarray) -> None:
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise InputError(f"keyframe {kf_id}: pose is not a finite 4x4 transform")
+        if np.abs(T[:3, 3]).max() > self.max_extent_m:
+            raise InputError(f"keyframe {kf_id}: camera at {np.round(T[:3, 3], 1).tolist()} m is outside the "
+                             f"map bounds (±{self.max_extent_m:g} m)")
+
+    def integrate(self, kf_id: int, world_from_camera: np.ndarray, frame: RgbdFrame) -> int:
+        """Add one keyframe; returns its number of filtered points. Bad keyframes raise InputError
+        before anything is changed."""
+        from mapper.cloud import keyframe_cloud
+
+        self._check_pose(kf_id, world_from_camera)
+        if kf_id in self.keyframes:
+            raise InputError(f"keyframe {kf_id}: already integrated")
+        if not np.any(frame.depth):
+            raise InputError(f"keyframe {kf_id}: no valid depth")
+        pts, cols = keyframe_cloud(
+            frame.depth, frame.rgb, frame.intrinsics, frame.depth_scale_m, np.eye(4),
+            max_range_m=self.max_range_m, stride=self.pixel_stride, nb_neighbors=self.sor_neighbors,
+            std_ratio=self.sor_std_ratio, voxel_m=self.voxel_m, sor_first=self.sor_first)
+        if len(pts) == 0:
+            raise InputError(f"keyframe {kf_id}: no valid depth within {self.max_range_m} m")
+        kf = KeyframeCloud(pts, cols, world_from_camera.copy(), frame.stamp_ns, frame.seq)
+        self.keyframes[kf_id] = kf
+        self._insert(kf_id, kf)
+        return len(pts)
+
+    def _insert(self, kf_id: int, kf: KeyframeCloud) -> None:
+        from mapper.cloud import transform
+
+        world = transform(kf.points_cam, kf.world_from_camera)
+        self.cloud.add(kf_id, world, kf.colours)
+        self.octree.insert(world, kf.world_from_camera[:3, 3], max_range_m=self.max_range_m)
+
+    def correct(self, poses: dict[int, np.ndarray]) -> int:
+        """Move known keyframes to corrected poses; returns how many moved (unknown ids are ignored)."""
+        moved = {i: T for i, T in poses.items() if i in self.keyframes
+                 and not np.array_equal(T, self.keyframes[i].world_from_camera)}
+        for i, T in moved.items():
+            self._check_pose(i, T)
+        if not moved:
+            return 0
+        for i, T in moved.items():
+            self.keyframes[i].world_from_camera = T.copy()
+        self.rebuild()
+        return len(moved)
+
+    def rebuild(self) -> None:
+        """Re-integrate every keyframe, in arrival order, with its current pose."""
+        self.octree = self._new_octree()
+        for kf_id, kf in self.keyframes.items():
+            self._insert(kf_id, kf)
+        self.rebuilds += 1
+
+    def stats(self) -> dict:
+        return {**self.octree.stats(), "keyframes": len(self.keyframes), "rebuilds": self.rebuilds}
+
+    def write(self, out_dir: Path, stem: str = "map") -> dict[str, str]:
+        from mapper.cloud import write_ply
+
+        out_dir.mkdir(parents=True, exist_ok=True)
+        bt, ply = out_dir / f"{stem}.bt", out_dir / "cloud.ply"
+        self.octree.write_bt(bt)
+        pts, cols = self.cloud.cloud()
+        write_ply(ply, pts, cols)
+        return {"bt": str(bt), "ply": str(ply)}
+
+
+def bt_payload(bt_file_bytes: bytes) -> bytes:
+    """The data part of a .bt file (what octomap_msgs/Octomap carries): everything after `data\\n`."""
+    marker = b"\ndata\n"
+    at = bt_file_bytes.find(marker)
+    if at < 0:
+        raise InputError("not an OctoMap binary (.bt) stream: no 'data' line")
+    return bt_file_bytes[at + len(marker):]

@@ -1,0 +1,124 @@
+"""The mapper follows pose corrections exactly, refuses bad keyframes, and serves late joiners."""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from helpers import ROOT
+
+from mapper.config import MapperConfig, make_mapper
+from octolog.errors import InputError
+from octolog.geometry import pose_to_matrix
+from replay.synthetic import SyntheticScene
+
+
+@pytest.fixture(scope="module")
+def scene() -> SyntheticScene:
+    return SyntheticScene(n_frames=40, width=320, height=240)
+
+
+def _keyframes(scene: SyntheticScene) -> list[tuple[int, np.ndarray, object]]:
+    return [(k, scene.pose(i), scene.render(i)) for k, i in enumerate(range(0, 40, 8))]
+
+
+def _bytes(mapper, tmp_path, name: str) -> tuple[bytes, bytes]:
+    files = mapper.write(tmp_path / name)
+    return (tmp_path / name / "map.bt").read_bytes(), (tmp_path / name / "cloud.ply").read_bytes()
+
+
+def _drifted(T: np.ndarray, k: int) -> np.ndarray:
+    d = pose_to_matrix(np.array([0.03 * k, -0.02 * k, 0.01 * k]), np.array([0.0, 0.0, np.sin(0.01 * k), np.cos(0.01 * k)]))
+    return d @ T
+
+
+def test_corrected_map_equals_map_built_with_corrected_poses(scene, tmp_path):
+    kfs = _keyframes(scene)
+    moved = make_mapper(MapperConfig())
+    for k, T, f in kfs:
+        moved.integrate(k, _drifted(T, k), f)
+    drifted_bt, _ = _bytes(moved, tmp_path, "drifted")
+    assert moved.correct({k: T for k, T, _ in kfs}) == len(kfs) - 1  # keyframe 0 had no drift
+    scratch = make_mapper(MapperConfig())
+    for k, T, f in kfs:
+        scratch.integrate(k, T, f)
+    assert _bytes(moved, tmp_path, "moved") == _bytes(scratch, tmp_path, "scratch")
+    assert drifted_bt != _bytes(scratch, tmp_path, "scratch2")[0]  # the correction did change the map
+
+
+@pytest.mark.parametrize(
+    ("pose", "depth_zero", "message"),
+    [
+        (np.full((4, 4), np.nan), False, "not a finite 4x4"),
+        (pose_to_matrix(np.array([5000.0, 0, 0]), np.array([0, 0, 0, 1.0])), False, "outside the map bounds"),
+        (np.eye(4), True, "no valid depth"),
+    ],
+)
+def test_bad_keyframes_are_refused_and_leave_the_map_alone(scene, tmp_path, pose, depth_zero, message):
+    m = make_mapper(MapperConfig())
+    k, T, f = _keyframes(scene)[0]
+    m.integrate(k, T, f)
+    before = m.octree.bt_bytes()
+    k2, _, f2 = _keyframes(scene)[1]
+    if depth_zero:
+        f2 = type(f2)(f2.seq, f2.stamp_ns, f2.rgb, np.zeros_like(f2.depth), f2.depth_scale_m, f2.intrinsics)
+    with pytest.raises(InputError, match=message):
+        m.integrate(k2, pose, f2)
+    assert m.octree.bt_bytes() == before and list(m.keyframes) == [k]
+
+
+def _port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_mapper_process_follows_corrections_and_serves_late_joiners(scene, tmp_path):
+    """The real `octolog map` process; this test plays the tracker over a real Zenoh link."""
+    from octolog.bus import Bus, BusConfig
+    from schemas import codec
+    from schemas.topics import KEYFRAME, KEYFRAME_END, KEYFRAME_POSES, MAP_UPDATE, OCTOMAP
+
+    ep = f"tcp/127.0.0.1:{_port()}"
+    kfs = _keyframes(scene)
+    proc = subprocess.Popen([sys.executable, "-m", "octolog", "map", "--connect", ep, "--no-multicast",
+                             "--out", str(tmp_path / "map"), "--set", "publish_every=1"], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        with Bus(BusConfig(listen=(ep,), multicast_scouting=False), "tracker") as bus:
+            bus.subscribe([MAP_UPDATE, OCTOMAP])
+            bus.announce()
+            bus.watch(["mapper"])
+            bus.wait_for(["mapper"], timeout_s=60)
+            pub_kf, pub_poses, pub_end = bus.publisher(KEYFRAME), bus.publisher(KEYFRAME_POSES), bus.publisher(KEYFRAME_END)
+            for k, T, f in kfs:
+                pub_kf.put(codec.keyframe_msg(k, _drifted(T, k), f))
+            updates = octomaps = 0
+            deadline = time.monotonic() + 120
+            while (updates < len(kfs) or octomaps < len(kfs)) and time.monotonic() < deadline:
+                r = bus.receive(timeout_s=1.0)
+                updates += r is not None and r.topic == MAP_UPDATE
+                octomaps += r is not None and r.topic == OCTOMAP
+            assert updates == octomaps == len(kfs)
+            # a late joiner asks for the current map
+            with Bus(BusConfig(connect=(ep,), multicast_scouting=False), "viewer") as late:
+                from mapper.node import fetch_map
+
+                got = fetch_map(late, timeout_s=20)
+            assert got is not None and got.binary and got.resolution == pytest.approx(0.05) and len(got.data) > 100
+            pub_poses.put(codec.keyframe_poses_msg({k: T for k, T, _ in kfs}))
+            pub_end.put(codec.stream_end_msg(KEYFRAME.name, pub_kf.count))
+            out, err = proc.communicate(timeout=120)
+            assert proc.returncode == 0, err
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    scratch = make_mapper(MapperConfig())
+    for k, T, f in kfs:
+        scratch.integrate(k, T, f)
+    assert (tmp_path / "map" / "map.bt").read_bytes() == _bytes(scratch, tmp_path, "scratch")[0]
+    assert "5 keyframes (0 skipped)" in out
