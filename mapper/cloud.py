@@ -316,3 +316,31 @@ def write_bytes_atomic(path: str | os.PathLike[str], data: bytes) -> None:
         except OSError:
             pass
         raise MapError(f"cannot write {path}: {e.strerror or e}") from None
+
+
+def pcd_bytes(points: np.ndarray, colours: np.ndarray) -> bytes:
+    """PCL's binary PCD v0.7: x y z float32 and rgb packed in a float32, as PCL's PointXYZRGB."""
+    points, colours = _check_cloud(points, colours)
+    n = points.shape[0]
+    header = (
+        "# .PCD v0.7 - Point Cloud Data file format\n"
+        "VERSION 0.7\n"
+        "FIELDS x y z rgb\n"
+        "SIZE 4 4 4 4\n"
+        "TYPE F F F F\n"
+        "COUNT 1 1 1 1\n"
+        f"WIDTH {n}\n"
+        "HEIGHT 1\n"
+        "VIEWPOINT 0 0 0 1 0 0 0\n"
+        f"POINTS {n}\n"
+        "DATA binary\n"
+    ).encode("ascii")
+    body = np.empty((n, 4), dtype="<f4")
+    body[:, :3] = points
+    c = colours.astype(np.uint32)
+    body[:, 3] = ((c[:, 0] << 16) | (c[:, 1] << 8) | c[:, 2]).astype("<u4").view("<f4")
+    return header + body.tobytes()
+
+
+def write_pcd(path: str | os.PathLike[str], points: np.ndarray, colours: np.ndarray) -> None:
+    write_bytes_atomic(path, pcd_bytes(points, colours))

@@ -112,14 +112,15 @@ class Mapper:
         return {**self.octree.stats(), "keyframes": len(self.keyframes), "rebuilds": self.rebuilds}
 
     def write(self, out_dir: Path, stem: str = "map") -> dict[str, str]:
-        from mapper.cloud import write_ply
+        from mapper.cloud import write_pcd, write_ply
 
         out_dir.mkdir(parents=True, exist_ok=True)
-        bt, ply = out_dir / f"{stem}.bt", out_dir / "cloud.ply"
+        bt, ply, pcd = out_dir / f"{stem}.bt", out_dir / "cloud.ply", out_dir / "cloud.pcd"
         self.octree.write_bt(bt)
         pts, cols = self.cloud.cloud()
         write_ply(ply, pts, cols)
-        return {"bt": str(bt), "ply": str(ply)}
+        write_pcd(pcd, pts, cols)
+        return {"bt": str(bt), "ply": str(ply), "pcd": str(pcd)}
 
 
 def bt_payload(bt_file_bytes: bytes) -> bytes:

@@ -17,7 +17,7 @@ from octolog.errors import InputError, MapError
 from octolog.viz import Viz
 from schemas import codec
 from schemas.topics import (
-    KEYFRAME, KEYFRAME_END, KEYFRAME_POSES, MAP_END, MAP_QUERY, MAP_UPDATE, OCCUPIED, OCTOMAP,
+    KEYFRAME, KEYFRAME_END, KEYFRAME_POSES, MAP_END, MAP_QUERY, MAP_SAVE, MAP_UPDATE, OCCUPIED, OCTOMAP,
 )
 
 
@@ -60,7 +60,7 @@ def run(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: str = "o
     mapper = make_mapper(cfg)
     with Bus(bus_cfg, "mapper") as bus, Viz(rerun, "mapper", recording_id) as viz:
         publisher = Publisher(bus, mapper, cfg.publish_every)
-        result = consume(mapper, cfg, bus, viz, publisher)
+        result = consume(mapper, cfg, bus, viz, publisher, out_dir)
         last_stamp = max((kf.stamp_ns for kf in mapper.keyframes.values()), default=0)
         publisher.now(last_stamp)
         result.files = mapper.write(out_dir)
@@ -75,9 +75,11 @@ def run(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: str = "o
     return result
 
 
-def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: Publisher) -> MapperResult:
+def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: Publisher,
+            out_dir: Path) -> MapperResult:
     pub_update = bus.publisher(MAP_UPDATE)
     bus.subscribe([KEYFRAME, KEYFRAME_POSES, KEYFRAME_END])
+    bus.accept(MAP_SAVE)
     bus.watch(cfg.wait_for)
     bus.wait_for(cfg.wait_for, cfg.wait_timeout_s)
     bus.announce()
@@ -93,6 +95,13 @@ def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: Pu
             expected = int(r.decode().count)
             bus.expect_count(KEYFRAME, received, expected)
             bus.unwatch("tracker")
+            continue
+        if r.topic == MAP_SAVE:
+            try:
+                files = mapper.write(out_dir)
+            except MapError as exc:
+                files = {"error": str(exc)}
+            r.reply(codec.msgtype(MAP_SAVE.msgtype)(data=json.dumps(files, sort_keys=True)), MAP_SAVE)
             continue
         if r.topic == KEYFRAME_POSES:
             try:

@@ -70,6 +70,10 @@ class Received:
 
     topic: Topic
     payload: bytes
+    query: Any = None  # set for requests taken by `accept`: answer with `reply`
+
+    def reply(self, msg: Any, topic: Topic) -> None:
+        self.query.reply(self.query.key_expr, codec.encode(msg, topic.msgtype))
 
     def decode(self) -> Any:
         return codec.decode(self.payload, self.topic.msgtype)
@@ -184,6 +188,17 @@ class Bus:
                 query.reply(key, data)
 
         q = self.session.declare_queryable(key, zenoh.handlers.Callback(on_query, indirect=False))
+        self._keep.append(q)
+
+    def accept(self, topic: Topic) -> None:
+        """Take queries on this topic's key into the inbox, in order with the data, to be answered
+        by the stage's own loop (e.g. "save the map now")."""
+        import zenoh
+
+        def on_query(query: Any) -> None:
+            self._inbox.put(Received(topic, b"", query))
+
+        q = self.session.declare_queryable(topic.key(self.namespace), zenoh.handlers.Callback(on_query, indirect=False))
         self._keep.append(q)
 
     def fetch(self, topic: Topic, timeout_s: float = 10.0) -> Any | None:

@@ -40,6 +40,8 @@ ALL = (RGBD, RGBD_END, POSE, TRACKING_STATUS, KEYFRAME, KEYFRAME_END, KEYFRAME_P
        OCCUPIED, GRID, MAP_END)
 # The mapper's queryable: a late joiner `get`s the current map (octomap_msgs/Octomap, binary).
 MAP_QUERY = Topic("mapper/map", "octomap_msgs/msg/Octomap")
+# Ask the mapper to write its files now; the reply (JSON in a String) names them.
+MAP_SAVE = Topic("mapper/save", "std_msgs/msg/String")
 BY_NAME = {t.name: t for t in ALL}
 
 # Liveliness tokens: a stage declares `<ns>/_octolog/stage/<name>` once it is subscribed and ready.

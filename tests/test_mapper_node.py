@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import socket
 import subprocess
 import sys
@@ -109,7 +110,12 @@ def test_mapper_process_follows_corrections_and_serves_late_joiners(scene, tmp_p
                 from mapper.node import fetch_map
 
                 got = fetch_map(late, timeout_s=20)
+                from schemas.topics import MAP_SAVE
+
+                saved = late.fetch(MAP_SAVE, timeout_s=30)  # "write the files now"
             assert got is not None and got.binary and got.resolution == pytest.approx(0.05) and len(got.data) > 100
+            assert saved is not None and (tmp_path / "map" / "map.bt").exists()
+            assert json.loads(saved.data)["bt"] == str(tmp_path / "map" / "map.bt")
             pub_poses.put(codec.keyframe_poses_msg({k: T for k, T, _ in kfs}))
             pub_end.put(codec.stream_end_msg(KEYFRAME.name, pub_kf.count))
             out, err = proc.communicate(timeout=120)
@@ -122,3 +128,17 @@ def test_mapper_process_follows_corrections_and_serves_late_joiners(scene, tmp_p
         scratch.integrate(k, T, f)
     assert (tmp_path / "map" / "map.bt").read_bytes() == _bytes(scratch, tmp_path, "scratch")[0]
     assert "5 keyframes (0 skipped)" in out
+
+
+def test_pcd_and_ply_read_back_in_open3d(scene, tmp_path):
+    import open3d as o3d
+
+    m = make_mapper(MapperConfig())
+    k, T, f = _keyframes(scene)[0]
+    m.integrate(k, T, f)
+    files = m.write(tmp_path)
+    pts, cols = m.cloud.cloud()
+    for key in ("ply", "pcd"):
+        pc = o3d.io.read_point_cloud(files[key])
+        np.testing.assert_allclose(np.asarray(pc.points), pts.astype(np.float32), atol=1e-6)
+        np.testing.assert_allclose(np.asarray(pc.colors) * 255, cols, atol=0.5)
