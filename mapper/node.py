@@ -78,11 +78,8 @@ def run(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: str = "o
 def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: Publisher,
             out_dir: Path) -> MapperResult:
     pub_update = bus.publisher(MAP_UPDATE)
-    bus.subscribe([KEYFRAME, KEYFRAME_POSES, KEYFRAME_END])
     bus.accept(MAP_SAVE)
-    bus.watch(cfg.wait_for)
-    bus.wait_for(cfg.wait_for, cfg.wait_timeout_s)
-    bus.announce()
+    bus.start([KEYFRAME, KEYFRAME_POSES, KEYFRAME_END], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
     bus.watch(["tracker"])
     result = MapperResult()
     expected: int | None = None

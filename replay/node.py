@@ -65,11 +65,7 @@ def run(cfg: ReplayConfig, bus_cfg: BusConfig, *, rerun: str = "off", recording_
 def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Progress | None) -> ReplayResult:
     frames_pub = bus.publisher(RGBD)
     end_pub = bus.publisher(RGBD_END)
-    if cfg.rate == 0:
-        bus.subscribe([TRACKING_STATUS])
-    bus.watch(cfg.wait_for)
-    bus.wait_for(cfg.wait_for, cfg.wait_timeout_s)
-    bus.announce()
+    bus.start([TRACKING_STATUS] if cfg.rate == 0 else [], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
     pacer = Pacer(bus, cfg)
     end = None if cfg.end < 0 else cfg.end
     total = max(0, min(len(source), end if end is not None else len(source)) - cfg.start)

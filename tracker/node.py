@@ -45,10 +45,7 @@ def run(cfg: TrackerConfig, bus_cfg: BusConfig, *, trajectory: Path | None = Non
 def track(odometry, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerResult:
     pub_pose, pub_status = bus.publisher(POSE), bus.publisher(TRACKING_STATUS)
     pub_kf, pub_kf_end = bus.publisher(KEYFRAME), bus.publisher(KEYFRAME_END)
-    bus.subscribe([RGBD, RGBD_END])
-    bus.watch(cfg.wait_for)
-    bus.wait_for(cfg.wait_for, cfg.wait_timeout_s)
-    bus.announce()
+    bus.start([RGBD, RGBD_END], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
     bus.watch(["replay"])
     result = TrackerResult()
     expected: int | None = None
