@@ -208,7 +208,7 @@ class Bus:
                 return codec.decode(reply.ok.payload.to_bytes(), topic.msgtype)
         return None
 
-    # --- stages: readiness and liveness ----
+    # --- stages: readiness and liveness ------------------------------------------------------
 
     def start(self, topics: Iterable[Topic], *, wait_for: Iterable[str] = (), timeout_s: float = 60.0) -> None:
         """The usual stage start: subscribe, wait for the stages named, then announce readiness."""
@@ -216,7 +216,7 @@ class Bus:
         wait_for = tuple(wait_for)
         self.watch(wait_for)
         self.wait_for(wait_for, timeout_s)
-        self.announce()------------------------------------------------
+        self.announce()
 
     def announce(self) -> None:
         """Declare this stage ready (call after subscribing)."""
