@@ -69,7 +69,7 @@ def run_pipeline(source: str, out: Path) -> dict:
     import json
 
     summary = json.loads((out / "summary.json").read_text())
-    return {"wall": wall, "frames": summary["frames"], "duration": summary["duration_s"],
+    return {"wall": wall, "frames": summary["tracked_frames"], "duration": summary["duration_s"],
             "ate_cm": (summary["ate"] or {}).get("rmse_m", float("nan")) * 100, "track_ms": track_ms,
             "latency_ms": latency_ms, "map_ms": map_ms, "keyframes": len(map_ms)}
 

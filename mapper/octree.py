@@ -10,6 +10,11 @@ Wraps `pyoctomap.OcTree` with OctoMap's sensor model set explicitly (hit 0.7, mi
   end point per voxel (in Python) and ray-casts to voxel centres (in C++), like OctoMap's
   `insertPointCloud(..., discretize=true)`.
 - The library is built without OpenMP, so ray casting is serial and updates are deterministic.
+- With `colour=True` a `pyoctomap.ColorOcTree` mirror receives the same scans (same occupancy
+  arithmetic) plus `averageNodeColor` per occupied end-point voxel with the scan's mean colour; it
+  only serves `.ot` output. OctoMap prunes in memory as it inserts (8 siblings with equal log-odds
+  collapse), and a ColorOcTree prunes on log-odds alone, averaging the children's colours, so its
+  colours are lossy where that happens; `VoxelOccupancyMap` keeps every voxel's colour.
 """
 
 from __future__ import annotations
@@ -41,6 +46,7 @@ class OccupancyOctree:
         clamp_min: float = 0.12,
         clamp_max: float = 0.97,
         occupancy_thres: float = 0.5,
+        colour: bool = False,
     ) -> None:
         if not (np.isfinite(resolution) and resolution > 0):
             raise MapError(f"octree resolution must be a positive number, got {resolution}")
@@ -60,8 +66,17 @@ class OccupancyOctree:
             raise MapError("octree clamping needs clamp_min < occupancy_thres < clamp_max")
         self.resolution = float(resolution)
         self._model = {k: float(v) for k, v in probs.items()}
+        self.colour = bool(colour)
         self._tree = self._new_tree()
+        self._ctree = self._new_colour_tree() if self.colour else None
         self._leaf_cache: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    backend = "octomap"
+
+    def _new_colour_tree(self) -> pyoctomap.ColorOcTree:
+        tree = pyoctomap.ColorOcTree(self.resolution)
+        self._apply_model(tree)
+        return tree
 
     def _new_tree(self) -> pyoctomap.OcTree:
         tree = pyoctomap.OcTree(self.resolution)
@@ -82,12 +97,18 @@ class OccupancyOctree:
         return self._tree
 
     def insert(
-        self, points_world: np.ndarray, origin: np.ndarray, *, max_range_m: float = -1.0
+        self,
+        points_world: np.ndarray,
+        origin: np.ndarray,
+        *,
+        colours: np.ndarray | None = None,
+        max_range_m: float = -1.0,
     ) -> int:
         """Integrate one scan: end points occupied, voxels along each ray from `origin` free.
 
         `max_range_m` < 0 means unlimited; longer rays are cut there and only mark free space.
         Pixels without a depth reading never reach here, so they clear no space.
+        `colours` (N,3) uint8 go to the ColorOcTree mirror (ignored without `colour=True`).
         Returns the number of points handed to OctoMap (before its per-voxel discretisation).
         """
         pts = np.asarray(points_world)
@@ -103,6 +124,8 @@ class OccupancyOctree:
             raise MapError("octree points contain NaN or infinite coordinates")
         if not np.isfinite(max_range_m) or max_range_m == 0:
             raise MapError(f"max_range_m must be > 0 (or negative for unlimited), got {max_range_m}")
+        if colours is not None and (np.shape(colours) != pts.shape or np.asarray(colours).dtype != np.uint8):
+            raise MapError(f"colours must be ({pts.shape[0]}, 3) uint8, got {np.shape(colours)}")
         limit = _TREE_MAX_VAL * self.resolution
         if pts.shape[0] and (np.abs(pts).max() >= limit or np.abs(org).max() >= limit):
             raise MapError(f"points outside the octree's addressable cube of +/-{limit:g} m")
@@ -112,19 +135,40 @@ class OccupancyOctree:
             pts, org, max_range=float(max_range_m) if max_range_m > 0 else -1.0,
             lazy_eval=False, discretize=True,
         )
+        if self._ctree is not None:
+            self._insert_colour(pts, org, colours, max_range_m)
         self._leaf_cache = None
         return int(n)
+
+    def _insert_colour(self, pts: np.ndarray, org: np.ndarray, colours: np.ndarray | None,
+                       max_range_m: float) -> None:
+        """Same scan into the ColorOcTree mirror, then averageNodeColor per occupied end voxel."""
+        from mapper.voxelmap import scan_voxel_colours
+
+        ctree = self._ctree
+        ctree.insertPointCloud(pts, org, max_range=float(max_range_m) if max_range_m > 0 else -1.0,
+                               lazy_eval=False, discretize=True)
+        if colours is None:
+            return
+        centres, rgb = scan_voxel_colours(pts, colours, org, self.resolution, max_range_m)
+        for c, (r, g, b) in zip(centres, rgb.tolist()):
+            ctree.averageNodeColor(c, r, g, b)
+        ctree.updateInnerOccupancy()  # inner colours = average of the children
 
     def clear(self) -> None:
         """Forget everything (e.g. before re-integrating keyframes after a loop closure)."""
         self._tree = self._new_tree()
+        self._ctree = self._new_colour_tree() if self.colour else None
         self._leaf_cache = None
 
     # ---- serialisation -------------------------------------------------------------------------
 
-    def ot_bytes(self) -> bytes:
-        """The full probabilistic tree in OctoMap's `.ot` format (log-odds per node, no colour)."""
-        data = self._tree.write()
+    def ot_bytes(self, *, colour: bool | None = None) -> bytes:
+        """The full probabilistic tree as `.ot`: ColorOcTree if `colour` (default: the map's flag), else OcTree."""
+        colour = self.colour if colour is None else bool(colour)
+        if colour and self._ctree is None:
+            raise MapError("this octree keeps no colour (create it with colour=True)")
+        data = (self._ctree if colour else self._tree).write()
         if not isinstance(data, bytes):
             raise MapError("OctoMap failed to serialise the octree")
         return data
@@ -134,7 +178,7 @@ class OccupancyOctree:
         with tempfile.TemporaryDirectory(prefix="octolog-bt-") as tmp:
             ot_path = os.path.join(tmp, "copy.ot")
             with open(ot_path, "wb") as f:
-                f.write(self.ot_bytes())
+                f.write(self.ot_bytes(colour=False))
             copy = self._tree.read(ot_path)
         if copy is None:
             raise MapError("OctoMap failed to copy the octree for binary output")
@@ -147,6 +191,10 @@ class OccupancyOctree:
     def write_bt(self, path: str | os.PathLike[str]) -> None:
         """Write the `.bt` file atomically (temporary file then rename)."""
         write_bytes_atomic(Path(path), self.bt_bytes())
+
+    def write_ot(self, path: str | os.PathLike[str], *, colour: bool | None = None) -> None:
+        """Write the `.ot` file atomically; ColorOcTree when the octree keeps colour."""
+        write_bytes_atomic(Path(path), self.ot_bytes(colour=colour))
 
     # ---- queries -------------------------------------------------------------------------------
 

@@ -208,6 +208,13 @@ class Bus:
                 return codec.decode(reply.ok.payload.to_bytes(), topic.msgtype)
         return None
 
+    def receive_nowait(self) -> Received | None:
+        """The next sample if one is waiting, else None."""
+        try:
+            return self._inbox.get_nowait()
+        except queue.Empty:
+            return None
+
     # --- stages: readiness and liveness ------------------------------------------------------
 
     def start(self, topics: Iterable[Topic], *, wait_for: Iterable[str] = (), timeout_s: float = 60.0) -> None:

@@ -15,7 +15,7 @@ import uuid
 from pathlib import Path
 from typing import Any
 
-from octolog.errors import OctologError
+from octolog.errors import ConfigError, OctologError
 
 
 # --- shared flags ------------------------------------------------------------------------------
@@ -43,7 +43,8 @@ def bus_config(args: argparse.Namespace) -> Any:
 
 def add_viz_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("Rerun")
-    g.add_argument("--rerun", default="off", metavar="SPEC", help="off (default), save:DIR or connect[:URL]")
+    g.add_argument("--rerun", default=None, metavar="SPEC",
+                   help="off (default; a SESSION replay: save into OUT/rerun), save:DIR or connect[:URL]")
     g.add_argument("--recording-id", default=None, help="shared by all stages of one session")
 
 
@@ -70,6 +71,8 @@ def _progress(done: int, total: int, elapsed: float) -> None:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
+    if args.session:
+        return cmd_replay_session(args)
     from octolog.config import load
     from replay import node
     from replay.config import ReplayConfig
@@ -84,6 +87,30 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_replay_session(args: argparse.Namespace) -> int:
+    from octolog import run
+
+    stages = ("mapper",) if args.from_stage == "tracker" else tuple(args.stages.split(","))
+    if args.from_stage not in (None, "tracker"):
+        raise ConfigError(f"--from {args.from_stage}: only --from tracker (the mapper rebuilt from the tracker's log)")
+    out = Path(args.out or (Path(args.session) / "replay"))
+    summary = run.replay_session(Path(args.session), out=out, stages=stages, overrides=args.set,
+                                 rerun=args.rerun,
+                                 recording_id=_recording_id(args), quiet=args.quiet)
+    print(run.format_summary(summary))
+    return 0
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    from octolog import run
+
+    merged = run.merge_rrd(Path(args.session))
+    if args.headless or not os.environ.get("DISPLAY"):
+        print(f"merged {merged}; open it with: {Path(sys.executable).with_name('rerun')} {merged}")
+        return 0
+    os.execv(str(Path(sys.executable).with_name("rerun")), ["rerun", str(merged)])
+
+
 def cmd_track(args: argparse.Namespace) -> int:
     from octolog.config import load
     from tracker import node
@@ -93,7 +120,7 @@ def cmd_track(args: argparse.Namespace) -> int:
     res = node.run(cfg, bus_config(args), trajectory=Path(args.trajectory) if args.trajectory else None,
                    rerun=args.rerun, recording_id=_recording_id(args))
     print(f"tracker: {res.frames} frames, {res.tracked} tracked, {res.lost} lost, {res.skipped} skipped, "
-          f"{res.keyframes} keyframes")
+          f"{res.rejected} rejected, {res.keyframes} keyframes")
     return 0
 
 
@@ -114,7 +141,8 @@ def cmd_log(args: argparse.Namespace) -> int:
     from recorder import buslog
 
     metadata = json.loads(Path(args.metadata).read_text()) if args.metadata else None
-    res = buslog.run(bus_config(args), Path(args.out), compression=args.compression, metadata=metadata)
+    res = buslog.run(bus_config(args), Path(args.out), compression=args.compression, metadata=metadata,
+                     stages=tuple(args.stages.split(",")))
     print(f"log: {sum(res.counts.values())} messages → {res.path}")
     return 0
 
@@ -194,8 +222,13 @@ def build_parser() -> argparse.ArgumentParser:
     session(p)
     p.set_defaults(func=cmd_demo)
 
-    p = stage("replay", "publish a source's frames on the bus")
+    p = stage("replay", "publish a source's frames on the bus, or re-run stages of a recorded SESSION")
+    p.add_argument("session", nargs="?", help="a session folder (made by octolog run): re-run stages from its log")
     p.add_argument("--source", help="tum:PATH, mcap:PATH or synthetic[:N]")
+    p.add_argument("--stages", default="tracker,mapper", help="SESSION: stages to run fresh (tracker,mapper or mapper)")
+    p.add_argument("--from", dest="from_stage", metavar="STAGE",
+                   help="SESSION: feed the logged output of STAGE (tracker) to fresh downstream stages")
+    p.add_argument("--out", help="SESSION: output folder (default SESSION/replay)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_replay)
 
@@ -213,6 +246,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--compression", choices=("none", "lz4", "zstd"), default="lz4",
                    help="chunk compression (default lz4: 3x zstd's write speed, see docs/results.md)")
     p.add_argument("--metadata", metavar="JSON", help="file of {name: {key: value}} metadata records")
+    p.add_argument("--stages", default="replay,tracker,mapper", help="producers whose end messages end the log")
     p.set_defaults(func=cmd_log)
 
     p = sub.add_parser("eval", help="ATE and RPE of a TUM trajectory against ground truth")
@@ -220,6 +254,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("groundtruth")
     p.add_argument("--max-dt", type=float, default=0.02, help="association window in seconds (default 0.02)")
     p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("view", help="merge a session's .rrd files into one recording and open it in Rerun")
+    p.add_argument("session")
+    p.add_argument("--headless", action="store_true", help="only write SESSION/rerun/session.rrd")
+    p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("info", help="summary of an MCAP file")
     p.add_argument("file")
@@ -238,6 +277,8 @@ def _terminate(signum: int, frame: object) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if getattr(args, "rerun", "") is None:
+        args.rerun = "save" if getattr(args, "session", None) else "off"
     signal.signal(signal.SIGTERM, _terminate)
     try:
         return int(args.func(args))

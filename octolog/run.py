@@ -63,8 +63,9 @@ def _resolve_configs(source: str, config: str | None, per: dict[str, list[str]])
     from replay.config import ReplayConfig
     from tracker.config import TrackerConfig
 
-    replay = dataclasses.replace(load(ReplayConfig, config, per["replay"], section="replay"), source=source,
-                                 wait_for=("tracker", "mapper", "log"))
+    replay = load(ReplayConfig, config, per["replay"], section="replay")
+    consumers = ("tracker", "mapper", "log") if replay.play == "camera" else ("mapper", "log")
+    replay = dataclasses.replace(replay, source=source, wait_for=consumers)
     return {
         "replay": replay,
         "tracker": load(TrackerConfig, config, per["tracker"], section="tracker"),
@@ -125,7 +126,9 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     from replay.sources import open_source
 
     cfgs = _resolve_configs(source, config, _split_overrides(overrides or []))
-    src = open_source(source)  # fail fast on a bad source, before any process starts
+    replay_cfg = cfgs["replay"]
+    feed_tracker = replay_cfg.play == "tracker"  # a log player stands in for the tracker
+    src = open_source(source, only_consumed=replay_cfg.only_consumed)  # fail fast, before any process
     out.mkdir(parents=True, exist_ok=True)
     (out / "logs").mkdir(exist_ok=True)
     if rerun == "save":
@@ -170,10 +173,12 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     children = _Children(out / "logs")
     t0 = time.monotonic()
     try:
+        producers = "tracker,mapper" if feed_tracker else "replay,tracker,mapper"
         children.start("log", ["log", *bus, "--out", str(out / "session.mcap"), "--metadata", str(out / "metadata.json"),
-                               "--compression", "lz4"])
+                               "--compression", "lz4", "--stages", producers])
         children.start("mapper", ["map", *bus, *viz, *conf, "--out", str(out)])
-        children.start("tracker", ["track", *bus, *viz, *conf, "--trajectory", str(out / "trajectory.txt")])
+        if not feed_tracker:
+            children.start("tracker", ["track", *bus, *viz, *conf, "--trajectory", str(out / "trajectory.txt")])
         children.start("replay", ["replay", *bus, *viz, *conf, *([] if not quiet else ["--quiet"])],
                        show_stderr=not quiet)
         children.wait_all()
@@ -187,22 +192,59 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     return _summarize(out, source, src, wall, recording_id)
 
 
+PINNED = ("eclipse-zenoh", "mcap", "rerun-sdk", "numpy", "scipy", "opencv-python-headless", "open3d-cpu",
+          "pyoctomap", "rosbags", "pyrealsense2")
+
+
+def versions() -> dict[str, str]:
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {"octolog": __version__, "python": sys.version.split()[0]}
+    for name in PINNED:
+        try:
+            out[name] = version(name)
+        except PackageNotFoundError:
+            out[name] = "missing"
+    return out
+
+
+def frame_counts(log: Path) -> dict[str, int]:
+    """What the session log says about frames: published, consumed by the tracker, skipped."""
+    from octolog.mcaplog import read_messages
+    from schemas import codec
+    from schemas.topics import RGBD, TRACKING_STATUS
+
+    skipped_code = codec.msgtype(TRACKING_STATUS.msgtype).SKIPPED
+    published = consumed = skipped = 0
+    for m in read_messages(log, [RGBD.name, TRACKING_STATUS.name]):
+        if m.topic == RGBD.name:
+            published += 1
+        elif codec.decode(m.data, TRACKING_STATUS.msgtype).state == skipped_code:
+            skipped += 1
+        else:
+            consumed += 1
+    return {"published": published, "consumed": consumed, "skipped": skipped}
+
+
 def _summarize(out: Path, source: str, src, wall: float, recording_id: str) -> SessionSummary:
     from octolog import metrics
 
     s = SessionSummary(out=out, source=source, wall_s=wall, duration_s=src.duration_ns * 1e-9)
-    traj = metrics.read_tum(out / "trajectory.txt")
-    s.frames = len(traj.stamps_ns)
     s.map = json.loads((out / "map_stats.json").read_text())
-    if (out / "groundtruth.txt").exists():
-        gt = metrics.read_tum(out / "groundtruth.txt")
-        a = metrics.ate(traj, gt)
-        s.ate = {"rmse_m": a.rmse, "mean_m": a.mean, "max_m": a.max, "pairs": a.n_pairs}
+    frames = frame_counts(out / "session.mcap")
+    if (out / "trajectory.txt").exists():  # absent when the tracker was fed from a log
+        traj = metrics.read_tum(out / "trajectory.txt")
+        s.frames = len(traj.stamps_ns)
+        if (out / "groundtruth.txt").exists():
+            a = metrics.ate(traj, metrics.read_tum(out / "groundtruth.txt"))
+            s.ate = {"rmse_m": a.rmse, "mean_m": a.mean, "max_m": a.max, "pairs": a.n_pairs}
     s.files = {p.name: str(p) for p in sorted(out.glob("*")) if p.is_file()}
     s.files.update({f"rerun/{p.name}": str(p) for p in sorted((out / "rerun").glob("*.rrd"))})
+    s.files["summary.json"] = str(out / "summary.json")
     (out / "summary.json").write_text(json.dumps(
-        {"source": source, "frames": s.frames, "wall_s": round(wall, 3), "duration_s": s.duration_s,
-         "ate": s.ate, "map": s.map, "recording_id": recording_id, "octolog": __version__},
+        {"source": source, "frames": frames, "tracked_frames": s.frames, "wall_s": round(wall, 3),
+         "duration_s": s.duration_s, "ate": s.ate, "map": s.map, "files": sorted(s.files),
+         "recording_id": recording_id, "versions": versions()},
         indent=2, sort_keys=True) + "\n")
     return s
 
@@ -240,3 +282,60 @@ def _to_toml(data: dict[str, dict]) -> str:
         out.extend(f"{k} = {value(v)}" for k, v in items.items() if v is not None)
         out.append("")
     return "\n".join(out)
+
+
+STAGE_CHOICES = {("tracker", "mapper"): "camera", ("mapper",): "tracker"}
+
+
+def replay_session(session: Path, *, out: Path, stages: tuple[str, ...] = ("tracker", "mapper"),
+                   overrides: list[str] | None = None, rerun: str = "save", recording_id: str,
+                   quiet: bool = False) -> SessionSummary:
+    """Re-run stages of a recorded session from its log, with the session's own configuration.
+
+    `stages` run fresh; the others are fed from the log. tracker+mapper: the frames the live tracker
+    consumed, in lockstep; mapper alone: the logged keyframes and pose corrections.
+    """
+    from octolog.errors import InputError
+    from octolog.mcaplog import summarize
+
+    key = tuple(s for s in ("tracker", "mapper") if s in stages)
+    if key not in STAGE_CHOICES or set(stages) - {"tracker", "mapper"}:
+        raise ConfigError(f"--stages {','.join(stages)}: want tracker,mapper or mapper (= --from tracker)")
+    if not session.is_dir():
+        raise InputError(f"{session}: not a session folder")
+    log, config = session / "session.mcap", session / "config.toml"
+    missing = [p.name for p in (log, config) if not p.is_file()]
+    if missing:
+        can = "nothing (the log holds every input)" if "session.mcap" in missing else \
+            f"the stages with default settings: octolog run --source mcap:{log}"
+        raise InputError(f"{session}: missing {', '.join(missing)}; what can still be replayed: {can}")
+    s = summarize(log)
+    if not s.complete:
+        n = sum(t.count for t in s.topics.values())
+        raise InputError(f"{log}: truncated ({s.problem}); {n} messages are readable: "
+                         f"`octolog info {log}` lists them, a byte-exact replay needs the whole log")
+    feed = STAGE_CHOICES[key]
+    fixed = [f"replay.play={feed}", "tracker.live=false", "tracker.throttle_ms=0.0"]
+    if feed == "camera":
+        fixed.append("replay.only_consumed=true")
+    return run_session(source=f"mcap:{log}", out=out, config=str(config), overrides=fixed + list(overrides or []),
+                       rerun=rerun, recording_id=recording_id, quiet=quiet)
+
+
+def merge_rrd(session: Path) -> Path:
+    """Merge a session's per-stage .rrd files into `session.rrd` (one recording, one timeline)."""
+    from octolog.errors import InputError
+
+    parts = sorted((session / "rerun").glob("*.rrd"))
+    parts = [p for p in parts if p.name != "session.rrd"]
+    if not parts:
+        raise InputError(f"{session / 'rerun'}: no .rrd files (was the session run with --rerun off?)")
+    out = session / "rerun" / "session.rrd"
+    rerun = Path(sys.executable).with_name("rerun")
+    env = {**os.environ, "RERUN_DISABLE_ANALYTICS": "1"}
+    with open(out, "wb") as f:
+        proc = subprocess.run([str(rerun), "rrd", "merge", *map(str, parts)], stdout=f, stderr=subprocess.PIPE,
+                              env=env, text=True)
+    if proc.returncode != 0:
+        raise StageError(f"rerun rrd merge failed: {proc.stderr.strip().splitlines()[-1] if proc.stderr else ''}")
+    return out

@@ -17,6 +17,12 @@ class ReplayConfig:
     start: int = 0
     end: int = -1  # -1: to the end
     # stages that must be up before the first frame is published
+    # what to publish from an MCAP source: "camera" frames, or the logged "tracker" output
+    # (keyframes and pose corrections, standing in for the tracker so a fresh mapper can rebuild)
+    play: str = "camera"
+    # MCAP source: only the frames the logged tracker consumed (a live tracker skips frames)
+    only_consumed: bool = False
+    loop: int = 1  # play the source this many times (sequence numbers keep counting)
     wait_for: tuple[str, ...] = ("tracker",)
     wait_timeout_s: float = 60.0
 
@@ -25,5 +31,9 @@ class ReplayConfig:
             raise ConfigError(f"replay.rate {self.rate}: want 0 (lockstep) or a positive factor")
         if self.window < 1:
             raise ConfigError(f"replay.window {self.window}: want >= 1")
+        if self.play not in ("camera", "tracker"):
+            raise ConfigError(f"replay.play {self.play!r}: want camera or tracker")
+        if self.loop < 1:
+            raise ConfigError(f"replay.loop {self.loop}: want >= 1")
         if self.start < 0:
             raise ConfigError(f"replay.start {self.start}: want >= 0")

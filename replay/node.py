@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 from octolog.bus import Bus, BusConfig
@@ -11,7 +12,9 @@ from octolog.viz import Viz
 from replay.config import ReplayConfig
 from replay.sources import Source, open_source
 from schemas import codec
-from schemas.topics import RGBD, RGBD_END, TRACKING_STATUS
+from octolog.errors import InputError
+from octolog.geometry import RgbdFrame
+from schemas.topics import KEYFRAME, KEYFRAME_END, KEYFRAME_POSES, RGBD, RGBD_END, TRACKING_STATUS
 
 Progress = Callable[[int, int, float], None]  # (frames done, total, seconds elapsed)
 
@@ -57,9 +60,30 @@ class Pacer:
 
 def run(cfg: ReplayConfig, bus_cfg: BusConfig, *, rerun: str = "off", recording_id: str = "octolog",
         progress: Progress | None = None) -> ReplayResult:
-    source = open_source(cfg.source)
+    if cfg.play == "tracker":
+        return play_tracker_log(cfg, bus_cfg)
+    source = open_source(cfg.source, only_consumed=cfg.only_consumed)
     with Bus(bus_cfg, "replay") as bus, Viz(rerun, "replay", recording_id) as viz:
         return publish(source, cfg, bus, viz, progress)
+
+
+def looped(source: Source, cfg: ReplayConfig) -> Iterator[RgbdFrame]:
+    """The source's frames `cfg.loop` times; later passes keep sequence numbers and time moving on."""
+    end = None if cfg.end < 0 else cfg.end
+    shift_seq = shift_ns = 0
+    for _ in range(cfg.loop):
+        first = last = None
+        for frame in source.frames(cfg.start, end):
+            first = first or frame
+            last = frame
+            yield frame if not (shift_seq or shift_ns) else dataclasses.replace(
+                frame, seq=frame.seq + shift_seq, stamp_ns=frame.stamp_ns + shift_ns)
+        if first is None or last is None:
+            return
+        span = last.stamp_ns - first.stamp_ns
+        n = last.seq - first.seq + 1
+        shift_seq += n
+        shift_ns += span + (span // (n - 1) if n > 1 else 33_333_333)
 
 
 def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Progress | None) -> ReplayResult:
@@ -68,10 +92,10 @@ def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Pro
     bus.start([TRACKING_STATUS] if cfg.rate == 0 else [], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
     pacer = Pacer(bus, cfg)
     end = None if cfg.end < 0 else cfg.end
-    total = max(0, min(len(source), end if end is not None else len(source)) - cfg.start)
+    total = max(0, min(len(source), end if end is not None else len(source)) - cfg.start) * cfg.loop
     t0 = time.monotonic()
     first_stamp = last_stamp = None
-    for frame in source.frames(cfg.start, end):
+    for frame in looped(source, cfg):
         pacer.wait(frames_pub.count, frame.stamp_ns)
         frames_pub.put(codec.rgbd_msg(frame))
         first_stamp = frame.stamp_ns if first_stamp is None else first_stamp
@@ -88,3 +112,27 @@ def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Pro
     end_pub.put(codec.stream_end_msg(RGBD.name, frames_pub.count, last_stamp or 0))
     duration = ((last_stamp or 0) - (first_stamp or 0)) * 1e-9
     return ReplayResult(frames_pub.count, time.monotonic() - t0, duration)
+
+
+def play_tracker_log(cfg: ReplayConfig, bus_cfg: BusConfig) -> ReplayResult:
+    """Stand in for the tracker: publish its logged keyframes and pose corrections, in log order."""
+    from octolog.errors import ConfigError
+    from octolog.mcaplog import read_messages, summarize
+
+    kind, _, path = cfg.source.partition(":")
+    if kind != "mcap" or not path:
+        raise ConfigError(f"replay.play = tracker needs an mcap:PATH source, got {cfg.source!r}")
+    summary = summarize(path)
+    if not summary.complete:
+        raise InputError(f"{path}: truncated or corrupt MCAP ({summary.problem})")
+    if KEYFRAME.name not in summary.topics:
+        raise InputError(f"{path}: no /{KEYFRAME.name} topic: nothing to feed a mapper with")
+    t0 = time.monotonic()
+    with Bus(bus_cfg, "tracker") as bus:
+        pubs = {t.name: bus.publisher(t) for t in (KEYFRAME, KEYFRAME_POSES)}
+        end_pub = bus.publisher(KEYFRAME_END)
+        bus.start([], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
+        for m in read_messages(path, list(pubs)):
+            pubs[m.topic].put_raw(m.data)
+        end_pub.put(codec.stream_end_msg(KEYFRAME.name, pubs[KEYFRAME.name].count))
+    return ReplayResult(pubs[KEYFRAME.name].count, time.monotonic() - t0, 0.0)

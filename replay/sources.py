@@ -53,9 +53,13 @@ class TumSource:
 
 @dataclass
 class McapSource:
-    """RGB-D frames from an octolog MCAP (`/camera/rgbd` as `octolog_msgs/msg/RgbdFrame`)."""
+    """RGB-D frames from an octolog MCAP (`/camera/rgbd` as `octolog_msgs/msg/RgbdFrame`).
+
+    With `only_consumed`, just the frames the logged tracker consumed (its statuses say which).
+    """
 
     path: Path
+    only_consumed: bool = False
 
     def __post_init__(self) -> None:
         from octolog.mcaplog import summarize
@@ -74,6 +78,10 @@ class McapSource:
         self._count = ts.count
         self._metadata = summary.metadata
         self._span = (ts.first_ns, ts.last_ns)
+        self._consumed: set[int] | None = None
+        if self.only_consumed:
+            self._consumed = consumed_frames(self.path)
+            self._count = len(self._consumed)
 
     def __len__(self) -> int:
         return self._count
@@ -87,18 +95,39 @@ class McapSource:
         from schemas import codec
         from schemas.topics import RGBD
 
-        for i, m in enumerate(read_messages(self.path, [RGBD.name])):
-            if i < start:
-                continue
+        i = 0
+        for n, m in enumerate(read_messages(self.path, [RGBD.name])):
+            try:
+                msg = codec.decode(m.data, RGBD.msgtype)
+                if self._consumed is not None and int(msg.seq) not in self._consumed:
+                    continue
+                if start <= i and (end is None or i < end):
+                    yield codec.rgbd_from_msg(msg)
+            except InputError as exc:
+                raise InputError(f"{self.path}: message {n} on /{RGBD.name}: {exc}") from None
+            i += 1
             if end is not None and i >= end:
                 return
-            try:
-                yield codec.rgbd_from_msg(codec.decode(m.data, RGBD.msgtype))
-            except InputError as exc:
-                raise InputError(f"{self.path}: message {i} on /{RGBD.name}: {exc}") from None
 
     def groundtruth_tum(self) -> str | None:
         return self._metadata.get("groundtruth", {}).get("tum")
+
+
+def consumed_frames(path: Path) -> set[int]:
+    """Sequence numbers of the frames a logged tracker processed (every status but SKIPPED)."""
+    from octolog.mcaplog import read_messages
+    from schemas import codec
+    from schemas.topics import TRACKING_STATUS
+
+    skipped = codec.msgtype(TRACKING_STATUS.msgtype).SKIPPED
+    seqs = set()
+    for m in read_messages(path, [TRACKING_STATUS.name]):
+        st = codec.decode(m.data, TRACKING_STATUS.msgtype)
+        if st.state != skipped:
+            seqs.add(int(st.seq))
+    if not seqs:
+        raise InputError(f"{path}: no /{TRACKING_STATUS.name} messages: cannot tell which frames the tracker consumed")
+    return seqs
 
 
 @dataclass
@@ -126,13 +155,15 @@ class SyntheticSource:
         return self.scene.groundtruth_tum()
 
 
-def open_source(spec: str) -> Source:
+def open_source(spec: str, *, only_consumed: bool = False) -> Source:
     """Open `tum:PATH`, `mcap:PATH` or `synthetic[:N]`; errors name the problem in one line."""
     kind, _, arg = spec.partition(":")
     if kind == "tum" and arg:
         return TumSource(Path(arg))
     if kind == "mcap" and arg:
-        return McapSource(Path(arg))
+        return McapSource(Path(arg), only_consumed)
+    if only_consumed:
+        raise ConfigError(f"source {spec!r}: only an MCAP session log knows which frames were consumed")
     if kind == "synthetic":
         try:
             n = int(arg) if arg else 150

@@ -33,7 +33,8 @@ def test_session_leaves_every_output(runs):
         assert (a / name).stat().st_size > 0, name
     assert sorted(p.name for p in (a / "rerun").glob("*.rrd")) == ["mapper.rrd", "replay.rrd", "tracker.rrd"]
     summary = json.loads((a / "summary.json").read_text())
-    assert summary["frames"] == N_FRAMES
+    assert summary["tracked_frames"] == N_FRAMES
+    assert summary["frames"] == {"published": N_FRAMES, "consumed": N_FRAMES, "skipped": 0}
     assert summary["ate"]["rmse_m"] < 0.01  # synthetic scene, exact depth: sub-centimetre
     assert summary["map"]["occupied_voxels"] > 1000 and summary["map"]["keyframes"] >= 2
 
@@ -112,7 +113,7 @@ def test_tum_first300_end_to_end(tmp_path):
     folder = tum_first300()
     out = octolog("run", "--source", f"tum:{folder}", "--out", str(tmp_path), "--quiet", "--rerun", "off").stdout
     summary = json.loads((tmp_path / "summary.json").read_text())
-    assert summary["frames"] == 294  # every colour/depth pair within 20 ms
+    assert summary["tracked_frames"] == 294  # every colour/depth pair within 20 ms
     assert summary["ate"]["rmse_m"] < 0.02, out
     assert summary["map"]["occupied_voxels"] > 1000
 

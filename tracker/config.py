@@ -10,11 +10,18 @@ from octolog.errors import ConfigError
 @dataclass(frozen=True)
 class TrackerConfig:
     n_features: int = 1000
+    # live: when frames queue up, track the newest and skip the older ones (each skip is published
+    # as a SKIPPED status, so the session log says exactly which frames were consumed)
+    live: bool = False
+    # pad each frame's processing to at least this long: rehearse a slower machine (0: off)
+    throttle_ms: float = 0.0
     # stages that must be up before this one announces itself (e.g. "mapper" when run by hand)
     wait_for: tuple[str, ...] = ()
     wait_timeout_s: float = 60.0
 
     def validate(self) -> None:
+        if self.throttle_ms < 0:
+            raise ConfigError(f"tracker.throttle_ms {self.throttle_ms}: want >= 0")
         if self.n_features < 100:
             raise ConfigError(f"tracker.n_features {self.n_features}: want >= 100")
 

@@ -8,14 +8,14 @@ from pathlib import Path
 
 import numpy as np
 
-from octolog.bus import Bus, BusConfig
+from octolog.bus import Bus, BusConfig, Received
 from octolog.errors import InputError
 from octolog.viz import Viz
 from schemas import codec
 from schemas.topics import KEYFRAME, KEYFRAME_END, POSE, RGBD, RGBD_END, TRACKING_STATUS
 from tracker.config import TrackerConfig, make_odometry
 
-STATE_CODES = {"INIT": 0, "OK": 1, "LOST": 2}
+STATE_CODES = {"INIT": 0, "OK": 1, "LOST": 2, "SKIPPED": 3}
 
 
 @dataclass
@@ -23,7 +23,8 @@ class TrackerResult:
     frames: int = 0
     tracked: int = 0
     lost: int = 0
-    skipped: int = 0
+    skipped: int = 0  # live mode: not processed, a newer frame was waiting
+    rejected: int = 0  # undecodable or inconsistent frames
     keyframes: int = 0
     stamps_ns: list[int] = field(default_factory=list)
     poses: list[np.ndarray] = field(default_factory=list)
@@ -49,8 +50,9 @@ def track(odometry, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerResult:
     bus.watch(["replay"])
     result = TrackerResult()
     expected: int | None = None
+    held: Received | None = None  # a non-frame message met while looking for newer frames
     while expected is None or result.frames < expected:
-        r = bus.receive()
+        r, held = (held, None) if held is not None else (bus.receive(), None)
         if r is None:
             continue
         if r.topic == RGBD_END:
@@ -59,16 +61,29 @@ def track(odometry, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerResult:
             bus.unwatch("replay")  # the source may now leave
             continue
         result.frames += 1
+        if cfg.live:
+            # stay real-time: the newest waiting frame wins, the older ones are skipped, on record
+            while (newer := bus.receive_nowait()) is not None:
+                if newer.topic != RGBD:
+                    held = newer
+                    break
+                old = r.decode()
+                pub_status.put(_status(old.seq, codec.stamp_ns(old.header), "SKIPPED", False, -1, 0, 0, 0.0))
+                result.skipped += 1
+                result.frames += 1
+                r = newer
         t0 = time.perf_counter()
         msg = r.decode()
         try:
             frame = codec.rgbd_from_msg(msg)
         except InputError:
             # an undecodable frame is consumed and reported LOST, never a crash
-            result.skipped += 1
+            result.rejected += 1
             pub_status.put(_status(msg.seq, codec.stamp_ns(msg.header), "LOST", False, -1, 0, 0, 0.0))
             continue
         res = odometry.track(frame)
+        if cfg.throttle_ms:
+            time.sleep(max(0.0, cfg.throttle_ms / 1e3 - (time.perf_counter() - t0)))
         ms = (time.perf_counter() - t0) * 1e3
         result.ms.append(ms)
         result.stamps_ns.append(frame.stamp_ns)
