@@ -32,7 +32,7 @@ class Mapper:
 
     def __init__(self, *, resolution_m: float = 0.05, voxel_m: float = 0.01, max_range_m: float = 4.0,
                  pixel_stride: int = 2, sor_neighbors: int = 20, sor_std_ratio: float = 2.0, sor_first: bool = False,
-                 max_extent_m: float = 1000.0) -> None:
+                 max_extent_m: float = 1000.0, backend: str = "numpy", colour: bool = True) -> None:
         from mapper.cloud import DenseCloud
 
         self.resolution_m = resolution_m
@@ -43,15 +43,17 @@ class Mapper:
         self.sor_std_ratio = sor_std_ratio
         self.sor_first = sor_first
         self.max_extent_m = max_extent_m
+        self.backend = backend
+        self.colour = colour
         self.keyframes: dict[int, KeyframeCloud] = {}  # insertion order = integration order
         self.cloud = DenseCloud(voxel_m=voxel_m)
         self.octree = self._new_octree()
         self.rebuilds = 0
 
     def _new_octree(self) -> Any:
-        from mapper.octree import OccupancyOctree
+        from mapper.voxelmap import make_occupancy_map
 
-        return OccupancyOctree(resolution=self.resolution_m)
+        return make_occupancy_map(self.backend, self.resolution_m, colour=self.colour)
 
     def _check_pose(self, kf_id: int, T: np.ndarray) -> None:
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
@@ -86,7 +88,8 @@ class Mapper:
 
         world = transform(kf.points_cam, kf.world_from_camera)
         self.cloud.add(kf_id, world, kf.colours)
-        self.octree.insert(world, kf.world_from_camera[:3, 3], max_range_m=self.max_range_m)
+        self.octree.insert(world, kf.world_from_camera[:3, 3], colours=kf.colours if self.colour else None,
+                           max_range_m=self.max_range_m)
 
     def correct(self, poses: dict[int, np.ndarray]) -> int:
         """Move known keyframes to corrected poses; returns how many moved (unknown ids are ignored)."""
@@ -116,11 +119,13 @@ class Mapper:
 
         out_dir.mkdir(parents=True, exist_ok=True)
         bt, ply, pcd = out_dir / f"{stem}.bt", out_dir / "cloud.ply", out_dir / "cloud.pcd"
+        ot = out_dir / f"{stem}.ot"
         self.octree.write_bt(bt)
+        self.octree.write_ot(ot)
         pts, cols = self.cloud.cloud()
         write_ply(ply, pts, cols)
         write_pcd(pcd, pts, cols)
-        return {"bt": str(bt), "ply": str(ply), "pcd": str(pcd)}
+        return {"bt": str(bt), "ot": str(ot), "ply": str(ply), "pcd": str(pcd)}
 
 
 def bt_payload(bt_file_bytes: bytes) -> bytes:

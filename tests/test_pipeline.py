@@ -185,3 +185,10 @@ def test_truncated_mcap_is_refused_and_described(runs, tmp_path):
     assert f"{cut}: truncated or corrupt MCAP" in proc.stderr and proc.stderr.count("\n") == 1
     info = octolog("info", str(cut)).stdout
     assert "INCOMPLETE" in info and "readable before the damage" in info
+
+
+def test_octomap_backend_gives_the_same_bt(runs, tmp_path):
+    """Our NumPy occupancy map and OctoMap itself, through the whole pipeline: the same .bt bytes."""
+    octolog("run", "--source", f"synthetic:{N_FRAMES}", "--out", str(tmp_path), "--quiet", "--rerun", "off",
+            "--set", "mapper.backend=octomap", "--set", "mapper.colour=false")
+    assert (tmp_path / "map.bt").read_bytes() == (runs[0] / "map.bt").read_bytes()
