@@ -32,7 +32,8 @@ class Mapper:
 
     def __init__(self, *, resolution_m: float = 0.05, voxel_m: float = 0.01, max_range_m: float = 4.0,
                  pixel_stride: int = 2, sor_neighbors: int = 20, sor_std_ratio: float = 2.0, sor_first: bool = False,
-                 max_extent_m: float = 1000.0, backend: str = "numpy", colour: bool = True) -> None:
+                 max_extent_m: float = 1000.0, backend: str = "numpy", colour: bool = True,
+                 grid: GridProjector | None = None) -> None:
         from mapper.cloud import DenseCloud
 
         self.resolution_m = resolution_m
@@ -45,6 +46,7 @@ class Mapper:
         self.max_extent_m = max_extent_m
         self.backend = backend
         self.colour = colour
+        self.grid = grid or GridProjector()
         self.keyframes: dict[int, KeyframeCloud] = {}  # insertion order = integration order
         self.cloud = DenseCloud(voxel_m=voxel_m)
         self.octree = self._new_octree()
@@ -88,8 +90,10 @@ class Mapper:
 
         world = transform(kf.points_cam, kf.world_from_camera)
         self.cloud.add(kf_id, world, kf.colours)
+        # the range limit was applied when back-projecting (depth <= max_range_m), so the dense cloud
+        # and the octree hold the same points; a second, Euclidean cut here would make them differ
         self.octree.insert(world, kf.world_from_camera[:3, 3], colours=kf.colours if self.colour else None,
-                           max_range_m=self.max_range_m)
+                           max_range_m=-1.0)
 
     def correct(self, poses: dict[int, np.ndarray]) -> int:
         """Move known keyframes to corrected poses; returns how many moved (unknown ids are ignored)."""
@@ -125,7 +129,36 @@ class Mapper:
         pts, cols = self.cloud.cloud()
         write_ply(ply, pts, cols)
         write_pcd(pcd, pts, cols)
-        return {"bt": str(bt), "ot": str(ot), "ply": str(ply), "pcd": str(pcd)}
+        files = {"bt": str(bt), "ot": str(ot), "ply": str(ply), "pcd": str(pcd)}
+        grid = self.grid.project(self.octree)
+        if grid is not None:
+            from mapper.grid import write_map_server
+
+            files.update({f"grid_{k}": v for k, v in write_map_server(grid, out_dir / stem).items()})
+        return files
+
+
+@dataclass(frozen=True)
+class GridProjector:
+    """The 2D occupancy grid from the octree: a height band in a level frame (see mapper.grid)."""
+
+    up: tuple[float, ...] = (0.0, -1.0, 0.0)
+    camera_height_m: float = 0.0
+    z_min_m: float = -1.0
+    z_max_m: float = 0.3
+    resolution_m: float = 0.05
+
+    def project(self, octree: Any) -> Any | None:
+        """The grid, or None while no known voxel lies in the band."""
+        from mapper.grid import map_from_world_for_up, project_octree
+        from octolog.errors import MapError
+
+        try:
+            return project_octree(octree, map_from_world=map_from_world_for_up(np.array(self.up, dtype=float),
+                                                                                height_m=self.camera_height_m),
+                                  z_min_m=self.z_min_m, z_max_m=self.z_max_m, resolution_m=self.resolution_m)
+        except MapError:
+            return None
 
 
 def bt_payload(bt_file_bytes: bytes) -> bytes:

@@ -17,7 +17,7 @@ from octolog.errors import InputError, MapError
 from octolog.viz import Viz
 from schemas import codec
 from schemas.topics import (
-    KEYFRAME, KEYFRAME_END, KEYFRAME_POSES, MAP_END, MAP_QUERY, MAP_SAVE, MAP_UPDATE, OCCUPIED, OCTOMAP,
+    GRID, KEYFRAME, KEYFRAME_END, KEYFRAME_POSES, MAP_END, MAP_QUERY, MAP_SAVE, MAP_UPDATE, OCCUPIED, OCTOMAP,
 )
 
 
@@ -39,6 +39,8 @@ class Publisher:
     def __init__(self, bus: Bus, mapper: Mapper, every: int) -> None:
         self.bus, self.mapper, self.every = bus, mapper, every
         self.pub_octomap, self.pub_occupied = bus.publisher(OCTOMAP), bus.publisher(OCCUPIED)
+        self.pub_grid = bus.publisher(GRID)
+        self.grid = None
         self.latest: bytes | None = None  # immutable bytes: swapped atomically, read by the queryable
         self.stats: dict = {}
         bus.serve(MAP_QUERY, lambda: self.latest)
@@ -52,6 +54,11 @@ class Publisher:
         msg = codec.octomap_msg(bt_payload(octree.bt_bytes()), self.mapper.resolution_m, stamp)
         self.latest = self.pub_octomap.put(msg)
         self.pub_occupied.put(codec.point_cloud_msg(octree.occupied_centres(), stamp))
+        self.grid = self.mapper.grid.project(octree)
+        if self.grid is not None:
+            from mapper.grid import occupancy_grid_msg
+
+            self.pub_grid.put(occupancy_grid_msg(self.grid, stamp))
         self.stats = octree.stats()
 
 
@@ -70,7 +77,7 @@ def run(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: str = "o
             {**result.stats, "cloud_points": result.cloud_points, "skipped_keyframes": result.skipped,
              "corrections": result.corrections}, indent=2, sort_keys=True) + "\n")
         if viz.enabled:
-            _log_map(viz, mapper, last_stamp)
+            _log_map(viz, mapper, last_stamp, publisher.grid)
         bus.publisher(MAP_END).put(codec.stream_end_msg(MAP_UPDATE.name, result.keyframes + result.skipped))
     return result
 
@@ -132,11 +139,11 @@ def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: Pu
                 viz.set_time(stamp, frame.seq)
                 viz.scalar("mapper/ms", ms)
                 if publisher.every and result.keyframes % publisher.every == 0:
-                    _log_map(viz, mapper, stamp)
+                    _log_map(viz, mapper, stamp, publisher.grid)
     return result
 
 
-def _log_map(viz: Viz, mapper: Mapper, stamp: int) -> None:
+def _log_map(viz: Viz, mapper: Mapper, stamp: int, grid: Any = None) -> None:
     viz.set_time(stamp)
     pts, cols = mapper.cloud.cloud()
     viz.points3d("world/mapper/cloud", pts, cols, radius=0.004)
@@ -146,6 +153,11 @@ def _log_map(viz: Viz, mapper: Mapper, stamp: int) -> None:
         t = (z - z.min()) / max(1e-9, float(np.ptp(z)))
         colours = np.stack([255 * t, 80 + 100 * (1 - t), 255 * (1 - t)], axis=1).astype(np.uint8)
         viz.boxes("world/mapper/occupied", centres, mapper.resolution_m, colours)
+    if grid is not None:
+        # map_server colours, top row = largest y, as the PGM shows it
+        image = np.full(grid.data.shape, 205, np.uint8)
+        image[grid.data == 0], image[grid.data == 100] = 254, 0
+        viz.image("mapper/grid", image[::-1])
 
 
 def fetch_map(bus: Bus, timeout_s: float = 10.0) -> Any | None:

@@ -97,6 +97,10 @@ class Viz:
         if self.rec is not None:
             self.rec.log(path, self._rr.Image(image))
 
+    def image(self, path: str, image: np.ndarray) -> None:
+        if self.rec is not None:
+            self.rec.log(path, self._rr.Image(image))
+
     def depth(self, path: str, depth: np.ndarray, depth_scale_m: float) -> None:
         if self.rec is not None:
             self.rec.log(path, self._rr.DepthImage(depth, meter=1.0 / depth_scale_m))
