@@ -23,6 +23,23 @@ class Topic:
         return "/" + self.key(namespace)
 
 
+# Camera streams as a recorder writes them (realsense-ros names), one namespace per camera.
+COLOR = Topic("camera/color/image_raw", "sensor_msgs/msg/Image")
+COLOR_JPEG = Topic("camera/color/image_raw/compressed", "sensor_msgs/msg/CompressedImage")
+COLOR_INFO = Topic("camera/color/camera_info", "sensor_msgs/msg/CameraInfo")
+ALIGNED_DEPTH = Topic("camera/aligned_depth_to_color/image_raw", "sensor_msgs/msg/Image")
+ALIGNED_DEPTH_PNG = Topic("camera/aligned_depth_to_color/image_raw/compressed", "sensor_msgs/msg/CompressedImage")
+ALIGNED_DEPTH_INFO = Topic("camera/aligned_depth_to_color/camera_info", "sensor_msgs/msg/CameraInfo")
+DEPTH = Topic("camera/depth/image_rect_raw", "sensor_msgs/msg/Image")
+DEPTH_PNG = Topic("camera/depth/image_rect_raw/compressed", "sensor_msgs/msg/CompressedImage")
+DEPTH_INFO = Topic("camera/depth/camera_info", "sensor_msgs/msg/CameraInfo")
+ACCEL = Topic("camera/accel/sample", "sensor_msgs/msg/Imu")
+GYRO = Topic("camera/gyro/sample", "sensor_msgs/msg/Imu")
+TF_STATIC = Topic("tf_static", "tf2_msgs/msg/TFMessage")
+CAMERA_TOPICS = (COLOR, COLOR_JPEG, COLOR_INFO, ALIGNED_DEPTH, ALIGNED_DEPTH_PNG, ALIGNED_DEPTH_INFO, DEPTH,
+                 DEPTH_PNG, DEPTH_INFO, ACCEL, GYRO, TF_STATIC)
+
+# The tracker's input: colour + registered depth + calibration, paired, one message per frame.
 RGBD = Topic("camera/rgbd", "octolog_msgs/msg/RgbdFrame")
 RGBD_END = Topic("camera/rgbd/end", "octolog_msgs/msg/StreamEnd")
 POSE = Topic("tracker/pose", "geometry_msgs/msg/PoseStamped")
@@ -42,7 +59,7 @@ ALL = (RGBD, RGBD_END, POSE, TRACKING_STATUS, KEYFRAME, KEYFRAME_END, KEYFRAME_P
 MAP_QUERY = Topic("mapper/map", "octomap_msgs/msg/Octomap")
 # Ask the mapper to write its files now; the reply (JSON in a String) names them.
 MAP_SAVE = Topic("mapper/save", "std_msgs/msg/String")
-BY_NAME = {t.name: t for t in ALL}
+BY_NAME = {t.name: t for t in ALL + CAMERA_TOPICS}
 
 # Liveliness tokens: a stage declares `<ns>/_octolog/stage/<name>` once it is subscribed and ready.
 STAGE_TOKEN = "_octolog/stage"
