@@ -23,6 +23,11 @@ class ReplayConfig:
     # MCAP source: only the frames the logged tracker consumed (a live tracker skips frames)
     only_consumed: bool = False
     loop: int = 1  # play the source this many times (sequence numbers keep counting)
+    # sensor-time window, seconds from the first frame (-1: unbounded); combines with start/end frames
+    start_s: float = -1.0
+    end_s: float = -1.0
+    # publish under other topic names: "camera/rgbd=cam2/rgbd" (namespaces: the --namespace flag)
+    remap: tuple[str, ...] = ()
     wait_for: tuple[str, ...] = ("tracker",)
     wait_timeout_s: float = 60.0
 
@@ -35,5 +40,17 @@ class ReplayConfig:
             raise ConfigError(f"replay.play {self.play!r}: want camera or tracker")
         if self.loop < 1:
             raise ConfigError(f"replay.loop {self.loop}: want >= 1")
+        for item in self.remap:
+            if item.count("=") != 1 or not all(item.split("=")):
+                raise ConfigError(f"replay.remap {item!r}: want FROM=TO topic names")
         if self.start < 0:
             raise ConfigError(f"replay.start {self.start}: want >= 0")
+
+
+def remapped(topic, remap: tuple[str, ...]):  # Topic -> Topic
+    """`topic` under the name `remap` gives it, if any (same message type)."""
+    from schemas.topics import Topic
+
+    table = dict(item.split("=", 1) for item in remap)
+    name = table.get(topic.name)
+    return Topic(name.strip("/"), topic.msgtype) if name else topic

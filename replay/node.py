@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 from octolog.bus import Bus, BusConfig
 from octolog.viz import Viz
-from replay.config import ReplayConfig
+from replay.config import ReplayConfig, remapped
 from replay.sources import Source, open_source
 from schemas import codec
 from octolog.errors import InputError
@@ -71,9 +71,16 @@ def looped(source: Source, cfg: ReplayConfig) -> Iterator[RgbdFrame]:
     """The source's frames `cfg.loop` times; later passes keep sequence numbers and time moving on."""
     end = None if cfg.end < 0 else cfg.end
     shift_seq = shift_ns = 0
+    t0: int | None = None
     for _ in range(cfg.loop):
         first = last = None
         for frame in source.frames(cfg.start, end):
+            t0 = frame.stamp_ns if t0 is None else t0
+            rel_s = (frame.stamp_ns - t0) * 1e-9
+            if cfg.start_s >= 0 and rel_s < cfg.start_s:
+                continue
+            if cfg.end_s >= 0 and rel_s > cfg.end_s:
+                break
             first = first or frame
             last = frame
             yield frame if not (shift_seq or shift_ns) else dataclasses.replace(
@@ -87,8 +94,8 @@ def looped(source: Source, cfg: ReplayConfig) -> Iterator[RgbdFrame]:
 
 
 def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Progress | None) -> ReplayResult:
-    frames_pub = bus.publisher(RGBD)
-    end_pub = bus.publisher(RGBD_END)
+    frames_pub = bus.publisher(remapped(RGBD, cfg.remap))
+    end_pub = bus.publisher(remapped(RGBD_END, cfg.remap))
     bus.start([TRACKING_STATUS] if cfg.rate == 0 else [], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
     pacer = Pacer(bus, cfg)
     end = None if cfg.end < 0 else cfg.end
@@ -109,7 +116,7 @@ def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Pro
         if progress is not None:
             progress(frames_pub.count, total, time.monotonic() - t0)
     pacer.finish(frames_pub.count)
-    end_pub.put(codec.stream_end_msg(RGBD.name, frames_pub.count, last_stamp or 0))
+    end_pub.put(codec.stream_end_msg(frames_pub.topic.name, frames_pub.count, last_stamp or 0))
     duration = ((last_stamp or 0) - (first_stamp or 0)) * 1e-9
     return ReplayResult(frames_pub.count, time.monotonic() - t0, duration)
 
@@ -129,8 +136,8 @@ def play_tracker_log(cfg: ReplayConfig, bus_cfg: BusConfig) -> ReplayResult:
         raise InputError(f"{path}: no /{KEYFRAME.name} topic: nothing to feed a mapper with")
     t0 = time.monotonic()
     with Bus(bus_cfg, "tracker") as bus:
-        pubs = {t.name: bus.publisher(t) for t in (KEYFRAME, KEYFRAME_POSES)}
-        end_pub = bus.publisher(KEYFRAME_END)
+        pubs = {t.name: bus.publisher(remapped(t, cfg.remap)) for t in (KEYFRAME, KEYFRAME_POSES)}
+        end_pub = bus.publisher(remapped(KEYFRAME_END, cfg.remap))
         bus.start([], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
         for m in read_messages(path, list(pubs)):
             pubs[m.topic].put_raw(m.data)
