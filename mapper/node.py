@@ -94,6 +94,8 @@ def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: Pu
     while expected is None or received < expected:
         r = bus.receive()
         if r is None:
+            if expected is not None:
+                bus.expect_count(KEYFRAME, received, expected)
             continue
         if r.topic == KEYFRAME_END:
             expected = int(r.decode().count)

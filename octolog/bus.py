@@ -23,7 +23,7 @@ from schemas.topics import Topic, stage_token
 
 _BLOCK_CLOSE = "transport/link/tx/queue/congestion_control/block/wait_before_close"
 _ZENOH_DEFAULT_BLOCK_CLOSE_US = 5_000_000
-LOST_GRACE_S = 3.0
+CONNECT_TIMEOUT_MS = 30_000
 BLOCK_CLOSE_US = 600_000_000  # a consumer stalled for 10 minutes is dead, not slow
 
 
@@ -37,10 +37,19 @@ class BusConfig:
     namespace: str = ""
     zenoh_config: str | None = None
     multicast_scouting: bool = True
+    # samples each publisher keeps so that subscribers can recover what a cut link lost (Zenoh's
+    # advanced publisher/subscriber); 0: plain pub/sub. Off by default: in the netns test a 6 s
+    # `ip link down` still lost samples with it on (tests/test_distributed.py), and it caches
+    # `history` frames per publisher
+    history: int = 0
+    # how long a vanished peer stage may stay away (a cut link) before it counts as dead
+    peer_timeout_s: float = 30.0
 
     def validate(self) -> None:
         if self.mode not in ("peer", "client", "router"):
             raise BusError(f"--mode {self.mode!r}: want peer, client or router")
+        if self.history < 0 or self.peer_timeout_s <= 0:
+            raise BusError("bus history must be >= 0 and peer_timeout_s > 0")
 
 
 def zenoh_config(cfg: BusConfig) -> Any:
@@ -51,6 +60,9 @@ def zenoh_config(cfg: BusConfig) -> Any:
         zc.insert_json5("mode", json.dumps(cfg.mode))
         if cfg.connect:
             zc.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
+            # a client gives up at once by default; stages may start before their router
+            if json.loads(zc.get_json("connect/timeout_ms")) is None:
+                zc.insert_json5("connect/timeout_ms", str(CONNECT_TIMEOUT_MS))
         if cfg.listen:
             zc.insert_json5("listen/endpoints", json.dumps(list(cfg.listen)))
         if not cfg.multicast_scouting:
@@ -109,6 +121,8 @@ class Bus:
         self._keep: list[Any] = []
         self._alive: set[str] = set()
         self._lost: dict[str, float] = {}  # stage -> monotonic time it vanished
+        self._missed: list[str] = []
+        self._ends: dict[str, float] = {}  # topic -> when its end message showed a shortfall  # samples gone for good (older than the publisher's history)
         self._watched: set[str] = set()
         self._alive_changed = threading.Condition()
 
@@ -145,11 +159,19 @@ class Bus:
     def publisher(self, topic: Topic) -> Publisher:
         import zenoh
 
-        pub = self.session.declare_publisher(
-            topic.key(self.namespace),
-            congestion_control=zenoh.CongestionControl.BLOCK,
-            reliability=zenoh.Reliability.RELIABLE,
-        )
+        key = topic.key(self.namespace)
+        qos = {"congestion_control": zenoh.CongestionControl.BLOCK, "reliability": zenoh.Reliability.RELIABLE}
+        if self.cfg.history:
+            import zenoh.ext as zx
+
+            # a bounded cache plus sequence numbers and heartbeats: subscribers detect gaps (a cut
+            # link, a reconnect) and fetch the missed samples from this cache
+            pub = zx.declare_advanced_publisher(
+                self.session, key, **qos, cache=zx.CacheConfig(self.cfg.history),
+                sample_miss_detection=zx.MissDetectionConfig(heartbeat=0.5, sporadic_heartbeat=None),
+                publisher_detection=True)
+        else:
+            pub = self.session.declare_publisher(key, **qos)
         self._keep.append(pub)
         return Publisher(pub, topic)
 
@@ -163,10 +185,22 @@ class Bus:
                 # Blocking put in Zenoh's receive thread: back-pressure, never a drop.
                 self._inbox.put(Received(topic, sample.payload.to_bytes()))
 
-            sub = self.session.declare_subscriber(
-                topic.key(self.namespace), zenoh.handlers.Callback(on_sample, indirect=False)
-            )
-            self._keep.append(sub)
+            key, handler = topic.key(self.namespace), zenoh.handlers.Callback(on_sample, indirect=False)
+            if self.cfg.history:
+                import zenoh.ext as zx
+
+                sub = zx.declare_advanced_subscriber(
+                    self.session, key, handler, recovery=zx.RecoveryConfig(periodic_queries=None, heartbeat=True),
+                    subscriber_detection=True)
+
+                def on_miss(miss: Any, topic: Topic = topic) -> None:
+                    with self._alive_changed:
+                        self._missed.append(f"{miss.nb} samples on {topic.key(self.namespace)}")
+
+                listener = sub.sample_miss_listener(zenoh.handlers.Callback(on_miss, indirect=False))
+                self._keep.extend([sub, listener])
+            else:
+                self._keep.append(self.session.declare_subscriber(key, handler))
 
     def receive(self, timeout_s: float = 0.25) -> Received | None:
         """The next sample, or None after `timeout_s`; raises StageError if a watched peer died."""
@@ -245,6 +279,7 @@ class Bus:
             with self._alive_changed:
                 if sample.kind == zenoh.SampleKind.PUT:
                     self._alive.add(name)
+                    self._lost.pop(name, None)  # back after a cut
                 else:
                     self._alive.discard(name)
                     self._lost.setdefault(name, time.monotonic())
@@ -276,8 +311,16 @@ class Bus:
             self._lost.pop(stage, None)
 
     def expect_count(self, topic: Topic, received: int, announced: int) -> None:
-        """At a stream's end message, everything before it has arrived: a shortfall is a loss."""
-        if received != announced:
+        """After a stream's end message: a shortfall is a loss once recovery had time to fill it.
+
+        Without recovery (history 0) the end message travels behind all the data, so a shortfall at
+        that moment is final; with it, missed samples can arrive after the end message. Call this at
+        the end message and whenever the inbox is idle until the counts match.
+        """
+        if received >= announced:
+            return
+        since = self._ends.setdefault(topic.name, time.monotonic())
+        if not self.cfg.history or time.monotonic() - since > self.cfg.peer_timeout_s:
             raise StageError(f"{self.stage}: {announced - received} of {announced} messages on "
                              f"{topic.key(self.namespace)} never arrived (link closed or producer restarted)")
 
@@ -286,12 +329,17 @@ class Bus:
             self._raise_if_lost()
 
     def _raise_if_lost(self) -> None:
-        # Liveliness and data may travel different routes: a producer that sent its last message
-        # and left can be seen leaving before that message lands. Give its data time to arrive.
+        if self._missed:
+            raise StageError(f"{self.stage}: {self._missed[0]} were lost for good (a longer outage than the "
+                             f"publisher's history of {self.cfg.history} samples covers)")
+        # A vanished producer may come back (a cut link) and, with liveliness and data on different
+        # routes, one that sent its last message and left can be seen leaving before that message
+        # lands. Only a long absence counts as death.
         now = time.monotonic()
         for stage, since in self._lost.items():
-            if now - since > LOST_GRACE_S:
-                raise StageError(f"{self.stage}: the {stage} stage disappeared (process died or link cut)")
+            if now - since > self.cfg.peer_timeout_s:
+                raise StageError(f"{self.stage}: the {stage} stage disappeared for {self.cfg.peer_timeout_s:g} s "
+                                 f"(process died or link cut)")
 
 
 def serve_router(listen: tuple[str, ...], *, zenoh_config: str | None = None,

@@ -40,21 +40,23 @@ def run(bus_cfg: BusConfig, out: Path, *, compression: str = "zstd", metadata: d
         bus.announce()
         bus.watch(stages)
         pending = {stage for stage, _ in ENDS.values() if stage in stages}
-        while pending:
+        announced: dict[str, int] = {}
+        while pending or any(result.counts.get(t, 0) < n for t, n in announced.items()):
             r = bus.receive()
             if r is None:
+                for t, n in announced.items():
+                    bus.expect_count(T.BY_NAME[t], result.counts.get(t, 0), n)
                 continue
             now = time.time_ns()
             mcap.write(r.topic.name, r.topic.msgtype, r.payload, log_time_ns=now, publish_time_ns=now)
             result.counts[r.topic.name] = result.counts.get(r.topic.name, 0) + 1
             if r.topic in ENDS:
                 stage, closes = ENDS[r.topic]
-                announced = int(r.decode().count)
                 for topic in closes:
-                    bus.expect_count(topic, result.counts.get(topic.name, 0), announced)
+                    announced[topic.name] = int(r.decode().count)
+                    bus.expect_count(topic, result.counts.get(topic.name, 0), announced[topic.name])
                 bus.unwatch(stage)
                 pending.discard(stage)
-        if "tracker" in stages and "replay" in stages:  # one status per frame the tracker consumed
-            bus.expect_count(T.TRACKING_STATUS, result.counts.get(T.TRACKING_STATUS.name, 0),
-                             result.counts.get(T.RGBD.name, 0))
+                if {"replay", "tracker"} <= set(stages) and {T.RGBD.name, T.KEYFRAME.name} <= set(announced):
+                    announced[T.TRACKING_STATUS.name] = announced[T.RGBD.name]  # one per frame consumed
     return result

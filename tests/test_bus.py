@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import socket
 import threading
@@ -66,7 +67,7 @@ def test_slow_consumer_gets_everything_in_order(endpoints):
 
 def test_a_vanished_peer_is_reported(endpoints):
     server, client = endpoints
-    with Bus(server, "mapper") as watcher:
+    with Bus(dataclasses.replace(server, peer_timeout_s=1.0), "mapper") as watcher:
         other = Bus(client, "tracker").__enter__()
         other.announce()
         watcher.watch(["tracker"])
@@ -88,7 +89,7 @@ def test_waiting_for_an_absent_stage_times_out_clearly(endpoints):
 
 def test_stream_shortfall_is_an_error(endpoints):
     server, _ = endpoints
-    with Bus(server, "mapper") as bus:
+    with Bus(dataclasses.replace(server, history=0), "mapper") as bus:
         bus.expect_count(topics.KEYFRAME, 5, 5)
         with pytest.raises(StageError, match="2 of 7 messages on t/tracker/keyframe never arrived"):
             bus.expect_count(topics.KEYFRAME, 5, 7)

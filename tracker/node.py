@@ -54,6 +54,8 @@ def track(odometry, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerResult:
     while expected is None or result.frames < expected:
         r, held = (held, None) if held is not None else (bus.receive(), None)
         if r is None:
+            if expected is not None:
+                bus.expect_count(RGBD, result.frames, expected)
             continue
         if r.topic == RGBD_END:
             expected = int(r.decode().count)

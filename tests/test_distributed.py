@@ -1,0 +1,118 @@
+"""Stages on separate hosts: network namespaces joined by veth pairs, a router on its own host.
+
+Host A runs the replay, B the tracker, C the mapper, D the Zenoh router (`octolog router`); every
+stage is a Zenoh client of the router. Needs root and `ip netns`; skips with the reason otherwise.
+Addresses come from 198.18.0.0/15 (reserved for network tests) on the namespaces this test makes.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from helpers import ROOT, octolog
+
+FRAMES = 40
+HOSTS = ("a", "b", "c")  # replay, tracker, mapper; "d" is the router
+
+
+def _ip(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(["ip", *args], capture_output=True, text=True)
+
+
+@pytest.fixture
+def hosts():
+    if os.geteuid() != 0 or shutil.which("ip") is None:
+        pytest.skip("network namespaces need root and iproute2")
+    tag = f"o{os.getpid() % 100000}"
+    names = {h: f"{tag}{h}" for h in (*HOSTS, "d")}
+    probe = _ip("netns", "add", names["d"])
+    if probe.returncode != 0:
+        pytest.skip(f"ip netns not allowed here: {probe.stderr.strip()}")
+    try:
+        for h in HOSTS:
+            _ip("netns", "add", names[h])
+        for ns in names.values():
+            _ip("-n", ns, "link", "set", "lo", "up")
+        addr = {}
+        for k, h in enumerate(HOSTS, 1):
+            dev_h, dev_d = f"{tag}{h}0", f"{tag}{h}1"
+            _ip("link", "add", dev_h, "type", "veth", "peer", "name", dev_d)
+            _ip("link", "set", dev_h, "netns", names[h])
+            _ip("link", "set", dev_d, "netns", names["d"])
+            _ip("-n", names[h], "addr", "add", f"198.18.{k}.1/24", "dev", dev_h)
+            _ip("-n", names["d"], "addr", "add", f"198.18.{k}.2/24", "dev", dev_d)
+            _ip("-n", names[h], "link", "set", dev_h, "up")
+            _ip("-n", names["d"], "link", "set", dev_d, "up")
+            addr[h] = (f"198.18.{k}.2", dev_d)  # how host h reaches the router, and the router's end
+        yield names, addr
+    finally:
+        for ns in names.values():
+            _ip("netns", "del", ns)
+
+
+def _start(ns: str, *args: str, log: Path) -> subprocess.Popen:
+    env = {**os.environ, "RERUN_DISABLE_ANALYTICS": "1", "PYTHONUNBUFFERED": "1"}
+    return subprocess.Popen(["ip", "netns", "exec", ns, sys.executable, "-m", "octolog", *args], cwd=ROOT, env=env,
+                            stdout=open(log, "w"), stderr=subprocess.STDOUT)
+
+
+def _distributed_run(names: dict, addr: dict, out: Path, *, cut_s: float = 0.0) -> None:
+    out.mkdir(parents=True)
+    procs = {"router": _start(names["d"], "router", "--listen", "tcp/0.0.0.0:7447", log=out / "router.log")}
+    try:
+        def client(h: str) -> list[str]:
+            return ["--mode", "client", "--connect", f"tcp/{addr[h][0]}:7447", "--no-multicast"]
+
+        procs["mapper"] = _start(names["c"], "map", *client("c"), "--out", str(out), log=out / "mapper.log")
+        procs["tracker"] = _start(names["b"], "track", *client("b"), "--trajectory", str(out / "trajectory.txt"),
+                                  log=out / "tracker.log")
+        procs["replay"] = _start(names["a"], "replay", *client("a"), "--source", f"synthetic:{FRAMES}",
+                                 "--set", 'wait_for=["tracker", "mapper"]', log=out / "replay.log")
+        if cut_s:
+            # cut the mapper's host off once frames flow (the replay's progress line says so)
+            deadline = time.monotonic() + 180
+            while f"10/{FRAMES} frames" not in (out / "replay.log").read_text() and time.monotonic() < deadline:
+                assert procs["replay"].poll() is None, (out / "replay.log").read_text()
+                time.sleep(0.1)  # polling a log file with a deadline
+            _ip("-n", names["d"], "link", "set", addr["c"][1], "down")
+            time.sleep(cut_s)  # the outage itself, not a synchronization
+            _ip("-n", names["d"], "link", "set", addr["c"][1], "up")
+        for stage in ("replay", "tracker", "mapper"):
+            assert procs[stage].wait(timeout=300) == 0, (out / f"{stage}.log").read_text()
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                p.terminate()
+                p.wait(timeout=30)
+
+
+@pytest.fixture(scope="module")
+def single_host(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("single")
+    octolog("run", "--source", f"synthetic:{FRAMES}", "--out", str(out), "--quiet", "--rerun", "off")
+    return out
+
+
+def test_stages_on_four_hosts_match_one_host(hosts, single_host, tmp_path):
+    names, addr = hosts
+    _distributed_run(names, addr, tmp_path / "multi")
+    for name in ("trajectory.txt", "map.bt"):
+        assert (tmp_path / "multi" / name).read_bytes() == (single_host / name).read_bytes(), name
+
+
+@pytest.mark.xfail(strict=False, reason=(
+    "a 6 s `ip link set down` on the mapper's link closes its Zenoh session; keyframes published "
+    "meanwhile are lost and the mapper stops with a one-line 'N of M messages on tracker/keyframe never "
+    "arrived' error. Recovery through Zenoh's advanced publisher cache (bus history > 0) did not bring "
+    "them back here yet (issue 7)"))
+def test_mapper_link_cut_and_restored_loses_nothing(hosts, single_host, tmp_path):
+    names, addr = hosts
+    _distributed_run(names, addr, tmp_path / "cut", cut_s=6.0)
+    for name in ("trajectory.txt", "map.bt"):
+        assert (tmp_path / "cut" / name).read_bytes() == (single_host / name).read_bytes(), name
