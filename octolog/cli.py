@@ -163,6 +163,22 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return cmd_run(args)
 
 
+def cmd_import(args: argparse.Namespace) -> int:
+    from recorder.importers import import_source, parse_topic_map
+
+    res = import_source(args.source, Path(args.output), overwrite=args.overwrite,
+                        topic_map=parse_topic_map(args.map), compression=args.compression,
+                        depth_scale_m=args.depth_scale)
+    print(f"import: {res.kind} {res.source} → {res.output}: {res.total} messages")
+    for topic, n in sorted(res.counts.items()):
+        print(f"  /{topic.lstrip('/')}: {n}")
+    for topic, n in sorted(res.skipped.items()):
+        print(f"  skipped {topic}: {n}")
+    for note in res.notes:
+        print(f"  note: {note}")
+    return 0
+
+
 def cmd_eval(args: argparse.Namespace) -> int:
     from octolog import metrics
 
@@ -248,6 +264,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--metadata", metavar="JSON", help="file of {name: {key: value}} metadata records")
     p.add_argument("--stages", default="replay,tracker,mapper", help="producers whose end messages end the log")
     p.set_defaults(func=cmd_log)
+
+    p = sub.add_parser("import", help="a TUM folder, RealSense .bag/.db3 or ROS bag → octolog MCAP")
+    p.add_argument("source", help="TUM folder, .bag (ROS 1), .db3 or rosbag2 folder (ROS 2), .mcap")
+    p.add_argument("output", help="the MCAP file to write")
+    p.add_argument("--map", action="append", default=[], metavar="SRC=DST", help="topic mapping (repeatable)")
+    p.add_argument("--compression", choices=("none", "lz4", "zstd"), default="zstd")
+    p.add_argument("--depth-scale", type=float, default=None, help="metres per depth unit, if the source lacks it")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    p.set_defaults(func=cmd_import)
 
     p = sub.add_parser("eval", help="ATE and RPE of a TUM trajectory against ground truth")
     p.add_argument("trajectory")

@@ -71,8 +71,20 @@ class McapSource:
             raise InputError(f"{self.path}: truncated or corrupt MCAP ({summary.problem}); "
                              f"`octolog info {self.path}` shows what is readable")
         ts = summary.topics.get(RGBD.name)
+        self._standard = None
         if ts is None:
-            raise InputError(f"{self.path}: no /{RGBD.name} topic (topics: {', '.join(sorted(summary.topics)) or 'none'})")
+            from replay.standard import has_standard_frames, open_standard
+
+            if not has_standard_frames(summary.topics):
+                raise InputError(f"{self.path}: neither /{RGBD.name} nor colour + aligned depth topics "
+                                 f"(topics: {', '.join(sorted(summary.topics)) or 'none'})")
+            if self.only_consumed:
+                raise InputError(f"{self.path}: a recording, not a session log: no record of consumed frames")
+            # a recording or an import: colour and depth on their own topics, paired like TUM
+            self._standard = open_standard(self.path)
+            self._count = len(self._standard)
+            self._metadata = summary.metadata
+            return
         if ts.msgtype != RGBD.msgtype:
             raise InputError(f"{self.path}: /{RGBD.name} holds {ts.msgtype}, want {RGBD.msgtype}")
         self._count = ts.count
@@ -88,9 +100,14 @@ class McapSource:
 
     @property
     def duration_ns(self) -> int:
+        if self._standard is not None:
+            return self._standard.duration_ns
         return self._span[1] - self._span[0]
 
     def frames(self, start: int = 0, end: int | None = None) -> Iterator[RgbdFrame]:
+        if self._standard is not None:
+            yield from self._standard.frames(start, end)
+            return
         from octolog.mcaplog import read_messages
         from schemas import codec
         from schemas.topics import RGBD

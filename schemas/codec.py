@@ -241,3 +241,94 @@ def point_cloud_xyz(msg: Any) -> np.ndarray:
     if msg.point_step != 12 or [f.name for f in msg.fields] != ["x", "y", "z"]:
         raise InputError("point cloud: want packed float32 x, y, z")
     return np.asarray(msg.data, dtype=np.uint8).view("<f4").reshape(-1, 3)
+
+
+# --- importers (recorder/importers.py, replay/standard.py) --------------------------------------
+# One block, appended. The builders for CompressedImage, Imu and /tf_static are the recorder's, below.
+
+# 12-byte ConfigHeader (format enum + two float depth quantization parameters) that
+# compressed_depth_image_transport puts before the PNG in "16UC1; compressedDepth png" messages.
+_COMPRESSED_DEPTH_HEADER = 12
+
+
+def decode_compressed_image(msg: Any) -> np.ndarray:
+    """The pixels of any CompressedImage we meet: RGB order for colour, uint16 for 16-bit depth.
+
+    Reads plain png/jpeg, image_transport's "rgb8; jpeg compressed bgr8" and "16UC1; png compressed",
+    and compressed_depth_image_transport's "16UC1; compressedDepth png" (as librealsense 2.59 records).
+    """
+    import cv2
+
+    fmt = str(msg.format)
+    data = np.asarray(msg.data, dtype=np.uint8)
+    if "compresseddepth" in fmt.lower():
+        if "rvl" in fmt.lower():
+            raise InputError(f"compressed image format {fmt!r}: RVL depth is not supported (want png)")
+        data = data[_COMPRESSED_DEPTH_HEADER:]
+    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise InputError(f"compressed image ({fmt!r}, {data.size} bytes): cannot decode")
+    if img.ndim == 3 and img.shape[2] == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    elif img.ndim == 3 and img.shape[2] == 4:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
+    return img
+# --- end of importers block ---------------------------------------------------------------------
+
+
+# --- recorder builders ------------------------------------------------------------------------
+
+
+def compressed_image_msg(data: bytes, fmt: str, stamp: int, frame_id: str) -> Any:
+    """sensor_msgs/CompressedImage. `fmt` as image_transport writes it: "rgb8; jpeg compressed bgr8"
+    for JPEG colour, "16UC1; png compressed" for lossless 16-bit PNG depth (sensor units kept)."""
+    return msgtype("sensor_msgs/msg/CompressedImage")(
+        header=header(stamp, frame_id), format=fmt, data=np.frombuffer(data, dtype=np.uint8))
+
+
+def compressed_image_array(msg: Any) -> np.ndarray:
+    """Decode a JPEG (to RGB) or PNG (16-bit depth kept as uint16) CompressedImage."""
+    import cv2
+
+    raw = np.asarray(msg.data, dtype=np.uint8)
+    img = cv2.imdecode(raw, cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise InputError(f"CompressedImage ({msg.format!r}): undecodable data")
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    return img
+
+
+def imu_msg(stamp: int, frame_id: str, *, angular_velocity: tuple[float, float, float] | None = None,
+            linear_acceleration: tuple[float, float, float] | None = None) -> Any:
+    """sensor_msgs/Imu with what one sensor measured; a missing quantity (and the orientation,
+    which a D455 does not estimate) has covariance[0] = -1, as REP 145 asks."""
+    Vector3 = msgtype("geometry_msgs/msg/Vector3")
+    missing = np.zeros(9, dtype=np.float64)
+    missing[0] = -1.0
+    gyro = angular_velocity or (0.0, 0.0, 0.0)
+    acc = linear_acceleration or (0.0, 0.0, 0.0)
+    return msgtype("sensor_msgs/msg/Imu")(
+        header=header(stamp, frame_id),
+        orientation=msgtype("geometry_msgs/msg/Quaternion")(x=0.0, y=0.0, z=0.0, w=1.0),
+        orientation_covariance=missing.copy(),
+        angular_velocity=Vector3(x=float(gyro[0]), y=float(gyro[1]), z=float(gyro[2])),
+        angular_velocity_covariance=np.zeros(9) if angular_velocity is not None else missing.copy(),
+        linear_acceleration=Vector3(x=float(acc[0]), y=float(acc[1]), z=float(acc[2])),
+        linear_acceleration_covariance=np.zeros(9) if linear_acceleration is not None else missing.copy(),
+    )
+
+
+def tf_static_msg(transforms: list[tuple[str, str, np.ndarray]], stamp: int) -> Any:
+    """tf2_msgs/TFMessage of (parent, child, parent_from_child 4x4) static transforms."""
+    Vector3 = msgtype("geometry_msgs/msg/Vector3")
+    Quaternion = msgtype("geometry_msgs/msg/Quaternion")
+    out = []
+    for parent, child, T in transforms:
+        t, q = matrix_to_pose(np.asarray(T, dtype=np.float64))
+        out.append(msgtype("geometry_msgs/msg/TransformStamped")(
+            header=header(stamp, parent), child_frame_id=child,
+            transform=msgtype("geometry_msgs/msg/Transform")(
+                translation=Vector3(x=float(t[0]), y=float(t[1]), z=float(t[2])),
+                rotation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))))
+    return msgtype("tf2_msgs/msg/TFMessage")(transforms=out)

@@ -109,13 +109,27 @@ def test_replaying_the_session_mcap_gives_the_same_trajectory(runs, tmp_path):
     assert (tmp_path / "map.bt").read_bytes() == (a / "map.bt").read_bytes()
 
 
-def test_tum_first300_end_to_end(tmp_path):
+@pytest.fixture(scope="module")
+def tum_run(tmp_path_factory) -> tuple[Path, str]:
     folder = tum_first300()
-    out = octolog("run", "--source", f"tum:{folder}", "--out", str(tmp_path), "--quiet", "--rerun", "off").stdout
+    out = tmp_path_factory.mktemp("tum")
+    return out, octolog("run", "--source", f"tum:{folder}", "--out", str(out), "--quiet", "--rerun", "off").stdout
+
+
+def test_tum_first300_end_to_end(tum_run):
+    tmp_path, out = tum_run
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["tracked_frames"] == 294  # every colour/depth pair within 20 ms
     assert summary["ate"]["rmse_m"] < 0.02, out
     assert summary["map"]["occupied_voxels"] > 1000
+
+
+def test_imported_tum_replays_to_the_same_trajectory(tum_run, tmp_path):
+    """`octolog import` of the folder, then the pipeline on the MCAP: byte-identical to the folder's run."""
+    octolog("import", str(tum_first300()), str(tmp_path / "fr1.mcap"), "--compression", "lz4")
+    octolog("run", "--source", f"mcap:{tmp_path / 'fr1.mcap'}", "--out", str(tmp_path / "o"), "--quiet", "--rerun", "off")
+    for name in ("trajectory.txt", "map.bt"):
+        assert (tmp_path / "o" / name).read_bytes() == (tum_run[0] / name).read_bytes(), name
 
 
 # --- failures ----------------------------------------------------------------------------------

@@ -1,0 +1,560 @@
+from __future__ import annotations
+
+import os
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from helpers import rerun_cli, tum_first300
+from test_tum import make_tum
+
+from octolog.errors import InputError
+from octolog.geometry import Intrinsics, invert, pose_to_matrix
+from octolog.mcaplog import McapWriter, read_messages, summarize
+from recorder.importers import import_source, parse_topic_map
+from replay.standard import count_standard_frames, open_standard, read_standard_frames
+from replay.tum import TUM_DEPTH_SCALE_M, open_tum
+from schemas import codec, topics
+
+SMALL = Intrinsics(64, 48, 50.0, 51.0, 31.5, 23.5, (0.1, -0.2, 0.001, 0.002, 0.05))
+REALSENSE_BAGS = ("d435_single_depth_color_640x480.bag", "d435_1280x720_color1920x1080.bag")
+
+
+def realsense_bag(name: str) -> Path:
+    """A RealSense recording from the shared data, or skip: it lives in ../shared, never in the repo."""
+    root = os.environ.get("OCTOLOG_DATA")
+    if not root:
+        pytest.skip("real data: set OCTOLOG_DATA to the shared data folder (holding realsense/...)")
+    path = Path(root) / "realsense" / name
+    if not path.is_file():
+        pytest.skip(f"real data: {path} not found")
+    return path
+
+
+def tiny_tum(tmp_path: Path) -> Path:
+    folder = make_tum(tmp_path / "rgbd_dataset_freiburg1_tiny", n=5)
+    (folder / "accelerometer.txt").write_text("# accelerometer data\n# timestamp ax ay az\n"
+                                              "100.001000 0.1 -9.8 0.2\n100.034000 0.15 -9.79 0.25\n")
+    (folder / "groundtruth.txt").write_text("# ground truth trajectory\n100.0000 1 2 3 0 0 0 1\n")
+    return folder
+
+
+def assert_same_frames(got: list, want: list) -> None:
+    assert len(got) == len(want) > 0
+    for a, b in zip(got, want, strict=True):
+        assert (a.seq, a.stamp_ns, a.frame_id) == (b.seq, b.stamp_ns, b.frame_id)
+        assert a.rgb.dtype == b.rgb.dtype and a.rgb.shape == b.rgb.shape and a.rgb.tobytes() == b.rgb.tobytes()
+        assert a.depth.dtype == b.depth.dtype and a.depth.tobytes() == b.depth.tobytes()
+        assert a.intrinsics == b.intrinsics and a.depth_scale_m == b.depth_scale_m
+
+
+# --- TUM ----------------------------------------------------------------------------------------
+
+
+def test_tum_round_trip_is_byte_identical(tmp_path):
+    folder = tiny_tum(tmp_path)
+    out = tmp_path / "tum.mcap"
+    from recorder.importers import import_tum
+
+    result = import_tum(folder, out, intrinsics=SMALL)
+    assert result.counts == {topics.COLOR.name: 5, topics.COLOR_INFO.name: 5, topics.ALIGNED_DEPTH.name: 5,
+                             topics.ALIGNED_DEPTH_INFO.name: 5, topics.ACCEL.name: 2}
+    assert result.depth_scale_m == TUM_DEPTH_SCALE_M and result.depth_registered is True
+    want = list(open_tum(folder, SMALL).frames())
+    assert_same_frames(list(read_standard_frames(out)), want)
+    assert_same_frames(list(read_standard_frames(out, start=1, end=3)), want[1:3])
+    assert count_standard_frames(out) == 5
+    seq = open_standard(out)
+    assert seq.groundtruth_tum() == (folder / "groundtruth.txt").read_text()
+    meta = summarize(out).metadata
+    assert float(meta["calibration"]["depth_scale_m"]) == TUM_DEPTH_SCALE_M
+    assert meta["source"]["kind"] == "tum"
+    # Log time is the exact sensor stamp; the IMU holds acceleration only.
+    for m in read_messages(out):
+        msg = codec.decode(m.data, m.msgtype)
+        assert m.log_time_ns == codec.stamp_ns(msg.header)
+    imu = [codec.decode(m.data, topics.ACCEL.msgtype) for m in read_messages(out, [topics.ACCEL.name])]
+    assert codec.stamp_ns(imu[0].header) == 100_001_000_000
+    assert imu[0].linear_acceleration.y == -9.8 and imu[0].linear_acceleration_covariance[0] == 0
+    assert imu[0].orientation_covariance[0] == -1 and imu[0].angular_velocity_covariance[0] == -1
+
+
+def test_tum_first300_replays_identically(tmp_path):
+    folder = tum_first300()
+    out = tmp_path / "first300.mcap"
+    import_source(folder, out)
+    seq = open_standard(out)
+    assert len(seq) == len(open_tum(folder)) == 294
+    assert_same_frames(list(seq.frames()), list(open_tum(folder).frames()))
+    assert seq.groundtruth_tum() == (folder / "groundtruth.txt").read_text()
+
+
+# --- RealSense ----------------------------------------------------------------------------------
+
+
+def _bag_contents(path: Path) -> dict:
+    """What rosbags itself reads from a RealSense .bag: images, stamps, K, depth units, extrinsics."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    out: dict = {"images": {}, "K": {}, "tf": {}}
+    with AnyReader([path], default_typestore=get_typestore(Stores.ROS1_NOETIC)) as r:
+        for c, _, raw in r.messages():
+            stream = c.topic.split("/")[3] if c.topic.count("/") > 3 else ""
+            if c.topic.endswith("/image/data"):
+                m = r.deserialize(raw, c.msgtype)
+                stamp = m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
+                out["images"].setdefault(stream, []).append((stamp, m.encoding, bytes(m.data)))
+            elif c.topic.endswith("/info/camera_info"):
+                out["K"][stream] = np.asarray(r.deserialize(raw, c.msgtype).K)
+            elif c.topic.endswith("/option/Depth Units/value"):
+                out["depth_units"] = r.deserialize(raw, c.msgtype).data
+            elif "/tf/" in c.topic:
+                t = r.deserialize(raw, c.msgtype)
+                out["tf"][stream] = pose_to_matrix(np.array([t.translation.x, t.translation.y, t.translation.z]),
+                                                   np.array([t.rotation.x, t.rotation.y, t.rotation.z, t.rotation.w]))
+    return out
+
+
+@pytest.mark.parametrize("name", REALSENSE_BAGS)
+def test_realsense_bag_matches_what_rosbags_reads(tmp_path, name):
+    bag = realsense_bag(name)
+    out = tmp_path / "rs.mcap"
+    result = import_source(bag, out)
+    want = _bag_contents(bag)
+    assert result.kind == "realsense-bag" and result.depth_registered is False
+    # Raw depth (the depth camera's own intrinsics differ from colour's), with its own camera_info.
+    streams = (("Color_0", topics.COLOR, topics.COLOR_INFO), ("Depth_0", topics.DEPTH, topics.DEPTH_INFO))
+    for stream, topic, info in streams:
+        msgs = [codec.decode(m.data, topic.msgtype) for m in read_messages(out, [topic.name])]
+        logs = [m.log_time_ns for m in read_messages(out, [topic.name])]
+        bag_images = want["images"][stream]
+        assert [(codec.stamp_ns(m.header), bytes(m.data)) for m in msgs] == [(s, d) for s, _, d in bag_images]
+        assert logs == [s for s, _, _ in want["images"][stream]]
+        assert [m.encoding for m in msgs] == ["rgb8" if stream == "Color_0" else "16UC1"] * len(msgs)
+        infos = [codec.decode(m.data, info.msgtype) for m in read_messages(out, [info.name])]
+        assert len(infos) == len(msgs)
+        assert np.array_equal(infos[0].k, want["K"][stream]) and infos[0].width == msgs[0].width
+    calib = summarize(out).metadata["calibration"]
+    assert float(calib["depth_scale_m"]) == result.depth_scale_m == 0.001
+    assert abs(result.depth_scale_m - want["depth_units"]) < 1e-9
+    color_from_depth = want["tf"]["Color_0"] @ invert(want["tf"]["Depth_0"])
+    got = np.array([float(x) for x in calib["color_from_depth"].split()]).reshape(3, 4)
+    assert np.allclose(got, color_from_depth[:3, :4], atol=1e-9)
+    tf = codec.decode(next(read_messages(out, [topics.TF_STATIC.name])).data, topics.TF_STATIC.msgtype)
+    t = tf.transforms[0]
+    assert (t.header.frame_id, t.child_frame_id) == ("camera_depth_optical_frame", "camera_color_optical_frame")
+    T = pose_to_matrix(np.array([t.transform.translation.x, t.transform.translation.y, t.transform.translation.z]),
+                       np.array([t.transform.rotation.x, t.transform.rotation.y, t.transform.rotation.z,
+                                 t.transform.rotation.w]))
+    assert np.allclose(T, invert(color_from_depth), atol=1e-9)
+    with pytest.raises(InputError, match=r"aligned_depth_to_color/image_raw missing: the tracker needs depth "
+                                         r"registered to colour \(the file has only raw depth"):
+        open_standard(out)
+    _rerun_converts(out, tmp_path)
+
+
+def test_realsense_bag_topic_map_overrides(tmp_path):
+    bag = realsense_bag(REALSENSE_BAGS[0])
+    result = import_source(bag, tmp_path / "x.mcap", topic_map=parse_topic_map(
+        ["/device_0/sensor_1/Color_0/image/data=camera/other/image_raw"]))
+    assert result.counts["camera/other/image_raw"] == 1 and topics.COLOR.name not in result.counts
+
+
+def _record_librealsense_db3(path: Path) -> dict:
+    """Record 3 depth + 3 colour frames through pyrealsense2's software device (librealsense's own writer)."""
+    rs = pytest.importorskip("pyrealsense2", reason="pyrealsense2 (librealsense 2.59) not installed")
+    W, H = 64, 48
+    dev = rs.software_device()
+    ds, cs = dev.add_sensor("Depth"), dev.add_sensor("Color")
+
+    def intr(fx, fy, cx, cy, coeffs):
+        i = rs.intrinsics()
+        i.width, i.height, i.fx, i.fy, i.ppx, i.ppy = W, H, fx, fy, cx, cy
+        i.model, i.coeffs = rs.distortion.brown_conrady, coeffs
+        return i
+
+    def stream(sensor, kind, uid, bpp, fmt, i):
+        vs = rs.video_stream()
+        vs.type, vs.index, vs.uid, vs.width, vs.height, vs.fps, vs.bpp, vs.fmt, vs.intrinsics = (
+            kind, 0, uid, W, H, 30, bpp, fmt, i)
+        return sensor.add_video_stream(vs)
+
+    dstream = stream(ds, rs.stream.depth, 0, 2, rs.format.z16, intr(50, 50, 32, 24, [0] * 5))
+    cstream = stream(cs, rs.stream.color, 1, 3, rs.format.rgb8, intr(60, 61, 31, 23, [0.25, 0, 0, 0, 0]))
+    ds.add_read_only_option(rs.option.depth_units, 0.0001)
+    ext = rs.extrinsics()
+    ext.rotation, ext.translation = [0, 1, 0, -1, 0, 0, 0, 0, 1], [0.015, 0.001, 0.002]  # column-major
+    dstream.register_extrinsics_to(cstream, ext)
+    rng = np.random.default_rng(1)
+    frames: dict = {"depth": [], "color": []}
+    rec = rs.recorder(str(path), dev)
+    sensors = rec.query_sensors()
+    for s in sensors:
+        s.open(s.get_stream_profiles()[0])
+        s.start(lambda f: None)
+    for i in range(3):
+        d = rng.integers(0, 65535, (H, W), dtype=np.uint16)
+        c = rng.integers(0, 255, (H, W, 3), dtype=np.uint8)
+        for sensor, prof, px, bpp, ts, key in ((ds, dstream, d, 2, 1000.0 + 33.25 * i, "depth"),
+                                                (cs, cstream, c, 3, 1001.5 + 33.25 * i, "color")):
+            f = rs.software_video_frame()
+            f.pixels, f.bpp, f.stride, f.timestamp = px, bpp, W * bpp, ts
+            f.domain, f.frame_number, f.profile = rs.timestamp_domain.hardware_clock, i, prof.as_video_stream_profile()
+            if key == "depth":
+                f.depth_units = 0.0001
+            sensor.on_video_frame(f)
+            frames[key].append((round(ts * 1_000_000), px))
+    for s in sensors:
+        s.stop()
+        s.close()
+    del rec, sensors
+    return frames
+
+
+def test_librealsense_259_db3(tmp_path):
+    db3 = tmp_path / "rec.db3"
+    pushed = _record_librealsense_db3(db3)
+    out = tmp_path / "rec.mcap"
+    result = import_source(db3, out)
+    assert result.kind == "realsense-db3" and result.depth_scale_m == 0.0001
+    for key, topic in (("depth", topics.DEPTH), ("color", topics.COLOR)):
+        got = [(m.log_time_ns, codec.image_array(codec.decode(m.data, topic.msgtype)))
+               for m in read_messages(out, [topic.name])]
+        assert [s for s, _ in got] == [s for s, _ in pushed[key]]  # the frames' own timestamps, not record time
+        assert all(np.array_equal(a, b) for (_, a), (_, b) in zip(got, pushed[key], strict=True))
+    info = codec.decode(next(read_messages(out, [topics.COLOR_INFO.name])).data, topics.COLOR_INFO.msgtype)
+    assert codec.intrinsics_from(info) == Intrinsics(64, 48, 60.0, 61.0, 31.0, 23.0, (0.25, 0.0, 0.0, 0.0, 0.0))
+    calib = summarize(out).metadata["calibration"]
+    got = np.array([float(x) for x in calib["color_from_depth"].split()]).reshape(3, 4)
+    assert np.allclose(got, [[0, -1, 0, 0.015], [1, 0, 0, 0.001], [0, 0, 1, 0.002]], atol=1e-6)
+
+
+# --- other bags ---------------------------------------------------------------------------------
+
+
+def _write_ros2_bag(path: Path, *, names: dict[str, str], n: int = 4) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """A rosbag2 (.db3) with Image (bgr8 colour, mono16 depth), CameraInfo and Imu, via rosbags' Writer."""
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    T = store.types
+    rng = np.random.default_rng(2)
+    out = []
+
+    def hdr(ns: int, frame: str):
+        return T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9),
+                                        frame_id=frame)
+
+    with Writer(path, version=9) as w:
+        conns = {k: w.add_connection(v, {"color": "sensor_msgs/msg/Image", "depth": "sensor_msgs/msg/Image",
+                                         "info": "sensor_msgs/msg/CameraInfo", "imu": "sensor_msgs/msg/Imu"}[k],
+                                     typestore=store) for k, v in names.items()}
+        for i in range(n):
+            t = 5_000_000_000 + i * 33_333_333
+            rgb = rng.integers(0, 255, (48, 64, 3), dtype=np.uint8)
+            depth = rng.integers(0, 9000, (48, 64), dtype=np.uint16)
+            out.append((t, rgb, depth))
+            Image = T["sensor_msgs/msg/Image"]
+            msgs = {
+                "color": Image(header=hdr(t, "cam"), height=48, width=64, encoding="bgr8", is_bigendian=0, step=192,
+                               data=np.ascontiguousarray(rgb[..., ::-1]).reshape(-1)),
+                "depth": Image(header=hdr(t + 4_000_000, "cam"), height=48, width=64, encoding="mono16",
+                               is_bigendian=0, step=128, data=depth.reshape(-1).view(np.uint8)),
+                "info": T["sensor_msgs/msg/CameraInfo"](
+                    header=hdr(t, "cam"), height=48, width=64, distortion_model="plumb_bob",
+                    d=np.array(SMALL.distortion), k=SMALL.matrix.reshape(-1), r=np.eye(3).reshape(-1),
+                    p=np.zeros(12), binning_x=0, binning_y=0,
+                    roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
+                                                              do_rectify=False)),
+                "imu": T["sensor_msgs/msg/Imu"](
+                    header=hdr(t + 1000, "imu"), orientation=T["geometry_msgs/msg/Quaternion"](x=0, y=0, z=0, w=1),
+                    orientation_covariance=np.full(9, -1.0), angular_velocity=T["geometry_msgs/msg/Vector3"](
+                        x=0.1, y=0.2, z=0.3), angular_velocity_covariance=np.zeros(9),
+                    linear_acceleration=T["geometry_msgs/msg/Vector3"](x=0, y=9.8, z=0),
+                    linear_acceleration_covariance=np.zeros(9)),
+            }
+            for k, conn in conns.items():
+                typ = conn.msgtype
+                w.write(conn, t + 10_000_000, store.serialize_cdr(msgs[k], typ))
+    return out
+
+
+def test_ros2_db3_with_topic_map(tmp_path):
+    bag = tmp_path / "bag"
+    want = _write_ros2_bag(bag, names={"color": "/cam/rgb", "depth": "/cam/depth_registered", "info": "/cam/info",
+                                       "imu": "/imu/data"})
+    db3 = next(bag.glob("*.db3"))
+    tmap = parse_topic_map([f"/cam/rgb={topics.COLOR.name}", f"/cam/depth_registered={topics.ALIGNED_DEPTH.name}",
+                            f"/cam/info={topics.COLOR_INFO.name}", f"/imu/data={topics.GYRO.name}"])
+    for source in (db3, bag):  # a bare .db3 file and the rosbag2 folder
+        out = tmp_path / f"{source.name}.mcap"
+        result = import_source(source, out, topic_map=tmap)
+        assert result.kind == "rosbag2" and result.depth_registered is True
+        assert result.counts == {topics.COLOR.name: 4, topics.ALIGNED_DEPTH.name: 4, topics.COLOR_INFO.name: 4,
+                                 topics.GYRO.name: 4}
+        seq = open_standard(out)
+        assert seq.depth_scale_m == 0.001 and "ROS 16UC1 convention" in seq.depth_scale_source
+        frames = list(seq.frames())
+        assert [f.stamp_ns for f in frames] == [t for t, _, _ in want]
+        assert all(np.array_equal(f.rgb, rgb) and np.array_equal(f.depth, d) for f, (_, rgb, d) in zip(frames, want))
+        assert frames[0].intrinsics == SMALL and frames[0].frame_id == "cam"
+        imu = codec.decode(next(read_messages(out, [topics.GYRO.name])).data, topics.GYRO.msgtype)
+        assert imu.angular_velocity.z == 0.3 and codec.stamp_ns(imu.header) == want[0][0] + 1000
+        _rosbags_reads(out, 16)
+
+
+def test_bag_topics_map_by_name_under_a_namespace(tmp_path):
+    bag = tmp_path / "bag"
+    _write_ros2_bag(bag, names={"color": "/robot1/camera/color/image_raw",
+                                "depth": "/robot1/camera/aligned_depth_to_color/image_raw",
+                                "info": "/robot1/camera/color/camera_info", "imu": "/robot1/imu"})
+    result = import_source(bag, tmp_path / "o.mcap", depth_scale_m=0.00025)
+    assert set(result.counts) == {topics.COLOR.name, topics.ALIGNED_DEPTH.name, topics.COLOR_INFO.name}
+    assert result.skipped == {"/robot1/imu": 4}
+    assert len(list(read_standard_frames(tmp_path / "o.mcap"))) == 4
+    assert open_standard(tmp_path / "o.mcap").depth_scale_m == 0.00025
+
+
+def test_unmapped_bag_lists_its_topics(tmp_path):
+    bag = tmp_path / "bag"
+    _write_ros2_bag(bag, names={"color": "/cam/rgb", "info": "/cam/info"}, n=1)
+    with pytest.raises(InputError, match=r"no topic maps to the camera layout.*--map.*/cam/info, /cam/rgb"):
+        import_source(bag, tmp_path / "o.mcap")
+    with pytest.raises(InputError, match=r"--map /nope: no such topic"):
+        import_source(bag, tmp_path / "o.mcap", topic_map={"/nope": topics.COLOR.name})
+    with pytest.raises(InputError, match=r"cannot map /cam/info \(sensor_msgs/msg/CameraInfo\) to /camera/color"):
+        import_source(bag, tmp_path / "o.mcap", topic_map={"/cam/info": topics.COLOR.name})
+    assert not (tmp_path / "o.mcap").exists()
+
+
+def _write_ros1_bag(path: Path) -> None:
+    """A small ROS 1 bag (rosbags' rosbag1 Writer): rgb8 colour, 16UC1 depth, CameraInfo (upper-case K, D)."""
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    T = store.types
+    with Writer(path) as w:
+        cc = w.add_connection("/camera/color/image_raw", "sensor_msgs/msg/Image", typestore=store)
+        dc = w.add_connection("/camera/aligned_depth_to_color/image_raw", "sensor_msgs/msg/Image", typestore=store)
+        ic = w.add_connection("/camera/color/camera_info", "sensor_msgs/msg/CameraInfo", typestore=store)
+        for i in range(3):
+            t = 7_000_000_000 + i * 50_000_000
+            hdr = T["std_msgs/msg/Header"](seq=i, stamp=T["builtin_interfaces/msg/Time"](sec=t // 10**9,
+                                                                                         nanosec=t % 10**9),
+                                           frame_id="c")
+            Image = T["sensor_msgs/msg/Image"]
+            w.write(cc, t, store.serialize_ros1(Image(header=hdr, height=48, width=64, encoding="rgb8", is_bigendian=0,
+                                                      step=192, data=np.full(48 * 64 * 3, i, np.uint8)),
+                                                "sensor_msgs/msg/Image"))
+            w.write(dc, t, store.serialize_ros1(Image(header=hdr, height=48, width=64, encoding="16UC1",
+                                                      is_bigendian=0, step=128,
+                                                      data=np.full(48 * 64, 1000 + i, np.uint16).view(np.uint8)),
+                                                "sensor_msgs/msg/Image"))
+            w.write(ic, t, store.serialize_ros1(T["sensor_msgs/msg/CameraInfo"](
+                header=hdr, height=48, width=64, distortion_model="plumb_bob", D=np.zeros(5),
+                K=SMALL.matrix.reshape(-1), R=np.eye(3).reshape(-1), P=np.zeros(12), binning_x=0, binning_y=0,
+                roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
+                                                          do_rectify=False)), "sensor_msgs/msg/CameraInfo"))
+
+
+def test_ros1_bag(tmp_path):
+    bag = tmp_path / "x.bag"
+    _write_ros1_bag(bag)
+    out = tmp_path / "x.mcap"
+    result = import_source(bag, out)
+    assert result.kind == "rosbag1" and result.counts[topics.COLOR.name] == 3
+    frames = list(read_standard_frames(out))
+    assert [f.depth[0, 0] for f in frames] == [1000, 1001, 1002] and frames[2].rgb[0, 0, 0] == 2
+    assert frames[0].intrinsics.fx == SMALL.fx and frames[0].stamp_ns == 7_000_000_000
+    _rosbags_reads(out, 9)
+    _rerun_converts(out, tmp_path)
+
+
+# --- the output MCAP opens elsewhere ------------------------------------------------------------
+
+
+def _rosbags_reads(path: Path, n: int) -> None:
+    """rosbags alone (no octolog types) reads every message."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    count = 0
+    with AnyReader([path], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as r:
+        for c, t, raw in r.messages():
+            msg = r.deserialize(raw, c.msgtype)
+            if hasattr(msg, "header"):
+                assert t == msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+            count += 1
+    assert count == n
+
+
+def _rerun_converts(path: Path, tmp_path: Path) -> None:
+    rerun = rerun_cli()
+    if not Path(rerun).is_file():
+        pytest.skip(f"rerun CLI not found at {rerun}")
+    rrd = tmp_path / (path.stem + ".rrd")
+    proc = subprocess.run([rerun, "mcap", "convert", str(path), "-o", str(rrd)], capture_output=True, text=True,
+                          timeout=300, env={**os.environ, "RERUN_DISABLE_ANALYTICS": "1"})
+    assert proc.returncode == 0, proc.stderr
+    assert rrd.stat().st_size > 0
+
+
+def test_imported_tum_opens_in_rosbags_and_rerun(tmp_path):
+    from recorder.importers import import_tum
+
+    out = tmp_path / "tum.mcap"
+    import_tum(tiny_tum(tmp_path), out, intrinsics=SMALL)
+    _rosbags_reads(out, 22)
+    _rerun_converts(out, tmp_path)
+
+
+# --- compressed variants and missing parts ------------------------------------------------------
+
+
+def _png(img: np.ndarray) -> bytes:
+    import cv2
+
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img))
+    assert ok
+    return buf.tobytes()
+
+
+def _layout_mcap(path: Path, *, color: topics.Topic = topics.COLOR, depth: topics.Topic | None = topics.ALIGNED_DEPTH,
+                 info: bool = True, calibration: dict | None = None) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    rng = np.random.default_rng(3)
+    frames = []
+    with McapWriter(path) as w:
+        if calibration is not None:
+            w.add_metadata("calibration", calibration)
+        for i in range(3):
+            t = 1_000_000_000 + i * 33_000_000
+            rgb = rng.integers(0, 255, (48, 64, 3), dtype=np.uint8)
+            d = rng.integers(0, 65535, (48, 64), dtype=np.uint16)
+            frames.append((t, rgb, d))
+            cm = (codec.compressed_image_msg(_png(rgb[..., ::-1]), "rgb8; png compressed bgr8", t, "c")
+                  if color.msgtype.endswith("CompressedImage") else codec.image_msg(rgb, t, "c"))
+            w.write(color.name, color.msgtype, codec.encode(cm, color.msgtype), log_time_ns=t, publish_time_ns=t)
+            if info:
+                w.write(topics.COLOR_INFO.name, topics.COLOR_INFO.msgtype,
+                        codec.encode(codec.camera_info_msg(SMALL, t, "c"), topics.COLOR_INFO.msgtype),
+                        log_time_ns=t, publish_time_ns=t)
+            if depth is not None:
+                dm = (codec.compressed_image_msg(_png(d), "16UC1; png compressed", t + 1, "c")
+                      if depth.msgtype.endswith("CompressedImage") else codec.image_msg(d, t + 1, "c"))
+                w.write(depth.name, depth.msgtype, codec.encode(dm, depth.msgtype), log_time_ns=t + 1,
+                        publish_time_ns=t + 1)
+    return frames
+
+
+def test_compressed_variants_read_losslessly(tmp_path):
+    out = tmp_path / "c.mcap"
+    want = _layout_mcap(out, color=topics.COLOR_JPEG, depth=topics.ALIGNED_DEPTH_PNG,
+                        calibration={"depth_scale_m": "0.001"})
+    frames = list(read_standard_frames(out))
+    assert [f.stamp_ns for f in frames] == [t for t, _, _ in want]
+    assert all(np.array_equal(f.rgb, rgb) and np.array_equal(f.depth, d) for f, (_, rgb, d) in zip(frames, want))
+
+
+def test_missing_depth_scale_defaults_and_says_so(tmp_path):
+    out = tmp_path / "c.mcap"
+    _layout_mcap(out)
+    seq = open_standard(out)
+    assert seq.depth_scale_m == 0.001 and "ROS 16UC1 convention" in seq.depth_scale_source
+
+
+def test_missing_aligned_depth_or_calibration(tmp_path):
+    _layout_mcap(tmp_path / "a.mcap", depth=None)
+    with pytest.raises(InputError, match=r"camera/aligned_depth_to_color/image_raw missing: the tracker needs depth "
+                                         r"registered to colour"):
+        count_standard_frames(tmp_path / "a.mcap")
+    _layout_mcap(tmp_path / "b.mcap", info=False)
+    with pytest.raises(InputError, match="missing calibration"):
+        read_standard_frames(tmp_path / "b.mcap")
+
+
+# --- bad input ----------------------------------------------------------------------------------
+
+
+def test_truncated_ros1_bag(tmp_path):
+    bag = tmp_path / "x.bag"
+    _write_ros1_bag(bag)
+    bad = tmp_path / "cut.bag"
+    bad.write_bytes(bag.read_bytes()[: bag.stat().st_size // 2])
+    with pytest.raises(InputError, match=r"cut\.bag: unreadable bag") as err:
+        import_source(bad, tmp_path / "o.mcap")
+    assert "\n" not in str(err.value)
+    assert not (tmp_path / "o.mcap").exists() and not (tmp_path / "o.mcap.partial").exists()
+
+
+def test_truncated_realsense_bag(tmp_path):
+    bag = realsense_bag(REALSENSE_BAGS[0])
+    bad = tmp_path / "cut.bag"
+    bad.write_bytes(bag.read_bytes()[:300_000])
+    with pytest.raises(InputError, match=r"cut\.bag: unreadable bag"):
+        import_source(bad, tmp_path / "o.mcap")
+
+
+def test_corrupt_db3(tmp_path):
+    bag = tmp_path / "bag"
+    _write_ros2_bag(bag, names={"color": "/camera/color/image_raw"}, n=2)
+    db3 = next(bag.glob("*.db3"))
+    bad = tmp_path / "bad.db3"
+    bad.write_bytes(b"SQLite format 3\x00" + bytes(range(256)) * 8)
+    with pytest.raises(InputError, match=r"bad\.db3: unreadable bag"):
+        import_source(bad, tmp_path / "o.mcap")
+    cut = tmp_path / "cut.db3"
+    cut.write_bytes(db3.read_bytes()[:1000])
+    with pytest.raises(InputError, match=r"cut\.db3: unreadable bag"):
+        import_source(cut, tmp_path / "o.mcap")
+
+
+def test_refuses_existing_output_unless_overwrite(tmp_path):
+    folder = tiny_tum(tmp_path)
+    out = tmp_path / "o.mcap"
+    out.write_bytes(b"keep me")
+    with pytest.raises(InputError, match=r"o\.mcap: exists; pass overwrite"):
+        import_source(folder, out)
+    assert out.read_bytes() == b"keep me"
+    from recorder.importers import import_tum
+
+    import_tum(folder, out, overwrite=True, intrinsics=SMALL)
+    assert count_standard_frames(out) == 5
+
+
+def test_failed_import_keeps_existing_output(tmp_path):
+    folder = tiny_tum(tmp_path)  # 64x48 images do not fit the default fr1 calibration (640x480)
+    out = tmp_path / "o.mcap"
+    out.write_bytes(b"keep me")
+    with pytest.raises(InputError, match="calibration is 640x480"):
+        import_source(folder, out, overwrite=True)
+    assert out.read_bytes() == b"keep me"
+
+
+@pytest.mark.parametrize("make", ["file", "folder", "missing"])
+def test_unsupported_source(tmp_path, make):
+    src = tmp_path / "thing.txt"
+    if make == "file":
+        src.write_text("hello")
+    elif make == "folder":
+        src = tmp_path / "empty"
+        src.mkdir()
+    with pytest.raises(InputError, match="no such file" if make == "missing" else r"unsupported source.*want a TUM"):
+        import_source(src, tmp_path / "o.mcap")
+
+
+def test_parse_topic_map():
+    assert parse_topic_map(["a/b=camera/color/image_raw", "/c=/x/"]) == {"/a/b": "camera/color/image_raw", "/c": "x"}
+    for bad in ("nothing", "=x", "a="):
+        with pytest.raises(InputError, match="want SOURCE_TOPIC=TARGET_TOPIC"):
+            parse_topic_map([bad])
+
+
+def test_tum_folder_with_bad_accelerometer(tmp_path):
+    folder = tiny_tum(tmp_path)
+    (folder / "accelerometer.txt").write_text("100.0 1 2\n")
+    with pytest.raises(InputError, match=r"accelerometer\.txt:1: malformed line"):
+        import_source(folder, tmp_path / "o.mcap")
