@@ -8,6 +8,9 @@ from octolog.mcaplog import summarize
 
 
 def describe(path: Path) -> str:
+    """An MCAP recording/session, or an OctoMap file (.bt, .ot)."""
+    if path.suffix in (".bt", ".ot"):
+        return describe_map(path)
     s = summarize(path)
     lines = [f"{path}: {s.size_bytes / 1e6:.1f} MB, profile {s.profile or '(none)'}, "
              + ("complete" if s.complete else f"INCOMPLETE: {s.problem}")]
@@ -27,3 +30,38 @@ def describe(path: Path) -> str:
     if not s.complete:
         lines.append(f"  {sum(t.count for t in s.topics.values())} messages are readable before the damage")
     return "\n".join(lines)
+
+
+def describe_map(path: Path) -> str:
+    """Header and leaf counts of an OctoMap file, read by OctoMap itself; MapError if unreadable."""
+    from octolog.errors import MapError
+
+    try:
+        head = path.read_bytes()[:512]
+    except FileNotFoundError:
+        raise MapError(f"{path}: no such map file") from None
+    lines = head.split(b"\n")
+    fields = dict(ln.decode("ascii", "replace").split(" ", 1) for ln in lines[1:6] if b" " in ln)
+    if not lines[0].startswith(b"# Octomap OcTree") or "res" not in fields or "id" not in fields:
+        raise MapError(f"{path}: not an OctoMap file (no '# Octomap OcTree' header with id and res)")
+    import pyoctomap
+
+    res = float(fields["res"])
+    tree = pyoctomap.OcTree(res)
+    if path.suffix == ".bt":
+        ok = tree.readBinary(str(path))
+    else:
+        tree = tree.read(str(path)) if fields["id"].strip() == "OcTree" else pyoctomap.ColorOcTree(res).read(str(path))
+        ok = tree is not None
+    expected = int(fields.get("size", "0"))
+    if not ok or tree is None or (expected and tree.size() != expected):
+        raise MapError(f"{path}: truncated or corrupt OctoMap file (header says {expected} nodes, "
+                       f"read {tree.size() if tree is not None else 0})")
+    occupied = free = 0
+    for leaf in tree.begin_leafs():
+        if tree.isNodeOccupied(leaf):
+            occupied += 1
+        else:
+            free += 1
+    return (f"{path}: OctoMap {fields['id'].strip()}, resolution {res:g} m, {expected} nodes, "
+            f"{occupied} occupied and {free} free leaves")

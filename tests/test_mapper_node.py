@@ -7,6 +7,7 @@ import socket
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -142,3 +143,24 @@ def test_pcd_and_ply_read_back_in_open3d(scene, tmp_path):
         pc = o3d.io.read_point_cloud(files[key])
         np.testing.assert_allclose(np.asarray(pc.points), pts.astype(np.float32), atol=1e-6)
         np.testing.assert_allclose(np.asarray(pc.colors) * 255, cols, atol=0.5)
+
+
+def test_map_files_are_described_and_damage_is_named(scene, tmp_path):
+    from helpers import octolog as cli
+
+    m = make_mapper(MapperConfig())
+    for k, T, f in _keyframes(scene)[:2]:
+        m.integrate(k, T, f)
+    files = m.write(tmp_path)
+    for key, kind in (("bt", "OcTree"), ("ot", "ColorOcTree")):
+        out = cli("info", files[key]).stdout
+        assert f"OctoMap {kind}, resolution 0.05 m" in out and "occupied" in out
+        data = Path(files[key]).read_bytes()
+        cut = tmp_path / f"cut.{key}"
+        cut.write_bytes(data[: len(data) // 2])
+        proc = cli("info", str(cut), check=False)
+        assert proc.returncode == 1 and f"{cut}: truncated or corrupt OctoMap file" in proc.stderr
+    junk = tmp_path / "junk.bt"
+    junk.write_text("hello\n")
+    proc = cli("info", str(junk), check=False)
+    assert proc.returncode == 1 and "not an OctoMap file" in proc.stderr
