@@ -56,10 +56,12 @@ def hosts():
             _ip("netns", "del", ns)
 
 
-def _start(ns: str, *args: str, log: Path) -> subprocess.Popen:
+def _start(ns: str, *args: str, log: Path | None) -> subprocess.Popen:
+    """A stage in a namespace; output to `log`, or to a pipe (text) when `log` is None."""
     env = {**os.environ, "RERUN_DISABLE_ANALYTICS": "1", "PYTHONUNBUFFERED": "1"}
     return subprocess.Popen(["ip", "netns", "exec", ns, sys.executable, "-m", "octolog", *args], cwd=ROOT, env=env,
-                            stdout=open(log, "w"), stderr=subprocess.STDOUT)
+                            stdout=open(log, "w") if log else subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=log is None)
 
 
 def _distributed_run(names: dict, addr: dict, out: Path, *, cut_s: float = 0.0) -> None:
@@ -73,16 +75,18 @@ def _distributed_run(names: dict, addr: dict, out: Path, *, cut_s: float = 0.0) 
         procs["tracker"] = _start(names["b"], "track", *client("b"), "--trajectory", str(out / "trajectory.txt"),
                                   log=out / "tracker.log")
         procs["replay"] = _start(names["a"], "replay", *client("a"), "--source", f"synthetic:{FRAMES}",
-                                 "--set", 'wait_for=["tracker", "mapper"]', log=out / "replay.log")
+                                 "--set", 'wait_for=["tracker", "mapper"]', log=None)
+        # the replay's progress line says frames are flowing (blocking reads: the event is the output)
+        seen = ""
+        while f"10/{FRAMES} frames" not in seen:
+            ch = procs["replay"].stdout.read(1)
+            assert ch, seen
+            seen += ch
         if cut_s:
-            # cut the mapper's host off once frames flow (the replay's progress line says so)
-            deadline = time.monotonic() + 180
-            while f"10/{FRAMES} frames" not in (out / "replay.log").read_text() and time.monotonic() < deadline:
-                assert procs["replay"].poll() is None, (out / "replay.log").read_text()
-                time.sleep(0.1)  # polling a log file with a deadline
             _ip("-n", names["d"], "link", "set", addr["c"][1], "down")
             time.sleep(cut_s)  # the outage itself, not a synchronization
             _ip("-n", names["d"], "link", "set", addr["c"][1], "up")
+        (out / "replay.log").write_text(seen + procs["replay"].communicate(timeout=300)[0])
         for stage in ("replay", "tracker", "mapper"):
             assert procs[stage].wait(timeout=300) == 0, (out / f"{stage}.log").read_text()
     finally:
