@@ -265,6 +265,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stages", default="replay,tracker,mapper", help="producers whose end messages end the log")
     p.set_defaults(func=cmd_log)
 
+    from recorder.cli import add_parsers as add_recorder_parsers
+
+    add_recorder_parsers(sub, add_bus_arguments, add_viz_arguments, add_config_arguments)
+
     p = sub.add_parser("import", help="a TUM folder, RealSense .bag/.db3 or ROS bag → octolog MCAP")
     p.add_argument("source", help="TUM folder, .bag (ROS 1), .db3 or rosbag2 folder (ROS 2), .mcap")
     p.add_argument("output", help="the MCAP file to write")
