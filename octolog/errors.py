@@ -33,3 +33,11 @@ class TrackingError(OctologError):
 
 class MapError(OctologError):
     """The mapper cannot integrate its input or write its outputs."""
+
+
+class RecorderError(OctologError):
+    """The camera or the recording cannot go on (no device, bad profile, disk full, ...)."""
+
+
+class DeviceLost(RecorderError):
+    """The camera went away mid-recording (unplugged, powered off, USB reset)."""

@@ -7,7 +7,8 @@ Schema encoding `ros2msg`, message encoding `cdr`, so files open in rosbags, Rer
 from __future__ import annotations
 
 import errno
-from collections.abc import Iterable, Iterator
+import os
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -28,8 +29,61 @@ class LoggedMessage:
     sequence: int
 
 
+def _write_all(fd: int, data: bytes | memoryview) -> None:
+    """os.write until done (a regular file may take a write in parts)."""
+    view = memoryview(data)
+    while view:
+        n = os.write(fd, view)
+        view = view[n:]
+
+
+class _RecordFile:
+    """An unbuffered output file whose writes are all-or-nothing.
+
+    mcap's Writer hands over each record group (a whole chunk, a metadata record) in one write().
+    A failed write (disk full) is cut back off the file, so the file always ends on a record
+    boundary: a streaming reader reads everything before the failure, and a minimal end can
+    still be written after it.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        self._pos = 0
+
+    def write(self, data: bytes | memoryview) -> int:
+        n = len(data)
+        try:
+            _write_all(self._fd, data)
+        except OSError:
+            try:
+                os.ftruncate(self._fd, self._pos)
+                os.lseek(self._fd, self._pos, os.SEEK_SET)
+            except OSError:
+                pass
+            raise
+        self._pos += n
+        return n
+
+    def tell(self) -> int:
+        return self._pos
+
+    def flush(self) -> None:
+        pass
+
+    def close(self) -> None:
+        if self._fd >= 0:
+            fd, self._fd = self._fd, -1
+            os.close(fd)
+
+
 class McapWriter:
-    """Append CDR messages to an MCAP file. Use as a context manager; finishes on exit."""
+    """Append CDR messages to an MCAP file. Use as a context manager; finishes on exit.
+
+    Crash-safe by construction: chunks go to disk whole as they fill, so a killed writer leaves
+    every finished chunk readable (`salvage` copies them into a complete file). A failed write
+    (e.g. disk full) leaves the file on a record boundary; `close` then ends it with a footer
+    and no index (readers scan it), so it stays readable.
+    """
 
     def __init__(self, path: str | Path, *, compression: str = "zstd", chunk_size: int = 4 * 1024 * 1024) -> None:
         from mcap.writer import CompressionType, Writer
@@ -39,17 +93,20 @@ class McapWriter:
         self.path = Path(path)
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._file: BinaryIO = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+            self._file = _RecordFile(self.path)
         except OSError as exc:
             raise McapError(f"{self.path}: cannot create: {exc.strerror}") from None
-        self._writer = Writer(self._file, chunk_size=chunk_size,
+        self._writer = Writer(self._file, chunk_size=chunk_size,  # type: ignore[arg-type]
                               compression=getattr(CompressionType, compression.upper()))
-        self._writer.start(profile="ros2", library="octolog")
         self._schemas: dict[str, int] = {}
         self._channels: dict[tuple[str, str], int] = {}
+        self._raw_schemas: dict[tuple[str, str, bytes], int] = {}
         self._seq: dict[int, int] = {}
         self.count = 0
+        self.flushed_count = 0  # messages known to be in the file (in chunks already written)
+        self.failed = False  # a write failed; the file ends before it
         self._closed = False
+        self._guard(lambda: self._writer.start(profile="ros2", library="octolog"))
 
     def __enter__(self) -> McapWriter:
         return self
@@ -75,25 +132,72 @@ class McapWriter:
         cid = self.channel(topic, msgtype)
         seq = self._seq.get(cid, 0)
         self._seq[cid] = seq + 1
-        self._guard(lambda: self._writer.add_message(cid, log_time_ns, data, publish_time_ns, seq))
+        self.write_channel(cid, data, log_time_ns=log_time_ns, publish_time_ns=publish_time_ns, sequence=seq)
+
+    def register_raw(self, topic: str, *, schema_name: str, schema_encoding: str, schema_data: bytes,
+                     message_encoding: str) -> int:
+        """A channel with a schema given verbatim (copying another file's channels); its id."""
+        key = (schema_name, schema_encoding, bytes(schema_data))
+        if key not in self._raw_schemas:
+            self._raw_schemas[key] = self._writer.register_schema(
+                name=schema_name, encoding=schema_encoding, data=bytes(schema_data)) if schema_name else 0
+        return int(self._writer.register_channel(topic=topic, message_encoding=message_encoding,
+                                                 schema_id=self._raw_schemas[key]))
+
+    def write_channel(self, cid: int, data: bytes, *, log_time_ns: int, publish_time_ns: int, sequence: int) -> None:
+        """Append one message to a registered channel."""
+        if self.failed:
+            raise McapError(f"{self.path}: not writable after an earlier write failure")
+        before = self._file.tell()
+        self._guard(lambda: self._writer.add_message(cid, log_time_ns, data, publish_time_ns, sequence))
         self.count += 1
+        if self._file.tell() != before:  # a chunk went to disk, this message with it
+            self.flushed_count = self.count
+
+    @property
+    def size_bytes(self) -> int:
+        """Bytes in the file so far (the open chunk is not counted until it is written)."""
+        return self._file.tell()
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         self._guard(lambda: self._writer.add_metadata(name, {k: str(v) for k, v in data.items()}))
 
     def close(self) -> None:
+        """Finish the file: index and footer; after a failed write, a footer without index."""
         if self._closed:
             return
         self._closed = True
         try:
-            self._guard(self._writer.finish)
+            if self.failed:
+                self._end_without_index()
+            else:
+                self._guard(self._writer.finish)
+                self.flushed_count = self.count
         finally:
             self._file.close()
+
+    def _end_without_index(self) -> None:
+        # mcap's Writer state after a failed chunk write is inconsistent (its indexes name the lost
+        # chunk), so its finish() must not run. DataEnd + a footer with no summary is a complete
+        # MCAP file: readers without a summary scan the data section.
+        from mcap.data_stream import RecordBuilder
+        from mcap.records import DataEnd, Footer
+        from mcap.writer import MCAP0_MAGIC
+
+        rb = RecordBuilder()
+        DataEnd(0).write(rb)
+        Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(rb)
+        try:
+            self._file.write(rb.end() + MCAP0_MAGIC)
+        except OSError as exc:
+            raise McapError(f"{self.path}: cannot finish after a failed write ({exc.strerror}); "
+                            f"`octolog recover {self.path} OUT.mcap` gets back what was written") from None
 
     def _guard(self, fn: Any) -> None:
         try:
             fn()
         except OSError as exc:
+            self.failed = True
             if exc.errno == errno.ENOSPC:
                 raise McapError(f"{self.path}: disk full after {self.count} messages") from None
             raise McapError(f"{self.path}: write failed: {exc.strerror}") from None
@@ -190,3 +294,94 @@ def summarize(path: str | Path) -> McapSummary:
             out.complete = False
             out.problem = "no footer (recording did not finish)"
     return out
+
+
+@dataclass
+class SalvageResult:
+    messages: int = 0
+    chunks: int = 0
+    metadata: int = 0
+    complete: bool = True  # the source had no damage
+    problem: str = ""
+    bytes_read: int = 0  # source bytes up to the end of the last record copied
+    source_bytes: int = 0
+
+
+def salvage(src: str | Path, dst: str | Path, *, compression: str | None = None,
+            chunk_size: int = 4 * 1024 * 1024,
+            extra_metadata: Callable[[SalvageResult], dict[str, dict[str, str]]] | None = None) -> SalvageResult:
+    """Copy every intact record of `src` (schemas, channels, messages, metadata) into a complete `dst`.
+
+    Streams `src` record by record and stops at the first damage (truncated or CRC-failing chunk,
+    torn record): a file left by a killed writer loses at most its unfinished chunk. Compression
+    defaults to that of the source's first chunk. `extra_metadata(result)` adds records at the end.
+    """
+    from mcap.exceptions import McapError as RawMcapError
+    from mcap.records import Channel, Chunk, Footer, Message, Metadata, Schema
+    from mcap.stream_reader import StreamReader, breakup_chunk
+
+    p = Path(src)
+    res = SalvageResult()
+    with _open(p) as f:
+        res.source_bytes = p.stat().st_size
+        schemas: dict[int, Schema] = {}
+        channels: dict[int, Channel] = {}
+        out_cid: dict[int, int] = {}
+        writer: McapWriter | None = None
+        metadata: list[Metadata] = []
+
+        def out() -> McapWriter:
+            nonlocal writer
+            if writer is None:
+                writer = McapWriter(dst, compression=compression or "zstd", chunk_size=chunk_size)
+            return writer
+
+        def take(rec: Any) -> None:
+            if isinstance(rec, Schema):
+                schemas[rec.id] = rec
+            elif isinstance(rec, Channel):
+                channels[rec.id] = rec
+            elif isinstance(rec, Message):
+                if rec.channel_id not in out_cid:
+                    ch = channels[rec.channel_id]
+                    sc = schemas.get(ch.schema_id)
+                    out_cid[rec.channel_id] = out().register_raw(
+                        ch.topic, schema_name=sc.name if sc else "", schema_encoding=sc.encoding if sc else "",
+                        schema_data=sc.data if sc else b"", message_encoding=ch.message_encoding)
+                out().write_channel(out_cid[rec.channel_id], rec.data, log_time_ns=rec.log_time,
+                                    publish_time_ns=rec.publish_time, sequence=rec.sequence)
+                res.messages += 1
+            elif isinstance(rec, Metadata):
+                metadata.append(rec)
+
+        seen_footer = False
+        try:
+            for rec in StreamReader(f, emit_chunks=True).records:
+                if isinstance(rec, Chunk):
+                    if compression is None:
+                        compression = {"": "none", "lz4": "lz4", "zstd": "zstd"}.get(rec.compression, "zstd")
+                    inner = breakup_chunk(rec, validate_crc=True)  # all or nothing per chunk
+                    for r in inner:
+                        take(r)
+                    res.chunks += 1
+                elif isinstance(rec, Footer):
+                    seen_footer = True
+                else:
+                    take(rec)
+                res.bytes_read = f.tell()
+        except (RawMcapError, EOFError, ValueError, KeyError, OSError) as exc:
+            res.complete = False
+            res.problem = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+        if res.complete and not seen_footer:
+            res.complete = False
+            res.problem = "no footer (recording did not finish)"
+        w = out()
+        try:
+            for m in metadata:
+                w.add_metadata(m.name, dict(m.metadata))
+            res.metadata = len(metadata)
+            for name, data in (extra_metadata(res) if extra_metadata else {}).items():
+                w.add_metadata(name, data)
+        finally:
+            w.close()
+    return res

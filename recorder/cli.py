@@ -1,0 +1,163 @@
+"""`octolog record` and `octolog recover`: parsers and thin command functions.
+
+`add_parsers` registers both on octolog's subcommand parser; `python -m recorder.cli record ...`
+runs them through octolog's own main (same error handling and SIGTERM) before that wiring exists.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+import uuid
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from octolog.errors import ConfigError
+
+_PROFILE = re.compile(r"^(\d+)x(\d+)@(\d+)$")
+
+
+def add_parsers(sub: Any, add_bus_arguments: Callable[[argparse.ArgumentParser], None],
+                add_viz_arguments: Callable[[argparse.ArgumentParser], None],
+                add_config_arguments: Callable[[argparse.ArgumentParser], None]) -> None:
+    """Register `record` and `recover` on an argparse subparsers object."""
+    p = sub.add_parser("record", help="record a RealSense camera (colour, depth, IMU) to MCAP",
+                       description="Record colour, depth and IMU to MCAP (ROS 2 profile) with calibration, "
+                                   "optionally publishing live on Zenoh. Ctrl-C or SIGTERM finish the file.")
+    p.add_argument("out", help="MCAP file to write (with splitting: OUT_0000.mcap, OUT_0001.mcap, ...)")
+    p.add_argument("--duration", type=float, default=0.0, metavar="S", help="stop after S seconds of sensor time")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing recording")
+    p.add_argument("--publish", action="store_true", help="also publish the topics and camera/rgbd live on Zenoh")
+    p.add_argument("--quiet", action="store_true", help="no status line")
+    g = p.add_argument_group("camera")
+    g.add_argument("--backend", choices=("realsense", "software"),
+                   help="realsense (default) or software: a simulated D455 (no camera needed)")
+    g.add_argument("--serial", help="camera serial number, when several are attached")
+    g.add_argument("--color", metavar="WxH@FPS", help="colour profile (default 1280x720@30)")
+    g.add_argument("--depth", metavar="WxH@FPS", help="depth profile (default 848x480@30)")
+    g.add_argument("--depth-streams", choices=("aligned", "raw", "both"),
+                   help="depth aligned to colour (default), as measured (raw), or both")
+    g.add_argument("--gyro", type=int, metavar="HZ", help="gyro rate (D455: 200 or 400; default: device default)")
+    g.add_argument("--accel", type=int, metavar="HZ", help="accel rate (D455: 63/250 or 100/200 by IMU chip)")
+    g.add_argument("--no-imu", action="store_true", help="do not record the IMU")
+    g.add_argument("--depth-units", type=float, metavar="M", help="metres per depth unit (D455 default 0.001)")
+    g.add_argument("--preset", metavar="NAME", help="visual preset: default, hand, high_accuracy, high_density, ...")
+    g.add_argument("--emitter", choices=("on", "off", "auto"), help="IR projector")
+    g.add_argument("--auto-exposure", choices=("on", "off"), help="auto exposure of colour and depth sensors")
+    g = p.add_argument_group("file")
+    g.add_argument("--color-codec", choices=("raw", "jpeg"), help="colour as raw rgb8 or JPEG (default jpeg)")
+    g.add_argument("--depth-codec", choices=("raw", "png"),
+                   help="depth as raw 16UC1 (default) or lossless 16-bit PNG (~30%% smaller, ~40%% more CPU)")
+    g.add_argument("--compression", choices=("none", "lz4", "zstd"), help="MCAP chunk compression (default lz4)")
+    g.add_argument("--split-size", type=float, metavar="MB", help="start a new file every MB megabytes")
+    g.add_argument("--split-duration", type=float, metavar="S", help="start a new file every S seconds")
+    add_config_arguments(p)
+    add_bus_arguments(p)
+    add_viz_arguments(p)
+    p.set_defaults(func=cmd_record)
+
+    p = sub.add_parser("recover", help="rebuild a complete MCAP file from one a killed recorder left",
+                       description="Copy every intact chunk of IN into a complete, indexed OUT "
+                                   "(a killed recorder loses at most its last, unfinished chunk).")
+    p.add_argument("input", help="damaged or unfinished MCAP file")
+    p.add_argument("output", help="new MCAP file")
+    p.add_argument("--overwrite", action="store_true", help="replace OUTPUT if it exists")
+    p.add_argument("--compression", choices=("none", "lz4", "zstd"), help="default: as in INPUT")
+    p.set_defaults(func=cmd_recover)
+
+
+def overrides(args: argparse.Namespace) -> list[str]:
+    """Command-line flags as config overrides (they win over --config and --set)."""
+    out = list(getattr(args, "set", None) or [])
+    for flag, key in (("color", "color"), ("depth", "depth")):
+        value = getattr(args, flag)
+        if value:
+            m = _PROFILE.match(value)
+            if not m:
+                raise ConfigError(f"--{flag} {value!r}: want WIDTHxHEIGHT@FPS, e.g. 1280x720@30")
+            out += [f"{key}.width={m[1]}", f"{key}.height={m[2]}", f"{key}.fps={m[3]}"]
+    simple = {"backend": "backend", "serial": "serial", "gyro": "gyro_fps", "accel": "accel_fps",
+              "depth_units": "depth_units_m", "preset": "visual_preset", "emitter": "emitter",
+              "color_codec": "color_codec", "depth_codec": "depth_codec", "compression": "compression",
+              "split_size": "split_size_mb", "split_duration": "split_duration_s"}
+    for flag, key in simple.items():
+        value = getattr(args, flag)
+        if value is not None:
+            out.append(f'{key}="{value}"' if isinstance(value, str) else f"{key}={value}")
+    if args.no_imu:
+        out.append("imu=false")
+    if args.depth_streams:
+        out += [f"aligned_depth={str(args.depth_streams in ('aligned', 'both')).lower()}",
+                f"raw_depth={str(args.depth_streams in ('raw', 'both')).lower()}"]
+    if args.auto_exposure:
+        out += [f'color_auto_exposure="{args.auto_exposure}"', f'depth_auto_exposure="{args.auto_exposure}"']
+    return out
+
+
+def _status_printer() -> Callable[[Any], None]:
+    from recorder.record import format_status
+
+    tty = sys.stderr.isatty()
+
+    def show(status: Any) -> None:
+        print(("\r" if tty else "") + format_status(status), end="" if tty else "\n", file=sys.stderr, flush=True)
+
+    return show
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    from octolog.cli import bus_config
+    from octolog.config import load
+    from recorder import node
+    from recorder.config import RecorderConfig
+
+    cfg = load(RecorderConfig, args.config, overrides(args), section="recorder")
+    if args.duration < 0:
+        raise ConfigError(f"--duration {args.duration}: want >= 0 seconds")
+    res = node.run(cfg, Path(args.out), bus_cfg=bus_config(args) if args.publish else None,
+                   rerun=getattr(args, "rerun", None) or "off",
+                   recording_id=getattr(args, "recording_id", None) or str(uuid.uuid4()),
+                   duration_s=args.duration, overwrite=args.overwrite,
+                   status=None if args.quiet else _status_printer())
+    if not args.quiet and sys.stderr.isatty():
+        print(file=sys.stderr)
+    frames = ", ".join(f"{s} {st.frames}" for s, st in res.streams.items() if st.frames)
+    drops = ", ".join(f"{s} {st.dropped}" for s, st in res.streams.items() if st.dropped) or "none"
+    live = sum(st.live_drops for st in res.streams.values())
+    span = (res.last_stamp_ns - res.first_stamp_ns) / 1e9
+    print(f"record: {res.messages} messages ({frames}) over {span:.1f} s, {res.bytes / 1e6:.1f} MB "
+          f"-> {', '.join(map(str, res.paths))}; dropped: {drops}"
+          + (f"; live publishing skipped {live}" if live else "") + f"; stopped: {res.stop_reason}")
+    return 0
+
+
+def cmd_recover(args: argparse.Namespace) -> int:
+    from recorder.recover import recover
+
+    r = recover(Path(args.input), Path(args.output), overwrite=args.overwrite, compression=args.compression)
+    state = "was complete" if r.source_complete else f"was cut short ({r.problem}); {r.bytes_lost} bytes lost"
+    print(f"recover: {r.messages} messages from {r.chunks} chunks -> {r.out} (source {state})")
+    return 0
+
+
+def _main(argv: list[str] | None = None) -> int:
+    """octolog's main with these commands added (until octolog.cli registers them itself)."""
+    from octolog import cli
+
+    build = cli.build_parser
+
+    def build_with_recorder() -> argparse.ArgumentParser:
+        parser = build()
+        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))  # noqa: SLF001
+        if "record" not in sub.choices:
+            add_parsers(sub, cli.add_bus_arguments, cli.add_viz_arguments, cli.add_config_arguments)
+        return parser
+
+    cli.build_parser = build_with_recorder  # type: ignore[assignment]
+    return cli.main(argv)
+
+
+if __name__ == "__main__":
+    sys.exit(_main())

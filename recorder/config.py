@@ -1,0 +1,159 @@
+"""Recorder settings: which streams at which profiles, how they are encoded, how files are cut."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from octolog.errors import ConfigError
+from octolog.mcaplog import COMPRESSIONS
+
+BACKENDS = ("realsense", "software")
+COLOR_CODECS = ("raw", "jpeg")
+DEPTH_CODECS = ("raw", "png")
+EMITTER = ("", "off", "on", "auto")
+PRESETS = ("", "custom", "default", "hand", "high_accuracy", "high_density", "medium_density")
+IMU_CHIPS = ("bmi085", "bmi055")
+
+
+@dataclass(frozen=True)
+class ColorConfig:
+    width: int = 1280
+    height: int = 720
+    fps: int = 30
+
+
+@dataclass(frozen=True)
+class DepthConfig:
+    width: int = 848
+    height: int = 480
+    fps: int = 30
+
+
+@dataclass(frozen=True)
+class SoftwareConfig:
+    """The software device (no camera needed): synthetic frames pushed through pyrealsense2."""
+
+    frames: int = 0  # colour/depth frame pairs to push, then the stream ends (0: until stopped)
+    paced: bool = False  # push at the sensor rate in wall time (a live camera) instead of on demand
+    unplug_after: int = 0  # simulate the camera vanishing after this many frame pairs (0: never)
+    imu_chip: str = "bmi085"  # bmi085: gyro 200/400 Hz, accel 100/200 Hz; bmi055: accel 63/250 Hz
+
+
+@dataclass(frozen=True)
+class RecorderConfig:
+    backend: str = "realsense"  # realsense (a camera) or software (pyrealsense2's software device)
+    serial: str = ""  # pick this camera when several are attached
+    color: ColorConfig = field(default_factory=ColorConfig)
+    depth: DepthConfig = field(default_factory=DepthConfig)
+    aligned_depth: bool = True  # depth registered to colour (what the tracker consumes)
+    raw_depth: bool = False  # depth in its own sensor frame, as measured
+    imu: bool = True
+    gyro_fps: int = 0  # 0: the device's default rate (D455: 200 Hz)
+    accel_fps: int = 0  # 0: the device's default rate (D455: 63 or 100 Hz, by IMU chip)
+    # device options; empty / negative / 0 leaves the device's own setting
+    depth_units_m: float = 0.0  # metres per depth unit (D455 default 0.001)
+    visual_preset: str = ""
+    emitter: str = ""
+    color_auto_exposure: str = ""  # "", "on", "off"
+    depth_auto_exposure: str = ""
+    color_exposure: float = 0.0  # device units, passed as is (D455 colour: 100 µs steps)
+    depth_exposure: float = 0.0  # device units (D455 depth: µs)
+    # encoding and files: defaults measured with bench/recorder.py (JPEG colour + raw depth + lz4
+    # sustains the D455 default profile at the least CPU; PNG depth saves ~30% disk for ~40% more CPU)
+    color_codec: str = "jpeg"
+    jpeg_quality: int = 95
+    depth_codec: str = "raw"
+    png_level: int = 1
+    compression: str = "lz4"
+    chunk_size_mb: float = 2.0  # a killed recorder loses at most one unfinished chunk
+    split_size_mb: float = 0.0  # start a new file after this many MB (0: one file)
+    split_duration_s: float = 0.0  # start a new file after this much sensor time (0: one file)
+    queue_frames: int = 30  # capture -> writer queue (frame sets); beyond it frames are dropped, counted
+    encode_threads: int = 2
+    live_queue_frames: int = 4  # per live sink (bus, Rerun); a slow consumer loses frames there, counted
+    min_free_mb: float = 256.0  # stop cleanly before the disk is full
+    frame_prefix: str = "camera"
+    # --publish: stages that must be up before capture starts (e.g. "tracker"), so none misses frames
+    wait_for: tuple[str, ...] = ()
+    wait_timeout_s: float = 60.0  # tf frame names: camera_link, camera_color_optical_frame, ...
+    software: SoftwareConfig = field(default_factory=SoftwareConfig)
+
+    def validate(self) -> None:
+        def one_of(key: str, value: str, allowed: tuple[str, ...]) -> None:
+            if value not in allowed:
+                raise ConfigError(f"recorder.{key} {value!r}: want one of {', '.join(repr(a) for a in allowed)}")
+
+        one_of("backend", self.backend, BACKENDS)
+        one_of("color_codec", self.color_codec, COLOR_CODECS)
+        one_of("depth_codec", self.depth_codec, DEPTH_CODECS)
+        one_of("compression", self.compression, COMPRESSIONS)
+        one_of("emitter", self.emitter, EMITTER)
+        one_of("visual_preset", self.visual_preset, PRESETS)
+        one_of("color_auto_exposure", self.color_auto_exposure, ("", "on", "off"))
+        one_of("depth_auto_exposure", self.depth_auto_exposure, ("", "on", "off"))
+        one_of("software.imu_chip", self.software.imu_chip, IMU_CHIPS)
+        for key, v in (("color", self.color), ("depth", self.depth)):
+            if v.width <= 0 or v.height <= 0 or v.fps <= 0:
+                raise ConfigError(f"recorder.{key} {v.width}x{v.height}@{v.fps}: want positive size and rate")
+        if not (self.aligned_depth or self.raw_depth):
+            raise ConfigError("recorder: aligned_depth and raw_depth are both off; record at least one depth")
+        if not 1 <= self.jpeg_quality <= 100:
+            raise ConfigError(f"recorder.jpeg_quality {self.jpeg_quality}: want 1..100")
+        if not 0 <= self.png_level <= 9:
+            raise ConfigError(f"recorder.png_level {self.png_level}: want 0..9")
+        for key in ("chunk_size_mb",):
+            if getattr(self, key) <= 0:
+                raise ConfigError(f"recorder.{key} {getattr(self, key)}: want > 0")
+        for key in ("split_size_mb", "split_duration_s", "min_free_mb", "depth_units_m", "color_exposure",
+                    "depth_exposure", "gyro_fps", "accel_fps"):
+            if getattr(self, key) < 0:
+                raise ConfigError(f"recorder.{key} {getattr(self, key)}: want >= 0")
+        for key in ("queue_frames", "encode_threads", "live_queue_frames"):
+            if getattr(self, key) < 1:
+                raise ConfigError(f"recorder.{key} {getattr(self, key)}: want >= 1")
+        if self.software.frames < 0 or self.software.unplug_after < 0:
+            raise ConfigError("recorder.software.frames and unplug_after: want >= 0")
+
+
+# --- factories: config -> plain constructor arguments -------------------------------------------
+
+
+def capture_profile(cfg: RecorderConfig):  # -> recorder.capture.CaptureProfile
+    from recorder.capture import CaptureProfile, DeviceOptions
+
+    def onoff(v: str) -> bool | None:
+        return None if v == "" else v == "on"
+
+    opts = DeviceOptions(
+        depth_units_m=cfg.depth_units_m or None, visual_preset=cfg.visual_preset or None,
+        emitter=cfg.emitter or None, color_auto_exposure=onoff(cfg.color_auto_exposure),
+        depth_auto_exposure=onoff(cfg.depth_auto_exposure), color_exposure=cfg.color_exposure or None,
+        depth_exposure=cfg.depth_exposure or None)
+    return CaptureProfile(color=(cfg.color.width, cfg.color.height, cfg.color.fps),
+                          depth=(cfg.depth.width, cfg.depth.height, cfg.depth.fps), imu=cfg.imu,
+                          gyro_fps=cfg.gyro_fps, accel_fps=cfg.accel_fps, align=cfg.aligned_depth,
+                          raw_depth=cfg.raw_depth, options=opts)
+
+
+def make_backend(cfg: RecorderConfig):  # -> recorder.capture.Backend
+    from recorder.capture import RealSenseBackend, SoftwareDeviceBackend
+
+    if cfg.backend == "software":
+        s = cfg.software
+        return SoftwareDeviceBackend(frames=s.frames, paced=s.paced, unplug_after=s.unplug_after,
+                                     imu_chip=s.imu_chip)
+    return RealSenseBackend(cfg.serial)
+
+
+def make_recorder(cfg: RecorderConfig, part, device, *, sinks=(), block_when_full: bool = False):
+    """The writer side (recorder.record.Recorder) for a resolved device."""
+    from octolog.config import to_json
+    from recorder.record import Encoding, Recorder
+
+    return Recorder(
+        part, device, config_json=to_json(cfg), compression=cfg.compression,
+        chunk_size=int(cfg.chunk_size_mb * 2**20),
+        encoding=Encoding(cfg.color_codec, cfg.jpeg_quality, cfg.depth_codec, cfg.png_level),
+        split_size_bytes=int(cfg.split_size_mb * 1e6), split_duration_ns=int(cfg.split_duration_s * 1e9),
+        queue_size=cfg.queue_frames, block_when_full=block_when_full, encode_threads=cfg.encode_threads,
+        min_free_bytes=int(cfg.min_free_mb * 1e6), frame_prefix=cfg.frame_prefix, sinks=sinks)

@@ -1,0 +1,191 @@
+"""The recorder process: camera -> MCAP, optionally published live on Zenoh and logged to Rerun.
+
+A capture thread takes frames from the backend and hands Captures to the Recorder (queue, writer
+thread); the calling thread only waits, reports status and turns Ctrl-C / SIGTERM into a clean
+stop. Live publishing (the camera topics and the paired `camera/rgbd` frame for the tracker) and
+Rerun logging run on their own threads behind small queues, so neither can stall the file.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from contextlib import ExitStack
+from pathlib import Path
+from typing import Any
+
+from octolog.geometry import RgbdFrame
+from recorder.capture import Backend, Capture, DeviceDescription, DeviceLost, FrameConverter, RecorderError
+from recorder.config import RecorderConfig, capture_profile, make_backend, make_recorder
+from recorder.record import Encoded, LiveSink, Recorder, RecordResult, Status, output_paths
+from schemas import codec
+from schemas import topics as T
+
+
+def run(cfg: RecorderConfig, out: Path, *, bus_cfg: Any = None, rerun: str = "off", recording_id: str = "octolog",
+        duration_s: float = 0.0, overwrite: bool = False, status: Callable[[Status], None] | None = None,
+        status_interval_s: float = 1.0, backend: Backend | None = None,
+        stop: threading.Event | None = None) -> RecordResult:
+    """Record until `duration_s` of sensor time, the source ends, `stop` is set or Ctrl-C/SIGTERM.
+
+    Raises RecorderError (after finishing the file) when the camera is lost or writing fails."""
+    part = output_paths(out, split=bool(cfg.split_size_mb or cfg.split_duration_s), overwrite=overwrite)
+    backend = backend if backend is not None else make_backend(cfg)
+    with ExitStack() as stack:
+        stack.callback(backend.close)
+        device = backend.open(capture_profile(cfg))
+        sinks = open_sinks(stack, cfg, device, bus_cfg, rerun, recording_id)
+        recorder = make_recorder(cfg, part, device, sinks=sinks, block_when_full=not backend.realtime)
+        converter = FrameConverter(align=cfg.aligned_depth, raw_depth=cfg.raw_depth, fps=cfg.color.fps)
+        return record(backend, converter, recorder, duration_ns=int(duration_s * 1e9), status=status,
+                      status_interval_s=status_interval_s, stop=stop)
+
+
+def record(backend: Backend, converter: FrameConverter, recorder: Recorder, *, duration_ns: int = 0,
+           status: Callable[[Status], None] | None = None, status_interval_s: float = 1.0,
+           stop: threading.Event | None = None) -> RecordResult:
+    """Run the capture thread until done; finish the recorder; raise what went wrong, if anything."""
+    stop = stop or threading.Event()
+    done = threading.Event()
+    outcome: dict[str, Any] = {"reason": "stopped"}
+
+    def capture() -> None:
+        try:
+            outcome["reason"] = capture_loop(backend, converter, recorder, stop, duration_ns)
+        except Exception as exc:  # noqa: BLE001 - re-raised on the calling thread after finishing
+            outcome["error"] = exc
+        finally:
+            done.set()
+
+    thread = threading.Thread(target=capture, name="recorder-capture", daemon=True)
+    thread.start()
+    try:
+        while not done.wait(status_interval_s):
+            if status is not None:
+                status(recorder.status())
+    except KeyboardInterrupt:  # Ctrl-C, or SIGTERM turned into one by the CLI: finish cleanly
+        stop.set()
+        outcome["interrupted"] = True
+        done.wait()
+    thread.join()
+    if outcome.get("interrupted"):
+        outcome["reason"] = "interrupted"
+    err = outcome.get("error")
+    reason = outcome["reason"] if err is None else f"device lost: {err}" if isinstance(err, DeviceLost) else \
+        f"error: {err}"
+    result = recorder.close(reason)  # raises when writing failed
+    if status is not None:
+        status(recorder.status())
+    if isinstance(err, DeviceLost):
+        raise RecorderError(f"{err}: recording stopped after {result.streams['color'].frames} frames; "
+                            f"{', '.join(map(str, result.paths))} finished with everything so far") from None
+    if err is not None:
+        raise err
+    return result
+
+
+def capture_loop(backend: Backend, converter: FrameConverter, recorder: Recorder, stop: threading.Event,
+                 duration_ns: int) -> str:
+    """Backend frames -> Captures -> recorder, until a stop condition; returns why it stopped."""
+    t_end = 0
+    while not stop.is_set():
+        if recorder.failed.is_set():
+            return "write failure"
+        frames = backend.wait(0.1)
+        if frames is None:
+            for cap in converter.flush():
+                recorder.submit(cap)
+            return "end of stream"
+        for item in frames:
+            for cap in converter.convert(item):
+                if duration_ns:
+                    if not t_end:
+                        t_end = cap.stamp_ns + duration_ns
+                    if cap.stamp_ns >= t_end:
+                        return "duration reached"
+                recorder.submit(cap)
+    for cap in converter.flush():
+        recorder.submit(cap)
+    return "stopped"
+
+
+# --- live sinks -------------------------------------------------------------------------------------
+
+
+def open_sinks(stack: ExitStack, cfg: RecorderConfig, device: DeviceDescription, bus_cfg: Any, rerun: str,
+               recording_id: str) -> list[LiveSink]:
+    sinks: list[LiveSink] = []
+    if bus_cfg is not None:
+        from octolog.bus import Bus
+
+        bus = stack.enter_context(Bus(bus_cfg, "recorder"))
+        pub = BusPublisher(bus, device, f"{cfg.frame_prefix}_color_optical_frame")
+        bus.watch(cfg.wait_for)
+        bus.wait_for(cfg.wait_for, cfg.wait_timeout_s)
+        sink = LiveSink("bus", pub, size=cfg.live_queue_frames, on_close=pub.end)
+        stack.callback(sink.close)  # before the bus closes (callbacks run last-in first-out)
+        sinks.append(sink)
+    if rerun != "off":
+        from octolog.viz import Viz
+
+        viz = stack.enter_context(Viz(rerun, "recorder", recording_id))
+        sink = LiveSink("rerun", VizLogger(viz, device), size=cfg.live_queue_frames)
+        stack.callback(sink.close)
+        sinks.append(sink)
+    return sinks
+
+
+class BusPublisher:
+    """Publishes each written message on its topic, and colour + aligned depth as `camera/rgbd`."""
+
+    def __init__(self, bus: Any, device: DeviceDescription, color_frame: str) -> None:
+        self._bus = bus
+        self._device = device
+        self._frame = color_frame
+        self._pubs: dict[str, Any] = {}
+        self._rgbd = bus.publisher(T.RGBD)
+        self._rgbd_end = bus.publisher(T.RGBD_END)
+        bus.announce()
+
+    def __call__(self, cap: Capture, msgs: list[Encoded]) -> None:
+        for m in msgs:
+            if m.topic.name not in self._pubs:
+                self._pubs[m.topic.name] = self._bus.publisher(m.topic)
+            self._pubs[m.topic.name].put_raw(m.data)
+        if cap.color is not None and cap.aligned_depth is not None:
+            assert self._device.color is not None
+            frame = RgbdFrame(cap.color.frame_number, cap.color.stamp_ns, cap.color.array, cap.aligned_depth.array,
+                              self._device.depth_scale_m, self._device.color, self._frame)
+            self._rgbd.put(codec.rgbd_msg(frame))
+
+    def end(self) -> None:
+        """Tell consumers how many RGB-D frames went out (the tracker's end-of-stream)."""
+        self._rgbd_end.put(codec.stream_end_msg(T.RGBD.name, self._rgbd.count))
+
+
+class VizLogger:
+    """Logs what is recorded to Rerun: colour, depth (aligned and raw), IMU; calibration once."""
+
+    def __init__(self, viz: Any, device: DeviceDescription) -> None:
+        self._viz = viz
+        self._device = device
+        self._static = False
+
+    def __call__(self, cap: Capture, msgs: list[Encoded]) -> None:
+        viz, d = self._viz, self._device
+        if not self._static:
+            if d.color is not None:
+                viz.camera(T.COLOR.name.rsplit("/", 1)[0], d.color)
+            self._static = True
+        for v in cap.video():
+            viz.set_time(v.stamp_ns, v.frame_number)
+            if v.stream == "color":
+                viz.rgb(T.COLOR.name, v.array)
+            else:
+                viz.depth((T.ALIGNED_DEPTH if v.stream == "aligned_depth" else T.DEPTH).name, v.array,
+                          d.depth_scale_m)
+        for m in cap.motion:
+            viz.set_time(m.stamp_ns)
+            base = (T.GYRO if m.stream == "gyro" else T.ACCEL).name
+            for axis, value in zip("xyz", m.xyz, strict=True):
+                viz.scalar(f"{base}/{axis}", value)
