@@ -502,3 +502,37 @@ def test_rerun_logs_what_is_recorded(tmp_path):
     rrd = tmp_path / "rr" / "recorder.rrd"
     assert rrd.exists() and rrd.stat().st_size > 100_000
     assert summarize(res.paths[0]).complete
+
+
+@pytest.mark.parametrize("depth_codec", ["raw", "png"])
+def test_recordings_open_in_rosbags_and_rerun(tmp_path, depth_codec):
+    """A recording reads with rosbags (no octolog types) and converts in Rerun with images and depth."""
+    import os
+    import re
+    import subprocess
+    import sys
+
+    from rosbags.highlevel import AnyReader
+
+    cfg = dataclasses.replace(BASE, depth_codec=depth_codec)
+    _run(tmp_path, cfg, frames=5)
+    path = tmp_path / "rec.mcap"
+    with AnyReader([path]) as reader:
+        counts = {c.topic: c.msgcount for c in reader.connections}
+        conn = next(c for c in reader.connections if c.topic.startswith("/camera/color/image_raw"))
+        first = next(reader.messages([conn]))
+        assert reader.deserialize(first[2], conn.msgtype).header.stamp.sec > 0
+    assert counts["/camera/color/camera_info"] == 5
+    rerun = str(Path(sys.executable).with_name("rerun"))
+    env = {**os.environ, "RERUN_DISABLE_ANALYTICS": "1"}
+    rrd = tmp_path / "rec.rrd"
+    subprocess.run([rerun, "mcap", "convert", str(path), "-o", str(rrd)], check=True, capture_output=True, env=env,
+                   timeout=120)
+    stats = subprocess.run([rerun, "rrd", "stats", str(rrd)], check=True, capture_output=True, text=True, env=env,
+                           timeout=120).stdout
+    entities = set(re.findall(r"^(/\S+): \d+$", stats, re.M))
+    assert any(e.startswith("/camera/color/image_raw") for e in entities), entities
+    assert any(e.startswith("/camera/aligned_depth_to_color/image_raw") for e in entities), entities
+    assert "EncodedImage:blob: 5" in stats  # JPEG colour, decoded by the viewer
+    if depth_codec == "raw":
+        assert "DepthImage:buffer: 5" in stats  # 16UC1 becomes a depth image with its own colormap
