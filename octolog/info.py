@@ -23,7 +23,20 @@ def describe(path: Path) -> str:
         t = s.topics[name]
         span = (t.last_ns - t.first_ns) * 1e-9
         rate = (t.count - 1) / span if span > 0 else 0.0
-        lines.append(f"  /{name:<{width}}  {t.count:6d} msgs  {rate:6.1f} Hz  {t.msgtype}")
+        n_gaps, longest = t.gaps()
+        gaps = f"  {n_gaps} gaps (longest {longest * 1e-6:.0f} ms)" if n_gaps else ""
+        lines.append(f"  /{name:<{width}}  {t.count:6d} msgs  {span:7.2f} s  {rate:6.1f} Hz  {t.msgtype}{gaps}")
+    calib = s.metadata.get("calibration", {})
+    if "depth_scale_m" in calib:
+        lines.append(f"  calibration: depth scale {calib['depth_scale_m']} m/unit"
+                     + (f", depth registered to colour: {calib['depth_registered_to_color']}"
+                        if "depth_registered_to_color" in calib else ""))
+    for key in ("color_intrinsics", "depth_intrinsics"):
+        if key in calib:
+            lines.append(f"    {key}: {calib[key]}")
+    rec = s.metadata.get("recording", {})
+    if rec:
+        lines.append(f"  recording: stopped: {rec.get('stop_reason', '?')}, dropped: {rec.get('dropped_total', '?')}")
     for name in sorted(s.metadata):
         keys = ", ".join(sorted(s.metadata[name]))
         lines.append(f"  metadata {name}: {keys}")

@@ -241,6 +241,15 @@ class TopicSummary:
     count: int = 0
     first_ns: int = 0
     last_ns: int = 0
+    intervals_ns: list[int] = field(default_factory=list, repr=False)  # between consecutive log times
+
+    def gaps(self, factor: float = 1.5) -> tuple[int, int]:
+        """(number of intervals longer than `factor` x the median interval, longest interval in ns)."""
+        if len(self.intervals_ns) < 2:
+            return 0, max(self.intervals_ns, default=0)
+        ordered = sorted(self.intervals_ns)
+        median = ordered[len(ordered) // 2]
+        return sum(1 for d in self.intervals_ns if d > factor * median), ordered[-1]
 
 
 @dataclass
@@ -280,6 +289,8 @@ def summarize(path: str | Path) -> McapSummary:
                 elif isinstance(rec, Message):
                     topic, msgtype = channels[rec.channel_id]
                     ts = out.topics.setdefault(topic, TopicSummary(msgtype, first_ns=rec.log_time))
+                    if ts.count:
+                        ts.intervals_ns.append(rec.log_time - ts.last_ns)
                     ts.count += 1
                     ts.first_ns = min(ts.first_ns, rec.log_time)
                     ts.last_ns = max(ts.last_ns, rec.log_time)
