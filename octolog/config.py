@@ -124,3 +124,34 @@ def to_dict(obj: Any) -> dict[str, Any]:
 def to_json(obj: Any) -> str:
     """Canonical JSON of a resolved config (sorted keys), as stored in MCAP metadata."""
     return json.dumps(to_dict(obj), sort_keys=True)
+
+
+def _toml_value(v: Any, key: str) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x, key) for x in v) + "]"
+    raise ConfigError(f"config key {key!r}: cannot write {v!r} to TOML")
+
+
+def to_toml(tables: dict[str, dict[str, Any]]) -> str:
+    """TOML text of resolved configs ({section: to_dict(cfg)}), nested dataclasses as sub-tables;
+    `load(cls, path, section=...)` reads it back. None values are left out (they are defaults)."""
+    out: list[str] = []
+
+    def table(name: str, items: dict[str, Any]) -> None:
+        out.append(f"[{name}]")
+        out.extend(f"{k} = {_toml_value(v, f'{name}.{k}')}" for k, v in items.items()
+                   if v is not None and not isinstance(v, dict))
+        out.append("")
+        for k, v in items.items():
+            if isinstance(v, dict):
+                table(f"{name}.{k}", v)
+
+    for name, items in tables.items():
+        table(name, items)
+    return "\n".join(out)

@@ -121,7 +121,7 @@ class _Children:
 
 def run_session(*, source: str, out: Path, config: str | None = None, overrides: list[str] | None = None,
                 rerun: str = "save", recording_id: str, quiet: bool = False) -> SessionSummary:
-    from octolog.config import to_dict
+    from octolog.config import to_dict, to_toml
     from octolog.viz import parse_spec
     from replay.sources import open_source
 
@@ -138,7 +138,7 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     if gt:
         (out / "groundtruth.txt").write_text(gt)
     config_path = out / "config.toml"
-    config_path.write_text(_to_toml({k: to_dict(v) for k, v in cfgs.items()}))
+    config_path.write_text(to_toml({k: to_dict(v) for k, v in cfgs.items()}))
     metadata = {"octolog": {"version": __version__, "source": source, "recording_id": recording_id},
                 "config": {k: json.dumps(to_dict(v), sort_keys=True) for k, v in cfgs.items()}}
     if gt:
@@ -260,28 +260,6 @@ def format_summary(s: SessionSummary) -> str:
                  f"{m.get('free_voxels', 0)} free voxels at {m.get('resolution_m', 0) * 100:.0f} cm, {m.get('cloud_points', 0)} cloud points")
     lines.append("  files: " + ", ".join(sorted(s.files)))
     return "\n".join(lines)
-
-
-def _to_toml(data: dict[str, dict]) -> str:
-    def value(v: object) -> str:
-        if isinstance(v, bool):
-            return "true" if v else "false"
-        if isinstance(v, (int, float)):
-            return repr(v)
-        if isinstance(v, str):
-            return json.dumps(v)
-        if isinstance(v, (list, tuple)):
-            return "[" + ", ".join(value(x) for x in v) + "]"
-        if v is None:
-            raise ConfigError("config values cannot be None in TOML")
-        raise ConfigError(f"cannot write {v!r} to TOML")
-
-    out = []
-    for section, items in data.items():
-        out.append(f"[{section}]")
-        out.extend(f"{k} = {value(v)}" for k, v in items.items() if v is not None)
-        out.append("")
-    return "\n".join(out)
 
 
 STAGE_CHOICES = {("tracker", "mapper"): "camera", ("mapper",): "tracker"}

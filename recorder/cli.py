@@ -26,7 +26,8 @@ def add_parsers(sub: Any, add_bus_arguments: Callable[[argparse.ArgumentParser],
     p = sub.add_parser("record", help="record a RealSense camera (colour, depth, IMU) to MCAP",
                        description="Record colour, depth and IMU to MCAP (ROS 2 profile) with calibration, "
                                    "optionally publishing live on Zenoh. Ctrl-C or SIGTERM finish the file.")
-    p.add_argument("out", help="MCAP file to write (with splitting: OUT_0000.mcap, OUT_0001.mcap, ...)")
+    p.add_argument("out", help="MCAP file to write (with splitting: OUT_0000.mcap, OUT_0001.mcap, ...), or a "
+                               "session folder (no .mcap suffix): OUT/session.mcap, config.toml, summary.json")
     p.add_argument("--duration", type=float, default=0.0, metavar="S", help="stop after S seconds of sensor time")
     p.add_argument("--overwrite", action="store_true", help="replace an existing recording")
     p.add_argument("--publish", action="store_true", help="also publish the topics and camera/rgbd live on Zenoh")
@@ -116,7 +117,12 @@ def cmd_record(args: argparse.Namespace) -> int:
     cfg = load(RecorderConfig, args.config, overrides(args), section="recorder")
     if args.duration < 0:
         raise ConfigError(f"--duration {args.duration}: want >= 0 seconds")
-    res = node.run(cfg, Path(args.out), bus_cfg=bus_config(args) if args.publish else None,
+    out = Path(args.out)
+    folder = out.suffix != ".mcap"
+    if folder:  # a session folder, like `octolog run` makes
+        out.mkdir(parents=True, exist_ok=True)
+        out = out / "session.mcap"
+    res = node.run(cfg, out, bus_cfg=bus_config(args) if args.publish else None,
                    rerun=getattr(args, "rerun", None) or "off",
                    recording_id=getattr(args, "recording_id", None) or str(uuid.uuid4()),
                    duration_s=args.duration, overwrite=args.overwrite,
@@ -127,10 +133,28 @@ def cmd_record(args: argparse.Namespace) -> int:
     drops = ", ".join(f"{s} {st.dropped}" for s, st in res.streams.items() if st.dropped) or "none"
     live = sum(st.live_drops for st in res.streams.values())
     span = (res.last_stamp_ns - res.first_stamp_ns) / 1e9
+    if folder:
+        _write_session_files(out.parent, cfg, res)
     print(f"record: {res.messages} messages ({frames}) over {span:.1f} s, {res.bytes / 1e6:.1f} MB "
           f"-> {', '.join(map(str, res.paths))}; dropped: {drops}"
           + (f"; live publishing skipped {live}" if live else "") + f"; stopped: {res.stop_reason}")
     return 0
+
+
+def _write_session_files(folder: Path, cfg: Any, res: Any) -> None:
+    """config.toml and summary.json beside a recording, as in a session folder from `octolog run`."""
+    import json
+
+    from octolog.config import to_dict, to_toml
+    from octolog.run import versions
+
+    (folder / "config.toml").write_text(to_toml({"recorder": to_dict(cfg)}))
+    streams = {name: {"frames": st.frames, "dropped": st.dropped} for name, st in res.streams.items()}
+    (folder / "summary.json").write_text(json.dumps(
+        {"source": f"record:{cfg.backend}", "streams": streams, "dropped": res.dropped,
+         "stop_reason": res.stop_reason, "span_s": (res.last_stamp_ns - res.first_stamp_ns) / 1e9,
+         "files": sorted(p.name for p in res.paths) + ["config.toml", "summary.json"],
+         "wall_s": round(res.wall_s, 3), "versions": versions()}, indent=2, sort_keys=True) + "\n")
 
 
 def cmd_recover(args: argparse.Namespace) -> int:

@@ -536,3 +536,18 @@ def test_recordings_open_in_rosbags_and_rerun(tmp_path, depth_codec):
     assert colour in stats  # colour frames as images the viewer shows
     if depth_codec == "raw":
         assert "DepthImage:buffer:" in stats  # 16UC1 becomes a depth image with its own colormap
+
+
+def test_record_into_a_session_folder(tmp_path):
+    """`octolog record DIR`: the recording plus its resolved config and a summary, like `octolog run`."""
+    from helpers import octolog as cli
+
+    from octolog.config import load
+
+    out = tmp_path / "field"
+    cli("record", str(out), "--backend", "software", "--duration", "1", "--quiet")
+    assert (out / "session.mcap").is_file()
+    assert load(RecorderConfig, out / "config.toml", section="recorder") == RecorderConfig(backend="software")
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["dropped"] == 0 and summary["streams"]["color"]["frames"] == 30
+    assert summary["stop_reason"] == "duration reached" and "numpy" in summary["versions"]
