@@ -238,20 +238,17 @@ def import_tum(folder: Path, output: Path, *, overwrite: bool = False, compressi
 
 
 def _read_accelerometer(path: Path, to_ns: Callable[[str], int]) -> list[tuple[int, tuple[float, float, float]]]:
+    from replay.tum import read_rows
+
     if not path.is_file():
         return []
-    rows = []
-    for lineno, line in enumerate(path.read_text().splitlines(), 1):
-        line = line.strip()
-        if not line or line.startswith("#"):
-            continue
-        parts = line.split()
-        try:
-            if len(parts) != 4:
-                raise ValueError
-            rows.append((to_ns(parts[0]), (float(parts[1]), float(parts[2]), float(parts[3]))))
-        except (ValueError, InvalidOperation):
-            raise InputError(f"{path}:{lineno}: malformed line {line!r} (want 'timestamp ax ay az')") from None
+
+    def parse(parts: list[str]) -> tuple[int, tuple[float, float, float]]:
+        if len(parts) != 4:
+            raise ValueError
+        return to_ns(parts[0]), (float(parts[1]), float(parts[2]), float(parts[3]))
+
+    rows = read_rows(path, parse, "timestamp ax ay az")
     return sorted(rows, key=lambda r: r[0])
 
 

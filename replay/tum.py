@@ -7,16 +7,19 @@ calibration most evaluations use) unless given explicitly.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
+from typing import TypeVar
 
 import cv2
 import numpy as np
 
 from octolog.errors import InputError
 from octolog.geometry import Intrinsics, RgbdFrame
+
+T = TypeVar("T")
 
 TUM_DEPTH_SCALE_M = 1.0 / 5000.0
 MAX_PAIR_DT_NS = 20_000_000
@@ -40,21 +43,30 @@ def seconds_to_ns(text: str) -> int:
     return int((Decimal(text) * 1_000_000_000).to_integral_value())
 
 
-def _read_list(path: Path) -> list[tuple[int, str]]:
-    if not path.is_file():
-        raise InputError(f"{path}: missing (a TUM RGB-D folder needs rgb.txt and depth.txt)")
+def read_rows(path: Path, parse: Callable[[list[str]], T], want: str) -> list[T]:
+    """Parse every non-comment line of a TUM text file; a bad line raises InputError naming it."""
     rows = []
     for lineno, line in enumerate(path.read_text().splitlines(), 1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
-        parts = line.split()
         try:
-            if len(parts) != 2:
-                raise InvalidOperation
-            rows.append((seconds_to_ns(parts[0]), parts[1]))
-        except InvalidOperation:
-            raise InputError(f"{path}:{lineno}: malformed line {line!r} (want 'timestamp file')") from None
+            rows.append(parse(line.split()))
+        except (InvalidOperation, ValueError, IndexError):
+            raise InputError(f"{path}:{lineno}: malformed line {line!r} (want '{want}')") from None
+    return rows
+
+
+def _read_list(path: Path) -> list[tuple[int, str]]:
+    if not path.is_file():
+        raise InputError(f"{path}: missing (a TUM RGB-D folder needs rgb.txt and depth.txt)")
+
+    def parse(parts: list[str]) -> tuple[int, str]:
+        if len(parts) != 2:
+            raise ValueError
+        return seconds_to_ns(parts[0]), parts[1]
+
+    rows = read_rows(path, parse, "timestamp file")
     if not rows:
         raise InputError(f"{path}: lists no images")
     return rows
