@@ -48,24 +48,12 @@ class OccupancyOctree:
         occupancy_thres: float = 0.5,
         colour: bool = False,
     ) -> None:
-        if not (np.isfinite(resolution) and resolution > 0):
-            raise MapError(f"octree resolution must be a positive number, got {resolution}")
-        probs = dict(
-            prob_hit=prob_hit,
-            prob_miss=prob_miss,
-            clamp_min=clamp_min,
-            clamp_max=clamp_max,
-            occupancy_thres=occupancy_thres,
-        )
-        for name, p in probs.items():
-            if not (np.isfinite(p) and 0.0 < p < 1.0):
-                raise MapError(f"octree {name} must be a probability in (0, 1), got {p}")
-        if not (prob_miss < occupancy_thres < prob_hit):
-            raise MapError("octree sensor model needs prob_miss < occupancy_thres < prob_hit")
-        if not (clamp_min < occupancy_thres < clamp_max):
-            raise MapError("octree clamping needs clamp_min < occupancy_thres < clamp_max")
+        from mapper.voxelmap import check_sensor_model
+
+        probs = check_sensor_model(resolution, prob_hit=prob_hit, prob_miss=prob_miss, clamp_min=clamp_min,
+                                   clamp_max=clamp_max, occupancy_thres=occupancy_thres)
         self.resolution = float(resolution)
-        self._model = {k: float(v) for k, v in probs.items()}
+        self._model = probs
         self.colour = bool(colour)
         self._tree = self._new_tree()
         self._ctree = self._new_colour_tree() if self.colour else None

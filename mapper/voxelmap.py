@@ -210,6 +210,21 @@ def _cast_rays(grid: _ScanGrid, origin32: np.ndarray, ends32: np.ndarray, res: f
         raise MapError("ray casting did not terminate (inconsistent ray geometry)")
 
 
+def check_sensor_model(resolution: float, **probs: float) -> dict[str, float]:
+    """Validate a resolution and OctoMap sensor model (prob_hit, prob_miss, clamp_min, clamp_max,
+    occupancy_thres); both occupancy backends share it. Returns the probabilities as floats."""
+    if not (np.isfinite(resolution) and resolution > 0):
+        raise MapError(f"octree resolution must be a positive number, got {resolution}")
+    for name, p in probs.items():
+        if not (np.isfinite(p) and 0.0 < p < 1.0):
+            raise MapError(f"octree {name} must be a probability in (0, 1), got {p}")
+    if not (probs["prob_miss"] < probs["occupancy_thres"] < probs["prob_hit"]):
+        raise MapError("octree sensor model needs prob_miss < occupancy_thres < prob_hit")
+    if not (probs["clamp_min"] < probs["occupancy_thres"] < probs["clamp_max"]):
+        raise MapError("octree clamping needs clamp_min < occupancy_thres < clamp_max")
+    return {k: float(v) for k, v in probs.items()}
+
+
 class VoxelOccupancyMap:
     """Sparse occupancy voxels with OctoMap's sensor model; OctoMap-compatible `.bt` / `.ot` output."""
 
@@ -226,17 +241,8 @@ class VoxelOccupancyMap:
         occupancy_thres: float = 0.5,
         colour: bool = True,
     ) -> None:
-        if not (np.isfinite(resolution) and resolution > 0):
-            raise MapError(f"octree resolution must be a positive number, got {resolution}")
-        probs = dict(prob_hit=prob_hit, prob_miss=prob_miss, clamp_min=clamp_min,
-                     clamp_max=clamp_max, occupancy_thres=occupancy_thres)
-        for name, p in probs.items():
-            if not (np.isfinite(p) and 0.0 < p < 1.0):
-                raise MapError(f"octree {name} must be a probability in (0, 1), got {p}")
-        if not (prob_miss < occupancy_thres < prob_hit):
-            raise MapError("octree sensor model needs prob_miss < occupancy_thres < prob_hit")
-        if not (clamp_min < occupancy_thres < clamp_max):
-            raise MapError("octree clamping needs clamp_min < occupancy_thres < clamp_max")
+        check_sensor_model(resolution, prob_hit=prob_hit, prob_miss=prob_miss, clamp_min=clamp_min,
+                           clamp_max=clamp_max, occupancy_thres=occupancy_thres)
         self.resolution = float(resolution)
         self.colour = bool(colour)
         self._hit = logodds(prob_hit)
