@@ -116,10 +116,11 @@ def _log(viz: Viz, frame, res, result: TrackerResult) -> None:
         viz.camera("world/tracker/camera", frame.intrinsics)
     viz.pose("world/tracker/camera", res.world_from_camera)
     viz.rgb("world/tracker/camera/image", frame.rgb)
-    viz.path3d("world/tracker/trajectory", np.array([p[:3, 3] for p in result.poses]), color=[255, 160, 0])
     viz.scalar("tracker/inliers", float(res.n_inliers))
     viz.scalar("tracker/ms", result.ms[-1])
     if res.is_keyframe:
+        # the whole path, re-sent at keyframes only: per frame it would cost O(frames) each time
+        viz.path3d("world/tracker/trajectory", np.array([p[:3, 3] for p in result.poses]), color=[255, 160, 0])
         viz.points3d("world/tracker/keyframes", np.array([res.world_from_camera[:3, 3]]), [0, 200, 255],
                      radius=0.02)
         viz.text("tracker/events", f"keyframe {res.keyframe_id} at frame {frame.seq}")
