@@ -40,6 +40,12 @@ class MapperConfig:
     grid_resolution_m: float = 0.05
     wait_for: tuple[str, ...] = ()
     wait_timeout_s: float = 60.0
+    # several robots into one map: the robots' namespaces (each a replay/recorder + tracker pair);
+    # empty: one robot, in the mapper's own namespace. See mapper/fleet.py for the integration order.
+    robots: tuple[str, ...] = ()
+    # per robot, its start frame (its tracker's world) in the common world: x y z qx qy qz qw;
+    # empty: every robot starts at the world origin
+    start_poses: tuple[tuple[float, ...], ...] = ()
 
     def validate(self) -> None:
         for key in ("resolution_m", "voxel_m", "max_range_m"):
@@ -55,6 +61,28 @@ class MapperConfig:
             raise ConfigError(f"mapper.publish_every {self.publish_every}: want >= 0")
         if self.pixel_stride < 1:
             raise ConfigError(f"mapper.pixel_stride {self.pixel_stride}: want >= 1")
+        for robot in self.robots:
+            if not robot.strip("/") or any(c in robot for c in "*$?#"):
+                raise ConfigError(f"mapper.robots {robot!r}: want a Zenoh key prefix such as robot1")
+        if len(set(self.robots)) != len(self.robots):
+            raise ConfigError(f"mapper.robots {list(self.robots)}: a namespace is listed twice")
+        if self.start_poses and len(self.start_poses) != len(self.robots):
+            raise ConfigError(f"mapper.start_poses: {len(self.start_poses)} poses for {len(self.robots)} robots "
+                              f"(want one x y z qx qy qz qw per robot, or none)")
+        from mapper.fleet import start_pose_matrix
+
+        for robot, pose in zip(self.robots, self.start_poses):
+            start_pose_matrix(robot, pose)
+
+    def start_pose_matrices(self) -> list:
+        """world_from_<robot> for each robot (identity when no start poses are given)."""
+        import numpy as np
+
+        from mapper.fleet import start_pose_matrix
+
+        if not self.start_poses:
+            return [np.eye(4) for _ in self.robots]
+        return [start_pose_matrix(r, p) for r, p in zip(self.robots, self.start_poses)]
 
 
 def make_mapper(cfg: MapperConfig):  # -> mapper.core.Mapper

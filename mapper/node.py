@@ -64,22 +64,177 @@ class Publisher:
 
 def run(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: str = "off",
         recording_id: str = "octolog") -> MapperResult:
+    if cfg.robots:
+        return run_fleet(cfg, bus_cfg, out_dir=out_dir, rerun=rerun, recording_id=recording_id)
     mapper = make_mapper(cfg)
     with Bus(bus_cfg, "mapper") as bus, Viz(rerun, "mapper", recording_id) as viz:
         publisher = Publisher(bus, mapper, cfg.publish_every)
         result = consume(mapper, cfg, bus, viz, publisher, out_dir)
-        last_stamp = max((kf.stamp_ns for kf in mapper.keyframes.values()), default=0)
-        publisher.now(last_stamp)
-        result.files = mapper.write(out_dir)
-        result.stats = mapper.stats()
-        result.cloud_points = len(mapper.cloud.cloud()[0])
-        (out_dir / "map_stats.json").write_text(json.dumps(
-            {**result.stats, "cloud_points": result.cloud_points, "skipped_keyframes": result.skipped,
-             "corrections": result.corrections}, indent=2, sort_keys=True) + "\n")
-        if viz.enabled:
-            _log_map(viz, mapper, last_stamp, publisher.grid)
-        bus.publisher(MAP_END).put(codec.stream_end_msg(MAP_UPDATE.name, result.keyframes + result.skipped))
+        finish(mapper, result, bus, viz, publisher, out_dir)
     return result
+
+
+def finish(mapper: Mapper, result: MapperResult, bus: Bus, viz: Viz, publisher: Publisher, out_dir: Path,
+           extra_stats: dict | None = None) -> None:
+    """The last snapshot, the map files and stats, the end message."""
+    last_stamp = max((kf.stamp_ns for kf in mapper.keyframes.values()), default=0)
+    publisher.now(last_stamp)
+    result.files = mapper.write(out_dir)
+    result.stats = mapper.stats()
+    result.cloud_points = len(mapper.cloud.cloud()[0])
+    (out_dir / "map_stats.json").write_text(json.dumps(
+        {**result.stats, "cloud_points": result.cloud_points, "skipped_keyframes": result.skipped,
+         "corrections": result.corrections, **(extra_stats or {})}, indent=2, sort_keys=True) + "\n")
+    if viz.enabled:
+        _log_map(viz, mapper, last_stamp, publisher.grid)
+    bus.publisher(MAP_END).put(codec.stream_end_msg(MAP_UPDATE.name, result.keyframes + result.skipped))
+
+
+# --- several robots, one map ---------------------------------------------------------------------
+
+ROBOT_COLOURS = ((255, 160, 0), (0, 200, 255), (120, 220, 60), (230, 60, 160), (160, 120, 255), (250, 230, 40))
+
+
+def run_fleet(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: str = "off",
+              recording_id: str = "octolog") -> MapperResult:
+    """One mapper for several robots: one Zenoh session per robot namespace (each subscribes to that
+    robot's keyframes and announces the mapper there), one for the map outputs in the mapper's own
+    namespace. Keyframes are merged in the order mapper/fleet.py defines."""
+    import contextlib
+    import dataclasses
+
+    mapper = make_mapper(cfg)
+    with contextlib.ExitStack() as stack:
+        bus = stack.enter_context(Bus(bus_cfg, "mapper"))
+        robot_buses = [stack.enter_context(Bus(dataclasses.replace(bus_cfg, namespace=r), "mapper"))
+                       for r in cfg.robots]
+        viz = stack.enter_context(Viz(rerun, "mapper", recording_id))
+        publisher = Publisher(bus, mapper, cfg.publish_every)
+        result, trajectories = consume_fleet(mapper, cfg, bus, robot_buses, viz, publisher, out_dir)
+        per_robot = write_trajectories(mapper, cfg.robots, trajectories, out_dir)
+        finish(mapper, result, bus, viz, publisher, out_dir, {"robots": per_robot})
+    return result
+
+
+def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list[Bus], viz: Viz,
+                  publisher: Publisher, out_dir: Path) -> tuple[MapperResult, list[list[tuple[int, int]]]]:
+    from mapper.fleet import CorrectionItem, FleetMerge, KeyframeItem
+
+    world_from_robot = cfg.start_pose_matrices()
+    pub_update = bus.publisher(MAP_UPDATE)
+    bus.accept(MAP_SAVE)
+    bus.start([])
+    for rb in robot_buses:
+        rb.start([KEYFRAME, KEYFRAME_POSES, KEYFRAME_END], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
+        rb.watch(["tracker"])
+    merge = FleetMerge(cfg.robots)
+    n = len(cfg.robots)
+    expected: list[int | None] = [None] * n
+    received = [0] * n
+    map_id: list[dict[int, int]] = [{} for _ in range(n)]  # robot keyframe id -> map-wide id
+    trajectories: list[list[tuple[int, int]]] = [[] for _ in range(n)]  # (stamp, map-wide id)
+    result = MapperResult()
+    while not merge.done():
+        while (q := bus.receive_nowait()) is not None:  # "save the map now", between keyframes
+            _answer_save(q, mapper, out_dir)
+        nxt = merge.pop()
+        if nxt is None:
+            # the order is not decided yet: take the next message of a robot whose stream is empty
+            i = merge.waiting_on()[0]
+            r = robot_buses[i].receive()
+            if r is None:
+                if expected[i] is not None:
+                    robot_buses[i].expect_count(KEYFRAME, received[i], expected[i])
+                for rb in robot_buses:
+                    rb.check_peers()
+                continue
+            if r.topic == KEYFRAME_END:
+                expected[i] = int(r.decode().count)
+                robot_buses[i].expect_count(KEYFRAME, received[i], expected[i])
+                robot_buses[i].unwatch("tracker")
+            elif r.topic == KEYFRAME_POSES:
+                merge.push(i, CorrectionItem(r.decode()))
+            else:
+                received[i] += 1
+                msg = r.decode()
+                merge.push(i, KeyframeItem(codec.stamp_ns(msg.header), int(msg.id), msg))
+            if expected[i] is not None and received[i] >= expected[i] and not merge.has_items(i):
+                merge.end(i)
+            continue
+        i, item = nxt
+        if isinstance(item, CorrectionItem):
+            try:
+                poses = codec.keyframe_poses_from_msg(item.poses)
+                moved = {map_id[i][k]: world_from_robot[i] @ T for k, T in poses.items() if k in map_id[i]}
+                result.corrections += mapper.correct(moved)
+            except InputError as exc:  # the whole correction is refused; the map is unchanged
+                result.problems.append(f"{cfg.robots[i]}: {exc}")
+        else:
+            t0 = time.perf_counter()
+            stamp = item.stamp_ns
+            gid = len(mapper.keyframes)
+            try:
+                if item.kf_id in map_id[i]:
+                    raise InputError(f"keyframe {item.kf_id}: already integrated")
+                kf_id, pose, frame = codec.keyframe_from_msg(item.payload)
+                pts = mapper.integrate(gid, world_from_robot[i] @ pose, frame)
+                map_id[i][kf_id] = gid
+                trajectories[i].append((stamp, gid))
+                result.keyframes += 1
+            except (InputError, MapError) as exc:
+                result.skipped += 1
+                result.problems.append(f"{cfg.robots[i]}: {exc}")
+                pts, frame = 0, None
+            ms = (time.perf_counter() - t0) * 1e3
+            result.ms.append(ms)
+            pub_update.put(codec.msgtype(MAP_UPDATE.msgtype)(
+                header=codec.header(stamp, "world"), keyframe_id=gid if frame is not None else item.kf_id,
+                n_points=pts, n_occupied=publisher.stats.get("occupied_voxels", 0),
+                n_free=publisher.stats.get("free_voxels", 0), processing_ms=ms))
+            if frame is not None:
+                publisher.maybe(result.keyframes, stamp)
+                if viz.enabled:
+                    viz.set_time(stamp, frame.seq)
+                    _log_robot(viz, mapper, cfg.robots[i], i, trajectories[i])
+                    if publisher.every and result.keyframes % publisher.every == 0:
+                        _log_map(viz, mapper, stamp, publisher.grid)
+        for k in range(n):  # a stream whose last item was just taken has ended
+            if expected[k] is not None and received[k] >= expected[k] and not merge.has_items(k):
+                merge.end(k)
+    return result, trajectories
+
+
+def write_trajectories(mapper: Mapper, robots: tuple[str, ...], trajectories: list[list[tuple[int, int]]],
+                       out_dir: Path) -> dict[str, dict]:
+    """Each robot's keyframe trajectory in the common world (corrected poses), TUM format."""
+    from octolog.metrics import write_tum
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    per_robot = {}
+    for robot, traj in zip(robots, trajectories):
+        path = out_dir / f"keyframes_{robot.strip('/').replace('/', '_')}.txt"
+        stamps = np.array([s for s, _ in traj], dtype=np.int64)
+        poses = np.array([mapper.keyframes[g].world_from_camera for _, g in traj]).reshape(-1, 4, 4)
+        write_tum(path, stamps, poses)
+        per_robot[robot] = {"keyframes": len(traj), "trajectory": path.name}
+    return per_robot
+
+
+def _log_robot(viz: Viz, mapper: Mapper, robot: str, index: int, traj: list[tuple[int, int]]) -> None:
+    ent = f"world/{robot.strip('/')}"
+    colour = ROBOT_COLOURS[index % len(ROBOT_COLOURS)]
+    xyz = np.array([mapper.keyframes[g].world_from_camera[:3, 3] for _, g in traj])
+    viz.pose(f"{ent}/camera", mapper.keyframes[traj[-1][1]].world_from_camera)
+    viz.path3d(f"{ent}/trajectory", xyz, color=list(colour))
+    viz.points3d(f"{ent}/keyframes", xyz, list(colour), radius=0.03)
+
+
+def _answer_save(r: Any, mapper: Mapper, out_dir: Path) -> None:
+    try:
+        files = mapper.write(out_dir)
+    except MapError as exc:
+        files = {"error": str(exc)}
+    r.reply(codec.msgtype(MAP_SAVE.msgtype)(data=json.dumps(files, sort_keys=True)), MAP_SAVE)
 
 
 def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: Publisher,

@@ -1,0 +1,234 @@
+"""Several robots into one map: the merge order, the config, and two robots through real processes.
+
+The end-to-end test runs a router, one mapper for robots r1 and r2, and per robot a replay and a
+tracker (each its own process, each robot under its own namespace) on the two halves of the
+synthetic sequence; r2's start pose comes from the scene's ground truth. The reference is built
+without any of the fleet code: the tracker core and the mapper core in this process, keyframes
+sorted by (stamp, robot index) with `sorted`, integrated one after the other.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import random
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from helpers import ROOT, octolog
+
+from mapper.config import MapperConfig
+from mapper.fleet import CorrectionItem, FleetMerge, KeyframeItem, merged_order
+from octolog.errors import ConfigError
+
+FRAMES = 40
+HALF = FRAMES // 2
+ROBOTS = ("r1", "r2")
+
+
+# --- the merge order -------------------------------------------------------------------------------
+
+
+def _kf(stamp: int, kf_id: int) -> KeyframeItem:
+    return KeyframeItem(stamp, kf_id, None)
+
+
+def test_merge_is_by_stamp_then_robot_and_waits_for_every_stream():
+    streams = [[_kf(10, 0), _kf(30, 1), _kf(50, 2)], [_kf(10, 0), _kf(20, 1), _kf(60, 2)]]
+    order = [(i, it.stamp_ns) for i, it in merged_order(streams)]
+    assert order == [(0, 10), (1, 10), (1, 20), (0, 30), (0, 50), (1, 60)]
+    m = FleetMerge(ROBOTS)
+    m.push(0, _kf(10, 0))
+    assert m.pop() is None and m.waiting_on() == [1]  # r2 might still send something older
+    m.end(1)
+    assert m.pop() == (0, _kf(10, 0))
+
+
+def test_merge_order_does_not_depend_on_arrival_order():
+    """Whatever order the two robots' messages arrive in, the integration order is the same."""
+    streams = [[_kf(s, k) for k, s in enumerate((5, 17, 18, 40))],
+               [_kf(s, k) for k, s in enumerate((1, 17, 30))] + [CorrectionItem({0: "moved"}), _kf(41, 3)]]
+    orders = set()
+    rng = random.Random(7)
+    for _ in range(50):
+        m = FleetMerge(ROBOTS)
+        pending = [list(s) for s in streams]
+        out = []
+        while not m.done():
+            nxt = m.pop()
+            if nxt is not None:
+                out.append((nxt[0], repr(nxt[1])))
+                continue
+            # deliver the next message of a random robot the merge is waiting on (as a network might)
+            i = rng.choice(m.waiting_on())
+            if pending[i]:
+                m.push(i, pending[i].pop(0))
+            else:
+                m.end(i)
+        orders.add(tuple(out))
+    assert len(orders) == 1
+    (order,) = orders
+    kinds = [(i, r.split("(")[0]) for i, r in order]
+    # r2's correction came after its keyframe at 30 and is applied before anything later
+    assert kinds.index((1, "CorrectionItem")) == 6  # after 1, 5, 17, 17, 18, 30
+
+
+def test_config_checks_robots_and_start_poses():
+    with pytest.raises(ConfigError, match="2 poses for 1 robots"):
+        MapperConfig(robots=("r1",), start_poses=((0, 0, 0, 0, 0, 0, 1), (0, 0, 0, 0, 0, 0, 1))).validate()
+    with pytest.raises(ConfigError, match="want 7 finite numbers"):
+        MapperConfig(robots=("r1",), start_poses=((0, 0, 0),)).validate()
+    with pytest.raises(ConfigError, match="quaternion is zero"):
+        MapperConfig(robots=("r1",), start_poses=((0, 0, 0, 0, 0, 0, 0),)).validate()
+    with pytest.raises(ConfigError, match="listed twice"):
+        MapperConfig(robots=("r1", "r1")).validate()
+    proc = octolog("map", "--set", "robots=[\"a\", \"b*\"]", "--no-multicast", check=False, timeout=60)
+    assert proc.returncode == 1 and proc.stderr.count("\n") == 1 and "mapper.robots 'b*'" in proc.stderr
+
+
+# --- two robots through real processes --------------------------------------------------------------
+
+
+def _start_poses() -> list[list[float]]:
+    from octolog.geometry import invert, matrix_to_pose
+    from replay.synthetic import SyntheticScene
+
+    scene = SyntheticScene(n_frames=FRAMES)
+    poses = []
+    for first in (0, HALF):  # each robot's tracker world is its first camera frame
+        t, q = matrix_to_pose(invert(scene.pose(0)) @ scene.pose(first))
+        poses.append([float(x) for x in (*t, *q)])
+    return poses
+
+
+def _reference(out: Path, start_poses: list[list[float]]) -> None:
+    """The map built from both inputs on one host, in one process, without mapper/fleet.py."""
+    from mapper.config import make_mapper
+    from octolog.geometry import pose_to_matrix
+    from octolog.metrics import write_tum
+    from replay.sources import SyntheticSource
+    from schemas import codec
+    from tracker.config import TrackerConfig, make_odometry
+
+    source = SyntheticSource(FRAMES)
+    keyframes = []  # (stamp, robot index, robot keyframe id, robot_from_camera, frame)
+    for r, (start, end) in enumerate(((0, HALF), (HALF, FRAMES))):
+        odometry = make_odometry(TrackerConfig())
+        for frame in source.frames(start, end):
+            res = odometry.track(frame)
+            if res.is_keyframe:
+                # the pose as a Keyframe message carries it (position + quaternion)
+                T = codec.pose_matrix(codec.pose_msg(res.world_from_camera))
+                keyframes.append((frame.stamp_ns, r, res.keyframe_id, T, frame))
+    mapper = make_mapper(MapperConfig())
+    per_robot: dict[int, list] = {0: [], 1: []}
+    for gid, (stamp, r, _kf, T, frame) in enumerate(sorted(keyframes, key=lambda k: k[:3])):
+        q = np.array(start_poses[r][3:])
+        world_from_robot = pose_to_matrix(np.array(start_poses[r][:3]), q / np.linalg.norm(q))
+        mapper.integrate(gid, world_from_robot @ T, frame)
+        per_robot[r].append((stamp, mapper.keyframes[gid].world_from_camera))
+    mapper.write(out)
+    for r, rows in per_robot.items():
+        write_tum(out / f"keyframes_{ROBOTS[r]}.txt", np.array([s for s, _ in rows]), np.array([T for _, T in rows]))
+    assert len(per_robot[0]) >= 2 and len(per_robot[1]) >= 2, per_robot
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _start(log: Path | None, *args: str) -> subprocess.Popen:
+    env = {**os.environ, "RERUN_DISABLE_ANALYTICS": "1", "PYTHONUNBUFFERED": "1", "PYTHONHASHSEED": "0"}
+    return subprocess.Popen([sys.executable, "-m", "octolog", *args], cwd=ROOT, env=env, text=True,
+                            stdout=open(log, "w") if log else subprocess.PIPE, stderr=subprocess.STDOUT)
+
+
+def run_fleet(out: Path, start_poses: list[list[float]], *, rerun: str = "off") -> dict[str, str]:
+    """Router, mapper for r1+r2, and per robot a tracker and a replay: six processes over Zenoh."""
+    out.mkdir(parents=True)
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    bus = ["--mode", "client", "--connect", endpoint, "--no-multicast"]
+    procs = {"router": _start(out / "router.log", "router", "--listen", endpoint)}
+    try:
+        poses = "[" + ", ".join("[" + ", ".join(repr(x) for x in p) + "]" for p in start_poses) + "]"
+        procs["mapper"] = _start(out / "mapper.log", "map", *bus, "--out", str(out), "--rerun", rerun,
+                                 "--recording-id", "fleet", "--set", 'robots=["r1", "r2"]',
+                                 "--set", f"start_poses={poses}")
+        for robot, window in zip(ROBOTS, (("end", HALF), ("start", HALF))):
+            ns = ["--namespace", robot]
+            procs[f"tracker-{robot}"] = _start(out / f"tracker-{robot}.log", "track", *bus, *ns)
+            procs[f"replay-{robot}"] = _start(out / f"replay-{robot}.log", "replay", *bus, *ns, "--quiet",
+                                              "--source", f"synthetic:{FRAMES}", "--set", f"{window[0]}={window[1]}",
+                                              "--set", 'wait_for=["tracker", "mapper"]')
+        for name in ("replay-r1", "replay-r2", "tracker-r1", "tracker-r2", "mapper"):
+            code = procs[name].wait(timeout=600)
+            assert code == 0, (name, (out / f"{name}.log").read_text())
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                p.terminate()
+                p.wait(timeout=30)
+    return {name: (out / f"{name}.log").read_text() for name in procs}
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory) -> tuple[Path, Path]:
+    tmp = tmp_path_factory.mktemp("fleet")
+    poses = _start_poses()
+    _reference(tmp / "reference", poses)
+    run_fleet(tmp / "processes", poses, rerun=f"save:{tmp / 'processes' / 'rerun'}")
+    return tmp / "reference", tmp / "processes"
+
+
+def test_two_robots_fuse_into_the_map_built_on_one_host(fleet):
+    ref, procs = fleet
+    for name in ("map.bt", "map.ot", "cloud.ply", "keyframes_r1.txt", "keyframes_r2.txt"):
+        assert (procs / name).read_bytes() == (ref / name).read_bytes(), name
+    import json
+
+    stats = json.loads((procs / "map_stats.json").read_text())
+    assert stats["robots"]["r1"]["keyframes"] + stats["robots"]["r2"]["keyframes"] == stats["keyframes"]
+    assert stats["skipped_keyframes"] == 0
+
+
+def test_fused_map_lies_on_the_scene_and_trajectories_follow_ground_truth(fleet):
+    """Both robots in one world: the fused map's voxels on the scene's surfaces, each robot's
+    keyframes where the ground truth says (the start poses put r2 where it began)."""
+    import octomap
+    from scipy.spatial import cKDTree
+
+    from octolog.metrics import read_tum
+    from replay.synthetic import SyntheticScene
+
+    _, procs = fleet
+    scene = SyntheticScene(n_frames=FRAMES)
+    T0 = scene.pose(0)
+    tree = octomap.OcTree(0.05)
+    assert tree.readBinary(str(procs / "map.bt").encode())
+    centres = np.array([it.getCoordinate() for it in tree.begin_leafs() if tree.isNodeOccupied(it)])
+    dist, _ = cKDTree(scene.surface_samples(0.02)).query(centres @ T0[:3, :3].T + T0[:3, 3])
+    assert np.mean(dist < 0.1) > 0.95
+    stamps = {scene.stamp_ns(i): i for i in range(FRAMES)}
+    for robot in ROBOTS:
+        traj = read_tum(procs / f"keyframes_{robot}.txt")
+        for stamp, p in zip(traj.stamps_ns, traj.positions):
+            gt = (np.linalg.inv(T0) @ scene.pose(stamps[int(stamp)]))[:3, 3]
+            assert np.linalg.norm(p - gt) < 0.03, (robot, stamp)
+
+
+def test_rerun_has_a_trajectory_per_robot(fleet):
+    _, procs = fleet
+    from helpers import rerun_cli
+
+    rrd = procs / "rerun" / "mapper.rrd"
+    proc = subprocess.run([rerun_cli(), "rrd", "print", str(rrd)], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "RERUN_DISABLE_ANALYTICS": "1"})
+    text = proc.stdout + proc.stderr
+    for robot in ROBOTS:
+        assert f"/world/{robot}/trajectory" in text, text[-2000:]
