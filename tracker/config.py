@@ -7,6 +7,9 @@ from dataclasses import dataclass
 from octolog.errors import ConfigError
 
 
+BACKENDS = ("native", "orbslam3")
+
+
 @dataclass(frozen=True)
 class TrackerConfig:
     n_features: int = 1000
@@ -18,15 +21,25 @@ class TrackerConfig:
     # stages that must be up before this one announces itself (e.g. "mapper" when run by hand)
     wait_for: tuple[str, ...] = ()
     wait_timeout_s: float = 60.0
+    # "native" (ours, deterministic) or "orbslam3" (pyorbslam3, an extra: for comparison)
+    backend: str = "native"
+    # orbslam3: DBoW2 text vocabulary (`octolog vocab build`); empty: $OCTOLOG_ORB_VOCABULARY
+    vocabulary: str = ""
 
     def validate(self) -> None:
+        if self.backend not in BACKENDS:
+            raise ConfigError(f"tracker.backend {self.backend!r}: want one of {', '.join(BACKENDS)}")
         if self.throttle_ms < 0:
             raise ConfigError(f"tracker.throttle_ms {self.throttle_ms}: want >= 0")
         if self.n_features < 100:
             raise ConfigError(f"tracker.n_features {self.n_features}: want >= 100")
 
 
-def make_odometry(cfg: TrackerConfig):  # -> RgbdOdometry
+def make_odometry(cfg: TrackerConfig):  # -> RgbdOdometry | OrbSlam3Odometry
+    if cfg.backend == "orbslam3":
+        from tracker.orbslam3 import OrbSlam3Odometry
+
+        return OrbSlam3Odometry(cfg.vocabulary, n_features=cfg.n_features)
     from tracker.odometry import RgbdOdometry
 
     return RgbdOdometry(n_features=cfg.n_features)
