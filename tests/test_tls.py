@@ -1,0 +1,164 @@
+"""TLS with mutual authentication and access control, configured through Zenoh config files.
+
+The router is `octolog router` in its own process with docs/examples/zenoh-tls-router.json5; the
+certificates come from docs/examples/make-certs.sh (openssl), so the documented example is what
+runs here. Clients are real Zenoh sessions (octolog.bus.Bus) with docs/examples/zenoh-tls-client.json5
+pointed at their own certificates.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+from helpers import ROOT, octolog
+
+from octolog.bus import Bus, BusConfig
+from octolog.errors import BusError
+from schemas import codec
+from schemas.topics import RGBD, Topic
+
+EXAMPLES = ROOT / "docs" / "examples"
+N = 20
+FENCE = Topic("mapper/end", "octolog_msgs/msg/StreamEnd")  # allowed to viewers: marks the end of the data
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture(scope="module")
+def pki(tmp_path_factory) -> Path:
+    if shutil.which("openssl") is None:
+        pytest.skip("openssl not installed")
+    tmp = tmp_path_factory.mktemp("tls")
+    subprocess.run(["bash", str(EXAMPLES / "make-certs.sh"), str(tmp / "certs")], check=True, capture_output=True)
+    # a second, unrelated authority issuing a certificate with an allowed name
+    subprocess.run(["bash", str(EXAMPLES / "make-certs.sh"), str(tmp / "rogue")], check=True, capture_output=True,
+                   env={**os.environ, "NODES": "robot1"})
+    return tmp
+
+
+def _config(pki: Path, example: str, name: str, *, cert: str | None = None, ca: str = "certs",
+            extra: str = "") -> str:
+    """The example config with absolute certificate paths for node `cert` (None: no certificate)."""
+    text = (EXAMPLES / example).read_text().replace('"certs/', f'"{pki}/certs/')
+    if cert is not None:
+        text = text.replace(f'{pki}/certs/robot1.', f'{pki}/{ca}/{cert}.')
+    else:
+        text = "\n".join(ln for ln in text.splitlines() if "connect_certificate" not in ln
+                         and "connect_private_key" not in ln)
+    text = text.replace(f'"{pki}/certs/ca.pem"', f'"{pki}/{ca}/ca.pem"')
+    if extra:
+        text = text.rstrip().rstrip("}") + extra + "\n}\n"
+    path = pki / f"{name}.json5"
+    path.write_text(text)
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def router(pki):
+    endpoint = f"tls/localhost:{_free_port()}"
+    cfg = _config(pki, "zenoh-tls-router.json5", "router")
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "octolog", "router", "--zenoh-config", cfg, "--listen", endpoint],
+                            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    line = proc.stdout.readline()  # printed once the router is up
+    assert "router: listening on" in line, line + proc.stdout.read()
+    yield endpoint
+    proc.terminate()
+    proc.wait(timeout=30)
+
+
+def _bus(endpoint: str, config: str, stage: str) -> Bus:
+    return Bus(BusConfig(mode="client", connect=(endpoint,), zenoh_config=config, multicast_scouting=False,
+                         namespace="robot1"), stage)
+
+
+class Counter:
+    """Counts samples per topic; `hello` is set by the first fence message, `done` by the one with count N."""
+
+    def __init__(self, bus: Bus, topics: list[Topic]) -> None:
+        import zenoh
+
+        self.counts: dict[str, int] = {}
+        self.hello, self.done = threading.Event(), threading.Event()
+        for t in topics:  # declared in this order on one link: the router handles them in this order
+            def on(sample, t=t) -> None:
+                self.counts[t.name] = self.counts.get(t.name, 0) + 1
+                if t == FENCE:
+                    self.hello.set()
+                    if codec.decode(sample.payload.to_bytes(), FENCE.msgtype).count == N:
+                        self.done.set()
+
+            bus._keep.append(bus.session.declare_subscriber(t.key("robot1"), zenoh.handlers.Callback(on)))
+
+
+def test_certified_nodes_join_and_access_control_limits_what_they_get(pki, router):
+    """robot1 publishes camera frames, then an end message on a map key; the server (allowed on
+    robot1/**) gets all of them; a viewer (allowed on robot1/mapper/** only) gets the end message but
+    no camera frame."""
+    import numpy as np
+
+    from octolog.geometry import Intrinsics, RgbdFrame
+
+    server_cfg = _config(pki, "zenoh-tls-client.json5", "server", cert="server")
+    viewer_cfg = _config(pki, "zenoh-tls-client.json5", "viewer", cert="viewer")
+    robot_cfg = _config(pki, "zenoh-tls-client.json5", "robot1", cert="robot1")
+    with _bus(router, server_cfg, "mapper") as server, _bus(router, viewer_cfg, "viewer") as viewer, \
+            _bus(router, robot_cfg, "replay") as robot:
+        got_server = Counter(server, [RGBD, FENCE])
+        got_viewer = Counter(viewer, [RGBD, FENCE])  # the camera subscription goes first
+        pub, fence = robot.publisher(RGBD), robot.publisher(FENCE)
+        # until both have seen a fence, their subscriptions may not have reached the router yet;
+        # once they have, the camera subscriptions (declared before) are in place too
+        while not (got_server.hello.wait(0.2) and got_viewer.hello.wait(0.2)):
+            fence.put(codec.stream_end_msg(RGBD.name, 0))
+        hellos = fence.count
+        frame = RgbdFrame(0, 1, np.zeros((4, 4, 3), np.uint8), np.ones((4, 4), np.uint16), 0.001,
+                          Intrinsics(4, 4, 2.0, 2.0, 2.0, 2.0))
+        for _ in range(N):
+            pub.put(codec.rgbd_msg(frame))
+        fence.put(codec.stream_end_msg(RGBD.name, N))
+        assert got_server.done.wait(60) and got_viewer.done.wait(60)
+    assert got_server.counts[RGBD.name] == N
+    # the end message went through the same router link after the frames: had the viewer been
+    # allowed the frames, they would be here before it
+    assert RGBD.name not in got_viewer.counts
+    assert got_viewer.counts[FENCE.name] <= hellos + 1 and got_server.counts[FENCE.name] <= hellos + 1
+
+
+def test_a_client_without_a_certificate_is_refused(pki, router):
+    cfg = _config(pki, "zenoh-tls-client.json5", "nocert", extra='  connect: { timeout_ms: 3000 },')
+    proc = octolog("track", "--mode", "client", "--connect", router, "--zenoh-config", cfg, "--no-multicast",
+                   "--namespace", "robot1", check=False, timeout=120)
+    assert proc.returncode == 1
+    assert proc.stderr.count("\n") == 1 and "octolog track: error: cannot open Zenoh session (client)" in proc.stderr
+
+
+def test_a_certificate_from_another_authority_is_refused(pki, router):
+    """A robot1 certificate signed by another CA: the router refuses the handshake (and the client,
+    trusting only its own CA, refuses the router's certificate)."""
+    cfg = _config(pki, "zenoh-tls-client.json5", "rogue", cert="robot1", ca="rogue",
+                  extra='  connect: { timeout_ms: 3000 },')
+    with pytest.raises(BusError, match="cannot open Zenoh session"):
+        with _bus(router, cfg, "replay"):
+            pass
+
+
+def test_plain_tcp_is_not_accepted(pki, router):
+    """The router only speaks TLS: a plain tcp client to the same port never gets a session."""
+    port = router.rsplit(":", 1)[1]
+    cfg = pki / "plain.json5"
+    cfg.write_text("{ connect: { timeout_ms: 3000 } }")
+    with pytest.raises(BusError, match="cannot open Zenoh session"):
+        with _bus(f"tcp/127.0.0.1:{port}", str(cfg), "replay"):
+            pass
