@@ -17,7 +17,7 @@ from octolog.errors import InputError, MapError
 from octolog.viz import Viz
 from schemas import codec
 from schemas.topics import (
-    GRID, KEYFRAME, KEYFRAME_END, KEYFRAME_POSES, MAP_END, MAP_QUERY, MAP_SAVE, MAP_UPDATE, OCCUPIED, OCTOMAP,
+    GRID, KEYFRAME, KEYFRAME_COMPRESSED, KEYFRAME_END, KEYFRAME_POSES, MAP_END, MAP_QUERY, MAP_SAVE, MAP_UPDATE, OCCUPIED, OCTOMAP,
 )
 
 
@@ -125,7 +125,8 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
     bus.accept(MAP_SAVE)
     bus.start([])
     for rb in robot_buses:
-        rb.start([KEYFRAME, KEYFRAME_POSES, KEYFRAME_END], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
+        rb.start([KEYFRAME, KEYFRAME_COMPRESSED, KEYFRAME_POSES, KEYFRAME_END], wait_for=cfg.wait_for,
+                 timeout_s=cfg.wait_timeout_s)
         rb.watch(["tracker"])
     merge = FleetMerge(cfg.robots)
     n = len(cfg.robots)
@@ -241,7 +242,8 @@ def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: Pu
             out_dir: Path) -> MapperResult:
     pub_update = bus.publisher(MAP_UPDATE)
     bus.accept(MAP_SAVE)
-    bus.start([KEYFRAME, KEYFRAME_POSES, KEYFRAME_END], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
+    bus.start([KEYFRAME, KEYFRAME_COMPRESSED, KEYFRAME_POSES, KEYFRAME_END], wait_for=cfg.wait_for,
+              timeout_s=cfg.wait_timeout_s)
     bus.watch(["tracker"])
     result = MapperResult()
     expected: int | None = None

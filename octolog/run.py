@@ -212,12 +212,12 @@ def frame_counts(log: Path) -> dict[str, int]:
     """What the session log says about frames: published, consumed by the tracker, skipped."""
     from octolog.mcaplog import read_messages
     from schemas import codec
-    from schemas.topics import RGBD, TRACKING_STATUS
+    from schemas.topics import RGBD, RGBD_COMPRESSED, TRACKING_STATUS
 
     skipped_code = codec.msgtype(TRACKING_STATUS.msgtype).SKIPPED
     published = consumed = skipped = 0
-    for m in read_messages(log, [RGBD.name, TRACKING_STATUS.name]):
-        if m.topic == RGBD.name:
+    for m in read_messages(log, [RGBD.name, RGBD_COMPRESSED.name, TRACKING_STATUS.name]):
+        if m.topic in (RGBD.name, RGBD_COMPRESSED.name):
             published += 1
         elif codec.decode(m.data, TRACKING_STATUS.msgtype).state == skipped_code:
             skipped += 1

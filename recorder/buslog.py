@@ -16,10 +16,11 @@ from octolog.bus import Bus, BusConfig
 from octolog.mcaplog import McapWriter
 from schemas import topics as T
 
-# end message -> (producing stage, the data topics it closes)
+# end message -> (producing stage, the data topics it may close: the one its `topic` field names,
+# raw or compressed, else the first)
 ENDS = {
-    T.RGBD_END: ("replay", (T.RGBD,)),
-    T.KEYFRAME_END: ("tracker", (T.KEYFRAME,)),
+    T.RGBD_END: ("replay", (T.RGBD, T.RGBD_COMPRESSED)),
+    T.KEYFRAME_END: ("tracker", (T.KEYFRAME, T.KEYFRAME_COMPRESSED)),
     T.MAP_END: ("mapper", (T.MAP_UPDATE,)),
 }
 
@@ -52,11 +53,14 @@ def run(bus_cfg: BusConfig, out: Path, *, compression: str = "zstd", metadata: d
             result.counts[r.topic.name] = result.counts.get(r.topic.name, 0) + 1
             if r.topic in ENDS:
                 stage, closes = ENDS[r.topic]
-                for topic in closes:
-                    announced[topic.name] = int(r.decode().count)
-                    bus.expect_count(topic, result.counts.get(topic.name, 0), announced[topic.name])
+                end = r.decode()
+                topic = next((t for t in closes if t.name == end.topic), closes[0])
+                announced[topic.name] = int(end.count)
+                bus.expect_count(topic, result.counts.get(topic.name, 0), announced[topic.name])
                 bus.unwatch(stage)
                 pending.discard(stage)
-                if {"replay", "tracker"} <= set(stages) and {T.RGBD.name, T.KEYFRAME.name} <= set(announced):
-                    announced[T.TRACKING_STATUS.name] = announced[T.RGBD.name]  # one per frame consumed
+                frames = [announced[t.name] for t in ENDS[T.RGBD_END][1] if t.name in announced]
+                kfs = [t for t in ENDS[T.KEYFRAME_END][1] if t.name in announced]
+                if {"replay", "tracker"} <= set(stages) and frames and kfs:
+                    announced[T.TRACKING_STATUS.name] = frames[0]  # one per frame consumed
     return result

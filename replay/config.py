@@ -28,6 +28,9 @@ class ReplayConfig:
     end_s: float = -1.0
     # publish under other topic names: "camera/rgbd=cam2/rgbd" (namespaces: the --namespace flag)
     remap: tuple[str, ...] = ()
+    # compress frames on the wire (camera/rgbd/compressed): "" or "raw" (default), or
+    # COLOUR[,png] with COLOUR jpeg[:QUALITY] (lossy) or png[:LEVEL]; depth is always lossless PNG
+    wire_compression: str = ""
     wait_for: tuple[str, ...] = ("tracker",)
     wait_timeout_s: float = 60.0
 
@@ -45,6 +48,12 @@ class ReplayConfig:
                 raise ConfigError(f"replay.remap {item!r}: want FROM=TO topic names")
         if self.start < 0:
             raise ConfigError(f"replay.start {self.start}: want >= 0")
+        from schemas.codec import parse_wire_compression
+
+        try:
+            parse_wire_compression(self.wire_compression)
+        except ConfigError as exc:
+            raise ConfigError(f"replay.wire_compression: {exc}") from None
 
 
 def remapped(topic, remap: tuple[str, ...]):  # Topic -> Topic

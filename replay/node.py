@@ -14,7 +14,9 @@ from replay.sources import Source, open_source
 from schemas import codec
 from octolog.errors import InputError
 from octolog.geometry import RgbdFrame
-from schemas.topics import KEYFRAME, KEYFRAME_END, KEYFRAME_POSES, RGBD, RGBD_END, TRACKING_STATUS
+from schemas.topics import (
+    KEYFRAME, KEYFRAME_COMPRESSED, KEYFRAME_END, KEYFRAME_POSES, RGBD, RGBD_COMPRESSED, RGBD_END, TRACKING_STATUS,
+)
 
 Progress = Callable[[int, int, float], None]  # (frames done, total, seconds elapsed)
 
@@ -94,7 +96,8 @@ def looped(source: Source, cfg: ReplayConfig) -> Iterator[RgbdFrame]:
 
 
 def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Progress | None) -> ReplayResult:
-    frames_pub = bus.publisher(remapped(RGBD, cfg.remap))
+    wire = codec.parse_wire_compression(cfg.wire_compression)
+    frames_pub = bus.publisher(remapped(RGBD if wire is None else RGBD_COMPRESSED, cfg.remap))
     end_pub = bus.publisher(remapped(RGBD_END, cfg.remap))
     bus.start([TRACKING_STATUS] if cfg.rate == 0 else [], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
     pacer = Pacer(bus, cfg)
@@ -104,7 +107,7 @@ def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Pro
     first_stamp = last_stamp = None
     for frame in looped(source, cfg):
         pacer.wait(frames_pub.count, frame.stamp_ns)
-        frames_pub.put(codec.rgbd_msg(frame))
+        frames_pub.put(codec.rgbd_msg(frame) if wire is None else codec.compressed_rgbd_msg(frame, wire))
         first_stamp = frame.stamp_ns if first_stamp is None else first_stamp
         last_stamp = frame.stamp_ns
         if viz.enabled:
@@ -132,14 +135,15 @@ def play_tracker_log(cfg: ReplayConfig, bus_cfg: BusConfig) -> ReplayResult:
     summary = summarize(path)
     if not summary.complete:
         raise InputError(f"{path}: truncated or corrupt MCAP ({summary.problem})")
-    if KEYFRAME.name not in summary.topics:
+    kf_topic = KEYFRAME if KEYFRAME.name in summary.topics else KEYFRAME_COMPRESSED
+    if kf_topic.name not in summary.topics:
         raise InputError(f"{path}: no /{KEYFRAME.name} topic: nothing to feed a mapper with")
     t0 = time.monotonic()
     with Bus(bus_cfg, "tracker") as bus:
-        pubs = {t.name: bus.publisher(remapped(t, cfg.remap)) for t in (KEYFRAME, KEYFRAME_POSES)}
+        pubs = {t.name: bus.publisher(remapped(t, cfg.remap)) for t in (kf_topic, KEYFRAME_POSES)}
         end_pub = bus.publisher(remapped(KEYFRAME_END, cfg.remap))
         bus.start([], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
         for m in read_messages(path, list(pubs)):
             pubs[m.topic].put_raw(m.data)
-        end_pub.put(codec.stream_end_msg(KEYFRAME.name, pubs[KEYFRAME.name].count))
-    return ReplayResult(pubs[KEYFRAME.name].count, time.monotonic() - t0, 0.0)
+        end_pub.put(codec.stream_end_msg(kf_topic.name, pubs[kf_topic.name].count))
+    return ReplayResult(pubs[kf_topic.name].count, time.monotonic() - t0, 0.0)

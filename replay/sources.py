@@ -63,14 +63,16 @@ class McapSource:
 
     def __post_init__(self) -> None:
         from octolog.mcaplog import summarize
-        from schemas.topics import RGBD
+        from schemas.topics import RGBD, RGBD_COMPRESSED
 
         self.name = f"mcap:{self.path}"
         summary = summarize(self.path)
         if not summary.complete:
             raise InputError(f"{self.path}: truncated or corrupt MCAP ({summary.problem}); "
                              f"`octolog info {self.path}` shows what is readable")
-        ts = summary.topics.get(RGBD.name)
+        # a session log holds the frames raw or compressed (replay.wire_compression)
+        self._topic = RGBD_COMPRESSED if RGBD_COMPRESSED.name in summary.topics else RGBD
+        ts = summary.topics.get(self._topic.name)
         self._standard = None
         if ts is None:
             from replay.standard import has_standard_frames, open_standard
@@ -85,8 +87,8 @@ class McapSource:
             self._count = len(self._standard)
             self._metadata = summary.metadata
             return
-        if ts.msgtype != RGBD.msgtype:
-            raise InputError(f"{self.path}: /{RGBD.name} holds {ts.msgtype}, want {RGBD.msgtype}")
+        if ts.msgtype != self._topic.msgtype:
+            raise InputError(f"{self.path}: /{self._topic.name} holds {ts.msgtype}, want {self._topic.msgtype}")
         self._count = ts.count
         self._metadata = summary.metadata
         self._span = (ts.first_ns, ts.last_ns)
@@ -110,18 +112,18 @@ class McapSource:
             return
         from octolog.mcaplog import read_messages
         from schemas import codec
-        from schemas.topics import RGBD
 
         i = 0
-        for n, m in enumerate(read_messages(self.path, [RGBD.name])):
+        topic = self._topic
+        for n, m in enumerate(read_messages(self.path, [topic.name])):
             try:
-                msg = codec.decode(m.data, RGBD.msgtype)
+                msg = codec.decode(m.data, topic.msgtype)
                 if self._consumed is not None and int(msg.seq) not in self._consumed:
                     continue
                 if start <= i and (end is None or i < end):
                     yield codec.rgbd_from_msg(msg)
             except InputError as exc:
-                raise InputError(f"{self.path}: message {n} on /{RGBD.name}: {exc}") from None
+                raise InputError(f"{self.path}: message {n} on /{topic.name}: {exc}") from None
             i += 1
             if end is not None and i >= end:
                 return

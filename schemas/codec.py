@@ -5,6 +5,7 @@ Our own types are `.msg` files beside this module; a schema change is a new type
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -159,10 +160,16 @@ def rgbd_msg(frame: RgbdFrame) -> Any:
 
 
 def _rgbd_parts(msg: Any) -> tuple[np.ndarray, np.ndarray, Intrinsics]:
-    rgb, depth = image_array(msg.color), image_array(msg.depth)
+    """Pixels and calibration of an RgbdFrame or Keyframe, or of their Compressed* variants."""
+    if hasattr(msg.color, "format"):  # sensor_msgs/CompressedImage: decode transparently
+        rgb, depth = wire_image_array(msg.color), wire_image_array(msg.depth)
+        kinds = (msg.color.format, msg.depth.format)
+    else:
+        rgb, depth = image_array(msg.color), image_array(msg.depth)
+        kinds = (msg.color.encoding, msg.depth.encoding)
     intr = intrinsics_from(msg.camera_info)
     if rgb.ndim != 3 or depth.ndim != 2 or depth.dtype != np.uint16:
-        raise InputError(f"want rgb8 colour and 16-bit depth, got {msg.color.encoding} and {msg.depth.encoding}")
+        raise InputError(f"want rgb8 colour and 16-bit depth, got {kinds[0]} and {kinds[1]}")
     if rgb.shape[:2] != depth.shape or (intr.height, intr.width) != depth.shape:
         raise InputError(
             f"image sizes disagree: colour {rgb.shape[1]}x{rgb.shape[0]}, depth {depth.shape[1]}x{depth.shape[0]}, "
@@ -332,3 +339,101 @@ def tf_static_msg(transforms: list[tuple[str, str, np.ndarray]], stamp: int) -> 
                 translation=Vector3(x=float(t[0]), y=float(t[1]), z=float(t[2])),
                 rotation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))))
     return msgtype("tf2_msgs/msg/TFMessage")(transforms=out)
+
+
+# --- wire compression (camera/rgbd/compressed, tracker/keyframe/compressed) ---------------------
+
+
+@dataclass(frozen=True)
+class WireCompression:
+    """How a producer compresses images on the wire: colour "jpeg" (lossy, `quality` 1-100) or "png"
+    (lossless, zlib `level` 0-9); depth always PNG (lossless, sensor units kept)."""
+
+    colour: str = "jpeg"
+    quality: int = 90
+    level: int = 1
+
+    @property
+    def colour_format(self) -> str:
+        return f"rgb8; {self.colour} compressed bgr8"
+
+
+DEPTH_PNG_FORMAT = "16UC1; png compressed"
+
+
+def parse_wire_compression(spec: str) -> WireCompression | None:
+    """`""`/`"raw"`: no compression; else `COLOUR[,DEPTH]` with COLOUR `jpeg[:QUALITY]` or `png[:LEVEL]`
+    and DEPTH `png` (the default; depth is never compressed lossily)."""
+    from octolog.errors import ConfigError
+
+    if spec in ("", "raw"):
+        return None
+    colour, _, depth = spec.partition(",")
+    if depth not in ("", "png"):
+        raise ConfigError(f"wire compression {spec!r}: depth can only be png (lossless), got {depth!r}")
+    kind, _, arg = colour.partition(":")
+    try:
+        value = int(arg) if arg else None
+    except ValueError:
+        raise ConfigError(f"wire compression {spec!r}: {arg!r} is not an integer") from None
+    if kind == "jpeg" and (value is None or 1 <= value <= 100):
+        return WireCompression("jpeg", quality=value or 90)
+    if kind == "png" and (value is None or 0 <= value <= 9):
+        return WireCompression("png", level=1 if value is None else value)
+    raise ConfigError(f"wire compression {spec!r}: want raw, or jpeg[:1-100] or png[:0-9] for colour, "
+                      f"optionally followed by ,png for depth")
+
+
+def _encode(image: np.ndarray, ext: str, params: list[int]) -> np.ndarray:
+    import cv2
+
+    ok, buf = cv2.imencode(ext, image, params)
+    if not ok:
+        raise InputError(f"cannot encode a {image.shape} {image.dtype} image as {ext}")
+    return buf.reshape(-1)
+
+
+def _wire_images(frame: RgbdFrame, wire: WireCompression) -> tuple[Any, Any]:
+    """(colour, depth) as CompressedImage messages. OpenCV's encoders are deterministic: the same
+    pixels give the same bytes, so lossy JPEG keeps the pipeline's determinism."""
+    import cv2
+
+    bgr = np.ascontiguousarray(frame.rgb[..., ::-1])
+    if wire.colour == "jpeg":
+        colour = _encode(bgr, ".jpg", [cv2.IMWRITE_JPEG_QUALITY, wire.quality])
+    else:
+        colour = _encode(bgr, ".png", [cv2.IMWRITE_PNG_COMPRESSION, wire.level])
+    depth = _encode(np.ascontiguousarray(frame.depth), ".png", [cv2.IMWRITE_PNG_COMPRESSION, wire.level])
+    return (compressed_image_msg(colour.tobytes(), wire.colour_format, frame.stamp_ns, frame.frame_id),
+            compressed_image_msg(depth.tobytes(), DEPTH_PNG_FORMAT, frame.stamp_ns, frame.frame_id))
+
+
+def wire_image_array(msg: Any) -> np.ndarray:
+    """Pixels of a wire CompressedImage: RGB colour, uint16 depth; bad data is an InputError."""
+    import cv2
+
+    raw = np.asarray(msg.data, dtype=np.uint8)
+    img = cv2.imdecode(raw, cv2.IMREAD_UNCHANGED) if raw.size else None
+    if img is None:
+        raise InputError(f"CompressedImage ({msg.format!r}, {raw.size} bytes): cannot decode")
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    return img
+
+
+def compressed_rgbd_msg(frame: RgbdFrame, wire: WireCompression) -> Any:
+    colour, depth = _wire_images(frame, wire)
+    return msgtype("octolog_msgs/msg/CompressedRgbdFrame")(
+        seq=frame.seq, header=header(frame.stamp_ns, frame.frame_id), color=colour, depth=depth,
+        depth_scale_m=float(frame.depth_scale_m),
+        camera_info=camera_info_msg(frame.intrinsics, frame.stamp_ns, frame.frame_id))
+
+
+def compressed_keyframe_msg(kf_id: int, world_from_camera: np.ndarray, frame: RgbdFrame,
+                            wire: WireCompression) -> Any:
+    colour, depth = _wire_images(frame, wire)
+    return msgtype("octolog_msgs/msg/CompressedKeyframe")(
+        header=header(frame.stamp_ns, "world"), id=kf_id, frame_seq=frame.seq,
+        world_from_camera=pose_msg(world_from_camera), color=colour, depth=depth,
+        depth_scale_m=float(frame.depth_scale_m),
+        camera_info=camera_info_msg(frame.intrinsics, frame.stamp_ns, frame.frame_id))

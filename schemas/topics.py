@@ -41,10 +41,14 @@ CAMERA_TOPICS = (COLOR, COLOR_JPEG, COLOR_INFO, ALIGNED_DEPTH, ALIGNED_DEPTH_PNG
 
 # The tracker's input: colour + registered depth + calibration, paired, one message per frame.
 RGBD = Topic("camera/rgbd", "octolog_msgs/msg/RgbdFrame")
+# The same frames with JPEG/PNG colour and PNG depth, when the producer is configured to compress
+# (image_transport's naming); consumers take either, the end message names the one used.
+RGBD_COMPRESSED = Topic("camera/rgbd/compressed", "octolog_msgs/msg/CompressedRgbdFrame")
 RGBD_END = Topic("camera/rgbd/end", "octolog_msgs/msg/StreamEnd")
 POSE = Topic("tracker/pose", "geometry_msgs/msg/PoseStamped")
 TRACKING_STATUS = Topic("tracker/status", "octolog_msgs/msg/TrackingStatus")
 KEYFRAME = Topic("tracker/keyframe", "octolog_msgs/msg/Keyframe")
+KEYFRAME_COMPRESSED = Topic("tracker/keyframe/compressed", "octolog_msgs/msg/CompressedKeyframe")
 KEYFRAME_END = Topic("tracker/keyframe/end", "octolog_msgs/msg/StreamEnd")
 KEYFRAME_POSES = Topic("tracker/keyframe_poses", "octolog_msgs/msg/KeyframePoses")
 MAP_UPDATE = Topic("mapper/update", "octolog_msgs/msg/MapUpdate")
@@ -54,7 +58,7 @@ GRID = Topic("mapper/grid", "nav_msgs/msg/OccupancyGrid")
 MAP_END = Topic("mapper/end", "octolog_msgs/msg/StreamEnd")
 
 ALL = (RGBD, RGBD_END, POSE, TRACKING_STATUS, KEYFRAME, KEYFRAME_END, KEYFRAME_POSES, MAP_UPDATE, OCTOMAP,
-       OCCUPIED, GRID, MAP_END)
+       OCCUPIED, GRID, MAP_END, RGBD_COMPRESSED, KEYFRAME_COMPRESSED)
 # The mapper's queryable: a late joiner `get`s the current map (octomap_msgs/Octomap, binary).
 MAP_QUERY = Topic("mapper/map", "octomap_msgs/msg/Octomap")
 # Ask the mapper to write its files now; the reply (JSON in a String) names them.

@@ -21,6 +21,9 @@ class TrackerConfig:
     # stages that must be up before this one announces itself (e.g. "mapper" when run by hand)
     wait_for: tuple[str, ...] = ()
     wait_timeout_s: float = 60.0
+    # compress keyframes on the wire (tracker/keyframe/compressed): "" or "raw" (default), or
+    # COLOUR[,png] with COLOUR jpeg[:QUALITY] or png[:LEVEL] (see replay.wire_compression)
+    wire_compression: str = ""
     # "native" (ours, deterministic) or "orbslam3" (pyorbslam3, an extra: for comparison)
     backend: str = "native"
     # orbslam3: DBoW2 text vocabulary (`octolog vocab build`); empty: $OCTOLOG_ORB_VOCABULARY
@@ -33,6 +36,12 @@ class TrackerConfig:
             raise ConfigError(f"tracker.throttle_ms {self.throttle_ms}: want >= 0")
         if self.n_features < 100:
             raise ConfigError(f"tracker.n_features {self.n_features}: want >= 100")
+        from schemas.codec import parse_wire_compression
+
+        try:
+            parse_wire_compression(self.wire_compression)
+        except ConfigError as exc:
+            raise ConfigError(f"tracker.wire_compression: {exc}") from None
 
 
 def make_odometry(cfg: TrackerConfig):  # -> RgbdOdometry | OrbSlam3Odometry

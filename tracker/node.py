@@ -12,7 +12,9 @@ from octolog.bus import Bus, BusConfig, Received
 from octolog.errors import InputError
 from octolog.viz import Viz
 from schemas import codec
-from schemas.topics import KEYFRAME, KEYFRAME_END, POSE, RGBD, RGBD_END, TRACKING_STATUS
+from schemas.topics import (
+    KEYFRAME, KEYFRAME_COMPRESSED, KEYFRAME_END, POSE, RGBD, RGBD_COMPRESSED, RGBD_END, TRACKING_STATUS,
+)
 from tracker.config import TrackerConfig, make_odometry
 
 STATE_CODES = {"INIT": 0, "OK": 1, "LOST": 2, "SKIPPED": 3}
@@ -45,9 +47,13 @@ def run(cfg: TrackerConfig, bus_cfg: BusConfig, *, trajectory: Path | None = Non
 
 def track(odometry, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerResult:
     pub_pose, pub_status = bus.publisher(POSE), bus.publisher(TRACKING_STATUS)
-    pub_kf, pub_kf_end = bus.publisher(KEYFRAME), bus.publisher(KEYFRAME_END)
-    bus.start([RGBD, RGBD_END], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
+    wire = codec.parse_wire_compression(cfg.wire_compression)
+    pub_kf = bus.publisher(KEYFRAME if wire is None else KEYFRAME_COMPRESSED)
+    pub_kf_end = bus.publisher(KEYFRAME_END)
+    # frames come raw or compressed, whichever the source publishes; decoding is the same call
+    bus.start([RGBD, RGBD_COMPRESSED, RGBD_END], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
     bus.watch(["replay"])
+    bus.watch(["mapper"], required=False)  # a mapper may restart: keep its keyframes until it is done
     result = TrackerResult()
     expected: int | None = None
     held: Received | None = None  # a non-frame message met while looking for newer frames
@@ -66,7 +72,7 @@ def track(odometry, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerResult:
         if cfg.live:
             # stay real-time: the newest waiting frame wins, the older ones are skipped, on record
             while (newer := bus.receive_nowait()) is not None:
-                if newer.topic != RGBD:
+                if newer.topic not in (RGBD, RGBD_COMPRESSED):
                     held = newer
                     break
                 old = r.decode()
@@ -94,13 +100,15 @@ def track(odometry, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerResult:
         result.lost += res.state == "LOST"
         pub_pose.put(codec.pose_stamped_msg(res.world_from_camera, frame.stamp_ns))
         if res.is_keyframe:
-            pub_kf.put(codec.keyframe_msg(res.keyframe_id, res.world_from_camera, frame))
+            pub_kf.put(codec.keyframe_msg(res.keyframe_id, res.world_from_camera, frame) if wire is None else
+                       codec.compressed_keyframe_msg(res.keyframe_id, res.world_from_camera, frame, wire))
             result.keyframes += 1
         pub_status.put(_status(frame.seq, frame.stamp_ns, res.state, res.is_keyframe, res.keyframe_id,
                                res.n_matches, res.n_inliers, ms))
         if viz.enabled:
             _log(viz, frame, res, result)
-    pub_kf_end.put(codec.stream_end_msg(KEYFRAME.name, pub_kf.count))
+    pub_kf_end.put(codec.stream_end_msg(pub_kf.topic.name, pub_kf.count))
+    bus.linger("mapper")
     return result
 
 
