@@ -4,16 +4,26 @@ Pipeline topics are reliable with congestion control BLOCK; subscribers feed one
 stage, so a slow consumer slows its producers and nothing is dropped. Stages announce themselves
 with liveliness tokens: a producer waits until its consumers are ready, and every stage notices
 when a peer stage disappears (process died, link cut) instead of waiting forever.
+
+Loss-free across link failures and restarts (docs/architecture.md, "Bus"): every publisher numbers
+its samples (an attachment: sequence number and publisher id), keeps a bounded history of them and
+serves it on `<key>/@history/<publisher id>`. A subscriber delivers each publisher's samples exactly
+once and in order; on a gap, when idle, and when a lost peer is back it asks the history for what
+it has not got, holding later samples until the gap is filled. A late or restarted subscriber gets
+a publisher's history from its oldest kept sample (for keyframes: the whole run).
 """
 
 from __future__ import annotations
 
 import json
+import os
 import queue
+import struct
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from octolog.errors import BusError, StageError
@@ -26,6 +36,24 @@ _ZENOH_DEFAULT_BLOCK_CLOSE_US = 5_000_000
 CONNECT_TIMEOUT_MS = 30_000
 BLOCK_CLOSE_US = 600_000_000  # a consumer stalled for 10 minutes is dead, not slow
 
+# Sequence numbers ride in the sample's attachment: seq (u64 LE) + publisher id (16 bytes); history
+# replies add the oldest seq the publisher still keeps, so a subscriber can tell late from lost.
+_SEQ = struct.Struct("<Q16s")
+_REPLY = struct.Struct("<Q16sQ")
+HISTORY = "@history"  # a verbatim chunk: `**` subscribers and queries never match it by accident
+HISTORY_MB = 64  # byte cap of an ordinary publisher's history, on top of `history` samples
+PROBE_S = 1.0  # an idle subscriber, or one with an open gap, asks the histories this often
+QUERY_TIMEOUT_S = 10.0
+BATCH = 16  # samples per history reply: a large backlog comes in several queries
+DONE = "_octolog/done"  # `<ns>/_octolog/done/<stage>`: put by a stage that finished without error
+
+
+def keeps_all(topic: Topic) -> bool:
+    """Streams a consumer must be able to rebuild from the start (a restarted mapper re-integrates
+    every keyframe): their publishers keep everything, up to `BusConfig.keep_mb`. End messages are
+    tiny and tell a late joiner how much to expect."""
+    return topic.name.startswith("tracker/keyframe") or topic.name.endswith("/end")
+
 
 @dataclass(frozen=True)
 class BusConfig:
@@ -37,19 +65,19 @@ class BusConfig:
     namespace: str = ""
     zenoh_config: str | None = None
     multicast_scouting: bool = True
-    # samples each publisher keeps so that subscribers can recover what a cut link lost (Zenoh's
-    # advanced publisher/subscriber); 0: plain pub/sub. Off by default: in the netns test a 6 s
-    # `ip link down` still lost samples with it on (tests/test_distributed.py), and it caches
-    # `history` frames per publisher
-    history: int = 0
+    # samples each publisher keeps (at most HISTORY_MB of them) so that subscribers can recover
+    # what a cut link lost and late joiners get the recent past; 0: plain pub/sub, no recovery
+    history: int = 32
+    # the streams that `keeps_all` (keyframes) keep every sample up to this many MB per publisher
+    keep_mb: int = 2048
     # how long a vanished peer stage may stay away (a cut link) before it counts as dead
     peer_timeout_s: float = 30.0
 
     def validate(self) -> None:
         if self.mode not in ("peer", "client", "router"):
             raise BusError(f"--mode {self.mode!r}: want peer, client or router")
-        if self.history < 0 or self.peer_timeout_s <= 0:
-            raise BusError("bus history must be >= 0 and peer_timeout_s > 0")
+        if self.history < 0 or self.keep_mb < 0 or self.peer_timeout_s <= 0:
+            raise BusError("bus history and keep_mb must be >= 0 and peer_timeout_s > 0")
 
 
 def zenoh_config(cfg: BusConfig) -> Any:
@@ -91,13 +119,43 @@ class Received:
         return codec.decode(self.payload, self.topic.msgtype)
 
 
-class Publisher:
-    """A reliable, blocking publisher of one topic; counts what it sent."""
+class _History:
+    """A publisher's most recent samples by sequence number, bounded by count and bytes (the newest
+    sample always stays)."""
 
-    def __init__(self, pub: Any, topic: Topic) -> None:
+    def __init__(self, max_samples: int | None, max_bytes: int) -> None:
+        self.max_samples, self.max_bytes = max_samples, max_bytes
+        self._items: deque[tuple[int, bytes]] = deque()
+        self._bytes = 0
+        self._lock = threading.Lock()
+
+    def add(self, seq: int, data: bytes) -> None:
+        with self._lock:
+            self._items.append((seq, data))
+            self._bytes += len(data)
+            while len(self._items) > 1 and (self._bytes > self.max_bytes or (
+                    self.max_samples is not None and len(self._items) > self.max_samples)):
+                self._bytes -= len(self._items.popleft()[1])
+
+    def since(self, first: int, limit: int) -> tuple[int, list[tuple[int, bytes]]]:
+        """The oldest kept seq, and up to `limit` samples from `first` on."""
+        with self._lock:
+            if not self._items:
+                return 0, []
+            oldest = self._items[0][0]
+            start = max(0, first - oldest)
+            return oldest, [self._items[i] for i in range(start, min(len(self._items), start + limit))]
+
+
+class Publisher:
+    """A reliable, blocking publisher of one topic; numbers what it sends and keeps a history."""
+
+    def __init__(self, pub: Any, topic: Topic, history: _History | None = None, source: bytes = b"") -> None:
         self._pub = pub
         self.topic = topic
         self.count = 0
+        self._history, self._source = history, source
+        self._lock = threading.Lock()
 
     def put(self, msg: Any) -> bytes:
         data = codec.encode(msg, self.topic.msgtype)
@@ -105,8 +163,25 @@ class Publisher:
         return data
 
     def put_raw(self, data: bytes) -> None:
-        self._pub.put(data)
-        self.count += 1
+        if self._history is None:
+            self._pub.put(data)
+            self.count += 1
+            return
+        with self._lock:  # numbering, history and sending in one order
+            seq = self.count
+            # kept before it is sent: a subscriber that sees a gap can always fetch what preceded
+            self._history.add(seq, data)
+            self._pub.put(data, attachment=_SEQ.pack(seq, self._source))
+            self.count += 1
+
+
+@dataclass
+class _Stream:
+    """What a subscriber knows about one publisher of one key."""
+
+    nxt: int = 0  # the next seq to deliver
+    held: dict[int, bytes] = field(default_factory=dict)  # arrived early, waiting for a gap to fill
+    started: bool = False  # something was delivered: a missing seq from now on is a loss
 
 
 class Bus:
@@ -121,26 +196,57 @@ class Bus:
         self._keep: list[Any] = []
         self._alive: set[str] = set()
         self._lost: dict[str, float] = {}  # stage -> monotonic time it vanished
-        self._missed: list[str] = []
-        self._ends: dict[str, float] = {}  # topic -> when its end message showed a shortfall  # samples gone for good (older than the publisher's history)
+        self._missed: list[str] = []  # samples gone for good (older than the publisher's history)
+        self._ends: dict[str, float] = {}  # topic -> when its end message showed a shortfall
         self._watched: set[str] = set()
+        self._followed: set[str] = set()  # tracked like watched ones, but their absence is no error
         self._alive_changed = threading.Condition()
+        # recovery (history > 0): per key, per publisher id, the delivery state
+        self._streams: dict[str, dict[bytes, _Stream]] = {}
+        self._recovered: dict[str, Topic] = {}  # key -> topic, for every subscribed key
+        self._state = threading.Condition()  # guards _streams, _due; wakes the recovery thread
+        self._due: set[str] = set()  # keys to ask the histories about now
+        self._deliver = threading.Lock()  # one deliverer at a time keeps each stream in order
+        self._last_put = time.monotonic()
+        self._closing = threading.Event()
+        self._recovery: threading.Thread | None = None
+        self.recovered = 0  # samples that came from a history rather than live
+        self._announced = False
+        self._done: set[str] = set()  # followed stages that said they finished
 
     # --- lifecycle -------------------------------------------------------------------------
 
     def __enter__(self) -> Bus:
         import zenoh
 
+        if os.environ.get("RUST_LOG"):  # Zenoh's own log (link open/close, lease expiry) on demand
+            zenoh.try_init_log_from_env()
         try:
             self._session = zenoh.open(zenoh_config(self.cfg))
         except Exception as exc:
             raise BusError(f"cannot open Zenoh session ({self.cfg.mode}): {exc}") from None
         return self
 
-    def __exit__(self, *exc: object) -> None:
+    def __exit__(self, exc_type: object, *exc: object) -> None:
+        if exc_type is None and self._announced and self._session is not None:
+            # finished, not crashed: producers lingering for this stage may go (see `linger`)
+            import zenoh
+
+            self._session.put(self._key(f"{DONE}/{self.stage}"), b"",
+                              congestion_control=zenoh.CongestionControl.BLOCK)
         self.close()
 
+    def _key(self, key: str) -> str:
+        ns = self.namespace.strip("/")
+        return f"{ns}/{key}" if ns else key
+
     def close(self) -> None:
+        self._closing.set()
+        with self._state:
+            self._state.notify_all()
+        if self._recovery is not None:
+            self._recovery.join(timeout=QUERY_TIMEOUT_S + 1)
+            self._recovery = None
         if self._session is not None:
             self._keep.clear()
             try:
@@ -157,50 +263,168 @@ class Bus:
     # --- data ------------------------------------------------------------------------------
 
     def publisher(self, topic: Topic) -> Publisher:
+        import uuid
+
         import zenoh
 
         key = topic.key(self.namespace)
-        qos = {"congestion_control": zenoh.CongestionControl.BLOCK, "reliability": zenoh.Reliability.RELIABLE}
-        if self.cfg.history:
-            import zenoh.ext as zx
-
-            # a bounded cache plus sequence numbers and heartbeats: subscribers detect gaps (a cut
-            # link, a reconnect) and fetch the missed samples from this cache
-            pub = zx.declare_advanced_publisher(
-                self.session, key, **qos, cache=zx.CacheConfig(self.cfg.history),
-                sample_miss_detection=zx.MissDetectionConfig(heartbeat=0.5, sporadic_heartbeat=None),
-                publisher_detection=True)
-        else:
-            pub = self.session.declare_publisher(key, **qos)
+        pub = self.session.declare_publisher(
+            key, congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
         self._keep.append(pub)
-        return Publisher(pub, topic)
+        if not self.cfg.history:
+            return Publisher(pub, topic)
+        if keeps_all(topic):
+            history = _History(None, self.cfg.keep_mb << 20)
+        else:
+            history = _History(self.cfg.history, HISTORY_MB << 20)
+        source = uuid.uuid4().bytes  # identifies this publisher (not the output: never written)
+        hkey = f"{key}/{HISTORY}/{source.hex()}"
+
+        def on_query(query: Any) -> None:
+            params = query.parameters
+            try:
+                first = int(params.get(source.hex()) or params.get("from") or 0)
+            except ValueError:
+                return
+            oldest, items = history.since(first, BATCH)
+            for seq, data in items:
+                query.reply(hkey, data, attachment=_REPLY.pack(seq, source, oldest))
+
+        # indirect: answering (possibly large, blocking) runs off Zenoh's receive thread
+        self._keep.append(self.session.declare_queryable(hkey, zenoh.handlers.Callback(on_query)))
+        return Publisher(pub, topic, history, source)
 
     def subscribe(self, topics: Iterable[Topic]) -> None:
-        """Feed these topics into this stage's bounded inbox, in arrival order."""
+        """Feed these topics into this stage's bounded inbox: per publisher exactly once and in
+        order (with history), as they arrive across topics."""
         import zenoh
 
         for topic in topics:
+            key = topic.key(self.namespace)
 
-            def on_sample(sample: Any, topic: Topic = topic) -> None:
+            def on_sample(sample: Any, topic: Topic = topic, key: str = key) -> None:
                 # Blocking put in Zenoh's receive thread: back-pressure, never a drop.
-                self._inbox.put(Received(topic, sample.payload.to_bytes()))
+                att = sample.attachment
+                data = sample.payload.to_bytes()
+                if not self.cfg.history or att is None:
+                    self._put(Received(topic, data))
+                    return
+                raw = att.to_bytes()
+                if len(raw) != _SEQ.size:  # someone else's attachment (a ROS bridge): no numbering
+                    self._put(Received(topic, data))
+                    return
+                seq, source = _SEQ.unpack(raw)
+                if self._offer(key, source, seq, data, None):
+                    self._flush(topic, key, source)
 
-            key, handler = topic.key(self.namespace), zenoh.handlers.Callback(on_sample, indirect=False)
             if self.cfg.history:
-                import zenoh.ext as zx
+                with self._state:
+                    self._recovered[key] = topic
+                    self._streams.setdefault(key, {})
+            handler = zenoh.handlers.Callback(on_sample, indirect=False)
+            self._keep.append(self.session.declare_subscriber(key, handler))
+            if self.cfg.history:
+                self._request(key)  # a late joiner: what the publishers already sent
 
-                sub = zx.declare_advanced_subscriber(
-                    self.session, key, handler, recovery=zx.RecoveryConfig(periodic_queries=None, heartbeat=True),
-                    subscriber_detection=True)
+    # --- recovery ----------------------------------------------------------------------------
 
-                def on_miss(miss: Any, topic: Topic = topic) -> None:
-                    with self._alive_changed:
-                        self._missed.append(f"{miss.nb} samples on {topic.key(self.namespace)}")
+    def _put(self, item: Received) -> None:
+        """Into the inbox, blocking (back-pressure); gives up only when the bus closes."""
+        while not self._closing.is_set():
+            try:
+                self._inbox.put(item, timeout=0.5)
+                self._last_put = time.monotonic()
+                return
+            except queue.Full:
+                continue
 
-                listener = sub.sample_miss_listener(zenoh.handlers.Callback(on_miss, indirect=False))
-                self._keep.extend([sub, listener])
-            else:
-                self._keep.append(self.session.declare_subscriber(key, handler))
+    def _offer(self, key: str, source: bytes, seq: int, data: bytes, oldest: int | None) -> bool:
+        """Take one numbered sample; True if the stream has something to deliver now."""
+        with self._state:
+            st = self._streams[key].setdefault(source, _Stream())
+            if oldest is not None and st.nxt < oldest:
+                # the publisher no longer keeps what we lack: for a late joiner that is the past it
+                # never asked for; once a stream has started it is a loss
+                if st.started:
+                    self._missed.append(f"{oldest - st.nxt} samples on {key}")
+                for s in [s for s in st.held if s < oldest]:
+                    del st.held[s]
+                st.nxt = oldest
+            if seq < st.nxt or seq in st.held:
+                return False  # a duplicate (live and recovered, or recovered twice)
+            st.held[seq] = data
+            self.recovered += oldest is not None
+            if st.nxt not in st.held:  # a gap before this one: ask for it now
+                self._due.add(key)
+                self._state.notify_all()
+            return st.nxt in st.held
+
+    def _flush(self, topic: Topic, key: str, source: bytes) -> None:
+        """Deliver the stream's consecutive samples; the lock keeps two threads from interleaving."""
+        with self._deliver:
+            while True:
+                with self._state:
+                    st = self._streams[key][source]
+                    data = st.held.pop(st.nxt, None)
+                    if data is None:
+                        return
+                    st.nxt += 1
+                    st.started = True
+                self._put(Received(topic, data))
+
+    def _request(self, key: str | None = None) -> None:
+        """Ask the histories about `key` (or every subscribed key) soon, from the recovery thread."""
+        with self._state:
+            self._due |= {key} if key else set(self._recovered)
+            self._state.notify_all()
+            if self._recovery is None and not self._closing.is_set():
+                self._recovery = threading.Thread(target=self._recover_loop, name=f"{self.stage}-recovery",
+                                                  daemon=True)
+                self._recovery.start()
+
+    def _recover_loop(self) -> None:
+        while not self._closing.is_set():
+            with self._state:
+                if not self._due:
+                    self._state.wait(PROBE_S)
+                due = set(self._due)
+                self._due.clear()
+                # every PROBE_S: keys with an open gap, and all keys when nothing came for a while
+                # (samples lost at the end of a stream leave no gap behind them)
+                idle = self._inbox.empty() and time.monotonic() - self._last_put > PROBE_S
+                for key, streams in self._streams.items():
+                    if idle or any(st.held and st.nxt not in st.held for st in streams.values()):
+                        due.add(key)
+            for key in sorted(due):
+                if self._closing.is_set():
+                    return
+                self._query(key)
+
+    def _query(self, key: str) -> None:
+        import zenoh
+
+        topic = self._recovered[key]
+        with self._state:
+            known = ";".join(f"{src.hex()}={st.nxt}" for src, st in self._streams[key].items())
+        selector = f"{key}/{HISTORY}/*?from=0" + (f";{known}" if known else "")
+        got: dict[bytes, int] = {}
+        try:
+            for reply in self.session.get(selector, consolidation=zenoh.ConsolidationMode.NONE,
+                                          timeout=QUERY_TIMEOUT_S):
+                ok = reply.ok
+                if ok is None or ok.attachment is None or len(ok.attachment.to_bytes()) != _REPLY.size:
+                    continue
+                seq, source, oldest = _REPLY.unpack(ok.attachment.to_bytes())
+                got[source] = got.get(source, 0) + 1
+                self._offer(key, source, seq, ok.payload.to_bytes(), oldest)
+        except Exception:  # the session is closing, or the network is gone: the next probe retries
+            if self._closing.is_set():
+                return
+        for source, n in got.items():
+            self._flush(topic, key, source)
+            if n >= BATCH:  # there may be more
+                with self._state:
+                    self._due.add(key)
 
     def receive(self, timeout_s: float = 0.25) -> Received | None:
         """The next sample, or None after `timeout_s`; raises StageError if a watched peer died."""
@@ -263,27 +487,44 @@ class Bus:
         """Declare this stage ready (call after subscribing)."""
         token = self.session.liveliness().declare_token(stage_token(self.stage, self.namespace))
         self._keep.append(token)
+        self._announced = True
 
-    def watch(self, stages: Iterable[str]) -> None:
-        """Track the liveliness of peer stages; `check_peers` raises once one disappears."""
+    def watch(self, stages: Iterable[str], *, required: bool = True) -> None:
+        """Track the liveliness of peer stages; `check_peers` raises once a required one has been
+        gone for `peer_timeout_s`. A peer that comes back makes the subscribers catch up at once."""
         import zenoh
 
         stages = set(stages)
-        self._watched |= stages
+        if required:
+            self._watched |= stages
+        else:
+            self._followed |= stages
+            done_prefix = self._key(f"{DONE}/")
+
+            def on_done(sample: Any) -> None:
+                with self._alive_changed:
+                    self._done.add(str(sample.key_expr)[len(done_prefix):])
+                    self._alive_changed.notify_all()
+
+            self._keep.append(self.session.declare_subscriber(
+                self._key(f"{DONE}/*"), zenoh.handlers.Callback(on_done, indirect=False)))
         prefix = stage_token("", self.namespace)
 
         def on_token(sample: Any) -> None:
             name = str(sample.key_expr)[len(prefix):]
-            if name not in self._watched:
+            if name not in self._watched and name not in self._followed:
                 return
+            back = False
             with self._alive_changed:
                 if sample.kind == zenoh.SampleKind.PUT:
                     self._alive.add(name)
-                    self._lost.pop(name, None)  # back after a cut
+                    back = self._lost.pop(name, None) is not None  # back after a cut or a restart
                 else:
                     self._alive.discard(name)
                     self._lost.setdefault(name, time.monotonic())
                 self._alive_changed.notify_all()
+            if back and self._recovered:
+                self._request()
 
         sub = self.session.liveliness().declare_subscriber(
             stage_token("*", self.namespace), zenoh.handlers.Callback(on_token, indirect=False), history=True
@@ -308,7 +549,24 @@ class Bus:
         """Stop caring about a peer (it finished its stream and may leave)."""
         with self._alive_changed:
             self._watched.discard(stage)
-            self._lost.pop(stage, None)
+            if stage not in self._followed:
+                self._lost.pop(stage, None)
+
+    def linger(self, stage: str) -> bool:
+        """Stay up, histories and all, until `stage` has finished, so that a consumer restarted
+        meanwhile still recovers everything it needs. Follow the stage from the start
+        (`watch([stage], required=False)`).
+
+        Returns True once it said it finished; False at once if it never showed up, or once it has
+        been gone for `peer_timeout_s` (dead for good: nothing left to wait for).
+        """
+        with self._alive_changed:
+            while stage not in self._done:
+                since = self._lost.get(stage)
+                if stage not in self._alive and (since is None or time.monotonic() - since > self.cfg.peer_timeout_s):
+                    return False
+                self._alive_changed.wait(0.5)
+            return True
 
     def expect_count(self, topic: Topic, received: int, announced: int) -> None:
         """After a stream's end message: a shortfall is a loss once recovery had time to fill it.
@@ -330,14 +588,14 @@ class Bus:
 
     def _raise_if_lost(self) -> None:
         if self._missed:
-            raise StageError(f"{self.stage}: {self._missed[0]} were lost for good (a longer outage than the "
-                             f"publisher's history of {self.cfg.history} samples covers)")
+            raise StageError(f"{self.stage}: {self._missed[0]} were lost for good (the outage outlasted what "
+                             f"the publisher keeps in its history)")
         # A vanished producer may come back (a cut link) and, with liveliness and data on different
         # routes, one that sent its last message and left can be seen leaving before that message
         # lands. Only a long absence counts as death.
         now = time.monotonic()
         for stage, since in self._lost.items():
-            if now - since > self.cfg.peer_timeout_s:
+            if stage in self._watched and now - since > self.cfg.peer_timeout_s:
                 raise StageError(f"{self.stage}: the {stage} stage disappeared for {self.cfg.peer_timeout_s:g} s "
                                  f"(process died or link cut)")
 
