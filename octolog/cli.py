@@ -196,6 +196,25 @@ def cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_vocab(args: argparse.Namespace) -> int:
+    from tracker import vocab
+
+    out = Path(args.out)
+    if out.exists() and not args.overwrite:
+        raise ConfigError(f"--out {out}: exists; pass --overwrite to replace it")
+
+    def progress(done: int, total: int) -> None:
+        if not args.quiet and (done % 10 == 0 or done == total):
+            print(f"\r  ORB features: {done}/{total} images", end="\n" if done == total else "", file=sys.stderr,
+                  flush=True)
+
+    res = vocab.build(args.image_dirs, out, k=args.k, levels=args.levels, max_images=args.max_images,
+                      n_features=args.features, seed=args.seed, progress=progress)
+    print(f"vocab: {res.images} images, {res.descriptors} ORB descriptors → {res.words} words, {res.nodes} nodes "
+          f"(k={args.k}, L={args.levels}, seed={args.seed}) → {res.path}")
+    return 0
+
+
 def cmd_router(args: argparse.Namespace) -> int:
     from octolog.bus import serve_router
 
@@ -292,6 +311,23 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("info", help="summary of an MCAP file")
     p.add_argument("file")
     p.set_defaults(func=cmd_info)
+
+    p = sub.add_parser("vocab", help="ORB vocabularies for the ORB-SLAM3 tracker backend")
+    vsub = p.add_subparsers(dest="vocab_command", required=True)
+    v = vsub.add_parser("build", help="train a DBoW2 text vocabulary (ORBvoc.txt format) from images",
+                        description="Train a DBoW2 text vocabulary (the ORBvoc.txt format ORB-SLAM3 loads) on ORB "
+                                    "features of the images in IMAGE_DIR...: hierarchical k-majority clustering, "
+                                    "IDF word weights. Same images and seed: byte-identical file.")
+    v.add_argument("image_dirs", nargs="+", metavar="IMAGE_DIR", help="folders of .png/.jpg images")
+    v.add_argument("--out", required=True, metavar="FILE", help="vocabulary text file to write")
+    v.add_argument("--k", type=int, default=10, help="branching factor, 2..20 (default 10)")
+    v.add_argument("--levels", type=int, default=6, help="tree depth, 1..10 (default 6)")
+    v.add_argument("--max-images", type=int, default=None, metavar="N", help="use N evenly spaced images")
+    v.add_argument("--features", type=int, default=1000, metavar="N", help="ORB features per image (default 1000)")
+    v.add_argument("--seed", type=int, default=0, help="k-means++ seed (default 0)")
+    v.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+    v.add_argument("--quiet", action="store_true", help="no progress line")
+    v.set_defaults(func=cmd_vocab)
 
     p = sub.add_parser("router", help="host a Zenoh router (no zenohd needed)")
     p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT")

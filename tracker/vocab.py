@@ -20,6 +20,7 @@ bogus empty node under the root (the official ORBvoc.txt has one; it is harmless
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -232,10 +233,7 @@ def train(
     max_iterations: int = 30,
 ) -> Vocabulary:
     """Train a vocabulary on per-image descriptor sets ((N_i, 32) uint8 each)."""
-    if not 2 <= k <= 20:
-        raise InputError(f"vocabulary k={k}: want 2..20 (DBoW2's loader accepts up to 20)")
-    if not 1 <= levels <= 10:
-        raise InputError(f"vocabulary levels={levels}: want 1..10")
+    _check_params(k, levels, seed)
     sets = [np.ascontiguousarray(d, dtype=np.uint8).reshape(-1, DESCRIPTOR_BYTES) for d in descriptor_sets]
     all_desc = np.concatenate(sets) if sets else np.zeros((0, DESCRIPTOR_BYTES), np.uint8)
     if all_desc.shape[0] < k:
@@ -282,23 +280,38 @@ def train(
     return Vocabulary(k, levels, voc.parents, is_leaf, voc.descriptors, weights)
 
 
+def _check_params(k: int, levels: int, seed: int) -> None:
+    if not 2 <= k <= 20:
+        raise InputError(f"vocabulary k={k}: want 2..20 (DBoW2's loader accepts up to 20)")
+    if not 1 <= levels <= 10:
+        raise InputError(f"vocabulary levels={levels}: want 1..10")
+    if seed < 0:
+        raise InputError(f"vocabulary seed {seed}: want >= 0")
+
+
 def _kmajority(all_desc: np.ndarray, d64: np.ndarray, idx: np.ndarray, k: int, rng: np.random.Generator,
                max_iterations: int) -> tuple[np.ndarray, list[np.ndarray]]:
     """k-medians on bits of the descriptors `idx`: (centers (c, 32) uint8, member indices per centre)."""
     x = d64[idx]
     n = idx.size
-    # k-means++ seeding as DBoW2 does it: each next centre drawn with probability proportional to
-    # its Hamming distance to the nearest centre so far (integers, so no float summation order)
+    # Greedy k-means++ seeding: draw `trials` candidates with probability proportional to the
+    # squared Hamming distance to the nearest centre so far and keep the one that lowers the total
+    # most (DBoW2 draws one candidate by plain distance, which often seeds two centres in one
+    # cluster that k-medians cannot separate again). Integer weights: no float summation order.
+    trials = 2 + int(math.log(k))
     chosen = [int(rng.integers(n))]
     min_d = _hamming_to(x, x[chosen[0]][None, :])[:, 0]
     while len(chosen) < k:
-        total = int(min_d.sum())
+        w = min_d * min_d
+        total = int(w.sum())
         if total == 0:
             break  # every descriptor equals a centre already
-        cut = int(rng.integers(1, total + 1))
-        pick = int(np.searchsorted(np.cumsum(min_d), cut, side="left"))
-        chosen.append(pick)
-        min_d = np.minimum(min_d, _hamming_to(x, x[pick][None, :])[:, 0])
+        cuts = rng.integers(1, total + 1, size=trials)
+        cand = np.searchsorted(np.cumsum(w), cuts, side="left")
+        d_new = np.minimum(min_d[:, None], _hamming_to(x, x[cand]))  # (n, trials)
+        best = int(np.argmin((d_new * d_new).sum(axis=0)))  # first on ties
+        chosen.append(int(cand[best]))
+        min_d = d_new[:, best]
     centers = all_desc[idx[chosen]]
     assign = np.argmin(_hamming_to(x, centers.view(np.uint64)), axis=1)
     bits = np.unpackbits(all_desc[idx], axis=1)  # (n, 256), MSB first like DBoW2's FORB
@@ -319,12 +332,11 @@ def _majority(bits: np.ndarray, assign: np.ndarray, m: int, old: np.ndarray) -> 
     """Per cluster, each bit set iff at least half the members have it (DBoW2 FORB::meanValue)."""
     out = old.copy()
     counts = np.bincount(assign, minlength=m)
-    onehot = np.zeros((m, assign.size), dtype=np.float32)
-    onehot[assign, np.arange(assign.size)] = 1.0
-    sums = onehot @ bits.astype(np.float32)  # exact: integer counts far below 2^24
-    for c in range(m):
-        if counts[c]:
-            out[c] = np.packbits(2 * sums[c] >= counts[c])
+    order = np.argsort(assign, kind="stable")
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    nonempty = np.flatnonzero(counts)
+    sums = np.add.reduceat(bits[order], starts[nonempty], axis=0, dtype=np.int32)
+    out[nonempty] = np.packbits(2 * sums >= counts[nonempty, None], axis=1)
     return out
 
 
@@ -383,6 +395,9 @@ def build(folders: Sequence[str | os.PathLike[str]], out: str | os.PathLike[str]
           max_images: int | None = None, n_features: int = 1000, seed: int = 0,
           progress: Callable[[int, int], None] | None = None) -> BuildResult:
     """Images in `folders` → a vocabulary file at `out` (what `octolog vocab build` runs)."""
+    _check_params(k, levels, seed)
+    if n_features < 1:
+        raise InputError(f"features {n_features}: want >= 1 ORB features per image")
     files = list_images(folders, max_images)
     sets = extract(files, n_features=n_features, progress=progress)
     n_desc = sum(s.shape[0] for s in sets)
