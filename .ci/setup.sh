@@ -4,9 +4,10 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 VENV=${VENV:-.venv}
 
-# open3d and pyrealsense2 need libusb at import time; libgomp for open3d's OpenMP.
+# open3d and pyrealsense2 need libusb at import time; libgomp for open3d's OpenMP; pyorbslam3's
+# _core.so links the OpenGL/X11 runtime (ldd: libOpenGL, libGLX/libGL, libEGL, libSM, libICE, libX11, libXext).
 need=()
-for pkg in libusb-1.0-0 libgomp1; do
+for pkg in libusb-1.0-0 libgomp1 libgl1 libegl1 libopengl0 libsm6 libice6 libx11-6 libxext6; do
     dpkg -s "$pkg" >/dev/null 2>&1 || need+=("$pkg")
 done
 if [ ${#need[@]} -gt 0 ]; then
