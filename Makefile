@@ -4,7 +4,7 @@ OUT ?= out/demo
 # Real data for the tests that use it (they skip without it).
 OCTOLOG_DATA ?= $(abspath $(firstword $(wildcard ../shared/data)))
 
-.PHONY: setup demo test bench
+.PHONY: setup demo test bench bench-transport
 setup: $(VENV)/.installed
 
 $(VENV)/.installed: pyproject.toml requirements.lock .ci/setup.sh
@@ -18,3 +18,8 @@ test: setup
 
 bench: setup
 	OCTOLOG_DATA=$(OCTOLOG_DATA) $(VENV)/bin/python bench/pipeline.py
+
+# Bus throughput/latency (shared memory, TCP loopback, TCP between network namespaces) next to a raw
+# memory copy, and the wire-compression table; the namespace rows need root (skipped otherwise).
+bench-transport: setup
+	OCTOLOG_DATA=$(OCTOLOG_DATA) $(VENV)/bin/python bench/transport.py --wire

@@ -26,6 +26,9 @@ class ReplayConfig:
     # sensor-time window, seconds from the first frame (-1: unbounded); combines with start/end frames
     start_s: float = -1.0
     end_s: float = -1.0
+    # added to every frame's sensor stamp: e.g. the two halves of one sequence replayed as two robots
+    # working at the same time (tests/test_fleet.py); 0 keeps the source's time
+    time_shift_s: float = 0.0
     # publish under other topic names: "camera/rgbd=cam2/rgbd" (namespaces: the --namespace flag)
     remap: tuple[str, ...] = ()
     # compress frames on the wire (camera/rgbd/compressed): "" or "raw" (default), or
@@ -48,6 +51,8 @@ class ReplayConfig:
                 raise ConfigError(f"replay.remap {item!r}: want FROM=TO topic names")
         if self.start < 0:
             raise ConfigError(f"replay.start {self.start}: want >= 0")
+        if not abs(self.time_shift_s) < 1e9:
+            raise ConfigError(f"replay.time_shift_s {self.time_shift_s}: want a finite number of seconds")
         from schemas.codec import parse_wire_compression
 
         try:

@@ -72,7 +72,7 @@ def run(cfg: ReplayConfig, bus_cfg: BusConfig, *, rerun: str = "off", recording_
 def looped(source: Source, cfg: ReplayConfig) -> Iterator[RgbdFrame]:
     """The source's frames `cfg.loop` times; later passes keep sequence numbers and time moving on."""
     end = None if cfg.end < 0 else cfg.end
-    shift_seq = shift_ns = 0
+    shift_seq, shift_ns = 0, round(cfg.time_shift_s * 1e9)
     t0: int | None = None
     for _ in range(cfg.loop):
         first = last = None

@@ -2,14 +2,15 @@
 
 The end-to-end test runs a router, one mapper for robots r1 and r2, and per robot a replay and a
 tracker (each its own process, each robot under its own namespace) on the two halves of the
-synthetic sequence; r2's start pose comes from the scene's ground truth. The reference is built
+synthetic sequence, r2's half shifted in time to run alongside r1's (so their keyframes interleave);
+r2's start pose comes from the scene's ground truth. The reference is built
 without any of the fleet code: the tracker core and the mapper core in this process, keyframes
 sorted by (stamp, robot index) with `sorted`, integrated one after the other.
 """
 
 from __future__ import annotations
 
-import itertools
+import dataclasses
 import os
 import random
 import socket
@@ -27,6 +28,7 @@ from octolog.errors import ConfigError
 
 FRAMES = 40
 HALF = FRAMES // 2
+SHIFT_S = (0.0, -0.65)  # replay.time_shift_s per robot: r2's half starts 17 ms after r1's
 ROBOTS = ("r1", "r2")
 
 
@@ -119,6 +121,7 @@ def _reference(out: Path, start_poses: list[list[float]]) -> None:
     for r, (start, end) in enumerate(((0, HALF), (HALF, FRAMES))):
         odometry = make_odometry(TrackerConfig())
         for frame in source.frames(start, end):
+            frame = dataclasses.replace(frame, stamp_ns=frame.stamp_ns + round(SHIFT_S[r] * 1e9))
             res = odometry.track(frame)
             if res.is_keyframe:
                 # the pose as a Keyframe message carries it (position + quaternion)
@@ -160,11 +163,12 @@ def run_fleet(out: Path, start_poses: list[list[float]], *, rerun: str = "off") 
         procs["mapper"] = _start(out / "mapper.log", "map", *bus, "--out", str(out), "--rerun", rerun,
                                  "--recording-id", "fleet", "--set", 'robots=["r1", "r2"]',
                                  "--set", f"start_poses={poses}")
-        for robot, window in zip(ROBOTS, (("end", HALF), ("start", HALF))):
+        for robot, window, shift in zip(ROBOTS, (("end", HALF), ("start", HALF)), SHIFT_S):
             ns = ["--namespace", robot]
             procs[f"tracker-{robot}"] = _start(out / f"tracker-{robot}.log", "track", *bus, *ns)
             procs[f"replay-{robot}"] = _start(out / f"replay-{robot}.log", "replay", *bus, *ns, "--quiet",
                                               "--source", f"synthetic:{FRAMES}", "--set", f"{window[0]}={window[1]}",
+                                              "--set", f"time_shift_s={shift!r}",
                                               "--set", 'wait_for=["tracker", "mapper"]')
         for name in ("replay-r1", "replay-r2", "tracker-r1", "tracker-r2", "mapper"):
             code = procs[name].wait(timeout=600)
@@ -192,6 +196,10 @@ def test_two_robots_fuse_into_the_map_built_on_one_host(fleet):
         assert (procs / name).read_bytes() == (ref / name).read_bytes(), name
     import json
 
+    from octolog.metrics import read_tum
+
+    r1, r2 = (read_tum(procs / f"keyframes_{r}.txt").stamps_ns for r in ROBOTS)
+    assert r2[0] < r1[-1] and r1[0] < r2[-1]  # the two robots' keyframes interleave in time
     stats = json.loads((procs / "map_stats.json").read_text())
     assert stats["robots"]["r1"]["keyframes"] + stats["robots"]["r2"]["keyframes"] == stats["keyframes"]
     assert stats["skipped_keyframes"] == 0
@@ -214,8 +222,8 @@ def test_fused_map_lies_on_the_scene_and_trajectories_follow_ground_truth(fleet)
     centres = np.array([it.getCoordinate() for it in tree.begin_leafs() if tree.isNodeOccupied(it)])
     dist, _ = cKDTree(scene.surface_samples(0.02)).query(centres @ T0[:3, :3].T + T0[:3, 3])
     assert np.mean(dist < 0.1) > 0.95
-    stamps = {scene.stamp_ns(i): i for i in range(FRAMES)}
-    for robot in ROBOTS:
+    for robot, shift in zip(ROBOTS, SHIFT_S):
+        stamps = {scene.stamp_ns(i) + round(shift * 1e9): i for i in range(FRAMES)}
         traj = read_tum(procs / f"keyframes_{robot}.txt")
         for stamp, p in zip(traj.stamps_ns, traj.positions):
             gt = (np.linalg.inv(T0) @ scene.pose(stamps[int(stamp)]))[:3, 3]
