@@ -23,3 +23,9 @@ bench: setup
 # memory copy, and the wire-compression table; the namespace rows need root (skipped otherwise).
 bench-transport: setup
 	OCTOLOG_DATA=$(OCTOLOG_DATA) $(VENV)/bin/python bench/transport.py --wire
+
+# Native tracker vs the ORB-SLAM3 backend on TUM fr1/xyz first 300 (builds and caches a vocabulary
+# in /tmp/octolog-bench/vocab unless VOCABULARY=FILE is given).
+.PHONY: bench-tracker
+bench-tracker: setup
+	OCTOLOG_DATA=$(OCTOLOG_DATA) $(VENV)/bin/python bench/tracker.py $(if $(VOCABULARY),--vocabulary $(VOCABULARY))

@@ -184,7 +184,8 @@ class OrbSlam3Odometry:
             self._n_kf += 1
             self._last_kf_pose = self._last_pose.copy()
         n = int(r.num_tracked_points)
-        return TrackResult(frame.seq, frame.stamp_ns, self._last_pose.copy(), state, is_kf, kf_id, n, n)
+        return TrackResult(seq=frame.seq, stamp_ns=frame.stamp_ns, world_from_camera=self._last_pose.copy(),
+                           state=state, is_keyframe=is_kf, keyframe_id=kf_id, n_matches=n, n_inliers=n)
 
     def _need_keyframe(self, pose: np.ndarray) -> bool:
         if self._last_kf_pose is None:

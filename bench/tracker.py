@@ -1,0 +1,236 @@
+"""Tracker benchmark: the native tracker and the ORB-SLAM3 backend side by side on one sequence.
+
+Each backend runs the tracker core directly (no transport, Rerun off) in its own subprocess, so
+peak memory (VmHWM) is per backend. Frames are decoded one at a time outside the timed call; the
+per-frame time is the wall time of `track()` (ORB-SLAM3 also works on its local-mapping and
+loop-closing threads: CPU time counts every thread). ORB-SLAM3 is not deterministic, so it runs
+`--orb-runs` times (default 3) and the table quotes the median ATE and every run's.
+
+    python bench/tracker.py [--source tum:PATH] [--vocabulary FILE] [--orb-runs 3]
+
+Without --vocabulary one is built with `octolog vocab build` from the sequence's rgb/ folder
+(k 10, L 6, seed 0) and cached in --cache (default /tmp/octolog-bench/vocab).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import platform
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def default_source() -> str:
+    data = Path(os.environ.get("OCTOLOG_DATA", ROOT.parent / "shared" / "data"))
+    folder = data / "tum" / "rgbd_dataset_freiburg1_xyz_first300"
+    if not folder.is_dir():
+        sys.exit(f"bench: {folder} not found; pass --source or set OCTOLOG_DATA")
+    return f"tum:{folder}"
+
+
+def pct(values: list[float], q: float) -> float:
+    return float(np.percentile(values, q)) if values else float("nan")
+
+
+def _vm(key: str) -> float:
+    """VmHWM / VmRSS of this process in MB."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(key + ":"):
+            return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+# ----------------------------------------------------------------------------------------------
+# Worker: one backend, one run, in its own process.
+
+
+def worker(backend: str, source: str, vocabulary: str, result_path: Path) -> None:
+    from octolog import metrics
+    from replay.sources import open_source
+    from tracker.config import TrackerConfig, make_odometry
+
+    src = open_source(source)
+    frames = src.frames()
+    first = next(frames)
+    odom = make_odometry(TrackerConfig(backend=backend, vocabulary=vocabulary))
+    rss_before = _vm("VmRSS")
+    t0 = time.perf_counter()
+    if hasattr(odom, "start"):
+        odom.start(first)  # ORB-SLAM3: settings + vocabulary load, reported apart from frame times
+    startup_s = time.perf_counter() - t0
+    cpu0 = resource.getrusage(resource.RUSAGE_SELF)
+    wall0 = time.perf_counter()
+    ms, stamps, poses, states = [], [], [], []
+    frame = first
+    while frame is not None:
+        t = time.perf_counter()
+        r = odom.track(frame)
+        ms.append((time.perf_counter() - t) * 1e3)
+        stamps.append(r.stamp_ns)
+        poses.append(r.world_from_camera)
+        states.append(r.state)
+        frame = next(frames, None)
+    final_tum = None
+    if hasattr(odom, "finish"):  # native: wait for the back end, then its corrected trajectory
+        odom.finish()
+        fs, fp = odom.trajectory()
+        final_tum = metrics.format_tum(np.array(fs), np.array(fp))
+    n_keyframes = odom.n_keyframes
+    orb_keyframes = None
+    if hasattr(odom, "close"):  # ORB-SLAM3: stop its threads, read its keyframes and trajectory
+        odom.close()
+        final_tum, orb_keyframes = odom.final_trajectory_tum, odom.orb_keyframes
+    wall_s = time.perf_counter() - wall0
+    cpu1 = resource.getrusage(resource.RUSAGE_SELF)
+    cpu_s = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
+    result_path.write_text(json.dumps({
+        "backend": backend, "ms": ms, "states": states, "n_keyframes": n_keyframes, "orb_keyframes": orb_keyframes,
+        "online_tum": metrics.format_tum(np.array(stamps), np.array(poses)), "final_tum": final_tum,
+        "startup_s": startup_s, "wall_s": wall_s, "cpu_s": cpu_s, "rss_before_mb": rss_before,
+        "peak_rss_mb": _vm("VmHWM"),
+    }))
+
+
+def run_worker(backend: str, source: str, vocabulary: str) -> dict:
+    with tempfile.TemporaryDirectory() as tmp:
+        res = Path(tmp) / "result.json"
+        # ORB-SLAM3 prints its progress on stdout: keep it out of the table
+        proc = subprocess.run([sys.executable, __file__, "--worker", backend, "--source", source,
+                               "--vocabulary", vocabulary, "--result", str(res)],
+                              cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        if proc.returncode != 0:
+            sys.exit(f"bench: {backend} worker failed:\n{proc.stderr}")
+        return json.loads(res.read_text())
+
+
+# ----------------------------------------------------------------------------------------------
+# Vocabulary
+
+
+def ensure_vocabulary(source: str, given: str | None, cache: Path) -> tuple[str, str]:
+    """(path, note): the given file, a cached build, or a fresh `octolog vocab build`."""
+    if given:
+        return given, f"vocabulary: {given} (given)"
+    kind, _, path = source.partition(":")
+    rgb = Path(path) / "rgb"
+    if kind != "tum" or not rgb.is_dir():
+        sys.exit("bench: without --vocabulary the source must be a TUM folder (its rgb/ images train one)")
+    params = ["--k", "10", "--levels", "6", "--features", "1000", "--seed", "0"]
+    key = hashlib.sha256(f"{rgb.resolve()} {' '.join(params)}".encode()).hexdigest()[:12]
+    out = cache / f"{rgb.parent.name}_k10_L6_{key}.txt"
+    cmd = f"octolog vocab build {rgb} {' '.join(params)} --out {out}"
+    if out.is_file():
+        return str(out), f"vocabulary: cached {out} (made by `{cmd}`)"
+    cache.mkdir(parents=True, exist_ok=True)
+    t0 = time.monotonic()
+    subprocess.run([sys.executable, "-m", "octolog", "vocab", "build", str(rgb), *params, "--out", str(out),
+                    "--quiet"], check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
+    return str(out), f"vocabulary: built now by `{cmd}` in {time.monotonic() - t0:.0f} s"
+
+
+# ----------------------------------------------------------------------------------------------
+
+
+def ate_cm(tum: str | None, gt) -> float:
+    from octolog import metrics
+
+    if not tum:
+        return float("nan")
+    return metrics.ate(metrics.parse_tum(tum), gt).rmse * 100.0
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--source", default=None, help="tum:PATH (default: TUM fr1/xyz first 300)")
+    ap.add_argument("--vocabulary", default=None, metavar="FILE", help="ORB vocabulary (default: build and cache one)")
+    ap.add_argument("--orb-runs", type=int, default=3, help="ORB-SLAM3 runs (default 3; it is not deterministic)")
+    ap.add_argument("--cache", default="/tmp/octolog-bench/vocab", help="where a built vocabulary is kept")
+    ap.add_argument("--worker", choices=("native", "orbslam3"), help=argparse.SUPPRESS)
+    ap.add_argument("--result", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.worker:
+        worker(args.worker, args.source, args.vocabulary or "", Path(args.result))
+        return
+
+    source = args.source or default_source()
+    from octolog import metrics
+    from replay.sources import open_source
+
+    gt_text = open_source(source).groundtruth_tum()
+    if not gt_text:
+        sys.exit(f"bench: {source} has no ground truth")
+    gt = metrics.parse_tum(gt_text)
+    vocabulary, voc_note = ensure_vocabulary(source, args.vocabulary, Path(args.cache))
+    load0 = os.getloadavg()
+    native = run_worker("native", source, vocabulary)
+    orbs = [run_worker("orbslam3", source, vocabulary) for _ in range(args.orb_runs)]
+    load1 = os.getloadavg()
+
+    def ok(r: dict) -> int:
+        return sum(s == "OK" for s in r["states"])
+
+    n = len(native["states"])
+    orb_ate = [ate_cm(r["online_tum"], gt) for r in orbs]
+    orb_final = [ate_cm(r["final_tum"], gt) for r in orbs]
+    orb_ms = [x for r in orbs for x in r["ms"]]
+    runs = ", ".join(f"{a:.2f}" for a in orb_ate)
+    finals = ", ".join(f"{a:.2f}" for a in orb_final)
+
+    def med(key: str) -> float:
+        return statistics.median(r[key] for r in orbs)
+
+    rows = [
+        ("ATE RMSE, cm (per-frame poses as published)", f"{ate_cm(native['online_tum'], gt):.2f}",
+         f"{statistics.median(orb_ate):.2f} (runs: {runs})"),
+        ("ATE RMSE, cm (final trajectory after back end)", f"{ate_cm(native['final_tum'], gt):.2f}",
+         f"{statistics.median(orb_final):.2f} (runs: {finals})"),
+        ("frames tracked (state OK) / frames", f"{ok(native)} / {n}",
+         " / ".join([", ".join(str(ok(r)) for r in orbs), str(len(orbs[0]['states']))])),
+        ("ms per frame, median / p90 (track call)", f"{pct(native['ms'], 50):.1f} / {pct(native['ms'], 90):.1f}",
+         f"{pct(orb_ms, 50):.1f} / {pct(orb_ms, 90):.1f}"),
+        ("CPU s for the sequence (all threads)", f"{native['cpu_s']:.1f}", f"{med('cpu_s'):.1f}"),
+        ("keyframes", f"{native['n_keyframes']}",
+         f"{statistics.median(r['orb_keyframes'] or 0 for r in orbs):.0f} own; "
+         f"{statistics.median(r['n_keyframes'] for r in orbs):.0f} published"),
+        ("startup, s (ORB-SLAM3: settings + vocabulary load)", f"{native['startup_s']:.2f}", f"{med('startup_s'):.2f}"),
+        ("peak RSS, MB (process VmHWM)", f"{native['peak_rss_mb']:.0f}", f"{max(r['peak_rss_mb'] for r in orbs):.0f}"),
+        ("RSS before tracking, MB (imports, vocabulary not yet loaded)", f"{native['rss_before_mb']:.0f}",
+         f"{med('rss_before_mb'):.0f}"),
+    ]
+    try:
+        from importlib.metadata import version
+
+        orb_version = version("pyorbslam3")
+    except Exception:
+        orb_version = "?"
+    cpu = next((ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
+                if ln.startswith("model name")), platform.processor() or "?")
+    print(f"octolog tracker benchmark: {source}")
+    print(f"machine: {cpu}, {os.cpu_count()} cores, {platform.machine()}, Python {platform.python_version()}; "
+          f"load average {load0[0]:.1f} before, {load1[0]:.1f} after (shared machine)")
+    print(f"native: tracker.odometry in-process, Rerun off, 1 run (deterministic); ORB-SLAM3: pyorbslam3 {orb_version} "
+          f"RGB-D, {args.orb_runs} runs (not deterministic), keyframes published by pose distance "
+          "(the binding reports none), 'own' = ORB-SLAM3's keyframe count at shutdown")
+    print(voc_note)
+    print()
+    print("| | native | ORB-SLAM3 |")
+    print("|---|---|---|")
+    for name, a, b in rows:
+        print(f"| {name} | {a} | {b} |")
+
+
+if __name__ == "__main__":
+    main()
