@@ -71,8 +71,12 @@ def router(pki):
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen([sys.executable, "-m", "octolog", "router", "--zenoh-config", cfg, "--listen", endpoint],
                             cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    line = proc.stdout.readline()  # printed once the router is up
+    line = proc.stdout.readline()
     assert "router: listening on" in line, line + proc.stdout.read()
+    # the line comes before the router's session opens: a certified client (retrying for up to 30 s)
+    # getting a session says it is up, so the refusals below are refusals, not a router still starting
+    with _bus(endpoint, _config(pki, "zenoh-tls-client.json5", "probe", cert="server"), "probe"):
+        pass
     yield endpoint
     proc.terminate()
     proc.wait(timeout=30)
@@ -91,6 +95,7 @@ class Counter:
 
         self.counts: dict[str, int] = {}
         self.hello, self.done = threading.Event(), threading.Event()
+        self.subscribers = []  # kept alive as long as the counter
         for t in topics:  # declared in this order on one link: the router handles them in this order
             def on(sample, t=t) -> None:
                 self.counts[t.name] = self.counts.get(t.name, 0) + 1
@@ -99,7 +104,7 @@ class Counter:
                     if codec.decode(sample.payload.to_bytes(), FENCE.msgtype).count == N:
                         self.done.set()
 
-            bus._keep.append(bus.session.declare_subscriber(t.key("robot1"), zenoh.handlers.Callback(on)))
+            self.subscribers.append(bus.session.declare_subscriber(t.key("robot1"), zenoh.handlers.Callback(on)))
 
 
 def test_certified_nodes_join_and_access_control_limits_what_they_get(pki, router):
