@@ -18,7 +18,8 @@ from octolog.errors import InputError
 from tracker import vocab
 
 
-def clustered(n_protos: int, per_image: int, n_images: int, flips: int, seed: int) -> tuple[np.ndarray, list[np.ndarray]]:
+def clustered(n_protos: int, per_image: int, n_images: int, flips: int,
+              seed: int) -> tuple[np.ndarray, list[np.ndarray]]:
     """Prototype descriptors far apart (~128 bits), and images of noisy copies (`flips` bits each)."""
     rng = np.random.default_rng(seed)
     protos = rng.integers(0, 256, (n_protos, 32), dtype=np.uint8)

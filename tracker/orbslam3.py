@@ -65,7 +65,8 @@ def resolve_vocabulary(path: str = "") -> Path:
             path, source = import_pyorbslam3().vocabulary_path(download=False), "the pyorbslam3 cache"
         except FileNotFoundError:
             raise ConfigError(f"tracker.backend orbslam3 needs an ORB vocabulary: set tracker.vocabulary or "
-                              f"${VOCABULARY_ENV} (build one with `octolog vocab build IMAGE_DIR --out FILE`)") from None
+                              f"${VOCABULARY_ENV} (build one with `octolog vocab build IMAGE_DIR --out FILE`)"
+                              ) from None
     p = Path(path).expanduser()
     if not p.is_file():
         raise ConfigError(f"ORB vocabulary {p} (from {source}): no such file; build one with `octolog vocab build`")
@@ -154,7 +155,8 @@ class OrbSlam3Odometry:
             self._slam = self._pos.Slam(str(self.vocabulary), str(settings), self._pos.Sensor.RGBD, use_viewer=False)
         except Exception as exc:  # the binding raises RuntimeError/ValueError naming the problem
             shutil.rmtree(self._dir, ignore_errors=True)
-            raise TrackingError(f"ORB-SLAM3 did not start: {str(exc).strip().splitlines()[0] if str(exc) else exc!r}") from None
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else repr(exc)
+            raise TrackingError(f"ORB-SLAM3 did not start: {first}") from None
         self._intrinsics, self._depth_scale = frame.intrinsics, frame.depth_scale_m
         _open.add(self)
 
@@ -174,7 +176,8 @@ class OrbSlam3Odometry:
         except (RuntimeError, ValueError) as exc:
             raise TrackingError(f"frame {frame.seq}: ORB-SLAM3: {exc}") from None
         name = r.state.name
-        state = STATE_OK if name in ("OK", "OK_KLT") else STATE_LOST if name in ("RECENTLY_LOST", "LOST") else STATE_INIT
+        state = STATE_OK if name in ("OK", "OK_KLT") else STATE_LOST if name in ("RECENTLY_LOST", "LOST") \
+            else STATE_INIT
         if r.pose_valid and r.pose_wc is not None:
             self._last_pose = np.array(r.pose_wc, dtype=np.float64)
         is_kf = state == STATE_OK and self._need_keyframe(self._last_pose)
