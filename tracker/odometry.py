@@ -14,13 +14,15 @@ and is deterministic: the same frames give byte-identical poses in any process.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
 from octolog.errors import TrackingError
 from octolog.geometry import Intrinsics, RgbdFrame, invert
+from tracker.optimize import BundleProblem, bundle_adjust, optimize_pose_graph
 from tracker.features import (
     DESCRIPTOR_BYTES,
     FrameFeatures,
@@ -54,6 +56,11 @@ class TrackResult:
     keyframe_id: int  # -1 unless is_keyframe
     n_matches: int
     n_inliers: int
+    # keyframes the back end moved (loop closure), id -> corrected world_from_camera; empty if none
+    corrected: dict[int, np.ndarray] = field(default_factory=dict)
+    # (new keyframe id, old keyframe id) of a loop closed at this frame
+    loop: tuple[int, int] | None = None
+    relocalised: bool = False
 
 
 # ----------------------------------------------------------------------------------------------
@@ -220,19 +227,20 @@ class _MapPoints:
         self.n_visible = np.zeros(cap, np.int32)
         self.n_found = np.zeros(cap, np.int32)
         self.bad = np.zeros(cap, bool)
+        self.ref_kf = np.zeros(cap, np.int64)  # keyframe that created the point
 
     def _grow(self, need: int) -> None:
         cap = self.xyz.shape[0]
         if need <= cap:
             return
         new_cap = max(need, 2 * cap)
-        for name in ("xyz", "desc", "weight", "n_obs", "n_visible", "n_found", "bad"):
+        for name in ("xyz", "desc", "weight", "n_obs", "n_visible", "n_found", "bad", "ref_kf"):
             old = getattr(self, name)
             arr = np.zeros((new_cap,) + old.shape[1:], old.dtype)
             arr[:cap] = old
             setattr(self, name, arr)
 
-    def add(self, xyz: np.ndarray, desc: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    def add(self, xyz: np.ndarray, desc: np.ndarray, weight: np.ndarray, ref_kf: int) -> np.ndarray:
         n = xyz.shape[0]
         self._grow(self.size + n)
         ids = np.arange(self.size, self.size + n)
@@ -240,6 +248,7 @@ class _MapPoints:
         self.desc[ids] = desc
         self.weight[ids] = weight
         self.n_obs[ids] = 1
+        self.ref_kf[ids] = ref_kf
         self.size += n
         return ids
 
@@ -250,6 +259,10 @@ class _Keyframe:
     seq: int
     world_from_camera: np.ndarray
     point_ids: np.ndarray  # sorted unique map point ids this keyframe observes
+    feats: FrameFeatures  # all its keypoints (for bundle adjustment, loop detection, relocalisation)
+    obs_kp: np.ndarray  # keypoint index of each observation
+    obs_pid: np.ndarray  # map point id of each observation
+    covis: list[int] = field(default_factory=list)  # earlier keyframes it shares many points with
     # Points of this keyframe matched in the first frame tracked after it: the overlap baseline
     # that later frames are compared with to decide when the view has changed enough.
     baseline_overlap: int = -1
@@ -312,6 +325,22 @@ class RgbdOdometry:
         cull_min_visible: int = 12,
         cull_min_found_ratio: float = 0.2,
         fuse_depth: bool = True,
+        local_ba: bool = True,
+        ba_window: int = 5,
+        ba_fixed: int = 6,
+        ba_iterations: int = 5,
+        ba_max_points: int = 800,
+        loop_closing: bool = True,
+        loop_min_gap: int = 10,
+        loop_min_votes: int = 40,
+        loop_min_inliers: int = 40,
+        loop_min_correction_m: float = 0.01,
+        loop_min_correction_deg: float = 0.5,
+        loop_max_correction_m: float = 0.5,
+        loop_max_correction_deg: float = 10.0,
+        relocalise: bool = True,
+        background: bool = False,
+        inject_drift_deg: float = 0.0,
     ) -> None:
         if n_features < 50:
             raise TrackingError(f"n_features={n_features}: need at least 50 features to track")
@@ -323,6 +352,10 @@ class RgbdOdometry:
             raise TrackingError("n_local_keyframes and n_recent_keyframes must be at least 1")
         if not 0.0 < match_ratio <= 1.0:
             raise TrackingError(f"match_ratio={match_ratio}: must be in (0, 1]")
+        if ba_window < 1 or ba_fixed < 0 or ba_iterations < 1:
+            raise TrackingError("ba_window and ba_iterations must be at least 1, ba_fixed at least 0")
+        if loop_min_gap < 1 or loop_min_inliers < 6:
+            raise TrackingError("loop_min_gap must be at least 1 and loop_min_inliers at least 6")
         self._extractor = OrbExtractor(
             n_features=n_features,
             grid_cols=grid_cols,
@@ -354,6 +387,33 @@ class RgbdOdometry:
         self._cull_visible = cull_min_visible
         self._cull_ratio = cull_min_found_ratio
         self._fuse = fuse_depth
+        self._local_ba = local_ba
+        self._ba_window = ba_window
+        self._ba_fixed = ba_fixed
+        self._ba_iterations = ba_iterations
+        self._ba_max_point_move = 0.05
+        self._ba_max_points = ba_max_points
+        self._loop_closing = loop_closing
+        self._loop_gap = loop_min_gap
+        self._loop_votes = loop_min_votes
+        self._loop_inliers = loop_min_inliers
+        self._loop_min_m = loop_min_correction_m
+        self._loop_min_rad = math.radians(loop_min_correction_deg)
+        self._loop_max_m = loop_max_correction_m
+        self._loop_max_rad = math.radians(loop_max_correction_deg)
+        self._relocalise = relocalise
+        self._drift = math.radians(inject_drift_deg)
+        # The back end (local BA, loop closing) for keyframe k starts when k is inserted and its
+        # result is applied when keyframe k+1 is inserted (or at `finish`): a fixed point in the
+        # frame sequence, so running it on a worker thread cannot change any output.
+        self._executor = ThreadPoolExecutor(1, thread_name_prefix="octolog-ba") if background else None
+        self._pending: Future | _BackendResult | None = None
+        self._backend_moved = False
+        self._loop_edges: list[tuple[int, int, np.ndarray]] = []
+        self._last_loop_kf = -(10**9)
+        # per tracked frame: (stamp, reference keyframe id, reference_from_camera)
+        self._frames: list[tuple[int, int, np.ndarray]] = []
+        self.loops: list[tuple[int, int]] = []  # (new, old) keyframe ids of closed loops
 
         self._intrinsics: Intrinsics | None = None
         self._undistort: Undistorter | None = None
@@ -386,8 +446,14 @@ class RgbdOdometry:
             return self._try_initialise(frame, feats)
 
         predicted = self._predict(frame.stamp_ns)
+        relocalised = False
         try:
             tracked = self._track_against_map(feats, predicted)
+            if tracked is None and self._relocalise:
+                guess = self._relocalisation_guess(feats)
+                if guess is not None:
+                    tracked = self._track_against_map(feats, guess)
+                    relocalised = tracked is not None
         except (cv2.error, np.linalg.LinAlgError):
             # Degenerate geometry inside OpenCV or a singular system: this frame is untrackable,
             # the stream is not broken.
@@ -398,13 +464,48 @@ class RgbdOdometry:
 
         pose = invert(tracked.camera_from_world)
         kf_id = -1
+        corrected: dict[int, np.ndarray] = {}
+        loop = None
         # A frame without enough depth adds no map points, so it must not replace the reference.
         if int(feats.has_depth.sum()) >= self._min_init and self._need_keyframe(pose, tracked):
+            corrected, loop, pose = self._sync_backend(pose)
+            if self._backend_moved:
+                # the map moved under this frame: re-fit its pose to the moved points it matched
+                sol = self._solve(feats, tracked.kp_idx, tracked.map_idx, invert(pose), use_ransac=False)
+                if sol is not None:
+                    pose = invert(sol[0])
+            if self._drift:
+                # testing aid: a yaw error about the world z axis at every keyframe, as drift
+                c, s_ = math.cos(self._drift), math.sin(self._drift)
+                pose = pose.copy()
+                pose[:3, :3] = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]]) @ pose[:3, :3]
             kf_id = self._insert_keyframe(frame.seq, pose, feats, tracked)
+            self._submit_backend()
+        ref = self._keyframes[-1]
+        self._frames.append((frame.stamp_ns, ref.id, invert(ref.world_from_camera) @ pose))
         self._remember(frame.stamp_ns, pose, ok=True)
         return TrackResult(
-            frame.seq, frame.stamp_ns, pose.copy(), STATE_OK, kf_id >= 0, kf_id, tracked.n_matches, tracked.n_inliers
+            frame.seq, frame.stamp_ns, pose.copy(), STATE_OK, kf_id >= 0, kf_id, tracked.n_matches, tracked.n_inliers,
+            corrected, loop, relocalised,
         )
+
+    def trajectory(self) -> tuple[list[int], list[np.ndarray]]:
+        """Stamps and world_from_camera of every tracked frame, re-expressed through the current pose
+        of the keyframe it was tracked against (so back-end corrections reach every frame)."""
+        kfs = self._keyframes
+        return [s for s, _, _ in self._frames], [kfs[k].world_from_camera @ T for _, k, T in self._frames]
+
+    def keyframe_poses(self) -> dict[int, np.ndarray]:
+        return {kf.id: kf.world_from_camera.copy() for kf in self._keyframes}
+
+    def finish(self) -> dict[int, np.ndarray]:
+        """Wait for the back end and apply its last result; returns the keyframe poses it moved."""
+        before = self.keyframe_poses()
+        self._sync_backend(np.eye(4))
+        if self._executor is not None:
+            self._executor.shutdown(wait=True)
+        after = self.keyframe_poses()
+        return {i: T for i, T in after.items() if not np.array_equal(T, before[i])}
 
     # -- input ----------------------------------------------------------------------------------
 
@@ -484,6 +585,7 @@ class RgbdOdometry:
         empty = np.zeros(0, np.int64)
         tracked = _Tracked(np.eye(4), empty, empty, 0, 0)
         kf_id = self._insert_keyframe(frame.seq, pose, feats, tracked)
+        self._frames.append((frame.stamp_ns, kf_id, np.eye(4)))
         self._remember(frame.stamp_ns, pose, ok=True)
         return TrackResult(frame.seq, frame.stamp_ns, pose.copy(), STATE_INIT, True, kf_id, 0, 0)
 
@@ -677,11 +779,12 @@ class RgbdOdometry:
         mp.desc[ids_m] = feats.desc[kp_m]
         mp.n_obs[ids_m] += 1
 
+        kf_id = len(self._keyframes)
         fresh = np.ones(len(feats), dtype=bool)
         fresh[kp_m] = False
         fresh &= (z > 0.0) & (z <= self._max_new_depth)
         k = np.flatnonzero(fresh)
-        new_ids = mp.add(feats.xyz[k] @ R.T + t, feats.desc[k], weight_of(z[k]))
+        new_ids = mp.add(feats.xyz[k] @ R.T + t, feats.desc[k], weight_of(z[k]), kf_id)
 
         # Retire points that are seen in view but rarely matched: likely bad depth or repeats.
         n = mp.size
@@ -690,9 +793,234 @@ class RgbdOdometry:
         )
         mp.bad[:n] |= bad & (mp.n_obs[:n] < 3)
 
-        kf_id = len(self._keyframes)
         point_ids = np.unique(np.concatenate([ids_m, new_ids]))
-        self._keyframes.append(_Keyframe(kf_id, seq, pose.copy(), point_ids))
+        shared = np.bincount(mp.ref_kf[ids_m], minlength=kf_id) if ids_m.size else np.zeros(kf_id, np.int64)
+        covis = [int(j) for j in np.lexsort((np.arange(shared.size), -shared))[:3] if shared[j] >= 30]
+        self._keyframes.append(_Keyframe(kf_id, seq, pose.copy(), point_ids, feats,
+                                         np.concatenate([kp_m, k]), np.concatenate([ids_m, new_ids]), sorted(covis)))
         self._kf_pos = np.vstack([self._kf_pos, t[None, :]])
         self._kf_axis = np.vstack([self._kf_axis, R[:, 2][None, :]])
         return kf_id
+
+    # -- relocalisation -------------------------------------------------------------------------
+
+    def _relocalisation_guess(self, feats: FrameFeatures) -> np.ndarray | None:
+        """world_from_camera of a lost frame from a place match against every keyframe, or None."""
+        from tracker.places import verify, vote
+
+        if int(feats.has_depth.sum()) < self._min_inliers or not self._keyframes:
+            return None
+        scores = vote(feats, [kf.feats for kf in self._keyframes])
+        order = np.lexsort((np.arange(scores.size), -scores))
+        for c in order[:3]:
+            if scores[c] < self._min_inliers:
+                break
+            m = verify(feats, self._keyframes[c].feats, int(c), min_inliers=self._min_inliers,
+                       refine=self._refine_args())
+            if m is not None:
+                return self._keyframes[c].world_from_camera @ m.T_kf_query
+        return None
+
+    # -- back end: local bundle adjustment and loop closing --------------------------------------
+
+    def _refine_args(self) -> tuple[np.ndarray, float, float]:
+        assert self._undistort is not None
+        return self._undistort.K, self._scale_factor, self._inv_depth_sigma
+
+    def _submit_backend(self) -> None:
+        """Start the back end for the newest keyframe (on the worker thread when there is one)."""
+        if not (self._local_ba or self._loop_closing):
+            return
+        job = self._backend_job()
+        self._pending = self._executor.submit(_run_backend, job) if self._executor else _run_backend(job)
+
+    def _sync_backend(self, pose: np.ndarray) -> tuple[dict[int, np.ndarray], tuple[int, int] | None, np.ndarray]:
+        """Apply the pending back-end result; returns (moved keyframes if a loop closed, the loop,
+        `pose` moved with the newest keyframe)."""
+        res = self._pending
+        self._backend_moved = False
+        if res is None:
+            return {}, None, pose
+        self._backend_moved = True
+        self._pending = None
+        if isinstance(res, Future):
+            res = res.result()
+        ref = self._keyframes[res.kf_id]
+        old_ref = ref.world_from_camera.copy()
+        for i, T in res.poses.items():
+            kf = self._keyframes[i]
+            kf.world_from_camera = T
+            self._kf_pos[i] = T[:3, 3]
+            self._kf_axis[i] = T[:3, 2]
+        if res.loop is None and res.point_ids.size:
+            # a point that local BA moved far was badly observed: retire it rather than trust it
+            jump = np.linalg.norm(res.points - self._map.xyz[res.point_ids], axis=1) > self._ba_max_point_move
+            self._map.bad[res.point_ids[jump]] = True
+            self._map.xyz[res.point_ids[~jump]] = res.points[~jump]
+        else:
+            self._map.xyz[res.point_ids] = res.points
+        delta = ref.world_from_camera @ invert(old_ref)
+        for name in ("_last_pose", "_last_tracked_pose"):
+            if getattr(self, name) is not None:
+                setattr(self, name, delta @ getattr(self, name))
+        if res.loop is None:
+            return {}, None, delta @ pose
+        self._loop_edges.append(res.loop_edge)
+        self.loops.append(res.loop)
+        self._last_loop_kf = res.loop[0]
+        return dict(res.poses), res.loop, delta @ pose
+
+    def _backend_job(self) -> _BackendJob:
+        """A self-contained snapshot for the back end of the newest keyframe."""
+        mp, kfs = self._map, self._keyframes
+        new = kfs[-1]
+        n_kf = len(kfs)
+        ba = None
+        ba_kf = np.zeros(0, np.int64)
+        ba_pids = np.zeros(0, np.int64)
+        if self._local_ba and n_kf >= 2:
+            window = np.arange(max(0, n_kf - self._ba_window), n_kf)
+            pids = np.unique(np.concatenate([kfs[i].point_ids for i in window]))
+            pids = pids[~mp.bad[pids]]
+            if pids.size > self._ba_max_points:
+                # the best-observed points carry the most information per factor: keep those
+                n_obs = np.zeros(pids.size, np.int64)
+                for i in window:
+                    n_obs += np.isin(pids, kfs[i].point_ids, assume_unique=True)
+                pids = np.sort(pids[np.lexsort((pids, -n_obs))[: self._ba_max_points]])
+            # fixed neighbours: the earlier keyframes that created most of the window's points
+            creators = mp.ref_kf[pids]
+            counts = np.bincount(creators[creators < window[0]], minlength=n_kf)
+            order = np.lexsort((np.arange(n_kf), -counts))
+            fixed = np.sort(order[: self._ba_fixed][counts[order[: self._ba_fixed]] > 0])
+            ba_kf = np.concatenate([fixed, window])
+            kf_idx, pt_idx, uv, zz, sig = [], [], [], [], []
+            for li, i in enumerate(ba_kf):
+                kf = kfs[i]
+                pos = np.searchsorted(pids, kf.obs_pid)
+                pos = np.minimum(pos, pids.size - 1)
+                ok = pids[pos] == kf.obs_pid
+                ok &= kf.feats.z[kf.obs_kp] > 0.0  # depth-less rays (near-parallel here) let points run off
+                kp = kf.obs_kp[ok]
+                kf_idx.append(np.full(kp.size, li))
+                pt_idx.append(pos[ok])
+                uv.append(kf.feats.uv[kp])
+                zz.append(kf.feats.z[kp])
+                sig.append(self._scale_factor ** kf.feats.octave[kp].astype(np.float64))
+            assert self._undistort is not None
+            K = self._undistort.K
+            ba = BundleProblem(
+                poses_wc=np.stack([kfs[i].world_from_camera for i in ba_kf]),
+                # as ORB-SLAM3 does: with fewer than two fixed neighbours (a new area) the oldest
+                # window keyframe is held too, or the window would be free to drift as a whole
+                fixed=np.array([i < window[0] or i == 0 or (fixed.size < 2 and i == window[0]) for i in ba_kf]),
+                points=mp.xyz[pids].copy(),
+                obs_kf=np.concatenate(kf_idx), obs_pt=np.concatenate(pt_idx), obs_uv=np.concatenate(uv),
+                obs_z=np.concatenate(zz), obs_sigma=np.concatenate(sig),
+                K=(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])),
+                bf=1.0 / self._inv_depth_sigma,
+            )
+            ba_pids = pids
+        candidates = np.zeros(0, np.int64)
+        if self._loop_closing and new.id - self._last_loop_kf > self._loop_gap:
+            # old keyframes that share (almost) no map points with the new one: a match with one
+            # of them is a place seen again after the map lost track of it
+            shared = np.bincount(mp.ref_kf[new.point_ids], minlength=n_kf)
+            candidates = np.flatnonzero((np.arange(n_kf) <= new.id - self._loop_gap) & (shared < 10))
+        return _BackendJob(
+            kf_id=new.id, poses_wc=np.stack([kf.world_from_camera for kf in kfs]), ba=ba, ba_kf=ba_kf,
+            ba_point_ids=ba_pids, iterations=self._ba_iterations, candidates=candidates,
+            new_feats=new.feats, cand_feats=[kfs[i].feats for i in candidates],
+            covis=[(i, j) for i in range(1, n_kf) for j in kfs[i].covis], loop_edges=list(self._loop_edges),
+            xyz=mp.xyz[: mp.size].copy() if candidates.size else None, ref_kf=mp.ref_kf[: mp.size].copy(),
+            min_votes=self._loop_votes, min_inliers=self._loop_inliers, min_m=self._loop_min_m,
+            min_rad=self._loop_min_rad, max_m=self._loop_max_m, max_rad=self._loop_max_rad,
+            refine=self._refine_args(),
+        )
+
+
+@dataclass
+class _BackendJob:
+    kf_id: int
+    poses_wc: np.ndarray  # (N, 4, 4) every keyframe
+    ba: BundleProblem | None
+    ba_kf: np.ndarray  # keyframe id of each BA pose
+    ba_point_ids: np.ndarray  # map point id of each BA point
+    iterations: int
+    candidates: np.ndarray  # loop candidate keyframe ids
+    new_feats: FrameFeatures
+    cand_feats: list[FrameFeatures]
+    covis: list[tuple[int, int]]  # pose-graph edges besides the consecutive ones
+    loop_edges: list[tuple[int, int, np.ndarray]]
+    xyz: np.ndarray | None  # all map points (only when loop closing may move them)
+    ref_kf: np.ndarray
+    min_votes: int
+    min_inliers: int
+    min_m: float
+    min_rad: float
+    max_m: float
+    max_rad: float
+    refine: tuple[np.ndarray, float, float]
+
+
+@dataclass
+class _BackendResult:
+    kf_id: int
+    poses: dict[int, np.ndarray]  # moved keyframes
+    point_ids: np.ndarray
+    points: np.ndarray
+    loop: tuple[int, int] | None = None
+    loop_edge: tuple[int, int, np.ndarray] | None = None
+
+
+def _run_backend(job: _BackendJob) -> _BackendResult:
+    """Local BA around the newest keyframe, then loop detection and pose-graph correction."""
+    from tracker.places import verify, vote
+
+    poses = job.poses_wc.copy()
+    moved: dict[int, np.ndarray] = {}
+    point_ids, points = job.ba_point_ids, np.zeros((0, 3))
+    if job.ba is not None:
+        res = bundle_adjust(job.ba, iterations=job.iterations)
+        for li, i in enumerate(job.ba_kf):
+            if not job.ba.fixed[li]:
+                poses[i] = res.poses_wc[li]
+                moved[int(i)] = res.poses_wc[li]
+        points = res.points
+    if job.candidates.size == 0:
+        return _BackendResult(job.kf_id, moved, point_ids, points)
+
+    scores = vote(job.new_feats, job.cand_feats)
+    order = np.lexsort((job.candidates, -scores))
+    match = None
+    for c in order[:3]:
+        if scores[c] < job.min_votes:
+            break
+        match = verify(job.new_feats, job.cand_feats[c], int(job.candidates[c]), min_inliers=job.min_inliers,
+                       refine=job.refine)
+        if match is not None:
+            break
+    if match is None:
+        return _BackendResult(job.kf_id, moved, point_ids, points)
+    old, new = match.keyframe, job.kf_id
+    measured = match.T_kf_query  # old_from_new
+    err = invert(invert(poses[old]) @ poses[new]) @ measured
+    err_m, err_rad = float(np.linalg.norm(err[:3, 3])), rotation_angle(err[:3, :3])
+    if err_m < job.min_m and err_rad < job.min_rad:
+        return _BackendResult(job.kf_id, moved, point_ids, points)  # the map already agrees
+    if err_m > job.max_m or err_rad > job.max_rad:
+        return _BackendResult(job.kf_id, moved, point_ids, points)  # more than drift can explain
+    rel = lambda i, j: invert(poses[i]) @ poses[j]  # noqa: E731
+    edges = [(i - 1, i, rel(i - 1, i), 1.0) for i in range(1, len(poses))]
+    edges += [(j, i, rel(j, i), 1.0) for i, j in job.covis]
+    edges += [(i, j, T, 1.0) for i, j, T in job.loop_edges]
+    edges.append((old, new, measured, 1.0))
+    corrected = optimize_pose_graph(poses, edges, fixed=0)
+    delta = corrected @ np.stack([invert(T) for T in poses])
+    assert job.xyz is not None
+    xyz = job.xyz.copy()
+    xyz[point_ids] = points
+    d = delta[job.ref_kf]
+    xyz = np.einsum("nij,nj->ni", d[:, :3, :3], xyz) + d[:, :3, 3]
+    return _BackendResult(job.kf_id, {i: corrected[i] for i in range(len(poses))}, np.arange(xyz.shape[0]), xyz,
+                          (new, old), (old, new, measured))

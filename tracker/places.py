@@ -1,0 +1,113 @@
+"""Place recognition over keyframes: candidate search by descriptor voting, geometric verification.
+
+Used for loop detection (a new keyframe against old ones it does not share map points with) and for
+relocalisation (a frame against every keyframe after tracking was lost). A keyframe's place
+signature is its ORB descriptor set; candidates are ranked by the number of one-to-one descriptor
+matches that pass a ratio test, then verified in 3D: both sides carry depth, so a seeded RANSAC over
+3-point rigid fits (Umeyama) finds the relative pose and its inliers. Everything is deterministic:
+stable orderings, a fixed RNG seed, no dependence on timing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from octolog.metrics import umeyama_se3
+from tracker.features import FrameFeatures, match_brute_force
+
+_SEED = 0x100C
+
+
+@dataclass(frozen=True)
+class PlaceMatch:
+    """A verified match of a query view against a keyframe."""
+
+    keyframe: int  # index of the keyframe in the list searched
+    T_kf_query: np.ndarray  # (4, 4) pose of the query camera in the keyframe's camera frame
+    query_idx: np.ndarray  # inlier keypoint indices in the query
+    kf_idx: np.ndarray  # inlier keypoint indices in the keyframe
+    n_matches: int
+    n_inliers: int
+
+
+def vote(query: FrameFeatures, candidates: list[FrameFeatures], *, max_distance: int = 64,
+         ratio: float = 0.8, subsample: int = 400) -> np.ndarray:
+    """Number of ratio-test descriptor matches between the query and each candidate.
+
+    Only the query's first `subsample` keypoints with depth vote (the extractor orders keypoints
+    deterministically), which keeps the cost at O(candidates x subsample x features).
+    """
+    q = np.flatnonzero(query.has_depth)[:subsample]
+    scores = np.zeros(len(candidates), np.int64)
+    for c, feats in enumerate(candidates):
+        qi, _, _ = match_brute_force(query.desc[q], feats.desc, max_distance=max_distance, ratio=ratio)
+        scores[c] = qi.size
+    return scores
+
+
+def rigid_ransac(src: np.ndarray, dst: np.ndarray, *, threshold_m: float, iterations: int = 200,
+                 seed: int = _SEED) -> tuple[np.ndarray, np.ndarray]:
+    """T (4x4) with dst ~ T src from 3-point samples; returns (T, inlier mask). Deterministic.
+
+    The threshold grows with depth (Kinect-type noise): `threshold_m * max(1, z_dst)**2`.
+    """
+    n = src.shape[0]
+    best = np.zeros(n, dtype=bool)
+    if n < 3:
+        return np.eye(4), best
+    rng = np.random.default_rng(seed)
+    tol = threshold_m * np.maximum(1.0, dst[:, 2]) ** 2
+    samples = np.stack([rng.choice(n, 3, replace=False) for _ in range(iterations)])
+    for s in samples:
+        a, b = src[s], dst[s]
+        # a degenerate (near-collinear) sample has no unique rotation
+        if np.linalg.norm(np.cross(a[1] - a[0], a[2] - a[0])) < 1e-4:
+            continue
+        R, t = umeyama_se3(a, b)
+        inl = np.linalg.norm(src @ R.T + t - dst, axis=1) <= tol
+        if inl.sum() > best.sum():
+            best = inl
+    T = np.eye(4)
+    if best.sum() >= 3:
+        for _ in range(2):  # refit on the inliers, then re-select them
+            R, t = umeyama_se3(src[best], dst[best])
+            inl = np.linalg.norm(src @ R.T + t - dst, axis=1) <= tol
+            if inl.sum() < 3:
+                break
+            best = inl
+        T[:3, :3], T[:3, 3] = R, t
+    return T, best
+
+
+def verify(query: FrameFeatures, kf: FrameFeatures, keyframe: int, *, min_inliers: int,
+           threshold_m: float = 0.03, min_inlier_ratio: float = 0.5, refine: tuple[np.ndarray, float, float] | None = None) -> PlaceMatch | None:
+    """Relative pose of the query in a keyframe's camera frame from 3D-3D matches, or None.
+
+    With `refine` = (K, scale_factor, inv_depth_sigma) the RANSAC pose is refined on the inliers
+    by the tracker's robust reprojection + inverse-depth optimisation, which is pixel-accurate
+    where the 3D-3D fit is only as good as the depth noise.
+    """
+    qd, kd = np.flatnonzero(query.has_depth), np.flatnonzero(kf.has_depth)
+    qi, ki, _ = match_brute_force(query.desc[qd], kf.desc[kd], max_distance=64, ratio=0.8)
+    if qi.size < min_inliers:
+        return None
+    qi, ki = qd[qi], kd[ki]
+    T, inl = rigid_ransac(query.xyz[qi], kf.xyz[ki], threshold_m=threshold_m)
+    n_inl = int(inl.sum())
+    # repeated texture gives many matches but a minority of them agree: demand a majority
+    if n_inl < min_inliers or n_inl < min_inlier_ratio * qi.size:
+        return None
+    qi, ki = qi[inl], ki[inl]
+    if refine is not None:
+        from tracker.odometry import optimize_pose
+
+        K, scale, inv_depth_sigma = refine
+        T_qk, ok = optimize_pose(np.linalg.inv(T), kf.xyz[ki], query.uv[qi],
+                                 scale ** (-query.octave[qi].astype(np.float64)), query.z[qi], K,
+                                 inv_depth_sigma=inv_depth_sigma)
+        if int(ok.sum()) < min_inliers:
+            return None
+        T, qi, ki, n_inl = np.linalg.inv(T_qk), qi[ok], ki[ok], int(ok.sum())
+    return PlaceMatch(keyframe, T, qi, ki, int(qi.size + (inl.size - n_inl)), n_inl)
