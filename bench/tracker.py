@@ -152,6 +152,10 @@ def ate_cm(tum: str | None, gt) -> float:
     return metrics.ate(metrics.parse_tum(tum), gt).rmse * 100.0
 
 
+def cm(v: float) -> str:
+    return "–" if v != v else f"{v:.2f}"  # NaN: this backend has no such trajectory
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--source", default=None, help="tum:PATH (default: TUM fr1/xyz first 300)")
@@ -186,22 +190,24 @@ def main() -> None:
     orb_ate = [ate_cm(r["online_tum"], gt) for r in orbs]
     orb_final = [ate_cm(r["final_tum"], gt) for r in orbs]
     orb_ms = [x for r in orbs for x in r["ms"]]
-    runs = ", ".join(f"{a:.2f}" for a in orb_ate)
-    finals = ", ".join(f"{a:.2f}" for a in orb_final)
+    runs = ", ".join(cm(a) for a in orb_ate)
+    finals = ", ".join(cm(a) for a in orb_final)
 
     def med(key: str) -> float:
         return statistics.median(r[key] for r in orbs)
 
     rows = [
-        ("ATE RMSE, cm (per-frame poses as published)", f"{ate_cm(native['online_tum'], gt):.2f}",
-         f"{statistics.median(orb_ate):.2f} (runs: {runs})"),
-        ("ATE RMSE, cm (final trajectory after back end)", f"{ate_cm(native['final_tum'], gt):.2f}",
-         f"{statistics.median(orb_final):.2f} (runs: {finals})"),
+        ("ATE RMSE, cm (per-frame poses as published)", cm(ate_cm(native["online_tum"], gt)),
+         f"{cm(statistics.median(orb_ate))} (runs: {runs})"),
+        ("ATE RMSE, cm (final trajectory after back end)", cm(ate_cm(native["final_tum"], gt)),
+         f"{cm(statistics.median(orb_final))} (runs: {finals})"),
         ("frames tracked (state OK) / frames", f"{ok(native)} / {n}",
          " / ".join([", ".join(str(ok(r)) for r in orbs), str(len(orbs[0]['states']))])),
         ("ms per frame, median / p90 (track call)", f"{pct(native['ms'], 50):.1f} / {pct(native['ms'], 90):.1f}",
          f"{pct(orb_ms, 50):.1f} / {pct(orb_ms, 90):.1f}"),
-        ("CPU s for the sequence (all threads)", f"{native['cpu_s']:.1f}", f"{med('cpu_s'):.1f}"),
+        ("CPU time, all threads: s for the sequence (ms per frame)",
+         f"{native['cpu_s']:.1f} ({native['cpu_s'] / n * 1e3:.1f})",
+         f"{med('cpu_s'):.1f} ({med('cpu_s') / len(orbs[0]['states']) * 1e3:.1f})"),
         ("keyframes", f"{native['n_keyframes']}",
          f"{statistics.median(r['orb_keyframes'] or 0 for r in orbs):.0f} own; "
          f"{statistics.median(r['n_keyframes'] for r in orbs):.0f} published"),
