@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import ROOT, octolog
+from helpers import ROOT, octolog, tum_first300
 
 from mapper.config import MapperConfig
 from mapper.fleet import CorrectionItem, FleetMerge, KeyframeItem, merged_order
@@ -107,21 +107,23 @@ def _start_poses() -> list[list[float]]:
     return poses
 
 
-def _reference(out: Path, start_poses: list[list[float]]) -> None:
+def _reference(out: Path, start_poses: list[list[float]], *, source: str = f"synthetic:{FRAMES}",
+               windows: tuple[tuple[int, int], ...] = ((0, HALF), (HALF, FRAMES)),
+               shifts: tuple[float, ...] = SHIFT_S) -> None:
     """The map built from both inputs on one host, in one process, without mapper/fleet.py."""
     from mapper.config import make_mapper
     from octolog.geometry import pose_to_matrix
     from octolog.metrics import write_tum
-    from replay.sources import SyntheticSource
+    from replay.sources import open_source
     from schemas import codec
     from tracker.config import TrackerConfig, make_odometry
 
-    source = SyntheticSource(FRAMES)
+    src = open_source(source)
     keyframes = []  # (stamp, robot index, robot keyframe id, robot_from_camera, frame)
-    for r, (start, end) in enumerate(((0, HALF), (HALF, FRAMES))):
+    for r, (start, end) in enumerate(windows):
         odometry = make_odometry(TrackerConfig())
-        for frame in source.frames(start, end):
-            frame = dataclasses.replace(frame, stamp_ns=frame.stamp_ns + round(SHIFT_S[r] * 1e9))
+        for frame in src.frames(start, end):
+            frame = dataclasses.replace(frame, stamp_ns=frame.stamp_ns + round(shifts[r] * 1e9))
             res = odometry.track(frame)
             if res.is_keyframe:
                 # the pose as a Keyframe message carries it (position + quaternion)
@@ -152,7 +154,9 @@ def _start(log: Path | None, *args: str) -> subprocess.Popen:
                             stdout=open(log, "w") if log else subprocess.PIPE, stderr=subprocess.STDOUT)
 
 
-def run_fleet(out: Path, start_poses: list[list[float]], *, rerun: str = "off") -> dict[str, str]:
+def run_fleet(out: Path, start_poses: list[list[float]], *, rerun: str = "off", source: str = f"synthetic:{FRAMES}",
+              windows: tuple[tuple[int, int], ...] = ((0, HALF), (HALF, FRAMES)),
+              shifts: tuple[float, ...] = SHIFT_S) -> dict[str, str]:
     """Router, mapper for r1+r2, and per robot a tracker and a replay: six processes over Zenoh."""
     out.mkdir(parents=True)
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
@@ -163,11 +167,11 @@ def run_fleet(out: Path, start_poses: list[list[float]], *, rerun: str = "off") 
         procs["mapper"] = _start(out / "mapper.log", "map", *bus, "--out", str(out), "--rerun", rerun,
                                  "--recording-id", "fleet", "--set", 'robots=["r1", "r2"]',
                                  "--set", f"start_poses={poses}")
-        for robot, window, shift in zip(ROBOTS, (("end", HALF), ("start", HALF)), SHIFT_S):
+        for robot, (start, end), shift in zip(ROBOTS, windows, shifts):
             ns = ["--namespace", robot]
             procs[f"tracker-{robot}"] = _start(out / f"tracker-{robot}.log", "track", *bus, *ns)
             procs[f"replay-{robot}"] = _start(out / f"replay-{robot}.log", "replay", *bus, *ns, "--quiet",
-                                              "--source", f"synthetic:{FRAMES}", "--set", f"{window[0]}={window[1]}",
+                                              "--source", source, "--set", f"start={start}", "--set", f"end={end}",
                                               "--set", f"time_shift_s={shift!r}",
                                               "--set", 'wait_for=["tracker", "mapper"]')
         for name in ("replay-r1", "replay-r2", "tracker-r1", "tracker-r2", "mapper"):
@@ -240,3 +244,44 @@ def test_rerun_has_a_trajectory_per_robot(fleet):
     text = proc.stdout + proc.stderr
     for robot in ROBOTS:
         assert f"/world/{robot}/trajectory" in text, text[-2000:]
+
+
+# --- real data: the two halves of TUM fr1/xyz first300 --------------------------------------------------
+
+
+def test_two_halves_of_a_tum_sequence_fuse_like_on_one_host(tmp_path):
+    """Two robots on real frames: r1 the first half, r2 the second, shifted to run alongside; r2's
+    start pose from the TUM ground truth. Byte-identical to the in-process reference, and each
+    robot's keyframes near the ground truth in the common world."""
+    from octolog.geometry import invert, matrix_to_pose
+    from octolog.metrics import associate, parse_tum, read_tum
+    from replay.sources import open_source
+
+    source = f"tum:{tum_first300()}"
+    src = open_source(source)
+    n = len(src)
+    windows = ((0, n // 2), (n // 2, n))
+    stamps = [f.stamp_ns for f in src.frames(0, n)]
+    shifts = (0.0, -round((stamps[n // 2] - stamps[0]) * 1e-9, 2) + 0.01)
+    gt = parse_tum(src.groundtruth_tum() or "", "groundtruth")
+
+    def gt_pose(stamp: int) -> np.ndarray:
+        _, ig = associate(np.array([stamp]), gt.stamps_ns)
+        return gt.matrices()[ig[0]]
+
+    world_from_first = gt_pose(stamps[0])
+    start_poses = []
+    for start, _ in windows:
+        t, q = matrix_to_pose(invert(world_from_first) @ gt_pose(stamps[start]))
+        start_poses.append([float(x) for x in (*t, *q)])
+    kw = {"source": source, "windows": windows, "shifts": shifts}
+    _reference(tmp_path / "reference", start_poses, **kw)
+    run_fleet(tmp_path / "processes", start_poses, **kw)
+    for name in ("map.bt", "map.ot", "cloud.ply", "keyframes_r1.txt", "keyframes_r2.txt"):
+        assert (tmp_path / "processes" / name).read_bytes() == (tmp_path / "reference" / name).read_bytes(), name
+    r1, r2 = (read_tum(tmp_path / "processes" / f"keyframes_{r}.txt") for r in ROBOTS)
+    assert r2.stamps_ns[0] < r1.stamps_ns[-1]  # interleaved
+    for traj, shift in ((r1, shifts[0]), (r2, shifts[1])):
+        for stamp, p in zip(traj.stamps_ns, traj.positions):
+            truth = (invert(world_from_first) @ gt_pose(int(stamp) - round(shift * 1e9)))[:3, 3]
+            assert np.linalg.norm(p - truth) < 0.05, (stamp, p, truth)
