@@ -208,3 +208,11 @@ def test_bad_parameters_and_files_are_input_errors(tmp_path):
     hello.write_text("hello\n")
     with pytest.raises(InputError, match="not a DBoW2"):
         vocab.check_header(hello)
+    # ORB-SLAM3 loads a truncated file without complaint: the cheap check looks at the end too
+    rng = np.random.default_rng(0)
+    good = vocab.train([rng.integers(0, 256, (200, 32), dtype=np.uint8)], k=4, levels=2).save(tmp_path / "v.txt")
+    vocab.check_header(good)
+    cut = tmp_path / "cut.txt"
+    cut.write_bytes(good.read_bytes()[:-30])
+    with pytest.raises(InputError, match="truncated"):
+        vocab.check_header(cut)

@@ -203,11 +203,14 @@ def load(path: str | os.PathLike[str]) -> Vocabulary:
 
 
 def check_header(path: str | os.PathLike[str]) -> None:
-    """Cheap check that a file starts like a DBoW2 text vocabulary (ORB-SLAM3 exits the process
-    on a file it cannot load, so we look first)."""
+    """Cheap check that a file starts and ends like a DBoW2 text vocabulary, without parsing it all:
+    ORB-SLAM3 exits the process on a header it cannot read, and silently loads a truncated file."""
     try:
         with open(path, "rb") as f:
             first = f.readline(256).decode("ascii", "replace")
+            size = f.seek(0, os.SEEK_END)
+            f.seek(max(0, size - 1024))
+            tail = f.read().decode("ascii", "replace")
     except OSError as exc:
         raise InputError(f"vocabulary {path}: cannot read it ({exc.strerror or exc})") from None
     parts = first.split()
@@ -218,6 +221,10 @@ def check_header(path: str | os.PathLike[str]) -> None:
     if not ok:
         raise InputError(f"vocabulary {path}: not a DBoW2 text vocabulary (first line {first.strip()[:40]!r}, "
                          "want 'k L scoring weighting'); build one with `octolog vocab build`")
+    lines = tail.strip().split("\n")
+    if len(lines) < 2 or len(lines[-1].split()) != DESCRIPTOR_BYTES + 3:
+        raise InputError(f"vocabulary {path}: the last line is not a whole node "
+                         "('parent is_leaf d0..d31 weight'): a truncated file?")
 
 
 # ----------------------------------------------------------------------------------------------
