@@ -94,6 +94,20 @@ def test_tracks_tum_first100_with_a_vocabulary_built_from_its_images(tmp_path):
 
 
 @needs_orbslam3
+def test_inconsistent_frames_are_tracking_errors(scene, synthetic_vocabulary):
+    import dataclasses
+
+    _, frames = scene
+    with make_odometry(TrackerConfig(backend="orbslam3", vocabulary=str(synthetic_vocabulary))) as odom:
+        with pytest.raises(TrackingError, match="640x480"):
+            odom.track(dataclasses.replace(frames[0], depth=frames[0].depth[:100]))
+        assert odom.track(frames[0]).state == "OK"
+        other = dataclasses.replace(frames[1].intrinsics, fx=600.0)
+        with pytest.raises(TrackingError, match="intrinsics"):
+            odom.track(dataclasses.replace(frames[1], intrinsics=other))
+
+
+@needs_orbslam3
 def test_the_pipeline_runs_the_orbslam3_backend(synthetic_vocabulary, tmp_path):
     out = tmp_path / "session"
     octolog("run", "--source", f"synthetic:{N_FRAMES}", "--out", str(out), "--quiet", "--rerun", "off",

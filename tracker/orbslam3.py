@@ -147,10 +147,10 @@ class OrbSlam3Odometry:
         """Write the settings for this camera and start ORB-SLAM3 (loads the vocabulary: seconds)."""
         if self.closed:
             raise TrackingError("ORB-SLAM3 backend already closed")
+        text = settings_yaml(frame.intrinsics, frame.depth_scale_m, n_features=self._n_features, fps=self._fps)
         self._dir = Path(tempfile.mkdtemp(prefix="octolog-orbslam3-"))
         settings = self._dir / "settings.yaml"
-        settings.write_text(settings_yaml(frame.intrinsics, frame.depth_scale_m, n_features=self._n_features,
-                                          fps=self._fps))
+        settings.write_text(text)
         try:
             self._slam = self._pos.Slam(str(self.vocabulary), str(settings), self._pos.Sensor.RGBD, use_viewer=False)
         except Exception as exc:  # the binding raises RuntimeError/ValueError naming the problem
@@ -168,9 +168,10 @@ class OrbSlam3Odometry:
         if self.closed:
             raise TrackingError("ORB-SLAM3 backend already closed")
         rgb, depth = frame.rgb, frame.depth
-        if rgb.dtype != np.uint8 or depth.shape != rgb.shape[:2]:
-            raise TrackingError(f"frame {frame.seq}: want uint8 colour and depth of the same size, got "
-                                f"{rgb.dtype} {rgb.shape} and {depth.shape}")
+        intr = frame.intrinsics
+        if rgb.dtype != np.uint8 or rgb.shape[:2] != depth.shape or depth.shape != (intr.height, intr.width):
+            raise TrackingError(f"frame {frame.seq}: want uint8 colour and depth of the intrinsics' "
+                                f"{intr.width}x{intr.height}, got {rgb.dtype} {rgb.shape} and {depth.shape}")
         try:
             r = self._slam.track_rgbd(np.ascontiguousarray(rgb), depth.astype(np.float32), frame.stamp_ns * 1e-9)
         except (RuntimeError, ValueError) as exc:
