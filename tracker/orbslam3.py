@@ -17,7 +17,6 @@ this backend is outside the determinism contract (GPL-3.0, see docs/dependencies
 
 from __future__ import annotations
 
-import atexit
 import math
 import os
 import shutil
@@ -33,14 +32,16 @@ from tracker.odometry import STATE_INIT, STATE_LOST, STATE_OK, TrackResult, rota
 
 VOCABULARY_ENV = "OCTOLOG_ORB_VOCABULARY"
 
-_open: weakref.WeakSet[OrbSlam3Odometry] = weakref.WeakSet()
 
-
-@atexit.register
-def _shutdown_all() -> None:
-    # ORB-SLAM3's mapping threads must stop before the interpreter tears down
-    for odom in list(_open):
-        odom.close()
+def _release(slam, folder: Path) -> None:
+    """Stop ORB-SLAM3's threads and remove its settings folder: run by `close()`, or when an
+    unclosed backend is garbage-collected or the interpreter exits (the tracker node never closes
+    its odometry)."""
+    try:
+        if not slam.is_shutdown():
+            slam.shutdown()
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 def import_pyorbslam3():
@@ -129,6 +130,7 @@ class OrbSlam3Odometry:
         self._kf_rot = math.radians(kf_rotation_deg)
         self._slam = None
         self._dir: Path | None = None
+        self._finalizer: weakref.finalize | None = None
         self._intrinsics: Intrinsics | None = None
         self._depth_scale = 0.0
         self._last_pose = np.eye(4)
@@ -158,7 +160,7 @@ class OrbSlam3Odometry:
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else repr(exc)
             raise TrackingError(f"ORB-SLAM3 did not start: {first}") from None
         self._intrinsics, self._depth_scale = frame.intrinsics, frame.depth_scale_m
-        _open.add(self)
+        self._finalizer = weakref.finalize(self, _release, self._slam, self._dir)
 
     def track(self, frame: RgbdFrame) -> TrackResult:
         if self._slam is None:
@@ -202,9 +204,11 @@ class OrbSlam3Odometry:
         if self.closed:
             return
         self.closed = True
-        _open.discard(self)
-        if self._slam is not None:
-            assert self._dir is not None
+        if self._slam is None:
+            return
+        assert self._dir is not None and self._finalizer is not None
+        self._finalizer.detach()
+        try:
             self._slam.shutdown()
             kf_file, traj_file = self._dir / "keyframes.txt", self._dir / "trajectory.txt"
             try:
@@ -214,9 +218,9 @@ class OrbSlam3Odometry:
                 self.final_trajectory_tum = traj_file.read_text()
             except (OSError, RuntimeError):
                 pass  # the figures stay None: nothing was tracked
+        finally:
+            _release(self._slam, self._dir)
             self._slam = None
-        if self._dir is not None:
-            shutil.rmtree(self._dir, ignore_errors=True)
 
     def __enter__(self) -> OrbSlam3Odometry:
         return self
