@@ -204,7 +204,7 @@ class Bus:
         # recovery (history > 0): per key, per publisher id, the delivery state
         self._streams: dict[str, dict[bytes, _Stream]] = {}
         self._recovered: dict[str, Topic] = {}  # key -> topic, for every subscribed key
-        self._state = threading.Condition()  # guards _streams, _due; wakes the recovery thread
+        self._state = threading.Condition(threading.Lock())  # guards _streams, _due; wakes the recovery thread
         self._due: set[str] = set()  # keys to ask the histories about now
         self._deliver = threading.Lock()  # one deliverer at a time keeps each stream in order
         self._last_put = time.monotonic()

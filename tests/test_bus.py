@@ -186,3 +186,25 @@ def test_samples_older_than_the_history_are_reported_lost(endpoints):
         p.put(codec.stream_end_msg("x", 6))  # the history keeps 5 and 6 only
         with pytest.raises(StageError, match="4 samples on t/test/numbered were lost for good"):
             _numbers(sub, 6)
+
+
+def test_a_producer_lingers_until_its_consumer_is_done(endpoints):
+    server, client = endpoints
+    with Bus(server, "tracker") as prod:
+        prod.watch(["mapper"], required=False)
+        assert prod.linger("mapper") is False  # no mapper ever: nothing to wait for
+        with Bus(client, "mapper") as cons:
+            cons.announce()
+            prod.wait_for(["mapper"], timeout_s=20)
+        assert prod.linger("mapper") is True  # it said it finished
+
+
+def test_a_producer_stops_lingering_for_a_consumer_that_died(endpoints):
+    server, client = endpoints
+    with Bus(dataclasses.replace(server, peer_timeout_s=1.0), "tracker") as prod:
+        prod.watch(["mapper"], required=False)
+        with pytest.raises(RuntimeError), Bus(client, "mapper") as cons:
+            cons.announce()
+            prod.wait_for(["mapper"], timeout_s=20)
+            raise RuntimeError("the mapper crashed")  # leaves without saying it is done
+        assert prod.linger("mapper") is False  # gone for peer_timeout_s: given up
