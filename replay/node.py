@@ -143,7 +143,9 @@ def play_tracker_log(cfg: ReplayConfig, bus_cfg: BusConfig) -> ReplayResult:
         pubs = {t.name: bus.publisher(remapped(t, cfg.remap)) for t in (kf_topic, KEYFRAME_POSES)}
         end_pub = bus.publisher(remapped(KEYFRAME_END, cfg.remap))
         bus.start([], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
+        bus.watch(["mapper"], required=False)  # as the tracker: keyframes stay until the mapper is done
         for m in read_messages(path, list(pubs)):
             pubs[m.topic].put_raw(m.data)
         end_pub.put(codec.stream_end_msg(kf_topic.name, pubs[kf_topic.name].count))
+        bus.linger("mapper")
     return ReplayResult(pubs[kf_topic.name].count, time.monotonic() - t0, 0.0)
