@@ -132,6 +132,7 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
     n = len(cfg.robots)
     expected: list[int | None] = [None] * n
     received = [0] * n
+    expected_poses, received_poses = [0] * n, [0] * n
     map_id: list[dict[int, int]] = [{} for _ in range(n)]  # robot keyframe id -> map-wide id
     trajectories: list[list[tuple[int, int]]] = [[] for _ in range(n)]  # (stamp, map-wide id)
     result = MapperResult()
@@ -150,16 +151,22 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
                     rb.check_peers()
                 continue
             if r.topic == KEYFRAME_END:
-                expected[i] = int(r.decode().count)
-                robot_buses[i].expect_count(KEYFRAME, received[i], expected[i])
-                robot_buses[i].unwatch("tracker")
+                end = r.decode()
+                if end.topic == KEYFRAME_POSES.name:  # corrections end before keyframes, on one publisher
+                    expected_poses[i] = int(end.count)
+                else:
+                    expected[i] = int(end.count)
+                    robot_buses[i].expect_count(KEYFRAME, received[i], expected[i])
+                    robot_buses[i].unwatch("tracker")
             elif r.topic == KEYFRAME_POSES:
+                received_poses[i] += 1
                 merge.push(i, CorrectionItem(r.decode()))
             else:
                 received[i] += 1
                 msg = r.decode()
                 merge.push(i, KeyframeItem(codec.stamp_ns(msg.header), int(msg.id), msg))
-            if expected[i] is not None and received[i] >= expected[i] and not merge.has_items(i):
+            if expected[i] is not None and received[i] >= expected[i] and received_poses[i] >= expected_poses[i] \
+                    and not merge.has_items(i):
                 merge.end(i)
             continue
         i, item = nxt
@@ -248,14 +255,21 @@ def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: Pu
     result = MapperResult()
     expected: int | None = None
     received = 0
-    while expected is None or received < expected:
+    # the tracker ends its corrections (keyframe_poses) before its keyframes, on one publisher
+    expected_poses, received_poses = 0, 0
+    while expected is None or received < expected or received_poses < expected_poses:
         r = bus.receive()
         if r is None:
             if expected is not None:
                 bus.expect_count(KEYFRAME, received, expected)
+                bus.expect_count(KEYFRAME_POSES, received_poses, expected_poses)
             continue
         if r.topic == KEYFRAME_END:
-            expected = int(r.decode().count)
+            end = r.decode()
+            if end.topic == KEYFRAME_POSES.name:
+                expected_poses = int(end.count)
+                continue
+            expected = int(end.count)
             bus.expect_count(KEYFRAME, received, expected)
             bus.unwatch("tracker")
             continue
@@ -267,6 +281,7 @@ def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: Pu
             r.reply(codec.msgtype(MAP_SAVE.msgtype)(data=json.dumps(files, sort_keys=True)), MAP_SAVE)
             continue
         if r.topic == KEYFRAME_POSES:
+            received_poses += 1
             try:
                 result.corrections += mapper.correct(codec.keyframe_poses_from_msg(r.decode()))
             except InputError as exc:  # the whole correction is refused; the map is unchanged

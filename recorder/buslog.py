@@ -20,7 +20,8 @@ from schemas import topics as T
 # raw or compressed, else the first)
 ENDS = {
     T.RGBD_END: ("replay", (T.RGBD, T.RGBD_COMPRESSED)),
-    T.KEYFRAME_END: ("tracker", (T.KEYFRAME, T.KEYFRAME_COMPRESSED)),
+    # the tracker ends its keyframe_poses first, then its keyframes
+    T.KEYFRAME_END: ("tracker", (T.KEYFRAME, T.KEYFRAME_COMPRESSED, T.KEYFRAME_POSES)),
     T.MAP_END: ("mapper", (T.MAP_UPDATE,)),
 }
 
@@ -57,10 +58,12 @@ def run(bus_cfg: BusConfig, out: Path, *, compression: str = "zstd", metadata: d
                 topic = next((t for t in closes if t.name == end.topic), closes[0])
                 announced[topic.name] = int(end.count)
                 bus.expect_count(topic, result.counts.get(topic.name, 0), announced[topic.name])
+                if topic is T.KEYFRAME_POSES:
+                    continue  # the tracker's keyframe end follows
                 bus.unwatch(stage)
                 pending.discard(stage)
                 frames = [announced[t.name] for t in ENDS[T.RGBD_END][1] if t.name in announced]
-                kfs = [t for t in ENDS[T.KEYFRAME_END][1] if t.name in announced]
+                kfs = [t for t in (T.KEYFRAME, T.KEYFRAME_COMPRESSED) if t.name in announced]
                 if {"replay", "tracker"} <= set(stages) and frames and kfs:
                     announced[T.TRACKING_STATUS.name] = frames[0]  # one per frame consumed
     return result

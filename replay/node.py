@@ -146,6 +146,7 @@ def play_tracker_log(cfg: ReplayConfig, bus_cfg: BusConfig) -> ReplayResult:
         bus.watch(["mapper"], required=False)  # as the tracker: keyframes stay until the mapper is done
         for m in read_messages(path, list(pubs)):
             pubs[m.topic].put_raw(m.data)
+        end_pub.put(codec.stream_end_msg(KEYFRAME_POSES.name, pubs[KEYFRAME_POSES.name].count))
         end_pub.put(codec.stream_end_msg(kf_topic.name, pubs[kf_topic.name].count))
         bus.linger("mapper")
     return ReplayResult(pubs[kf_topic.name].count, time.monotonic() - t0, 0.0)

@@ -26,6 +26,15 @@ class TrackerConfig:
     wire_compression: str = ""
     # "native" (ours, deterministic) or "orbslam3" (pyorbslam3, an extra: for comparison)
     backend: str = "native"
+    # native back end: local bundle adjustment over the newest `ba_window` keyframes, loop closing
+    # (place recognition + pose graph), relocalisation after tracking loss. `background` runs the
+    # back end on a worker thread; results are applied at the next keyframe either way, so the
+    # outputs are byte-identical with it on or off.
+    local_ba: bool = True
+    ba_window: int = 5
+    loop_closing: bool = True
+    relocalise: bool = True
+    background: bool = True
     # orbslam3: DBoW2 text vocabulary (`octolog vocab build`); empty: $OCTOLOG_ORB_VOCABULARY
     vocabulary: str = ""
 
@@ -34,6 +43,8 @@ class TrackerConfig:
             raise ConfigError(f"tracker.backend {self.backend!r}: want one of {', '.join(BACKENDS)}")
         if self.throttle_ms < 0:
             raise ConfigError(f"tracker.throttle_ms {self.throttle_ms}: want >= 0")
+        if self.ba_window < 1:
+            raise ConfigError(f"tracker.ba_window {self.ba_window}: want >= 1")
         if self.n_features < 100:
             raise ConfigError(f"tracker.n_features {self.n_features}: want >= 100")
         from schemas.codec import parse_wire_compression
@@ -51,4 +62,5 @@ def make_odometry(cfg: TrackerConfig):  # -> RgbdOdometry | OrbSlam3Odometry
         return OrbSlam3Odometry(cfg.vocabulary, n_features=cfg.n_features)
     from tracker.odometry import RgbdOdometry
 
-    return RgbdOdometry(n_features=cfg.n_features)
+    return RgbdOdometry(n_features=cfg.n_features, local_ba=cfg.local_ba, ba_window=cfg.ba_window,
+                        loop_closing=cfg.loop_closing, relocalise=cfg.relocalise, background=cfg.background)

@@ -13,7 +13,8 @@ from octolog.errors import InputError
 from octolog.viz import Viz
 from schemas import codec
 from schemas.topics import (
-    KEYFRAME, KEYFRAME_COMPRESSED, KEYFRAME_END, POSE, RGBD, RGBD_COMPRESSED, RGBD_END, TRACKING_STATUS,
+    KEYFRAME, KEYFRAME_COMPRESSED, KEYFRAME_END, KEYFRAME_POSES, POSE, RGBD, RGBD_COMPRESSED, RGBD_END,
+    TRACKING_STATUS,
 )
 from tracker.config import TrackerConfig, make_odometry
 
@@ -28,6 +29,9 @@ class TrackerResult:
     skipped: int = 0  # live mode: not processed, a newer frame was waiting
     rejected: int = 0  # undecodable or inconsistent frames
     keyframes: int = 0
+    loops: int = 0
+    relocalisations: int = 0
+    corrections: int = 0  # keyframe_poses messages published
     stamps_ns: list[int] = field(default_factory=list)
     poses: list[np.ndarray] = field(default_factory=list)
     ms: list[float] = field(default_factory=list)
@@ -41,7 +45,12 @@ def run(cfg: TrackerConfig, bus_cfg: BusConfig, *, trajectory: Path | None = Non
     if trajectory is not None:
         from octolog.metrics import write_tum
 
-        write_tum(trajectory, result.stamps_ns, result.poses)
+        if hasattr(odometry, "trajectory"):
+            # every tracked frame through the final pose of its keyframe: what BA and loop
+            # closing corrected reaches the whole trajectory (LOST frames have no pose to give)
+            write_tum(trajectory, *odometry.trajectory())
+        else:
+            write_tum(trajectory, result.stamps_ns, result.poses)
     return result
 
 
@@ -50,6 +59,7 @@ def track(odometry, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerResult:
     wire = codec.parse_wire_compression(cfg.wire_compression)
     pub_kf = bus.publisher(KEYFRAME if wire is None else KEYFRAME_COMPRESSED)
     pub_kf_end = bus.publisher(KEYFRAME_END)
+    pub_poses = bus.publisher(KEYFRAME_POSES)
     # frames come raw or compressed, whichever the source publishes; decoding is the same call
     bus.start([RGBD, RGBD_COMPRESSED, RGBD_END], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
     bus.watch(["replay"])
@@ -99,6 +109,10 @@ def track(odometry, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerResult:
         result.tracked += res.state == "OK"
         result.lost += res.state == "LOST"
         pub_pose.put(codec.pose_stamped_msg(res.world_from_camera, frame.stamp_ns))
+        if res.corrected:  # a loop closed: the mapper moves those keyframes
+            pub_poses.put(codec.keyframe_poses_msg(res.corrected, frame.stamp_ns))
+        result.loops += res.loop is not None
+        result.relocalisations += res.relocalised
         if res.is_keyframe:
             pub_kf.put(codec.keyframe_msg(res.keyframe_id, res.world_from_camera, frame) if wire is None else
                        codec.compressed_keyframe_msg(res.keyframe_id, res.world_from_camera, frame, wire))
@@ -107,6 +121,13 @@ def track(odometry, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerResult:
                                res.n_matches, res.n_inliers, ms))
         if viz.enabled:
             _log(viz, frame, res, result)
+    if hasattr(odometry, "finish"):
+        # the back end's last word: every keyframe at its final pose, so the map matches the
+        # trajectory. Sent before the end messages, whose count for it the mapper waits for.
+        moved = odometry.finish()
+        if moved:
+            pub_poses.put(codec.keyframe_poses_msg(odometry.keyframe_poses(), result.stamps_ns[-1]))
+    pub_kf_end.put(codec.stream_end_msg(KEYFRAME_POSES.name, pub_poses.count))
     pub_kf_end.put(codec.stream_end_msg(pub_kf.topic.name, pub_kf.count))
     bus.linger("mapper")
     return result
@@ -132,3 +153,10 @@ def _log(viz: Viz, frame, res, result: TrackerResult) -> None:
         viz.points3d("world/tracker/keyframes", np.array([res.world_from_camera[:3, 3]]), [0, 200, 255],
                      radius=0.02)
         viz.text("tracker/events", f"keyframe {res.keyframe_id} at frame {frame.seq}")
+    if res.loop is not None:
+        viz.text("tracker/events", f"loop closed: keyframe {res.loop[0]} with keyframe {res.loop[1]}, "
+                                   f"{len(res.corrected)} keyframes moved")
+        viz.points3d("world/tracker/keyframes", np.array([T[:3, 3] for _, T in sorted(res.corrected.items())]),
+                     [0, 200, 255], radius=0.02)
+    if res.relocalised:
+        viz.text("tracker/events", f"relocalised at frame {frame.seq}")

@@ -334,10 +334,10 @@ class RgbdOdometry:
         loop_min_gap: int = 10,
         loop_min_votes: int = 40,
         loop_min_inliers: int = 40,
-        loop_min_correction_m: float = 0.01,
-        loop_min_correction_deg: float = 0.5,
-        loop_max_correction_m: float = 0.5,
-        loop_max_correction_deg: float = 10.0,
+        loop_min_correction_m: float = 0.02,
+        loop_min_correction_deg: float = 1.0,
+        loop_max_correction_m: float = 2.0,
+        loop_max_correction_deg: float = 45.0,
         relocalise: bool = True,
         background: bool = False,
         inject_drift_deg: float = 0.0,
@@ -411,6 +411,7 @@ class RgbdOdometry:
         self._backend_moved = False
         self._loop_edges: list[tuple[int, int, np.ndarray]] = []
         self._last_loop_kf = -(10**9)
+        self._loop_candidate: tuple[int, np.ndarray | None] = (-1, None)
         # per tracked frame: (stamp, reference keyframe id, reference_from_camera)
         self._frames: list[tuple[int, int, np.ndarray]] = []
         self.loops: list[tuple[int, int]] = []  # (new, old) keyframe ids of closed loops
@@ -863,6 +864,7 @@ class RgbdOdometry:
         for name in ("_last_pose", "_last_tracked_pose"):
             if getattr(self, name) is not None:
                 setattr(self, name, delta @ getattr(self, name))
+        self._loop_candidate = (res.kf_id, res.candidate) if res.candidate is not None else (-1, None)
         if res.loop is None:
             return {}, None, delta @ pose
         self._loop_edges.append(res.loop_edge)
@@ -936,6 +938,8 @@ class RgbdOdometry:
             min_votes=self._loop_votes, min_inliers=self._loop_inliers, min_m=self._loop_min_m,
             min_rad=self._loop_min_rad, max_m=self._loop_max_m, max_rad=self._loop_max_rad,
             refine=self._refine_args(),
+            previous_candidate=self._loop_candidate[1] if self._loop_candidate[0] == new.id - 1 else None,
+            consistency_m=0.03, consistency_rad=math.radians(1.0),
         )
 
 
@@ -960,6 +964,9 @@ class _BackendJob:
     min_rad: float
     max_m: float
     max_rad: float
+    previous_candidate: np.ndarray | None
+    consistency_m: float
+    consistency_rad: float
     refine: tuple[np.ndarray, float, float]
 
 
@@ -971,6 +978,7 @@ class _BackendResult:
     points: np.ndarray
     loop: tuple[int, int] | None = None
     loop_edge: tuple[int, int, np.ndarray] | None = None
+    candidate: np.ndarray | None = None  # world correction asked by an unconfirmed loop
 
 
 def _run_backend(job: _BackendJob) -> _BackendResult:
@@ -1010,6 +1018,18 @@ def _run_backend(job: _BackendJob) -> _BackendResult:
         return _BackendResult(job.kf_id, moved, point_ids, points)  # the map already agrees
     if err_m > job.max_m or err_rad > job.max_rad:
         return _BackendResult(job.kf_id, moved, point_ids, points)  # more than drift can explain
+    # The correction this loop asks for, as a world-frame transform. A loop is closed only when
+    # two consecutive keyframes ask for the same correction (as ORB-SLAM demands consistent
+    # candidates): a single look-alike place cannot bend the map.
+    C = poses[old] @ measured @ invert(poses[new])
+    prev = job.previous_candidate
+    if prev is None:
+        return _BackendResult(job.kf_id, moved, point_ids, points, candidate=C)
+    here = poses[new][:3, 3]
+    d = invert(prev) @ C
+    if float(np.linalg.norm(C[:3, :3] @ here + C[:3, 3] - (prev[:3, :3] @ here + prev[:3, 3]))) > job.consistency_m \
+            or rotation_angle(d[:3, :3]) > job.consistency_rad:
+        return _BackendResult(job.kf_id, moved, point_ids, points, candidate=C)
     rel = lambda i, j: invert(poses[i]) @ poses[j]  # noqa: E731
     edges = [(i - 1, i, rel(i - 1, i), 1.0) for i in range(1, len(poses))]
     edges += [(j, i, rel(j, i), 1.0) for i, j in job.covis]

@@ -1,0 +1,240 @@
+"""The tracker's SLAM back end: bundle adjustment, pose graph, place recognition, relocalisation,
+loop closing and determinism with the back end on a worker thread.
+
+Pieces are tested alone on synthetic data with known truth; the whole tracker on the synthetic room
+(replay/synthetic.py), whose ground truth is exact.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+
+import numpy as np
+import pytest
+
+from octolog import metrics
+from octolog.geometry import invert
+from replay.synthetic import SyntheticScene
+from tracker.odometry import RgbdOdometry, optimize_pose, so3_exp
+from tracker.optimize import BundleProblem, bundle_adjust, optimize_pose_graph
+from tracker.places import rigid_ransac, verify, vote
+
+K = (500.0, 500.0, 320.0, 240.0)
+KM = np.array([[K[0], 0, K[2]], [0, K[1], K[3]], [0, 0, 1.0]])
+
+
+def _pose(rotvec, t) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = so3_exp(np.asarray(rotvec, float))
+    T[:3, 3] = t
+    return T
+
+
+def _project(T_wc: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    p = X @ T_wc[:3, :3] + (-T_wc[:3, :3].T @ T_wc[:3, 3])  # camera_from_world applied
+    return np.stack([K[0] * p[:, 0] / p[:, 2] + K[2], K[1] * p[:, 1] / p[:, 2] + K[3]], axis=1), p[:, 2]
+
+
+# ---------------------------------------------------------------------------------------- pieces
+
+
+def test_bundle_adjustment_converges_and_rejects_outliers() -> None:
+    rng = np.random.default_rng(1)
+    truth = [_pose([0, 0.02 * i, 0], [0.1 * i, 0.01 * i, 0]) for i in range(5)]
+    X = rng.uniform([-1.5, -1, 2], [1.5, 1, 4], (300, 3))
+    kf, pt, uv, z = [], [], [], []
+    for i, T in enumerate(truth):
+        u, d = _project(T, X)
+        kf += [i] * len(X)
+        pt += list(range(len(X)))
+        uv.append(u + rng.normal(0, 0.3, u.shape))
+        z.append(d)
+    uv, z = np.concatenate(uv), np.concatenate(z)
+    outliers = rng.choice(len(uv), 40, replace=False)
+    uv[outliers] += rng.uniform(30, 60, (40, 2))
+    start = [truth[0], truth[1]] + [T @ _pose(rng.normal(0, 0.01, 3), rng.normal(0, 0.02, 3)) for T in truth[2:]]
+    problem = BundleProblem(
+        poses_wc=np.stack(start), fixed=np.array([True, True, False, False, False]),
+        points=X + rng.normal(0, 0.02, X.shape), obs_kf=np.array(kf), obs_pt=np.array(pt), obs_uv=uv, obs_z=z,
+        obs_sigma=np.ones(len(uv)), K=K, bf=40.0)
+    res = bundle_adjust(problem, iterations=10)
+    before = max(np.linalg.norm(start[i][:3, 3] - truth[i][:3, 3]) for i in range(2, 5))
+    after = max(np.linalg.norm(res.poses_wc[i][:3, 3] - truth[i][:3, 3]) for i in range(2, 5))
+    assert before > 0.01 and after < 0.002, (before, after)
+    np.testing.assert_array_equal(res.poses_wc[:2], problem.poses_wc[:2])  # fixed ones do not move
+    assert not res.inliers[outliers].any()  # every corrupted observation is flagged
+    assert res.inliers.sum() >= len(uv) - len(outliers) - 5
+    assert res.error_after < res.error_before
+
+
+def test_pose_graph_spreads_a_loop_error_over_the_chain() -> None:
+    # a square of 20 poses whose odometry has a constant yaw bias; the loop edge says "back at start"
+    n = 20
+    truth = [_pose([0, 0, 2 * np.pi * i / n], [np.cos(2 * np.pi * i / n), np.sin(2 * np.pi * i / n), 0])
+             for i in range(n)]
+    bias = _pose([0, 0, 0.01], [0, 0, 0])
+    est = [truth[0]]
+    for i in range(1, n):
+        est.append(est[-1] @ invert(truth[i - 1]) @ truth[i] @ bias)
+    edges = [(i - 1, i, invert(est[i - 1]) @ est[i], 1.0) for i in range(1, n)]
+    edges.append((0, n - 1, invert(truth[0]) @ truth[n - 1], 1.0))  # the verified loop
+    out = optimize_pose_graph(np.stack(est), edges)
+    err = lambda P: np.sqrt(np.mean([np.sum((P[i][:3, 3] - truth[i][:3, 3]) ** 2) for i in range(n)]))  # noqa: E731
+    assert err(out) < err(est) / 3, (err(est), err(out))
+    np.testing.assert_array_equal(out[0], est[0])
+
+
+def test_pnp_refinement_with_a_third_outliers() -> None:
+    rng = np.random.default_rng(2)
+    T_true = _pose([0.05, -0.1, 0.02], [0.2, -0.1, 0.05])
+    X = rng.uniform([-2, -1.5, 2], [2, 1.5, 5], (200, 3))
+    uv, z = _project(T_true, X)
+    uv += rng.normal(0, 0.5, uv.shape)
+    bad = rng.choice(200, 66, replace=False)
+    uv[bad] = rng.uniform([0, 0], [640, 480], (66, 2))
+    T_cw, inl = optimize_pose(invert(T_true @ _pose([0.02, 0.02, 0], [0.05, 0.03, 0.02])), X, uv, np.ones(200), z, KM,
+                              inv_depth_sigma=0.03)
+    assert np.linalg.norm(invert(T_cw)[:3, 3] - T_true[:3, 3]) < 0.005
+    assert inl[bad].sum() <= 3 and inl.sum() >= 125
+
+
+def test_rigid_ransac_finds_the_transform_among_outliers() -> None:
+    rng = np.random.default_rng(3)
+    T = _pose([0.1, -0.3, 0.2], [0.5, 0.1, -0.2])
+    src = rng.uniform(-1, 1, (100, 3)) + [0, 0, 2]
+    dst = src @ T[:3, :3].T + T[:3, 3]
+    dst[:40] += rng.uniform(0.3, 1.0, (40, 3))
+    est, inl = rigid_ransac(src, dst, threshold_m=0.01)
+    assert inl[40:].all() and not inl[:40].any()
+    np.testing.assert_allclose(est, T, atol=1e-9)
+    assert np.array_equal(rigid_ransac(src, dst, threshold_m=0.01)[0], est)  # seeded: same answer
+
+
+# ------------------------------------------------------------------------------- synthetic room
+
+
+@pytest.fixture(scope="module")
+def room() -> SyntheticScene:
+    return SyntheticScene(n_frames=200, fps=10.0)
+
+
+@pytest.fixture(scope="module")
+def loop_frames(room) -> list:
+    """Slightly more than one loop around the room at 10 fps: the end revisits the start."""
+    return list(room.frames())
+
+
+def _features(frame):
+    odo = RgbdOdometry()
+    gray = odo._check_frame(frame)
+    return odo._features(frame, gray), odo._undistort.K
+
+
+def test_place_recognition_finds_the_revisited_place_and_only_it(room, loop_frames) -> None:
+    # keyframes every 10th frame of the first loop; queries: a revisit of frame 0 (frame 180 is one
+    # 18 s loop later, the same place) and frame 95, whose view no keyframe below 90 shares
+    keyframes = [_features(loop_frames[i])[0] for i in range(0, 90, 10)]
+    query, Kq = _features(loop_frames[180])
+    scores = vote(query, keyframes)
+    best = int(np.argmax(scores))
+    assert best == 0, scores
+    m = verify(query, keyframes[0], 0, min_inliers=40, refine=(Kq, 1.2, 0.03))
+    assert m is not None
+    true_rel = invert(room.pose(0)) @ room.pose(180)
+    assert np.linalg.norm(m.T_kf_query[:3, 3] - true_rel[:3, 3]) < 0.01
+    far, _ = _features(loop_frames[95])
+    hits = [verify(far, kf, i, min_inliers=40) for i, kf in enumerate(keyframes[1:7], 1)]
+    assert all(h is None for h in hits), [h.keyframe for h in hits if h]
+
+
+def test_relocalisation_after_a_jump_to_a_known_place(room, loop_frames) -> None:
+    odo = RgbdOdometry(loop_closing=False)
+    for f in loop_frames[:60]:
+        odo.track(f)
+    # the camera is suddenly back where frame 8 was (kidnapped): prediction and local map are useless
+    back = dataclasses.replace(loop_frames[8], seq=60, stamp_ns=loop_frames[60].stamp_ns)
+    r = odo.track(back)
+    assert r.state == "OK" and r.relocalised
+    # where the map itself puts frame 8 now (its world is the first camera frame), and the truth
+    mapped = odo.trajectory()[1][8]
+    truth = invert(room.pose(0)) @ room.pose(8)
+    assert np.linalg.norm(r.world_from_camera[:3, 3] - mapped[:3, 3]) < 0.01
+    assert np.linalg.norm(r.world_from_camera[:3, 3] - truth[:3, 3]) < 0.05
+
+
+# ------------------------------------------------------------------------ the whole tracker
+
+
+def _run(frames, **kw) -> tuple[RgbdOdometry, list]:
+    odo = RgbdOdometry(**kw)
+    results = [odo.track(f) for f in frames]
+    odo.finish()
+    return odo, results
+
+
+def _ate(room, odo: RgbdOdometry, stamps=None, gt_poses=None) -> float:
+    st, ps = odo.trajectory()
+    gt = metrics.Trajectory.from_matrices(
+        np.array(stamps if stamps is not None else [room.stamp_ns(i) for i in range(len(room))]),
+        gt_poses if gt_poses is not None else room.poses())
+    return metrics.ate(metrics.Trajectory.from_matrices(np.array(st), np.array(ps)), gt).rmse
+
+
+def _digest(odo: RgbdOdometry, results) -> str:
+    h = hashlib.sha256()
+    for r in results:
+        h.update(r.world_from_camera.tobytes())
+        h.update(f"{r.state} {r.keyframe_id} {r.loop} {sorted(r.corrected)}".encode())
+    for T in odo.trajectory()[1]:
+        h.update(T.tobytes())
+    for i, T in sorted(odo.keyframe_poses().items()):
+        h.update(f"{i}".encode() + T.tobytes())
+    return h.hexdigest()
+
+
+@pytest.fixture(scope="module")
+def with_loops(loop_frames):
+    return _run(loop_frames, background=True)
+
+
+def test_loop_closing_halves_the_error_of_a_loop(room, loop_frames, with_loops) -> None:
+    odo, results = with_loops
+    assert odo.loops and any(old <= 2 for _, old in odo.loops), odo.loops  # the start is found again
+    assert all(r.state in ("INIT", "OK") for r in results)
+    closed = [r for r in results if r.loop is not None]
+    assert closed and all(len(r.corrected) == r.loop[0] + 1 for r in closed)
+    no_loops, _ = _run(loop_frames, loop_closing=False, background=True)
+    a_loop, a_none = _ate(room, odo), _ate(room, no_loops)
+    assert a_loop * 2 <= a_none, (a_loop, a_none)
+
+
+def test_background_thread_changes_nothing(loop_frames, with_loops) -> None:
+    odo, results = with_loops
+    same = _run(loop_frames, background=False)
+    assert _digest(*same) == _digest(odo, results)
+
+
+def test_recovers_after_30_black_frames(room, loop_frames, with_loops) -> None:
+    half = 100
+    dt = room.stamp_ns(1) - room.stamp_ns(0)
+    frames, stamps = list(loop_frames[:half]), [f.stamp_ns for f in loop_frames[:half]]
+    for k in range(30):  # inserted: the camera waits in the dark, then goes on
+        f = loop_frames[half - 1]
+        frames.append(dataclasses.replace(f, seq=half + k, stamp_ns=f.stamp_ns + (k + 1) * dt,
+                                          rgb=np.zeros_like(f.rgb), depth=np.zeros_like(f.depth)))
+    for f in loop_frames[half:]:
+        frames.append(dataclasses.replace(f, seq=f.seq + 30, stamp_ns=f.stamp_ns + 30 * dt))
+        stamps.append(f.stamp_ns + 30 * dt)
+    odo, results = _run(frames, background=True)
+    states = [r.state for r in results]
+    assert states[half:half + 30] == ["LOST"] * 30
+    assert states[half + 30:] == ["OK"] * (len(loop_frames) - half)
+    gt = np.concatenate([room.poses()[:half], room.poses()[half:]])
+    a_dark = _ate(room, odo, stamps, gt)
+    a_plain = _ate(room, with_loops[0])
+    assert a_dark <= 1.5 * a_plain, (a_dark, a_plain)
+
+
+def test_synthetic_accuracy(room, with_loops) -> None:
+    assert _ate(room, with_loops[0]) < 0.01
