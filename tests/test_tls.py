@@ -167,3 +167,45 @@ def test_plain_tcp_is_not_accepted(pki, router):
     with pytest.raises(BusError, match="cannot open Zenoh session"):
         with _bus(f"tcp/127.0.0.1:{port}", str(cfg), "replay"):
             pass
+
+
+@pytest.mark.parametrize("history_rule", [True, False], ids=["history-allowed", "history-denied"])
+def test_a_late_joiner_recovers_the_history_only_where_access_control_allows_it(pki, history_rule, tmp_path):
+    """robot1 publishes 5 frames before the server subscribes; the server's Bus recovers them from
+    the publisher's history (`<key>/@history/<id>` queries), which the router's rules must allow
+    beside `robot1/**`. With the history rule removed, nothing is recovered."""
+    import numpy as np
+
+    from octolog.geometry import Intrinsics, RgbdFrame
+
+    text = (EXAMPLES / "zenoh-tls-router.json5").read_text().replace('"certs/', f'"{pki}/certs/')
+    if not history_rule:
+        text = text.replace('"robot1/**", "robot1/**/@history/*"', '"robot1/**"')
+    (tmp_path / "router.json5").write_text(text)
+    endpoint = f"tls/localhost:{_free_port()}"
+    proc = subprocess.Popen([sys.executable, "-m", "octolog", "router", "--zenoh-config", str(tmp_path / "router.json5"),
+                             "--listen", endpoint], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        assert "router: listening on" in proc.stdout.readline()
+        robot_cfg = _config(pki, "zenoh-tls-client.json5", "robot1", cert="robot1")
+        server_cfg = _config(pki, "zenoh-tls-client.json5", "server", cert="server")
+        frame = RgbdFrame(0, 1, np.zeros((4, 4, 3), np.uint8), np.ones((4, 4), np.uint16), 0.001,
+                          Intrinsics(4, 4, 2.0, 2.0, 2.0, 2.0))
+        with _bus(endpoint, robot_cfg, "replay") as robot:
+            pub = robot.publisher(RGBD)
+            for _ in range(5):
+                pub.put(codec.rgbd_msg(frame))
+            with _bus(endpoint, server_cfg, "mapper") as late:
+                late.subscribe([RGBD])
+                got = 0
+                # recovery asks the histories at once and then every second while idle: 5 s is plenty
+                for _ in range(20 if history_rule else 8):
+                    while late.receive(timeout_s=0.25 if got < 5 else 0.0) is not None:
+                        got += 1
+                    if got == 5:
+                        break
+        assert got == (5 if history_rule else 0)
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
