@@ -281,13 +281,17 @@ class Bus:
         hkey = f"{key}/{HISTORY}/{source.hex()}"
 
         def on_query(query: Any) -> None:
+            # `?from=F;<id>=F[:U]`: samples F.. (before U) of this publisher, or F.. for any
             params = query.parameters
+            first, _, until = (params.get(source.hex()) or params.get("from") or "0").partition(":")
             try:
-                first = int(params.get(source.hex()) or params.get("from") or 0)
+                first_seq, end_seq = int(first), int(until) if until else None
             except ValueError:
                 return
-            oldest, items = history.since(first, BATCH)
-            for seq, data in items:
+            oldest, items = history.since(first_seq, BATCH)
+            for i, (seq, data) in enumerate(items):
+                if i and end_seq is not None and seq >= end_seq:
+                    break  # the first always goes: its `oldest` tells a loss from a delay
                 query.reply(hkey, data, attachment=_REPLY.pack(seq, source, oldest))
 
         # indirect: answering (possibly large, blocking) runs off Zenoh's receive thread
@@ -352,9 +356,11 @@ class Bus:
                 st.nxt = oldest
             if seq < st.nxt or seq in st.held:
                 return False  # a duplicate (live and recovered, or recovered twice)
+            gap_was_open = bool(st.held) and st.nxt not in st.held
             st.held[seq] = data
             self.recovered += oldest is not None
-            if st.nxt not in st.held:  # a gap before this one: ask for it now
+            if st.nxt not in st.held and not gap_was_open:
+                # a new gap before this one: ask for it now (an open one is asked every PROBE_S)
                 self._due.add(key)
                 self._state.notify_all()
             return st.nxt in st.held
@@ -405,7 +411,9 @@ class Bus:
 
         topic = self._recovered[key]
         with self._state:
-            known = ";".join(f"{src.hex()}={st.nxt}" for src, st in self._streams[key].items())
+            # per known publisher: from the next seq, up to the first one held (just the gap)
+            known = ";".join(f"{src.hex()}={st.nxt}" + (f":{min(st.held)}" if st.held else "")
+                             for src, st in self._streams[key].items())
         selector = f"{key}/{HISTORY}/*?from=0" + (f";{known}" if known else "")
         got: dict[bytes, int] = {}
         try:
