@@ -35,7 +35,7 @@ def test_session_leaves_every_output(runs):
     summary = json.loads((a / "summary.json").read_text())
     assert summary["tracked_frames"] == N_FRAMES
     assert summary["frames"] == {"published": N_FRAMES, "consumed": N_FRAMES, "skipped": 0}
-    assert summary["ate"]["rmse_m"] < 0.01  # synthetic scene, exact depth: sub-centimetre
+    assert summary["ate"]["rmse_m"] <= 0.005  # synthetic scene, exact depth: issue 4 asks <= 0.5 cm
     assert summary["map"]["occupied_voxels"] > 1000 and summary["map"]["keyframes"] >= 2
 
 

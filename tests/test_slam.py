@@ -150,10 +150,11 @@ def test_place_recognition_finds_the_revisited_place_and_only_it(room, loop_fram
 
 def test_relocalisation_after_a_jump_to_a_known_place(room, loop_frames) -> None:
     odo = RgbdOdometry(loop_closing=False)
-    for f in loop_frames[:60]:
+    for f in loop_frames[:100]:
         odo.track(f)
-    # the camera is suddenly back where frame 8 was (kidnapped): prediction and local map are useless
-    back = dataclasses.replace(loop_frames[8], seq=60, stamp_ns=loop_frames[60].stamp_ns)
+    # half a loop later the camera is suddenly back where frame 8 was (kidnapped): the prediction
+    # and the local map around the last pose are of no use, only a search of all keyframes is
+    back = dataclasses.replace(loop_frames[8], seq=100, stamp_ns=loop_frames[100].stamp_ns)
     r = odo.track(back)
     assert r.state == "OK" and r.relocalised
     # where the map itself puts frame 8 now (its world is the first camera frame), and the truth
@@ -198,13 +199,14 @@ def with_loops(loop_frames):
     return _run(loop_frames, background=True)
 
 
-def test_loop_closing_halves_the_error_of_a_loop(room, loop_frames, with_loops) -> None:
-    odo, results = with_loops
+def test_loop_closing_halves_the_error_of_a_loop(room, loop_frames) -> None:
+    # visual odometry alone (no local BA) accumulates drift over the loop; closing it must halve the ATE
+    odo, results = _run(loop_frames, local_ba=False, background=True)
     assert odo.loops and any(old <= 2 for _, old in odo.loops), odo.loops  # the start is found again
     assert all(r.state in ("INIT", "OK") for r in results)
     closed = [r for r in results if r.loop is not None]
     assert closed and all(len(r.corrected) == r.loop[0] + 1 for r in closed)
-    no_loops, _ = _run(loop_frames, loop_closing=False, background=True)
+    no_loops, _ = _run(loop_frames, local_ba=False, loop_closing=False, background=True)
     a_loop, a_none = _ate(room, odo), _ate(room, no_loops)
     assert a_loop * 2 <= a_none, (a_loop, a_none)
 
@@ -237,4 +239,6 @@ def test_recovers_after_30_black_frames(room, loop_frames, with_loops) -> None:
 
 
 def test_synthetic_accuracy(room, with_loops) -> None:
-    assert _ate(room, with_loops[0]) < 0.01
+    """Issue 4 asks for ATE <= 0.5 cm on the synthetic scene: here at 10 fps (3x the demo's motion per
+    frame) over a whole loop; the 30 fps demo scene is checked through the pipeline."""
+    assert _ate(room, with_loops[0]) <= 0.005

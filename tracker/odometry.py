@@ -13,6 +13,7 @@ and is deterministic: the same frames give byte-identical poses in any process.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -330,6 +331,9 @@ class RgbdOdometry:
         ba_fixed: int = 6,
         ba_iterations: int = 5,
         ba_max_points: int = 800,
+        ba_inv_depth_sigma: float = 0.01,
+        global_ba: bool = True,
+        global_ba_iterations: int = 10,
         loop_closing: bool = True,
         loop_min_gap: int = 10,
         loop_min_votes: int = 40,
@@ -393,6 +397,9 @@ class RgbdOdometry:
         self._ba_iterations = ba_iterations
         self._ba_max_point_move = 0.05
         self._ba_max_points = ba_max_points
+        self._ba_inv_depth_sigma = ba_inv_depth_sigma
+        self._global_ba = global_ba
+        self._global_ba_iterations = global_ba_iterations
         self._loop_closing = loop_closing
         self._loop_gap = loop_min_gap
         self._loop_votes = loop_min_votes
@@ -503,6 +510,18 @@ class RgbdOdometry:
         """Wait for the back end and apply its last result; returns the keyframe poses it moved."""
         before = self.keyframe_poses()
         self._sync_backend(np.eye(4))
+        if self._global_ba and self._local_ba and len(self._keyframes) >= 2:
+            # a last bundle adjustment over every keyframe (the first one fixed), as ORB-SLAM runs
+            # after a loop: the trajectory and map that are written out get the whole map's support
+            saved = self._ba_window, self._ba_max_points, self._loop_closing
+            self._ba_window, self._ba_max_points, self._loop_closing = len(self._keyframes), 10**9, False
+            try:
+                job = self._backend_job()
+            finally:
+                self._ba_window, self._ba_max_points, self._loop_closing = saved
+            job = dataclasses.replace(job, iterations=self._global_ba_iterations)
+            self._pending = _run_backend(job)
+            self._sync_backend(np.eye(4))
         if self._executor is not None:
             self._executor.shutdown(wait=True)
         after = self.keyframe_poses()
@@ -920,7 +939,7 @@ class RgbdOdometry:
                 obs_kf=np.concatenate(kf_idx), obs_pt=np.concatenate(pt_idx), obs_uv=np.concatenate(uv),
                 obs_z=np.concatenate(zz), obs_sigma=np.concatenate(sig),
                 K=(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])),
-                bf=1.0 / self._inv_depth_sigma,
+                bf=1.0 / self._ba_inv_depth_sigma,
             )
             ba_pids = pids
         candidates = np.zeros(0, np.int64)
