@@ -120,7 +120,7 @@ def track(odometry, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerResult:
         pub_status.put(_status(frame.seq, frame.stamp_ns, res.state, res.is_keyframe, res.keyframe_id,
                                res.n_matches, res.n_inliers, ms))
         if viz.enabled:
-            _log(viz, frame, res, result)
+            _log(viz, frame, res, result, odometry)
     if hasattr(odometry, "finish"):
         # the back end's last word: every keyframe at its final pose, so the map matches the
         # trajectory. Sent before the end messages, whose count for it the mapper waits for.
@@ -139,13 +139,20 @@ def _status(seq: int, stamp: int, state: str, is_kf: bool, kf_id: int, n_matches
         keyframe_id=kf_id, n_matches=n_matches, n_inliers=n_inliers, processing_ms=ms)
 
 
-def _log(viz: Viz, frame, res, result: TrackerResult) -> None:
+# keypoint colours by state: unmatched grey, rejected red, tracked green, new map point blue
+KP_COLOURS = np.array([[160, 160, 160], [230, 40, 40], [40, 220, 60], [40, 140, 255]], np.uint8)
+
+
+def _log(viz: Viz, frame, res, result: TrackerResult, odometry=None) -> None:
     viz.set_time(frame.stamp_ns, frame.seq)
     if result.frames == 1:
         viz.camera("world/tracker/camera", frame.intrinsics)
     viz.pose("world/tracker/camera", res.world_from_camera)
     viz.rgb("world/tracker/camera/image", frame.rgb)
     viz.scalar("tracker/inliers", float(res.n_inliers))
+    if hasattr(odometry, "keypoints"):
+        pts, state = odometry.keypoints()
+        viz.points2d("world/tracker/camera/image/keypoints", pts, KP_COLOURS[state])
     viz.scalar("tracker/ms", result.ms[-1])
     if res.is_keyframe:
         # the whole path, re-sent at keyframes only: per frame it would cost O(frames) each time
@@ -153,6 +160,8 @@ def _log(viz: Viz, frame, res, result: TrackerResult) -> None:
         viz.points3d("world/tracker/keyframes", np.array([res.world_from_camera[:3, 3]]), [0, 200, 255],
                      radius=0.02)
         viz.text("tracker/events", f"keyframe {res.keyframe_id} at frame {frame.seq}")
+        if hasattr(odometry, "local_map"):
+            viz.points3d("world/tracker/local_map", odometry.local_map(), [255, 255, 255], radius=0.004)
     if res.loop is not None:
         viz.text("tracker/events", f"loop closed: keyframe {res.loop[0]} with keyframe {res.loop[1]}, "
                                    f"{len(res.corrected)} keyframes moved")

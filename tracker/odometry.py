@@ -38,6 +38,7 @@ from tracker.features import (
 STATE_OK = "OK"
 STATE_LOST = "LOST"
 STATE_INIT = "INIT"
+KP_UNMATCHED, KP_OUTLIER, KP_TRACKED, KP_NEW = 0, 1, 2, 3
 
 # Chi-square 95% quantiles for 2 (pixel) and 3 (pixel + inverse depth) degrees of freedom.
 _CHI2_2 = 5.991
@@ -421,6 +422,9 @@ class RgbdOdometry:
         self._loop_candidate: tuple[int, np.ndarray | None] = (-1, None)
         # per tracked frame: (stamp, reference keyframe id, reference_from_camera)
         self._frames: list[tuple[int, int, np.ndarray]] = []
+        self._last_pts = np.zeros((0, 2))
+        self._last_kp_state = np.zeros(0, np.uint8)
+        self._last_local = np.zeros(0, np.int64)
         self.loops: list[tuple[int, int]] = []  # (new, old) keyframe ids of closed loops
 
         self._intrinsics: Intrinsics | None = None
@@ -437,6 +441,16 @@ class RgbdOdometry:
         self._velocity: tuple[np.ndarray, np.ndarray, int] | None = None  # rotvec, trans, dt_ns
 
     # -- public ---------------------------------------------------------------------------------
+
+    def keypoints(self) -> tuple[np.ndarray, np.ndarray]:
+        """Pixels (raw, as in the image) of the last frame's keypoints and their state: KP_UNMATCHED,
+        KP_OUTLIER (matched, rejected by the pose), KP_TRACKED (inlier) or KP_NEW (new map point)."""
+        return self._last_pts, self._last_kp_state
+
+    def local_map(self) -> np.ndarray:
+        """World positions of the local map points the last frame was matched against."""
+        ids = self._last_local[~self._map.bad[self._last_local]]
+        return self._map.xyz[ids].copy()
 
     @property
     def n_keyframes(self) -> int:
@@ -565,6 +579,8 @@ class RgbdOdometry:
             max_spread=self._edge_spread,
         )
         uv = self._undistort(pts)
+        self._last_pts = pts
+        self._last_kp_state = np.zeros(len(pts), np.uint8)
         return FrameFeatures(uv=uv, octave=octave, desc=desc, z=z, xyz=backproject(uv, z, self._undistort.K))
 
     # -- motion model ---------------------------------------------------------------------------
@@ -764,6 +780,9 @@ class RgbdOdometry:
         self._map.n_visible[visible] += 1
         self._map.n_found[mi[inl]] += 1
         self._last_inlier_ids = np.sort(mi[inl])
+        self._last_kp_state[ki] = KP_OUTLIER
+        self._last_kp_state[ki[inl]] = KP_TRACKED
+        self._last_local = local
         return _Tracked(T_cw, ki[inl], mi[inl], int(ki.size), int(inl.sum()))
 
     # -- keyframes ------------------------------------------------------------------------------
@@ -805,6 +824,8 @@ class RgbdOdometry:
         fresh &= (z > 0.0) & (z <= self._max_new_depth)
         k = np.flatnonzero(fresh)
         new_ids = mp.add(feats.xyz[k] @ R.T + t, feats.desc[k], weight_of(z[k]), kf_id)
+        if self._last_kp_state.size == len(feats):
+            self._last_kp_state[k] = KP_NEW
 
         # Retire points that are seen in view but rarely matched: likely bad depth or repeats.
         n = mp.size
