@@ -120,7 +120,10 @@ def cmd_track(args: argparse.Namespace) -> int:
     res = node.run(cfg, bus_config(args), trajectory=Path(args.trajectory) if args.trajectory else None,
                    rerun=args.rerun, recording_id=_recording_id(args))
     print(f"tracker: {res.frames} frames, {res.tracked} tracked, {res.lost} lost, {res.skipped} skipped, "
-          f"{res.rejected} rejected, {res.keyframes} keyframes")
+          f"{res.rejected} rejected, {res.keyframes} keyframes, {res.loops} loops closed, "
+          f"{res.relocalisations} relocalisations")
+    for problem in res.problems[:5]:
+        print(f"tracker: rejected {problem}")
     return 0
 
 

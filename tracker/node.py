@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from octolog.bus import Bus, BusConfig, Received
-from octolog.errors import InputError
+from octolog.errors import InputError, TrackingError
 from octolog.viz import Viz
 from schemas import codec
 from schemas.topics import (
@@ -28,6 +28,7 @@ class TrackerResult:
     lost: int = 0
     skipped: int = 0  # live mode: not processed, a newer frame was waiting
     rejected: int = 0  # undecodable or inconsistent frames
+    problems: list[str] = field(default_factory=list)  # why each rejected frame was
     keyframes: int = 0
     loops: int = 0
     relocalisations: int = 0
@@ -94,12 +95,14 @@ def track(odometry, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerResult:
         msg = r.decode()
         try:
             frame = codec.rgbd_from_msg(msg)
-        except InputError:
-            # an undecodable frame is consumed and reported LOST, never a crash
+            res = odometry.track(frame)
+        except (InputError, TrackingError) as exc:
+            # an undecodable frame, or one that contradicts its camera (size, depth type, changed
+            # intrinsics), is consumed and reported LOST, never a crash
             result.rejected += 1
+            result.problems.append(f"frame {msg.seq}: {exc}")
             pub_status.put(_status(msg.seq, codec.stamp_ns(msg.header), "LOST", False, -1, 0, 0, 0.0))
             continue
-        res = odometry.track(frame)
         if cfg.throttle_ms:
             time.sleep(max(0.0, cfg.throttle_ms / 1e3 - (time.perf_counter() - t0)))
         ms = (time.perf_counter() - t0) * 1e3

@@ -1,0 +1,73 @@
+"""The real `octolog track` process fed bad frames over a real Zenoh link: each is LOST, none is a crash."""
+
+from __future__ import annotations
+
+import dataclasses
+import socket
+import subprocess
+import sys
+
+import numpy as np
+from helpers import ROOT
+
+from octolog.geometry import Intrinsics
+from replay.synthetic import SyntheticScene
+from tracker.node import STATE_CODES
+
+
+def _port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_bad_frames_are_lost_and_tracking_goes_on(tmp_path):
+    from octolog.bus import Bus, BusConfig
+    from schemas import codec
+    from schemas.topics import RGBD, RGBD_END, TRACKING_STATUS
+
+    frames = list(SyntheticScene(n_frames=16).frames())
+    bad = {
+        5: dataclasses.replace(frames[5], rgb=np.full_like(frames[5].rgb, 255)),  # saturated
+        6: dataclasses.replace(frames[6], depth=np.zeros_like(frames[6].depth)),  # no valid depth
+        7: dataclasses.replace(frames[7], rgb=np.zeros_like(frames[7].rgb)),  # black
+        # the image is half the size its camera info says
+        8: dataclasses.replace(frames[8], intrinsics=dataclasses.replace(
+            frames[8].intrinsics, width=1280, height=960)),
+    }
+    assert isinstance(bad[8].intrinsics, Intrinsics)
+    ep = f"tcp/127.0.0.1:{_port()}"
+    traj = tmp_path / "trajectory.txt"
+    proc = subprocess.Popen([sys.executable, "-m", "octolog", "track", "--connect", ep, "--no-multicast",
+                             "--trajectory", str(traj)], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    states: dict[int, int] = {}
+    try:
+        with Bus(BusConfig(listen=(ep,), multicast_scouting=False), "replay") as bus:
+            bus.subscribe([TRACKING_STATUS])
+            bus.announce()
+            bus.watch(["tracker"])
+            bus.wait_for(["tracker"], timeout_s=60)
+            pub, end = bus.publisher(RGBD), bus.publisher(RGBD_END)
+            for k, f in enumerate(frames):
+                pub.put(codec.rgbd_msg(bad.get(k, f)))
+            end.put(codec.stream_end_msg(RGBD.name, pub.count))
+            while len(states) < len(frames):
+                r = bus.receive(timeout_s=1.0)
+                if r is not None and r.topic == TRACKING_STATUS:
+                    msg = r.decode()
+                    states[int(msg.seq)] = int(msg.state)
+                assert proc.poll() is None or r is not None, proc.stderr.read()
+            out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err
+    lost, ok = STATE_CODES["LOST"], STATE_CODES["OK"]
+    assert [states[k] for k in (5, 7, 8)] == [lost] * 3, states
+    # a frame without depth still tracks from its colour against the map (it just adds no points)
+    assert states[6] in (lost, ok)
+    assert all(states[k] == ok for k in range(9, 16)), states
+    assert "1 rejected" in out and "rejected frame 8" in out and "1280x960" not in err, out
+    assert "Traceback" not in err
+    assert len(traj.read_text().splitlines()) >= 1 + 16 - 4  # header + every tracked frame
