@@ -33,16 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
-def default_source() -> str:
-    data = Path(os.environ.get("OCTOLOG_DATA", ROOT.parent / "shared" / "data"))
-    folder = data / "tum" / "rgbd_dataset_freiburg1_xyz_first300"
-    if not folder.is_dir():
-        sys.exit(f"bench: {folder} not found; pass --source or set OCTOLOG_DATA")
-    return f"tum:{folder}"
-
-
-def pct(values: list[float], q: float) -> float:
-    return float(np.percentile(values, q)) if values else float("nan")
+from pipeline import default_source, pct  # noqa: E402  (bench/ is this script's folder)
 
 
 def _vm(key: str) -> float:
