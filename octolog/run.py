@@ -3,7 +3,8 @@
 The orchestrator hosts a Zenoh router on a free loopback port, starts the session logger, mapper,
 tracker and replay as child processes (peers that connect to the router, multicast off, so two runs
 never cross-talk), watches them, and evaluates the result. If any child dies, the others notice it
-through liveliness and stop; this process names the culprit and exits 1.
+through liveliness and stop; this process names the culprit and exits 1. A mapper killed by a
+signal (not asked to stop) is started again and rebuilds the same map from the tracker's history.
 """
 
 from __future__ import annotations
@@ -23,6 +24,11 @@ from octolog import __version__
 from octolog.errors import ConfigError, StageError
 
 STAGES = ("log", "mapper", "tracker", "replay")
+# A killed mapper is started again: it rebuilds its map from the tracker's keyframe history (the
+# tracker keeps every keyframe until the mapper is done; see octolog/bus.py). The other stages'
+# outputs depend on what they already sent, so their death ends the session.
+RESTARTABLE = ("mapper",)
+MAX_RESTARTS = 3
 
 
 @dataclass
@@ -79,13 +85,28 @@ class _Children:
     def __init__(self, logs: Path) -> None:
         self.logs = logs
         self.procs: dict[str, subprocess.Popen] = {}
+        self.argv: dict[str, tuple[list[str], bool]] = {}
+        self.restarts: dict[str, int] = {}
 
-    def start(self, name: str, argv: list[str], *, show_stderr: bool = False) -> None:
-        log = open(self.logs / f"{name}.log", "wb")  # noqa: SIM115 - owned by the child
+    def start(self, name: str, argv: list[str], *, show_stderr: bool = False, append: bool = False) -> None:
+        log = open(self.logs / f"{name}.log", "ab" if append else "wb")  # noqa: SIM115 - owned by the child
         env = {**os.environ, "PYTHONHASHSEED": "0", "PYTHONUNBUFFERED": "1"}
+        self.argv[name] = (argv, show_stderr)
         self.procs[name] = subprocess.Popen(
             [sys.executable, "-m", "octolog", *argv], stdout=log, stderr=None if show_stderr else log, env=env,
             start_new_session=True)
+
+    def restart(self, name: str, code: int) -> bool:
+        """Start a restartable stage again after a kill (not a stop request); False if it may not."""
+        if name not in RESTARTABLE or code >= 0 or -code in (signal.SIGTERM, signal.SIGINT) or \
+                self.restarts.get(name, 0) >= MAX_RESTARTS:
+            return False
+        self.restarts[name] = self.restarts.get(name, 0) + 1
+        with open(self.logs / f"{name}.log", "a") as log:
+            log.write(f"octolog run: the {name} stage was killed by signal {-code}; starting it again\n")
+        argv, show_stderr = self.argv[name]
+        self.start(name, argv, show_stderr=show_stderr, append=True)
+        return True
 
     def wait_all(self) -> None:
         pending = dict(self.procs)
@@ -95,6 +116,9 @@ class _Children:
                 if code is None:
                     continue
                 del pending[name]
+                if code != 0 and self.restart(name, code):
+                    pending[name] = self.procs[name]
+                    continue
                 if code != 0:
                     self.stop_all()
                     why = f"killed by signal {-code}" if code < 0 else f"exited with code {code}"

@@ -3,6 +3,8 @@
 Host A runs the replay, B the tracker, C the mapper, D the Zenoh router (`octolog router`); every
 stage is a Zenoh client of the router. Needs root and `ip netns`; skips with the reason otherwise.
 Addresses come from 198.18.0.0/15 (reserved for network tests) on the namespaces this test makes.
+Link cuts and a killed mapper must end with the single-host result; the last test kills the mapper
+of a plain `octolog run` on this host (no namespaces needed).
 """
 
 from __future__ import annotations
@@ -10,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -146,3 +149,42 @@ def test_mapper_killed_and_restarted_ends_with_the_same_map(hosts, single_host, 
     names, addr = hosts
     _distributed_run(names, addr, tmp_path / "restart", kill_mapper=True)
     _same_result(tmp_path / "restart", single_host)
+
+
+def _pid(*words: str) -> int | None:
+    """The process whose command line holds all these words (a child of `octolog run`)."""
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                argv = (d / "cmdline").read_bytes().split(b"\0")
+            except OSError:
+                continue
+            if all(w.encode() in argv for w in words):
+                return int(d.name)
+    return None
+
+
+def test_run_starts_a_killed_mapper_again(single_host, tmp_path):
+    """`octolog run` on one host: the mapper SIGKILLed mid-run is started again, same map."""
+    out = tmp_path / "run"
+    env = {**os.environ, "RERUN_DISABLE_ANALYTICS": "1"}
+    run = subprocess.Popen([sys.executable, "-m", "octolog", "run", "--source", f"synthetic:{FRAMES}", "--out",
+                            str(out), "--rerun", "off"], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                           stderr=subprocess.PIPE, text=True)
+    try:
+        seen = ""
+        while f"20/{FRAMES} frames" not in seen:  # the replay's progress: the event is the output
+            ch = run.stderr.read(1)
+            assert ch, seen
+            seen += ch
+        mapper = _pid("map", str(out))
+        assert mapper is not None
+        os.kill(mapper, signal.SIGKILL)
+        stdout, stderr = run.communicate(timeout=300)
+        assert run.returncode == 0, seen + stderr + (out / "logs" / "mapper.log").read_text()
+    finally:
+        if run.poll() is None:
+            run.terminate()
+            run.wait(timeout=30)
+    assert "killed by signal 9; starting it again" in (out / "logs" / "mapper.log").read_text()
+    _same_result(out, single_host)
