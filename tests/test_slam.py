@@ -109,6 +109,12 @@ def test_rigid_ransac_finds_the_transform_among_outliers() -> None:
     assert inl[40:].all() and not inl[:40].any()
     np.testing.assert_allclose(est, T, atol=1e-9)
     assert np.array_equal(rigid_ransac(src, dst, threshold_m=0.01)[0], est)  # seeded: same answer
+    # repeated and collinear points (a JPEG-blurred wall gives such matches) are no crash
+    line = np.outer(np.linspace(0, 1, 30), [1.0, 0.5, 0.2]) + [0, 0, 2]
+    same = np.repeat(dst[:1], 30, axis=0)
+    for a, b in ((line, line), (src[:30], same), (same, src[:30])):
+        T_, inl_ = rigid_ransac(a, b, threshold_m=0.01)
+        assert T_.shape == (4, 4) and np.all(np.isfinite(T_)) and inl_.sum() <= 30
 
 
 # ------------------------------------------------------------------------------- synthetic room

@@ -1022,7 +1022,24 @@ class _BackendResult:
 
 
 def _run_backend(job: _BackendJob) -> _BackendResult:
-    """Local BA around the newest keyframe, then loop detection and pose-graph correction."""
+    """Local BA around the newest keyframe, then loop detection and pose-graph correction.
+
+    A step that fails numerically (gtsam's indeterminate system, degenerate geometry) is skipped:
+    the back end improves the map when it can and never stops tracking. Failures depend only on
+    the input, so skipping stays deterministic.
+    """
+    try:
+        return _backend(job)
+    except (RuntimeError, np.linalg.LinAlgError, cv2.error):
+        if job.ba is None:
+            return _BackendResult(job.kf_id, {}, job.ba_point_ids, np.zeros((0, 3)))
+        try:
+            return _backend(dataclasses.replace(job, candidates=np.zeros(0, np.int64), cand_feats=[]))
+        except (RuntimeError, np.linalg.LinAlgError, cv2.error):
+            return _BackendResult(job.kf_id, {}, np.zeros(0, np.int64), np.zeros((0, 3)))
+
+
+def _backend(job: _BackendJob) -> _BackendResult:
     from tracker.places import verify, vote
 
     poses = job.poses_wc.copy()

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from octolog.errors import InputError
 from octolog.metrics import umeyama_se3
 from tracker.features import FrameFeatures, match_brute_force
 
@@ -62,17 +63,24 @@ def rigid_ransac(src: np.ndarray, dst: np.ndarray, *, threshold_m: float, iterat
     samples = np.stack([rng.choice(n, 3, replace=False) for _ in range(iterations)])
     for s in samples:
         a, b = src[s], dst[s]
-        # a degenerate (near-collinear) sample has no unique rotation
-        if np.linalg.norm(np.cross(a[1] - a[0], a[2] - a[0])) < 1e-4:
+        # a degenerate (near-collinear or repeated) sample, on either side, has no unique rotation
+        if min(np.linalg.norm(np.cross(a[1] - a[0], a[2] - a[0])),
+               np.linalg.norm(np.cross(b[1] - b[0], b[2] - b[0]))) < 1e-4:
             continue
-        R, t = umeyama_se3(a, b)
+        try:
+            R, t = umeyama_se3(a, b)
+        except InputError:
+            continue
         inl = np.linalg.norm(src @ R.T + t - dst, axis=1) <= tol
         if inl.sum() > best.sum():
             best = inl
     T = np.eye(4)
     if best.sum() >= 3:
         for _ in range(2):  # refit on the inliers, then re-select them
-            R, t = umeyama_se3(src[best], dst[best])
+            try:
+                R, t = umeyama_se3(src[best], dst[best])
+            except InputError:  # the inliers are collinear: no usable transform
+                return np.eye(4), np.zeros(n, dtype=bool)
             inl = np.linalg.norm(src @ R.T + t - dst, axis=1) <= tol
             if inl.sum() < 3:
                 break
