@@ -8,8 +8,9 @@ when a peer stage disappears (process died, link cut) instead of waiting forever
 Loss-free across link failures and restarts (docs/architecture.md, "Bus"): every publisher numbers
 its samples (an attachment: sequence number and publisher id), keeps a bounded history of them and
 serves it on `<key>/@history/<publisher id>`. A subscriber delivers each publisher's samples exactly
-once and in order; on a gap, when idle, and when a lost peer is back it asks the history for what
-it has not got, holding later samples until the gap is filled. A late or restarted subscriber gets
+once and in order, and the topics of one producing stage in the order they were sent; on a gap,
+when idle, and when a lost peer is back it asks the history for what it has not got, holding later
+samples until the gap is filled. A late or restarted subscriber gets
 a publisher's history from its oldest kept sample (for keyframes: the whole run).
 """
 
@@ -20,6 +21,7 @@ import os
 import queue
 import struct
 import threading
+import zlib
 import time
 from collections import deque
 from collections.abc import Callable, Iterable
@@ -36,16 +38,31 @@ _ZENOH_DEFAULT_BLOCK_CLOSE_US = 5_000_000
 CONNECT_TIMEOUT_MS = 30_000
 BLOCK_CLOSE_US = 600_000_000  # a consumer stalled for 10 minutes is dead, not slow
 
-# Sequence numbers ride in the sample's attachment: seq (u64 LE) + publisher id (16 bytes); history
-# replies add the oldest seq the publisher still keeps, so a subscriber can tell late from lost.
-_SEQ = struct.Struct("<Q16s")
-_REPLY = struct.Struct("<Q16sQ")
+# Sequence numbers ride in the sample's attachment: seq (u64 LE), publisher id (16 bytes), and the
+# sample's dependencies: for each other numbered publisher of the same session that had sent
+# something, its id, crc32 of its key and its count then. A subscriber delivers a sample only after
+# everything it depends on among the keys it takes, so topics of one session keep their order (a
+# pose correction never overtakes the keyframes it corrects). History replies prepend the oldest seq
+# the publisher still keeps, so a subscriber can tell late from lost.
+_HEAD = struct.Struct("<Q16sH")
+_DEP = struct.Struct("<16sIQ")
+_OLDEST = struct.Struct("<Q")
 HISTORY = "@history"  # a verbatim chunk: `**` subscribers and queries never match it by accident
 HISTORY_MB = 64  # byte cap of an ordinary publisher's history, on top of `history` samples
 PROBE_S = 1.0  # an idle subscriber, or one with an open gap, asks the histories this often
 QUERY_TIMEOUT_S = 10.0
 BATCH = 16  # samples per history reply: a large backlog comes in several queries
 DONE = "_octolog/done"  # `<ns>/_octolog/done/<stage>`: put by a stage that finished without error
+
+
+def _parse(raw: bytes) -> tuple[int, bytes, tuple[tuple[bytes, int, int], ...]] | None:
+    """seq, publisher id, dependencies of a numbered attachment; None if it is not one of ours."""
+    if len(raw) < _HEAD.size:
+        return None
+    seq, source, n = _HEAD.unpack_from(raw)
+    if len(raw) != _HEAD.size + n * _DEP.size:
+        return None
+    return seq, source, tuple(_DEP.unpack_from(raw, _HEAD.size + i * _DEP.size) for i in range(n))
 
 
 def keeps_all(topic: Topic) -> bool:
@@ -125,19 +142,19 @@ class _History:
 
     def __init__(self, max_samples: int | None, max_bytes: int) -> None:
         self.max_samples, self.max_bytes = max_samples, max_bytes
-        self._items: deque[tuple[int, bytes]] = deque()
+        self._items: deque[tuple[int, bytes, bytes]] = deque()  # seq, payload, attachment
         self._bytes = 0
         self._lock = threading.Lock()
 
-    def add(self, seq: int, data: bytes) -> None:
+    def add(self, seq: int, data: bytes, attachment: bytes) -> None:
         with self._lock:
-            self._items.append((seq, data))
+            self._items.append((seq, data, attachment))
             self._bytes += len(data)
             while len(self._items) > 1 and (self._bytes > self.max_bytes or (
                     self.max_samples is not None and len(self._items) > self.max_samples)):
                 self._bytes -= len(self._items.popleft()[1])
 
-    def since(self, first: int, limit: int) -> tuple[int, list[tuple[int, bytes]]]:
+    def since(self, first: int, limit: int) -> tuple[int, list[tuple[int, bytes, bytes]]]:
         """The oldest kept seq, and up to `limit` samples from `first` on."""
         with self._lock:
             if not self._items:
@@ -147,15 +164,23 @@ class _History:
             return oldest, [self._items[i] for i in range(start, min(len(self._items), start + limit))]
 
 
+class _Session:
+    """The numbered publishers of one Bus: one lock orders their numbering."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.publishers: list[Publisher] = []
+
+
 class Publisher:
     """A reliable, blocking publisher of one topic; numbers what it sends and keeps a history."""
 
-    def __init__(self, pub: Any, topic: Topic, history: _History | None = None, source: bytes = b"") -> None:
+    def __init__(self, pub: Any, topic: Topic, history: _History | None = None, source: bytes = b"",
+                 key_crc: int = 0, session: _Session | None = None) -> None:
         self._pub = pub
         self.topic = topic
         self.count = 0
-        self._history, self._source = history, source
-        self._lock = threading.Lock()
+        self._history, self._source, self._crc, self._session = history, source, key_crc, session
 
     def put(self, msg: Any) -> bytes:
         data = codec.encode(msg, self.topic.msgtype)
@@ -167,21 +192,34 @@ class Publisher:
             self._pub.put(data)
             self.count += 1
             return
-        with self._lock:  # numbering, history and sending in one order
-            seq = self.count
-            # kept before it is sent: a subscriber that sees a gap can always fetch what preceded
-            self._history.add(seq, data)
-            self._pub.put(data, attachment=_SEQ.pack(seq, self._source))
+        self._pub.put(data, attachment=self._number(data))
+
+    def _number(self, data: bytes) -> bytes:
+        """Give the sample its seq and dependencies and keep it (before it is sent: a subscriber
+        that sees a gap can always fetch what preceded); the attachment to send it with."""
+        assert self._history is not None and self._session is not None
+        with self._session.lock:
+            deps = [_DEP.pack(p._source, p._crc, p.count) for p in self._session.publishers
+                    if p is not self and p.count]
+            att = _HEAD.pack(self.count, self._source, len(deps)) + b"".join(deps)
+            self._history.add(self.count, data, att)
             self.count += 1
+        return att
 
 
 @dataclass
 class _Stream:
     """What a subscriber knows about one publisher of one key."""
 
+    topic: Topic
     nxt: int = 0  # the next seq to deliver
-    held: dict[int, bytes] = field(default_factory=dict)  # arrived early, waiting for a gap to fill
+    # arrived, waiting for a gap to fill or a dependency: seq -> (payload, dependencies)
+    held: dict[int, tuple[bytes, tuple[tuple[bytes, int, int], ...]]] = field(default_factory=dict)
     started: bool = False  # something was delivered: a missing seq from now on is a loss
+    wanted: int = 0  # another stream's sample depends on this one's samples before `wanted`
+
+    def gap(self) -> bool:
+        return self.nxt < self.wanted or (bool(self.held) and self.nxt not in self.held)
 
 
 class Bus:
@@ -204,6 +242,8 @@ class Bus:
         # recovery (history > 0): per key, per publisher id, the delivery state
         self._streams: dict[str, dict[bytes, _Stream]] = {}
         self._recovered: dict[str, Topic] = {}  # key -> topic, for every subscribed key
+        self._crcs: dict[int, str] = {}  # crc32 of a subscribed key -> the key
+        self._numbered = _Session()
         self._state = threading.Condition(threading.Lock())  # guards _streams, _due; wakes the recovery thread
         self._due: set[str] = set()  # keys to ask the histories about now
         self._deliver = threading.Lock()  # one deliverer at a time keeps each stream in order
@@ -279,6 +319,7 @@ class Bus:
             history = _History(self.cfg.history, HISTORY_MB << 20)
         source = uuid.uuid4().bytes  # identifies this publisher (not the output: never written)
         hkey = f"{key}/{HISTORY}/{source.hex()}"
+        publisher = Publisher(pub, topic, history, source, zlib.crc32(key.encode()), self._numbered)
 
         def on_query(query: Any) -> None:
             # `?from=F;<id>=F[:U]`: samples F.. (before U) of this publisher, or F.. for any
@@ -289,14 +330,16 @@ class Bus:
             except ValueError:
                 return
             oldest, items = history.since(first_seq, BATCH)
-            for i, (seq, data) in enumerate(items):
+            for i, (seq, data, att) in enumerate(items):
                 if i and end_seq is not None and seq >= end_seq:
                     break  # the first always goes: its `oldest` tells a loss from a delay
-                query.reply(hkey, data, attachment=_REPLY.pack(seq, source, oldest))
+                query.reply(hkey, data, attachment=_OLDEST.pack(oldest) + att)
 
         # indirect: answering (possibly large, blocking) runs off Zenoh's receive thread
         self._keep.append(self.session.declare_queryable(hkey, zenoh.handlers.Callback(on_query)))
-        return Publisher(pub, topic, history, source)
+        with self._numbered.lock:
+            self._numbered.publishers.append(publisher)
+        return publisher
 
     def subscribe(self, topics: Iterable[Topic]) -> None:
         """Feed these topics into this stage's bounded inbox: per publisher exactly once and in
@@ -313,17 +356,18 @@ class Bus:
                 if not self.cfg.history or att is None:
                     self._put(Received(topic, data))
                     return
-                raw = att.to_bytes()
-                if len(raw) != _SEQ.size:  # someone else's attachment (a ROS bridge): no numbering
+                numbered = _parse(att.to_bytes())
+                if numbered is None:  # someone else's attachment (a ROS bridge): no numbering
                     self._put(Received(topic, data))
                     return
-                seq, source = _SEQ.unpack(raw)
-                if self._offer(key, source, seq, data, None):
-                    self._flush(topic, key, source)
+                seq, source, deps = numbered
+                self._offer(key, source, seq, data, deps, None)
+                self._flush()
 
             if self.cfg.history:
                 with self._state:
                     self._recovered[key] = topic
+                    self._crcs[zlib.crc32(key.encode())] = key
                     self._streams.setdefault(key, {})
             handler = zenoh.handlers.Callback(on_sample, indirect=False)
             self._keep.append(self.session.declare_subscriber(key, handler))
@@ -342,10 +386,17 @@ class Bus:
             except queue.Full:
                 continue
 
-    def _offer(self, key: str, source: bytes, seq: int, data: bytes, oldest: int | None) -> bool:
-        """Take one numbered sample; True if the stream has something to deliver now."""
+    def _stream(self, key: str, source: bytes) -> _Stream:
+        streams = self._streams[key]
+        if source not in streams:
+            streams[source] = _Stream(self._recovered[key])
+        return streams[source]
+
+    def _offer(self, key: str, source: bytes, seq: int, data: bytes, deps: tuple[tuple[bytes, int, int], ...],
+               oldest: int | None) -> None:
+        """Take one numbered sample (live, or from a history reply with the oldest seq kept there)."""
         with self._state:
-            st = self._streams[key].setdefault(source, _Stream())
+            st = self._stream(key, source)
             if oldest is not None and st.nxt < oldest:
                 # the publisher no longer keeps what we lack: for a late joiner that is the past it
                 # never asked for; once a stream has started it is a loss
@@ -355,28 +406,52 @@ class Bus:
                     del st.held[s]
                 st.nxt = oldest
             if seq < st.nxt or seq in st.held:
-                return False  # a duplicate (live and recovered, or recovered twice)
-            gap_was_open = bool(st.held) and st.nxt not in st.held
-            st.held[seq] = data
+                return  # a duplicate (live and recovered, or recovered twice)
+            gap_was_open = st.gap()
+            st.held[seq] = (data, deps)
             self.recovered += oldest is not None
-            if st.nxt not in st.held and not gap_was_open:
+            if st.gap() and not gap_was_open:
                 # a new gap before this one: ask for it now (an open one is asked every PROBE_S)
                 self._due.add(key)
                 self._state.notify_all()
-            return st.nxt in st.held
 
-    def _flush(self, topic: Topic, key: str, source: bytes) -> None:
-        """Deliver the stream's consecutive samples; the lock keeps two threads from interleaving."""
+    def _ready(self) -> tuple[_Stream, bytes] | None:
+        """A sample that may go now: next in its stream, everything it depends on delivered."""
+        for key, streams in self._streams.items():
+            for st in streams.values():
+                if st.nxt not in st.held:
+                    continue
+                data, deps = st.held[st.nxt]
+                waiting = False
+                for source, crc, count in deps:
+                    dkey = self._crcs.get(crc)
+                    if dkey is None:
+                        continue  # a topic this stage does not take
+                    dep = self._stream(dkey, source)
+                    if dep.nxt < count:
+                        waiting = True
+                        if count > dep.wanted:
+                            new = not dep.gap()
+                            dep.wanted = count
+                            if new:
+                                self._due.add(dkey)
+                                self._state.notify_all()
+                if not waiting:
+                    del st.held[st.nxt]
+                    st.nxt += 1
+                    st.started = True
+                    return st, data
+        return None
+
+    def _flush(self) -> None:
+        """Deliver whatever may go, in order; the lock keeps two threads from interleaving."""
         with self._deliver:
             while True:
                 with self._state:
-                    st = self._streams[key][source]
-                    data = st.held.pop(st.nxt, None)
-                    if data is None:
-                        return
-                    st.nxt += 1
-                    st.started = True
-                self._put(Received(topic, data))
+                    ready = self._ready()
+                if ready is None:
+                    return
+                self._put(Received(ready[0].topic, ready[1]))
 
     def _request(self, key: str | None = None) -> None:
         """Ask the histories about `key` (or every subscribed key) soon, from the recovery thread."""
@@ -399,7 +474,7 @@ class Bus:
                 # (samples lost at the end of a stream leave no gap behind them)
                 idle = self._inbox.empty() and time.monotonic() - self._last_put > PROBE_S
                 for key, streams in self._streams.items():
-                    if idle or any(st.held and st.nxt not in st.held for st in streams.values()):
+                    if idle or any(st.gap() for st in streams.values()):
                         due.add(key)
             for key in sorted(due):
                 if self._closing.is_set():
@@ -409,30 +484,32 @@ class Bus:
     def _query(self, key: str) -> None:
         import zenoh
 
-        topic = self._recovered[key]
         with self._state:
             # per known publisher: from the next seq, up to the first one held (just the gap)
-            known = ";".join(f"{src.hex()}={st.nxt}" + (f":{min(st.held)}" if st.held else "")
-                             for src, st in self._streams[key].items())
-        selector = f"{key}/{HISTORY}/*?from=0" + (f";{known}" if known else "")
+            parts = []
+            for src, st in self._streams[key].items():
+                until = min(st.held) if st.held else (st.wanted if st.wanted > st.nxt else None)
+                parts.append(f"{src.hex()}={st.nxt}" + (f":{until}" if until is not None else ""))
+        selector = f"{key}/{HISTORY}/*?from=0" + "".join(f";{p}" for p in parts)
         got: dict[bytes, int] = {}
         try:
             for reply in self.session.get(selector, consolidation=zenoh.ConsolidationMode.NONE,
                                           timeout=QUERY_TIMEOUT_S):
                 ok = reply.ok
-                if ok is None or ok.attachment is None or len(ok.attachment.to_bytes()) != _REPLY.size:
+                raw = ok.attachment.to_bytes() if ok is not None and ok.attachment is not None else b""
+                numbered = _parse(raw[_OLDEST.size:]) if len(raw) > _OLDEST.size else None
+                if numbered is None:
                     continue
-                seq, source, oldest = _REPLY.unpack(ok.attachment.to_bytes())
+                seq, source, deps = numbered
                 got[source] = got.get(source, 0) + 1
-                self._offer(key, source, seq, ok.payload.to_bytes(), oldest)
+                self._offer(key, source, seq, ok.payload.to_bytes(), deps, _OLDEST.unpack_from(raw)[0])
         except Exception:  # the session is closing, or the network is gone: the next probe retries
             if self._closing.is_set():
                 return
-        for source, n in got.items():
-            self._flush(topic, key, source)
-            if n >= BATCH:  # there may be more
-                with self._state:
-                    self._due.add(key)
+        self._flush()
+        if any(n >= BATCH for n in got.values()):  # there may be more
+            with self._state:
+                self._due.add(key)
 
     def receive(self, timeout_s: float = 0.25) -> Received | None:
         """The next sample, or None after `timeout_s`; raises StageError if a watched peer died."""

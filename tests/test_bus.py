@@ -111,8 +111,7 @@ NUMBERED = topics.Topic("test/numbered", "octolog_msgs/msg/StreamEnd")  # `count
 
 def _lose(p, i: int) -> None:
     """Sample `i` lost on the wire: numbered and kept in the publisher's history, never sent."""
-    p._history.add(p.count, codec.encode(codec.stream_end_msg("x", i), p.topic.msgtype))
-    p.count += 1
+    p._number(codec.encode(codec.stream_end_msg("x", i), p.topic.msgtype))
 
 
 def _numbers(bus: Bus, n: int, timeout_s: float = 30.0) -> list[int]:
@@ -147,6 +146,27 @@ def test_lost_samples_are_recovered_once_and_in_order(endpoints):
         assert got == list(range(12))
         assert sub.recovered == 3
         assert _numbers(sub, 1, timeout_s=2.5) == []  # nothing twice, even after idle probes
+
+
+def test_topics_of_one_publisher_keep_their_order_across_a_recovery(endpoints):
+    server, client = endpoints
+    other = topics.Topic("test/other", NUMBERED.msgtype)
+    with Bus(server, "mapper") as sub, Bus(client, "tracker") as pub:
+        sub.subscribe([other])
+        _connected(sub, pub)
+        pa, pb = pub.publisher(NUMBERED), pub.publisher(other)
+        pa.put(codec.stream_end_msg("x", 0))
+        pb.put(codec.stream_end_msg("x", 0))
+        _lose(pa, 1)
+        pb.put(codec.stream_end_msg("x", 1))  # sent after a1: must not overtake it
+        pa.put(codec.stream_end_msg("x", 2))
+        got = []
+        deadline = time.monotonic() + 30
+        while len(got) < 5 and time.monotonic() < deadline:
+            r = sub.receive(timeout_s=0.5)
+            if r is not None:
+                got.append((r.topic.name[-1], int(r.decode().count)))
+        assert got == [("d", 0), ("r", 0), ("d", 1), ("r", 1), ("d", 2)]  # numbere(d), othe(r)
 
 
 def test_late_subscriber_gets_the_history_then_live_exactly_once(endpoints):
