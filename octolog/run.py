@@ -217,7 +217,7 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
 
 
 PINNED = ("eclipse-zenoh", "mcap", "rerun-sdk", "numpy", "scipy", "opencv-python-headless", "open3d-cpu",
-          "pyoctomap", "rosbags", "pyrealsense2")
+          "pyoctomap", "rosbags", "pyrealsense2", "gtsam", "pyorbslam3")
 
 
 def versions() -> dict[str, str]:
