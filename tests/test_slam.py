@@ -154,8 +154,31 @@ def test_place_recognition_finds_the_revisited_place_and_only_it(room, loop_fram
     assert all(h is None for h in hits), [h.keyframe for h in hits if h]
 
 
-def test_relocalisation_after_a_jump_to_a_known_place(room, loop_frames) -> None:
-    odo = RgbdOdometry(loop_closing=False)
+@pytest.fixture(scope="module")
+def vocabulary(loop_frames):
+    """A small vocabulary tree (8^3 words) trained on frames of the first half loop."""
+    from tracker.vocab import train
+
+    return train([_features(loop_frames[i])[0].desc for i in range(0, 100, 10)], k=8, levels=3, seed=0)
+
+
+def test_bow_index_ranks_the_revisited_place_first(loop_frames, vocabulary) -> None:
+    from tracker.places import BowIndex
+
+    index = BowIndex(vocabulary)
+    for i in range(0, 90, 10):
+        index.add(i // 10, _features(loop_frames[i])[0].desc)
+    ids, scores = index.query(_features(loop_frames[180])[0].desc, top=3)
+    assert ids[0] == 0 and scores[0] > scores[1], (ids, scores)
+    same, self_score = index.query(_features(loop_frames[30])[0].desc, top=1)
+    assert same[0] == 3 and self_score[0] == pytest.approx(1.0)  # a keyframe finds itself, score 1
+    assert index.query(_features(loop_frames[180])[0].desc, top=3, allowed=np.array([4, 5]))[0].tolist() \
+        in ([4, 5], [5, 4], [4], [5], [])
+
+
+@pytest.mark.parametrize("with_bow", [False, True], ids=["all-keyframes", "bag-of-words"])
+def test_relocalisation_after_a_jump_to_a_known_place(room, loop_frames, vocabulary, with_bow) -> None:
+    odo = RgbdOdometry(loop_closing=False, vocabulary=vocabulary if with_bow else None)
     for f in loop_frames[:100]:
         odo.track(f)
     # half a loop later the camera is suddenly back where frame 8 was (kidnapped): the prediction

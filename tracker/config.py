@@ -35,7 +35,8 @@ class TrackerConfig:
     loop_closing: bool = True
     relocalise: bool = True
     background: bool = True
-    # orbslam3: DBoW2 text vocabulary (`octolog vocab build`); empty: $OCTOLOG_ORB_VOCABULARY
+    # orbslam3: DBoW2 text vocabulary (required); native: optional, a bag-of-words index over it
+    # picks loop and relocalisation candidates (else every keyframe is voted on) (`octolog vocab build`); empty: $OCTOLOG_ORB_VOCABULARY
     vocabulary: str = ""
 
     def validate(self) -> None:
@@ -62,5 +63,11 @@ def make_odometry(cfg: TrackerConfig):  # -> RgbdOdometry | OrbSlam3Odometry
         return OrbSlam3Odometry(cfg.vocabulary, n_features=cfg.n_features)
     from tracker.odometry import RgbdOdometry
 
+    vocabulary = None
+    if cfg.vocabulary:  # native: loop and relocalisation candidates from a bag-of-words index
+        from tracker.vocab import load
+
+        vocabulary = load(cfg.vocabulary)
     return RgbdOdometry(n_features=cfg.n_features, local_ba=cfg.local_ba, ba_window=cfg.ba_window,
-                        loop_closing=cfg.loop_closing, relocalise=cfg.relocalise, background=cfg.background)
+                        loop_closing=cfg.loop_closing, relocalise=cfg.relocalise, background=cfg.background,
+                        vocabulary=vocabulary)

@@ -346,6 +346,8 @@ class RgbdOdometry:
         relocalise: bool = True,
         background: bool = False,
         inject_drift_deg: float = 0.0,
+        vocabulary=None,
+        bow_candidates: int = 10,
     ) -> None:
         if n_features < 50:
             raise TrackingError(f"n_features={n_features}: need at least 50 features to track")
@@ -411,6 +413,12 @@ class RgbdOdometry:
         self._loop_max_rad = math.radians(loop_max_correction_deg)
         self._relocalise = relocalise
         self._drift = math.radians(inject_drift_deg)
+        # with a vocabulary (tracker.vocab.Vocabulary), loop and relocalisation candidates come from
+        # a bag-of-words index (the best `bow_candidates`), else every keyframe is a candidate
+        from tracker.places import BowIndex
+
+        self._bow = BowIndex(vocabulary) if vocabulary is not None else None
+        self._bow_top = bow_candidates
         # The back end (local BA, loop closing) for keyframe k starts when k is inserted and its
         # result is applied when keyframe k+1 is inserted (or at `finish`): a fixed point in the
         # frame sequence, so running it on a worker thread cannot change any output.
@@ -837,6 +845,8 @@ class RgbdOdometry:
         point_ids = np.unique(np.concatenate([ids_m, new_ids]))
         shared = np.bincount(mp.ref_kf[ids_m], minlength=kf_id) if ids_m.size else np.zeros(kf_id, np.int64)
         covis = [int(j) for j in np.lexsort((np.arange(shared.size), -shared))[:3] if shared[j] >= 30]
+        if self._bow is not None:
+            self._bow.add(kf_id, feats.desc)
         self._keyframes.append(_Keyframe(kf_id, seq, pose.copy(), point_ids, feats,
                                          np.concatenate([kp_m, k]), np.concatenate([ids_m, new_ids]), sorted(covis)))
         self._kf_pos = np.vstack([self._kf_pos, t[None, :]])
@@ -851,12 +861,16 @@ class RgbdOdometry:
 
         if int(feats.has_depth.sum()) < self._min_inliers or not self._keyframes:
             return None
-        scores = vote(feats, [kf.feats for kf in self._keyframes])
-        order = np.lexsort((np.arange(scores.size), -scores))
-        for c in order[:3]:
-            if scores[c] < self._min_inliers:
+        cands = np.arange(len(self._keyframes))
+        if self._bow is not None:
+            cands, _ = self._bow.query(feats.desc, top=self._bow_top)
+        scores = vote(feats, [self._keyframes[c].feats for c in cands])
+        order = np.lexsort((cands, -scores))
+        for o in order[:3]:
+            if scores[o] < self._min_inliers:
                 break
-            m = verify(feats, self._keyframes[c].feats, int(c), min_inliers=self._min_inliers,
+            c = int(cands[o])
+            m = verify(feats, self._keyframes[c].feats, c, min_inliers=self._min_inliers,
                        refine=self._refine_args())
             if m is not None:
                 return self._keyframes[c].world_from_camera @ m.T_kf_query
@@ -969,6 +983,8 @@ class RgbdOdometry:
             # of them is a place seen again after the map lost track of it
             shared = np.bincount(mp.ref_kf[new.point_ids], minlength=n_kf)
             candidates = np.flatnonzero((np.arange(n_kf) <= new.id - self._loop_gap) & (shared < 10))
+            if self._bow is not None and candidates.size:
+                candidates = np.sort(self._bow.query(new.feats.desc, top=self._bow_top, allowed=candidates)[0])
         return _BackendJob(
             kf_id=new.id, poses_wc=np.stack([kf.world_from_camera for kf in kfs]), ba=ba, ba_kf=ba_kf,
             ba_point_ids=ba_pids, iterations=self._ba_iterations, candidates=candidates,

@@ -119,3 +119,50 @@ def verify(query: FrameFeatures, kf: FrameFeatures, keyframe: int, *, min_inlier
             return None
         T, qi, ki, n_inl = np.linalg.inv(T_qk), qi[ok], ki[ok], int(ok.sum())
     return PlaceMatch(keyframe, T, qi, ki, int(qi.size + (inl.size - n_inl)), n_inl)
+
+
+class BowIndex:
+    """A DBoW2-style keyframe database over a vocabulary tree (`tracker/vocab.py`).
+
+    Each keyframe becomes an L1-normalised TF-IDF word vector; an inverted file maps words to the
+    keyframes holding them, so a query touches only keyframes that share words with it, and scores
+    them with DBoW2's L1 score (sum over shared words of min(a_w, b_w), 1 for identical vectors).
+    With it, loop and relocalisation candidates are the best-scoring keyframes instead of all.
+    """
+
+    def __init__(self, vocabulary) -> None:  # tracker.vocab.Vocabulary
+        self._voc = vocabulary
+        self._table = vocabulary.children_table()
+        self._word_of_node = np.full(vocabulary.parents.shape[0], -1, dtype=np.int64)
+        self._word_of_node[vocabulary.word_nodes] = np.arange(vocabulary.n_words)
+        self._idf = vocabulary.weights[vocabulary.word_nodes]
+        self._postings: dict[int, list[tuple[int, float]]] = {}
+        self.size = 0
+
+    def vector(self, desc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(sorted word ids, L1-normalised TF-IDF weights) of a descriptor set."""
+        if desc.shape[0] == 0:
+            return np.zeros(0, np.int64), np.zeros(0)
+        words = self._word_of_node[self._voc.transform_nodes(desc, self._table)]
+        w, counts = np.unique(words, return_counts=True)
+        v = counts / counts.sum() * self._idf[w]
+        total = v.sum()
+        return w, (v / total if total > 0 else v)
+
+    def add(self, keyframe: int, desc: np.ndarray) -> None:
+        for w, x in zip(*self.vector(desc), strict=True):
+            self._postings.setdefault(int(w), []).append((keyframe, float(x)))
+        self.size += 1
+
+    def query(self, desc: np.ndarray, *, top: int, allowed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Best `top` keyframes (ids, scores), best first, ties by id; only `allowed` ids if given."""
+        scores: dict[int, float] = {}
+        for w, x in zip(*self.vector(desc), strict=True):
+            for kf, y in self._postings.get(int(w), ()):
+                scores[kf] = scores.get(kf, 0.0) + min(x, y)
+        ids = np.array(sorted(scores), dtype=np.int64)
+        if allowed is not None:
+            ids = ids[np.isin(ids, allowed)]
+        sc = np.array([scores[int(i)] for i in ids])
+        order = np.lexsort((ids, -sc))[:top]
+        return ids[order], sc[order]
