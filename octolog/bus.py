@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import os
 import queue
+import re
 import struct
 import threading
 import zlib
@@ -116,9 +117,17 @@ def zenoh_config(cfg: BusConfig) -> Any:
         # mapper busy with a keyframe would lose data. Back-pressure must wait, so wait longer.
         if json.loads(zc.get_json(_BLOCK_CLOSE)) == _ZENOH_DEFAULT_BLOCK_CLOSE_US:
             zc.insert_json5(_BLOCK_CLOSE, str(BLOCK_CLOSE_US))
-    except Exception as exc:  # zenoh raises ZError with the parser's message
-        raise BusError(f"invalid Zenoh configuration: {exc}") from None
+    except Exception as exc:  # zenoh raises ZError with the parser's message, over several lines
+        where = f" {cfg.zenoh_config}" if cfg.zenoh_config else ""
+        raise BusError(f"invalid Zenoh configuration{where}: {_one_line(exc)}") from None
     return zc
+
+
+def _one_line(exc: BaseException) -> str:
+    """Zenoh's multi-line parser messages as one line: position and reason, no source paths."""
+    lines = [ln.strip(" |=") for ln in str(exc).splitlines()]
+    text = " ".join(ln for ln in lines if ln and ln != "^---")
+    return re.sub(r" at /\S+\.rs:\d+\.?", "", text).strip()
 
 
 @dataclass(frozen=True)
@@ -261,10 +270,11 @@ class Bus:
 
         if os.environ.get("RUST_LOG"):  # Zenoh's own log (link open/close, lease expiry) on demand
             zenoh.try_init_log_from_env()
+        zc = zenoh_config(self.cfg)  # a BusError of its own for a bad configuration
         try:
-            self._session = zenoh.open(zenoh_config(self.cfg))
+            self._session = zenoh.open(zc)
         except Exception as exc:
-            raise BusError(f"cannot open Zenoh session ({self.cfg.mode}): {exc}") from None
+            raise BusError(f"cannot open Zenoh session ({self.cfg.mode}): {_one_line(exc)}") from None
         return self
 
     def __exit__(self, exc_type: object, *exc: object) -> None:

@@ -228,3 +228,13 @@ def test_a_producer_stops_lingering_for_a_consumer_that_died(endpoints):
             prod.wait_for(["mapper"], timeout_s=20)
             raise RuntimeError("the mapper crashed")  # leaves without saying it is done
         assert prod.linger("mapper") is False  # gone for peer_timeout_s: given up
+
+
+def test_a_bad_zenoh_config_file_is_one_line(tmp_path):
+    bad = tmp_path / "zenoh.json5"
+    bad.write_text('{ "mode": "peer", invalid json\n')
+    with pytest.raises(BusError) as err:
+        with Bus(BusConfig(zenoh_config=str(bad), multicast_scouting=False), "tracker"):
+            pass
+    msg = str(err.value)
+    assert "\n" not in msg and str(bad) in msg and "1:11" in msg and ".rs:" not in msg, msg
