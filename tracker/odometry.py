@@ -345,7 +345,6 @@ class RgbdOdometry:
         loop_max_correction_deg: float = 45.0,
         relocalise: bool = True,
         background: bool = False,
-        inject_drift_deg: float = 0.0,
         vocabulary=None,
         bow_candidates: int = 10,
     ) -> None:
@@ -412,7 +411,6 @@ class RgbdOdometry:
         self._loop_max_m = loop_max_correction_m
         self._loop_max_rad = math.radians(loop_max_correction_deg)
         self._relocalise = relocalise
-        self._drift = math.radians(inject_drift_deg)
         # with a vocabulary (tracker.vocab.Vocabulary), loop and relocalisation candidates come from
         # a bag-of-words index (the best `bow_candidates`), else every keyframe is a candidate
         from tracker.places import BowIndex
@@ -504,11 +502,6 @@ class RgbdOdometry:
                 sol = self._solve(feats, tracked.kp_idx, tracked.map_idx, invert(pose), use_ransac=False)
                 if sol is not None:
                     pose = invert(sol[0])
-            if self._drift:
-                # testing aid: a yaw error about the world z axis at every keyframe, as drift
-                c, s_ = math.cos(self._drift), math.sin(self._drift)
-                pose = pose.copy()
-                pose[:3, :3] = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]]) @ pose[:3, :3]
             kf_id = self._insert_keyframe(frame.seq, pose, feats, tracked)
             self._submit_backend()
         ref = self._keyframes[-1]
