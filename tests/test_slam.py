@@ -271,3 +271,16 @@ def test_synthetic_accuracy(room, with_loops) -> None:
     """Issue 4 asks for ATE <= 0.5 cm on the synthetic scene: here at 10 fps (3x the demo's motion per
     frame) over a whole loop; the 30 fps demo scene is checked through the pipeline."""
     assert _ate(room, with_loops[0]) <= 0.005
+
+
+def test_back_end_worker_process_returns_results_and_errors() -> None:
+    import psutil
+
+    from tracker.worker import Worker
+
+    w = Worker()
+    child = psutil.Process(w._proc.pid)
+    with pytest.raises(AttributeError):  # not a job: the child's exception comes back here
+        w.submit(object()).result()
+    w.close()
+    assert not child.is_running() or child.status() == psutil.STATUS_ZOMBIE

@@ -28,7 +28,7 @@ class TrackerConfig:
     backend: str = "native"
     # native back end: local bundle adjustment over the newest `ba_window` keyframes, loop closing
     # (place recognition + pose graph), relocalisation after tracking loss. `background` runs the
-    # back end on a worker thread; results are applied at the next keyframe either way, so the
+    # back end in a worker process; results are applied at the next keyframe either way, so the
     # outputs are byte-identical with it on or off.
     local_ba: bool = True
     ba_window: int = 5

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -24,6 +23,7 @@ import numpy as np
 from octolog.errors import TrackingError
 from octolog.geometry import Intrinsics, RgbdFrame, invert
 from tracker.optimize import BundleProblem, bundle_adjust, optimize_pose_graph
+from tracker.worker import Worker
 from tracker.features import (
     DESCRIPTOR_BYTES,
     FrameFeatures,
@@ -419,9 +419,11 @@ class RgbdOdometry:
         self._bow_top = bow_candidates
         # The back end (local BA, loop closing) for keyframe k starts when k is inserted and its
         # result is applied when keyframe k+1 is inserted (or at `finish`): a fixed point in the
-        # frame sequence, so running it on a worker thread cannot change any output.
-        self._executor = ThreadPoolExecutor(1, thread_name_prefix="octolog-ba") if background else None
-        self._pending: Future | _BackendResult | None = None
+        # frame sequence, so running it in a worker process cannot change any output.
+        # A worker process, not a thread: gtsam holds the GIL while it optimises, which stalled the
+        # tracking thread for tens of milliseconds at every keyframe.
+        self._executor = Worker() if background else None
+        self._pending: Worker | _BackendResult | None = None
         self._backend_moved = False
         self._loop_edges: list[tuple[int, int, np.ndarray]] = []
         self._last_loop_kf = -(10**9)
@@ -538,7 +540,8 @@ class RgbdOdometry:
             self._pending = _run_backend(job)
             self._sync_backend(np.eye(4))
         if self._executor is not None:
-            self._executor.shutdown(wait=True)
+            self._executor.close()
+            self._executor = None
         after = self.keyframe_poses()
         return {i: T for i, T in after.items() if not np.array_equal(T, before[i])}
 
@@ -876,11 +879,11 @@ class RgbdOdometry:
         return self._undistort.K, self._scale_factor, self._inv_depth_sigma
 
     def _submit_backend(self) -> None:
-        """Start the back end for the newest keyframe (on the worker thread when there is one)."""
+        """Start the back end for the newest keyframe (in the worker process when there is one)."""
         if not (self._local_ba or self._loop_closing):
             return
         job = self._backend_job()
-        self._pending = self._executor.submit(_run_backend, job) if self._executor else _run_backend(job)
+        self._pending = self._executor.submit(job) if self._executor else _run_backend(job)
 
     def _sync_backend(self, pose: np.ndarray) -> tuple[dict[int, np.ndarray], tuple[int, int] | None, np.ndarray]:
         """Apply the pending back-end result; returns (moved keyframes if a loop closed, the loop,
@@ -891,7 +894,7 @@ class RgbdOdometry:
             return {}, None, pose
         self._backend_moved = True
         self._pending = None
-        if isinstance(res, Future):
+        if not isinstance(res, _BackendResult):
             res = res.result()
         ref = self._keyframes[res.kf_id]
         old_ref = ref.world_from_camera.copy()

@@ -1,0 +1,113 @@
+"""The tracker's back-end worker process: `python -m tracker.worker`, jobs in on stdin, results out.
+
+The back end (local BA, loop closing) runs in its own process because gtsam holds Python's GIL while
+it optimises, which stalled the tracking thread for tens of milliseconds at every keyframe. Each
+message is a pickle preceded by its length (8 bytes, little endian). The worker exits when its
+input closes or its parent dies, whichever comes first.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import struct
+import subprocess
+import sys
+import threading
+import weakref
+from typing import Any, BinaryIO
+
+_LEN = struct.Struct("<Q")
+
+
+def _write(stream: BinaryIO, obj: Any) -> None:
+    data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
+    stream.write(_LEN.pack(len(data)))
+    stream.write(data)
+    stream.flush()
+
+
+def _read(stream: BinaryIO) -> Any:
+    head = stream.read(_LEN.size)
+    if len(head) < _LEN.size:
+        raise EOFError("back-end worker stream closed")
+    (n,) = _LEN.unpack(head)
+    data = stream.read(n)
+    if len(data) < n:
+        raise EOFError("back-end worker stream truncated")
+    return pickle.loads(data)
+
+
+class Worker:
+    """One back-end job at a time in a child process: `submit(job)`, then `result()`."""
+
+    def __init__(self) -> None:
+        self._proc = subprocess.Popen([sys.executable, "-m", "tracker.worker", str(os.getpid())],
+                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, close_fds=True)
+        self._writer: threading.Thread | None = None
+        self._busy = False
+        # dropped without close(): end the child's input, so it exits
+        weakref.finalize(self, self._proc.stdin.close)
+
+    def submit(self, job: Any) -> Worker:
+        assert not self._busy, "one job at a time"
+        self._busy = True
+        # a large job could fill the pipe: write it from a thread so the tracker never waits here
+        self._writer = threading.Thread(target=_write, args=(self._proc.stdin, job), daemon=True)
+        self._writer.start()
+        return self
+
+    def result(self) -> Any:
+        from octolog.errors import TrackingError
+
+        assert self._writer is not None
+        self._writer.join()
+        try:
+            kind, value = _read(self._proc.stdout)
+        except EOFError:
+            raise TrackingError(f"the tracker's back-end worker died (exit code {self._proc.poll()})") from None
+        self._busy = False
+        if kind == "error":
+            raise value
+        return value
+
+    def close(self) -> None:
+        if self._proc.poll() is None:
+            self._proc.stdin.close()
+            try:
+                self._proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                self._proc.kill()
+
+
+def _die_with(parent: int) -> None:
+    try:  # Linux: the kernel kills this process when its parent dies
+        import ctypes
+        import signal
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+    if os.getppid() != parent:  # the parent died before prctl took effect
+        os._exit(0)
+
+
+def main() -> None:
+    _die_with(int(sys.argv[1]))
+    from tracker.odometry import _run_backend
+
+    stdin, stdout = sys.stdin.buffer, sys.stdout.buffer
+    while True:
+        try:
+            job = _read(stdin)
+        except EOFError:
+            return
+        try:
+            out = ("ok", _run_backend(job))
+        except Exception as exc:  # the parent re-raises it where it waits for the result
+            out = ("error", exc)
+        _write(stdout, out)
+
+
+if __name__ == "__main__":
+    main()
