@@ -555,11 +555,30 @@ class Bus:
         self._keep.append(q)
 
     def fetch(self, topic: Topic, timeout_s: float = 10.0) -> Any | None:
-        """`get` a topic from its queryable; the decoded reply, or None if nobody answered."""
-        for reply in self.session.get(topic.key(self.namespace), timeout=timeout_s):
-            if reply.ok is not None:
-                return codec.decode(reply.ok.payload.to_bytes(), topic.msgtype)
-        return None
+        """`get` a topic from its queryable; the decoded reply, or None if nobody answered.
+
+        A session that has just opened may not know the queryable yet (declarations arrive
+        after the link): a plain `get` then returns at once with nothing. So wait, up to the
+        timeout, until a matching queryable is known, then ask.
+        """
+        deadline = time.monotonic() + timeout_s
+        querier = self.session.declare_querier(topic.key(self.namespace), timeout=timeout_s)
+        listener = None
+        try:
+            known = threading.Event()
+            listener = querier.declare_matching_listener(lambda status: known.set() if status.matching else None)
+            if querier.matching_status.matching:
+                known.set()
+            if not known.wait(max(0.0, deadline - time.monotonic())):
+                return None
+            for reply in querier.get():
+                if reply.ok is not None:
+                    return codec.decode(reply.ok.payload.to_bytes(), topic.msgtype)
+            return None
+        finally:
+            if listener is not None:
+                listener.undeclare()
+            querier.undeclare()
 
     def receive_nowait(self) -> Received | None:
         """The next sample if one is waiting, else None."""
