@@ -35,8 +35,9 @@ class TrackerConfig:
     loop_closing: bool = True
     relocalise: bool = True
     background: bool = True
-    # orbslam3: DBoW2 text vocabulary (required); native: optional, a bag-of-words index over it
-    # picks loop and relocalisation candidates (else every keyframe is voted on) (`octolog vocab build`); empty: $OCTOLOG_ORB_VOCABULARY
+    # a DBoW2 text vocabulary (`octolog vocab build`). orbslam3: required (empty:
+    # $OCTOLOG_ORB_VOCABULARY); native: optional, a bag-of-words index over it picks loop and
+    # relocalisation candidates (else every keyframe is voted on)
     vocabulary: str = ""
 
     def validate(self) -> None:

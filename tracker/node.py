@@ -32,7 +32,6 @@ class TrackerResult:
     keyframes: int = 0
     loops: int = 0
     relocalisations: int = 0
-    corrections: int = 0  # keyframe_poses messages published
     stamps_ns: list[int] = field(default_factory=list)
     poses: list[np.ndarray] = field(default_factory=list)
     ms: list[float] = field(default_factory=list)

@@ -424,7 +424,6 @@ class RgbdOdometry:
         # tracking thread for tens of milliseconds at every keyframe.
         self._executor = Worker() if background else None
         self._pending: Worker | _BackendResult | None = None
-        self._backend_moved = False
         self._loop_edges: list[tuple[int, int, np.ndarray]] = []
         self._last_loop_kf = -(10**9)
         self._loop_candidate: tuple[int, np.ndarray | None] = (-1, None)
@@ -498,8 +497,9 @@ class RgbdOdometry:
         loop = None
         # A frame without enough depth adds no map points, so it must not replace the reference.
         if int(feats.has_depth.sum()) >= self._min_init and self._need_keyframe(pose, tracked):
+            moved_map = self._pending is not None
             corrected, loop, pose = self._sync_backend(pose)
-            if self._backend_moved:
+            if moved_map:
                 # the map moved under this frame: re-fit its pose to the moved points it matched
                 sol = self._solve(feats, tracked.kp_idx, tracked.map_idx, invert(pose), use_ransac=False)
                 if sol is not None:
@@ -530,14 +530,8 @@ class RgbdOdometry:
         if self._global_ba and self._local_ba and len(self._keyframes) >= 2:
             # a last bundle adjustment over every keyframe (the first one fixed), as ORB-SLAM runs
             # after a loop: the trajectory and map that are written out get the whole map's support
-            saved = self._ba_window, self._ba_max_points, self._loop_closing
-            self._ba_window, self._ba_max_points, self._loop_closing = len(self._keyframes), 10**9, False
-            try:
-                job = self._backend_job()
-            finally:
-                self._ba_window, self._ba_max_points, self._loop_closing = saved
-            job = dataclasses.replace(job, iterations=self._global_ba_iterations)
-            self._pending = _run_backend(job)
+            job = self._backend_job(window=len(self._keyframes), max_points=None, loop_closing=False)
+            self._pending = _run_backend(dataclasses.replace(job, iterations=self._global_ba_iterations))
             self._sync_backend(np.eye(4))
         if self._executor is not None:
             self._executor.close()
@@ -889,10 +883,8 @@ class RgbdOdometry:
         """Apply the pending back-end result; returns (moved keyframes if a loop closed, the loop,
         `pose` moved with the newest keyframe)."""
         res = self._pending
-        self._backend_moved = False
         if res is None:
             return {}, None, pose
-        self._backend_moved = True
         self._pending = None
         if not isinstance(res, _BackendResult):
             res = res.result()
@@ -922,8 +914,14 @@ class RgbdOdometry:
         self._last_loop_kf = res.loop[0]
         return dict(res.poses), res.loop, delta @ pose
 
-    def _backend_job(self) -> _BackendJob:
-        """A self-contained snapshot for the back end of the newest keyframe."""
+    def _backend_job(self, *, window: int | None = None, max_points: int | None = -1,
+                     loop_closing: bool | None = None) -> _BackendJob:
+        """A self-contained snapshot for the back end of the newest keyframe: BA over the newest
+        `window` keyframes (default `ba_window`) with at most `max_points` points (default
+        `ba_max_points`; None: all), and loop detection if `loop_closing` (default: as configured)."""
+        window_n = self._ba_window if window is None else window
+        max_points = self._ba_max_points if max_points == -1 else max_points
+        loop_closing = self._loop_closing if loop_closing is None else loop_closing
         mp, kfs = self._map, self._keyframes
         new = kfs[-1]
         n_kf = len(kfs)
@@ -931,15 +929,15 @@ class RgbdOdometry:
         ba_kf = np.zeros(0, np.int64)
         ba_pids = np.zeros(0, np.int64)
         if self._local_ba and n_kf >= 2:
-            window = np.arange(max(0, n_kf - self._ba_window), n_kf)
+            window = np.arange(max(0, n_kf - window_n), n_kf)
             pids = np.unique(np.concatenate([kfs[i].point_ids for i in window]))
             pids = pids[~mp.bad[pids]]
-            if pids.size > self._ba_max_points:
+            if max_points is not None and pids.size > max_points:
                 # the best-observed points carry the most information per factor: keep those
                 n_obs = np.zeros(pids.size, np.int64)
                 for i in window:
                     n_obs += np.isin(pids, kfs[i].point_ids, assume_unique=True)
-                pids = np.sort(pids[np.lexsort((pids, -n_obs))[: self._ba_max_points]])
+                pids = np.sort(pids[np.lexsort((pids, -n_obs))[:max_points]])
             # fixed neighbours: the earlier keyframes that created most of the window's points
             creators = mp.ref_kf[pids]
             counts = np.bincount(creators[creators < window[0]], minlength=n_kf)
@@ -974,7 +972,7 @@ class RgbdOdometry:
             )
             ba_pids = pids
         candidates = np.zeros(0, np.int64)
-        if self._loop_closing and new.id - self._last_loop_kf > self._loop_gap:
+        if loop_closing and new.id - self._last_loop_kf > self._loop_gap:
             # old keyframes that share (almost) no map points with the new one: a match with one
             # of them is a place seen again after the map lost track of it
             shared = np.bincount(mp.ref_kf[new.point_ids], minlength=n_kf)
@@ -986,7 +984,9 @@ class RgbdOdometry:
             ba_point_ids=ba_pids, iterations=self._ba_iterations, candidates=candidates,
             new_feats=new.feats, cand_feats=[kfs[i].feats for i in candidates],
             covis=[(i, j) for i in range(1, n_kf) for j in kfs[i].covis], loop_edges=list(self._loop_edges),
-            xyz=mp.xyz[: mp.size].copy() if candidates.size else None, ref_kf=mp.ref_kf[: mp.size].copy(),
+            # every map point and its creator: only a loop correction moves them all
+            xyz=mp.xyz[: mp.size].copy() if candidates.size else None,
+            ref_kf=mp.ref_kf[: mp.size].copy() if candidates.size else None,
             min_votes=self._loop_votes, min_inliers=self._loop_inliers, min_m=self._loop_min_m,
             min_rad=self._loop_min_rad, max_m=self._loop_max_m, max_rad=self._loop_max_rad,
             refine=self._refine_args(),
@@ -1009,7 +1009,7 @@ class _BackendJob:
     covis: list[tuple[int, int]]  # pose-graph edges besides the consecutive ones
     loop_edges: list[tuple[int, int, np.ndarray]]
     xyz: np.ndarray | None  # all map points (only when loop closing may move them)
-    ref_kf: np.ndarray
+    ref_kf: np.ndarray | None  # the keyframe that created each of them
     min_votes: int
     min_inliers: int
     min_m: float
@@ -1106,7 +1106,7 @@ def _backend(job: _BackendJob) -> _BackendResult:
     edges.append((old, new, measured, 1.0))
     corrected = optimize_pose_graph(poses, edges, fixed=0)
     delta = corrected @ np.stack([invert(T) for T in poses])
-    assert job.xyz is not None
+    assert job.xyz is not None and job.ref_kf is not None
     xyz = job.xyz.copy()
     xyz[point_ids] = points
     d = delta[job.ref_kf]

@@ -90,7 +90,8 @@ def rigid_ransac(src: np.ndarray, dst: np.ndarray, *, threshold_m: float, iterat
 
 
 def verify(query: FrameFeatures, kf: FrameFeatures, keyframe: int, *, min_inliers: int,
-           threshold_m: float = 0.03, min_inlier_ratio: float = 0.5, refine: tuple[np.ndarray, float, float] | None = None) -> PlaceMatch | None:
+           threshold_m: float = 0.03, min_inlier_ratio: float = 0.5,
+           refine: tuple[np.ndarray, float, float] | None = None) -> PlaceMatch | None:
     """Relative pose of the query in a keyframe's camera frame from 3D-3D matches, or None.
 
     With `refine` = (K, scale_factor, inv_depth_sigma) the RANSAC pose is refined on the inliers
@@ -102,6 +103,7 @@ def verify(query: FrameFeatures, kf: FrameFeatures, keyframe: int, *, min_inlier
     if qi.size < min_inliers:
         return None
     qi, ki = qd[qi], kd[ki]
+    n_matches = int(qi.size)
     T, inl = rigid_ransac(query.xyz[qi], kf.xyz[ki], threshold_m=threshold_m)
     n_inl = int(inl.sum())
     # repeated texture gives many matches but a minority of them agree: demand a majority
@@ -118,7 +120,7 @@ def verify(query: FrameFeatures, kf: FrameFeatures, keyframe: int, *, min_inlier
         if int(ok.sum()) < min_inliers:
             return None
         T, qi, ki, n_inl = np.linalg.inv(T_qk), qi[ok], ki[ok], int(ok.sum())
-    return PlaceMatch(keyframe, T, qi, ki, int(qi.size + (inl.size - n_inl)), n_inl)
+    return PlaceMatch(keyframe, T, qi, ki, n_matches, n_inl)
 
 
 class BowIndex:
