@@ -78,11 +78,11 @@ def run_in_process(source: str) -> dict:
     """The reference: the same cores, one process, no transport, no logging."""
     from mapper.config import MapperConfig, make_mapper
     from replay.sources import open_source
-    from tracker.config import TrackerConfig, make_odometry
+    from tracker.config import TrackerConfig, for_source, make_odometry
 
     src = open_source(source)
     frames = list(src.frames())  # decode up front: the pipeline's replay decodes concurrently
-    odom, mapper = make_odometry(TrackerConfig()), make_mapper(MapperConfig())
+    odom, mapper = make_odometry(for_source(TrackerConfig(), src)), make_mapper(MapperConfig())
     track_ms, map_ms = [], []
     t0 = time.monotonic()
     for f in frames:

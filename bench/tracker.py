@@ -51,12 +51,12 @@ def _vm(key: str) -> float:
 def worker(backend: str, source: str, vocabulary: str, result_path: Path) -> None:
     from octolog import metrics
     from replay.sources import open_source
-    from tracker.config import TrackerConfig, make_odometry
+    from tracker.config import TrackerConfig, for_source, make_odometry
 
     src = open_source(source)
     frames = src.frames()
     first = next(frames)
-    odom = make_odometry(TrackerConfig(backend=backend, vocabulary=vocabulary))
+    odom = make_odometry(for_source(TrackerConfig(backend=backend, vocabulary=vocabulary), src))
     rss_before = _vm("VmRSS")
     t0 = time.perf_counter()
     if hasattr(odom, "start"):
@@ -96,6 +96,7 @@ def worker(backend: str, source: str, vocabulary: str, result_path: Path) -> Non
         "online_tum": metrics.format_tum(np.array(stamps), np.array(poses)), "final_tum": final_tum,
         "startup_s": startup_s, "wall_s": wall_s, "cpu_s": cpu_s, "rss_before_mb": rss_before,
         "peak_rss_mb": _vm("VmHWM"), "worker_peak_rss_mb": kids1.ru_maxrss / 1024.0,
+        "readout_ms": for_source(TrackerConfig(), src).rolling_shutter_ms,
     }))
 
 
@@ -227,6 +228,8 @@ def main() -> None:
     print(f"native: tracker.odometry in-process, Rerun off, 1 run (deterministic); ORB-SLAM3: pyorbslam3 {orb_version} "
           f"RGB-D, {args.orb_runs} runs (not deterministic), keyframes published by pose distance "
           "(the binding reports none), 'own' = ORB-SLAM3's keyframe count at shutdown")
+    print(f"native rolling-shutter model: readout {native['readout_ms']:g} ms, from the source "
+          "(tracker.rolling_shutter_ms); ORB-SLAM3 has none")
     print(voc_note)
     print()
     print("| | native | ORB-SLAM3 |")

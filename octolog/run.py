@@ -148,11 +148,13 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     from octolog.config import to_dict, to_toml
     from octolog.viz import parse_spec
     from replay.sources import open_source
+    from tracker.config import for_source
 
     cfgs = _resolve_configs(source, config, _split_overrides(overrides or []))
     replay_cfg = cfgs["replay"]
     feed_tracker = replay_cfg.play == "tracker"  # a log player stands in for the tracker
     src = open_source(source, only_consumed=replay_cfg.only_consumed)  # fail fast, before any process
+    cfgs["tracker"] = for_source(cfgs["tracker"], src)  # an unset rolling shutter: the source's camera
     out.mkdir(parents=True, exist_ok=True)
     (out / "logs").mkdir(exist_ok=True)
     if rerun == "save":

@@ -182,7 +182,7 @@ def import_tum(folder: Path, output: Path, *, overwrite: bool = False, compressi
     accelerometer.txt as Imu, groundtruth.txt as metadata; stamps exact from the decimal seconds."""
     import cv2
 
-    from replay.tum import TUM_DEPTH_SCALE_M, _read_list, _read_png, open_tum, seconds_to_ns
+    from replay.tum import TUM_DEPTH_SCALE_M, _read_list, _read_png, open_tum, readout_for, seconds_to_ns
 
     folder = Path(folder)
     seq = open_tum(folder, intrinsics)  # validates the folder; intrinsics from the sequence name unless given
@@ -220,6 +220,8 @@ def import_tum(folder: Path, output: Path, *, overwrite: bool = False, compressi
             "depth_scale_m": repr(TUM_DEPTH_SCALE_M),
             "depth_scale_source": "TUM RGB-D: 5000 depth units per metre",
             "depth_registered_to_color": "true",
+            # the colour camera's rolling-shutter readout time (s), for the tracker; 0 = not known
+            "color_readout_s": repr(readout_for(folder)),
             **_intrinsics_fields("color", intr),
             "intrinsics_source": ("given on import" if intrinsics is not None
                                   else f"TUM RGB-D ROS default calibration for {folder.resolve().name}"),

@@ -5,6 +5,7 @@ A source spec is `tum:PATH`, `mcap:PATH` or `synthetic[:N_FRAMES]`.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,6 +17,7 @@ from octolog.geometry import RgbdFrame
 
 class Source(Protocol):
     name: str
+    readout_s: float  # the colour camera's rolling-shutter readout time in s (0: global shutter or unknown)
 
     def __len__(self) -> int: ...
 
@@ -34,8 +36,11 @@ class TumSource:
     def __post_init__(self) -> None:
         from replay.tum import open_tum
 
+        from replay.tum import readout_for
+
         self.seq = open_tum(self.path)
         self.name = f"tum:{self.path}"
+        self.readout_s = readout_for(self.path)  # the colour camera's rolling shutter (0 = unknown)
 
     def __len__(self) -> int:
         return len(self.seq)
@@ -101,6 +106,19 @@ class McapSource:
         return self._count
 
     @property
+    def readout_s(self) -> float:
+        """The colour camera's rolling-shutter readout: an import's calibration record says it, a
+        session log's tracker config used it; else 0 (the D455's colour camera has a global shutter)."""
+        calib = self._metadata.get("calibration", {})
+        try:
+            if "color_readout_s" in calib:
+                return float(calib["color_readout_s"])
+            tracker = json.loads(self._metadata.get("config", {}).get("tracker", "{}"))
+            return float(tracker.get("rolling_shutter_ms") or 0.0) / 1e3
+        except (ValueError, TypeError, AttributeError):
+            raise InputError(f"{self.path}: unreadable colour readout time in the metadata") from None
+
+    @property
     def duration_ns(self) -> int:
         if self._standard is not None:
             return self._standard.duration_ns
@@ -152,6 +170,7 @@ def consumed_frames(path: Path) -> set[int]:
 @dataclass
 class SyntheticSource:
     n_frames: int = 150
+    readout_s = 0.0  # rendered, every row at once
 
     def __post_init__(self) -> None:
         from replay.synthetic import SyntheticScene

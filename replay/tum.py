@@ -37,6 +37,11 @@ TUM_INTRINSICS = {
     "freiburg3": Intrinsics(640, 480, 535.4, 539.2, 320.1, 247.6, ()),
 }
 
+# Rolling-shutter readout time of the colour camera (first row to last, s). freiburg1: picked on
+# fr1/xyz first300 by the tracker's own reprojection residual, no ground truth (bench/readout.py;
+# docs/tracker.md). freiburg2/3 are unmeasured here: 0 (no correction) until someone measures them.
+TUM_READOUT_S = {"freiburg1": 0.020}
+
 
 def seconds_to_ns(text: str) -> int:
     """Exact integer nanoseconds of a decimal seconds string (no float rounding)."""
@@ -94,6 +99,11 @@ def associate(a: list[int], b: list[int], max_dt_ns: int = MAX_PAIR_DT_NS) -> li
             pairs.append((i, k))
     pairs.sort()
     return pairs
+
+
+def readout_for(folder: Path) -> float:
+    name = folder.resolve().name
+    return next((v for key, v in TUM_READOUT_S.items() if key in name), 0.0)
 
 
 def intrinsics_for(folder: Path) -> Intrinsics:

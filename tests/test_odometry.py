@@ -340,15 +340,23 @@ def _ate_rmse(gt_path: Path, stamps_ns: list[int], poses: list[np.ndarray]) -> f
 
 
 def test_tum_fr1_xyz_first300_accuracy() -> None:
-    from replay.tum import open_tum
+    from replay.sources import open_source
 
-    seq = open_tum(tum_first300())
+    src = open_source(f"tum:{tum_first300()}")
+    seq = src.seq
     assert seq.groundtruth is not None
-    odo = RgbdOdometry()
-    results = [odo.track(f) for f in seq.frames()]
-    assert [r.state for r in results[1:]] == ["OK"] * (len(results) - 1)
-    assert results[0].state == "INIT"
-    ate = _ate_rmse(seq.groundtruth, [r.stamp_ns for r in results], [r.world_from_camera for r in results])
-    # Measured 1.13 cm (OpenCV 5.0); ORB-SLAM3 reaches ~1.15 cm here. 2 cm leaves room for noise
-    # from library versions, not for a regression to frame-to-frame drift (~3+ cm).
-    assert ate < 0.02, f"ATE RMSE {ate * 100:.2f} cm"
+    assert src.readout_s > 0.0  # freiburg1's Kinect has a rolling shutter
+
+    def online_ate(readout_s: float) -> float:
+        odo = RgbdOdometry(readout_s=readout_s)
+        results = [odo.track(f) for f in seq.frames()]
+        assert results[0].state == "INIT"
+        assert [r.state for r in results[1:]] == ["OK"] * (len(results) - 1)
+        return _ate_rmse(seq.groundtruth, [r.stamp_ns for r in results], [r.world_from_camera for r in results])
+
+    # Online poses (no final global BA). Measured 0.70 cm with the rolling-shutter model and
+    # 1.11 cm without (OpenCV 5.0); ORB-SLAM3 reaches ~1.15 cm here. Issue 4 asks <= 1 cm; the model
+    # must earn its keep by a clear margin, not by noise.
+    with_model, without = online_ate(src.readout_s), online_ate(0.0)
+    assert with_model <= 0.010, f"ATE RMSE {with_model * 100:.2f} cm with the rolling-shutter model"
+    assert with_model < 0.85 * without, (with_model, without)

@@ -135,7 +135,8 @@ def test_tum_first300_end_to_end(tum_run):
     tmp_path, out = tum_run
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["tracked_frames"] == 294  # every colour/depth pair within 20 ms
-    assert summary["ate"]["rmse_m"] < 0.02, out
+    # issue 4 asks <= 1 cm (measured 0.76 cm: final trajectory, rolling-shutter model from the source)
+    assert summary["ate"]["rmse_m"] <= 0.010, out
     assert summary["map"]["occupied_voxels"] > 1000
 
 

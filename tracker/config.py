@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 from octolog.errors import ConfigError
@@ -39,6 +40,10 @@ class TrackerConfig:
     # $OCTOLOG_ORB_VOCABULARY); native: optional, a bag-of-words index over it picks loop and
     # relocalisation candidates (else every keyframe is voted on)
     vocabulary: str = ""
+    # native: the colour camera's rolling-shutter readout time, first row to last (ms); 0 = global
+    # shutter (D455 colour, the synthetic scene). Unset (the default): `octolog run` and the
+    # benchmarks take it from the source (TUM freiburg1: 20 ms, see docs/tracker.md), else 0.
+    rolling_shutter_ms: float | None = None
 
     def validate(self) -> None:
         if self.backend not in BACKENDS:
@@ -47,6 +52,8 @@ class TrackerConfig:
             raise ConfigError(f"tracker.throttle_ms {self.throttle_ms}: want >= 0")
         if self.ba_window < 1:
             raise ConfigError(f"tracker.ba_window {self.ba_window}: want >= 1")
+        if self.rolling_shutter_ms is not None and not 0.0 <= self.rolling_shutter_ms <= 100.0:
+            raise ConfigError(f"tracker.rolling_shutter_ms {self.rolling_shutter_ms}: want 0 to 100 (0 = global shutter)")
         if self.n_features < 100:
             raise ConfigError(f"tracker.n_features {self.n_features}: want >= 100")
         from schemas.codec import parse_wire_compression
@@ -55,6 +62,13 @@ class TrackerConfig:
             parse_wire_compression(self.wire_compression)
         except ConfigError as exc:
             raise ConfigError(f"tracker.wire_compression: {exc}") from None
+
+
+def for_source(cfg: TrackerConfig, source) -> TrackerConfig:
+    """`cfg` with an unset rolling_shutter_ms taken from the source's camera (`readout_s`)."""
+    if cfg.rolling_shutter_ms is not None:
+        return cfg
+    return dataclasses.replace(cfg, rolling_shutter_ms=1e3 * float(getattr(source, "readout_s", 0.0)))
 
 
 def make_odometry(cfg: TrackerConfig):  # -> RgbdOdometry | OrbSlam3Odometry
@@ -71,4 +85,4 @@ def make_odometry(cfg: TrackerConfig):  # -> RgbdOdometry | OrbSlam3Odometry
         vocabulary = load(cfg.vocabulary)
     return RgbdOdometry(n_features=cfg.n_features, local_ba=cfg.local_ba, ba_window=cfg.ba_window,
                         loop_closing=cfg.loop_closing, relocalise=cfg.relocalise, background=cfg.background,
-                        vocabulary=vocabulary)
+                        vocabulary=vocabulary, readout_s=(cfg.rolling_shutter_ms or 0.0) / 1e3)

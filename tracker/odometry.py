@@ -212,6 +212,38 @@ def optimize_pose(
     return T, chi2 <= thr
 
 
+def unroll_rolling_shutter(
+    feats: FrameFeatures, rows: np.ndarray, height: int, K: np.ndarray, readout_s: float,
+    step: tuple[np.ndarray, np.ndarray, int],
+) -> FrameFeatures:
+    """The keypoints as a global shutter at mid-readout would have seen them (rolling shutter).
+
+    Image row r (`rows`: the keypoints' raw, distorted rows) is read `tau = (r / H - 1/2) * readout`
+    after the middle row. With the camera's twist over `step` (rotation vector, translation in the
+    camera frame, interval in ns), a point at camera position p at its row's time sits at
+    p + tau (w x p + v) in the mid-readout camera frame (first order in tau). Keypoints with depth
+    move in 3D; those without get the rotation's share only, which needs no range.
+    """
+    rotvec, trans, dt_ns = step
+    if dt_ns <= 0 or readout_s == 0.0:
+        return feats
+    w = np.asarray(rotvec, np.float64) / (dt_ns * 1e-9)
+    v = np.asarray(trans, np.float64) / (dt_ns * 1e-9)
+    tau = (np.asarray(rows, np.float64) / height - 0.5) * readout_s
+    has = feats.has_depth
+    ray = np.column_stack([(feats.uv[:, 0] - K[0, 2]) / K[0, 0], (feats.uv[:, 1] - K[1, 2]) / K[1, 1],
+                           np.ones(len(feats))])
+    p = np.where(has[:, None], feats.xyz, ray)
+    p0 = p + tau[:, None] * (np.cross(w, p) + np.where(has[:, None], v, 0.0))
+    z0 = p0[:, 2]
+    ok = z0 > 1e-6
+    uv = feats.uv.copy()
+    uv[ok, 0] = K[0, 0] * p0[ok, 0] / z0[ok] + K[0, 2]
+    uv[ok, 1] = K[1, 1] * p0[ok, 1] / z0[ok] + K[1, 2]
+    keep = has & ok
+    return dataclasses.replace(feats, uv=uv, z=np.where(keep, z0, 0.0), xyz=np.where(keep[:, None], p0, 0.0))
+
+
 # ----------------------------------------------------------------------------------------------
 # Map storage.
 
@@ -293,7 +325,11 @@ class RgbdOdometry:
     first pose, Hamming and ratio limits), pose (RANSAC threshold, `inv_depth_sigma` weighting
     depth against pixels, `min_inliers` below which a frame is LOST), keyframes (translation,
     rotation, overlap fraction) and the local map (keyframes near the pose plus the newest).
-    Invalid values raise TrackingError. One instance per camera stream; not thread-safe.
+    `readout_s` is the colour camera's rolling-shutter readout time (0: global shutter): keypoints
+    are moved to mid-readout with the camera's velocity, first from the motion model, then, after
+    the first pose, from the previous frame to this one, and the pose is re-fitted (see
+    `unroll_rolling_shutter`). Invalid values raise TrackingError. One instance per camera
+    stream; not thread-safe.
     """
 
     def __init__(
@@ -347,6 +383,7 @@ class RgbdOdometry:
         background: bool = False,
         vocabulary=None,
         bow_candidates: int = 10,
+        readout_s: float = 0.0,
     ) -> None:
         if n_features < 50:
             raise TrackingError(f"n_features={n_features}: need at least 50 features to track")
@@ -360,6 +397,8 @@ class RgbdOdometry:
             raise TrackingError(f"match_ratio={match_ratio}: must be in (0, 1]")
         if ba_window < 1 or ba_fixed < 0 or ba_iterations < 1:
             raise TrackingError("ba_window and ba_iterations must be at least 1, ba_fixed at least 0")
+        if not 0.0 <= readout_s <= 0.1:
+            raise TrackingError(f"readout_s={readout_s}: a rolling shutter's readout time is 0 to 0.1 s")
         if loop_min_gap < 1 or loop_min_inliers < 6:
             raise TrackingError("loop_min_gap must be at least 1 and loop_min_inliers at least 6")
         self._extractor = OrbExtractor(
@@ -411,6 +450,7 @@ class RgbdOdometry:
         self._loop_max_m = loop_max_correction_m
         self._loop_max_rad = math.radians(loop_max_correction_deg)
         self._relocalise = relocalise
+        self._readout_s = readout_s
         # with a vocabulary (tracker.vocab.Vocabulary), loop and relocalisation candidates come from
         # a bag-of-words index (the best `bow_candidates`), else every keyframe is a candidate
         from tracker.places import BowIndex
@@ -475,6 +515,9 @@ class RgbdOdometry:
             return self._try_initialise(frame, feats)
 
         predicted = self._predict(frame.stamp_ns)
+        raw = feats
+        if self._readout_s > 0.0 and self._velocity is not None:
+            feats = self._unroll(raw, self._velocity)  # the motion model's velocity, for matching
         relocalised = False
         try:
             tracked = self._track_against_map(feats, predicted)
@@ -490,7 +533,17 @@ class RgbdOdometry:
         if tracked is None:
             self._remember(frame.stamp_ns, predicted, ok=False)
             return TrackResult(frame.seq, frame.stamp_ns, predicted.copy(), STATE_LOST, False, -1, 0, 0)
-
+        if self._readout_s > 0.0 and self._last_ok:
+            # Rolling shutter, second pass: the velocity from the previous frame to this frame's
+            # first pose is half a frame old instead of one and a half, and free of the motion
+            # model's lag; re-place the keypoints with it and re-fit the pose on the same matches.
+            step = invert(self._last_pose) @ invert(tracked.camera_from_world)
+            feats = self._unroll(raw, (so3_log(step[:3, :3]), step[:3, 3].copy(), frame.stamp_ns - self._last_stamp))
+            sol = self._solve(feats, tracked.kp_idx, tracked.map_idx, tracked.camera_from_world, use_ransac=False)
+            if sol is not None:
+                T_cw, inl = sol
+                tracked = dataclasses.replace(tracked, camera_from_world=T_cw, kp_idx=tracked.kp_idx[inl],
+                                              map_idx=tracked.map_idx[inl], n_inliers=int(inl.sum()))
         pose = invert(tracked.camera_from_world)
         kf_id = -1
         corrected: dict[int, np.ndarray] = {}
@@ -564,6 +617,11 @@ class RgbdOdometry:
             self._intrinsics = intr
             self._undistort = Undistorter(intr)
         return rgb if rgb.ndim == 2 else cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+
+    def _unroll(self, feats: FrameFeatures, step: tuple[np.ndarray, np.ndarray, int]) -> FrameFeatures:
+        assert self._undistort is not None and self._intrinsics is not None
+        return unroll_rolling_shutter(feats, self._last_pts[:, 1], self._intrinsics.height, self._undistort.K,
+                                      self._readout_s, step)
 
     def _features(self, frame: RgbdFrame, gray: np.ndarray) -> FrameFeatures:
         assert self._undistort is not None
