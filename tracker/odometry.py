@@ -63,6 +63,9 @@ class TrackResult:
     # (new keyframe id, old keyframe id) of a loop closed at this frame
     loop: tuple[int, int] | None = None
     relocalised: bool = False
+    # root mean square reprojection error of the inlier matches, in pixels of each keypoint's
+    # pyramid level (a fit quality with no ground truth: ~1 for a model that explains the image)
+    residual: float = float("nan")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -311,6 +314,8 @@ class _Tracked:
     map_idx: np.ndarray  # map point ids of inlier matches
     n_matches: int
     n_inliers: int
+    feats: FrameFeatures  # the keypoints the pose was fitted to (moved to mid-readout: rolling shutter)
+    residual: float = float("nan")  # RMS level-scaled reprojection error of the inliers
 
 
 # ----------------------------------------------------------------------------------------------
@@ -515,16 +520,13 @@ class RgbdOdometry:
             return self._try_initialise(frame, feats)
 
         predicted = self._predict(frame.stamp_ns)
-        raw = feats
-        if self._readout_s > 0.0 and self._velocity is not None:
-            feats = self._unroll(raw, self._velocity)  # the motion model's velocity, for matching
         relocalised = False
         try:
-            tracked = self._track_against_map(feats, predicted)
+            tracked = self._track_against_map(feats, predicted, frame.stamp_ns)
             if tracked is None and self._relocalise:
                 guess = self._relocalisation_guess(feats)
                 if guess is not None:
-                    tracked = self._track_against_map(feats, guess)
+                    tracked = self._track_against_map(feats, guess, frame.stamp_ns)
                     relocalised = tracked is not None
         except (cv2.error, np.linalg.LinAlgError):
             # Degenerate geometry inside OpenCV or a singular system: this frame is untrackable,
@@ -533,17 +535,7 @@ class RgbdOdometry:
         if tracked is None:
             self._remember(frame.stamp_ns, predicted, ok=False)
             return TrackResult(frame.seq, frame.stamp_ns, predicted.copy(), STATE_LOST, False, -1, 0, 0)
-        if self._readout_s > 0.0 and self._last_ok:
-            # Rolling shutter, second pass: the velocity from the previous frame to this frame's
-            # first pose is half a frame old instead of one and a half, and free of the motion
-            # model's lag; re-place the keypoints with it and re-fit the pose on the same matches.
-            step = invert(self._last_pose) @ invert(tracked.camera_from_world)
-            feats = self._unroll(raw, (so3_log(step[:3, :3]), step[:3, 3].copy(), frame.stamp_ns - self._last_stamp))
-            sol = self._solve(feats, tracked.kp_idx, tracked.map_idx, tracked.camera_from_world, use_ransac=False)
-            if sol is not None:
-                T_cw, inl = sol
-                tracked = dataclasses.replace(tracked, camera_from_world=T_cw, kp_idx=tracked.kp_idx[inl],
-                                              map_idx=tracked.map_idx[inl], n_inliers=int(inl.sum()))
+        feats = tracked.feats
         pose = invert(tracked.camera_from_world)
         kf_id = -1
         corrected: dict[int, np.ndarray] = {}
@@ -564,7 +556,7 @@ class RgbdOdometry:
         self._remember(frame.stamp_ns, pose, ok=True)
         return TrackResult(
             frame.seq, frame.stamp_ns, pose.copy(), STATE_OK, kf_id >= 0, kf_id, tracked.n_matches, tracked.n_inliers,
-            corrected, loop, relocalised,
+            corrected, loop, relocalised, tracked.residual,
         )
 
     def trajectory(self) -> tuple[list[int], list[np.ndarray]]:
@@ -675,7 +667,7 @@ class RgbdOdometry:
         if int(feats.has_depth.sum()) < self._min_init:
             return TrackResult(frame.seq, frame.stamp_ns, pose, STATE_LOST, False, -1, 0, 0)
         empty = np.zeros(0, np.int64)
-        tracked = _Tracked(np.eye(4), empty, empty, 0, 0)
+        tracked = _Tracked(np.eye(4), empty, empty, 0, 0, feats)
         kf_id = self._insert_keyframe(frame.seq, pose, feats, tracked)
         self._frames.append((frame.stamp_ns, kf_id, np.eye(4)))
         self._remember(frame.stamp_ns, pose, ok=True)
@@ -786,10 +778,17 @@ class RgbdOdometry:
             return None
         return T, inl_mask
 
-    def _track_against_map(self, feats: FrameFeatures, predicted_wc: np.ndarray) -> _Tracked | None:
-        """Match and estimate the pose; None when the frame cannot be tracked."""
-        if len(feats) < self._min_inliers:
+    def _track_against_map(self, raw: FrameFeatures, predicted_wc: np.ndarray, stamp_ns: int) -> _Tracked | None:
+        """Match and estimate the pose; None when the frame cannot be tracked.
+
+        With a rolling shutter the keypoints are moved to mid-readout twice: with the motion
+        model's velocity for the first pose, then with the velocity from the previous frame to that
+        pose (half a frame old instead of one and a half) for the second matching pass and the pose
+        that is kept."""
+        if len(raw) < self._min_inliers:
             return None
+        rolling = self._readout_s > 0.0 and self._last_ok
+        feats = self._unroll(raw, self._velocity) if rolling and self._velocity is not None else raw
         guess_cw = invert(predicted_wc)
         local = self._local_points(predicted_wc)
 
@@ -826,11 +825,17 @@ class RgbdOdometry:
         T_cw, _ = first
 
         # Second pass: with a good pose, all local points can be matched in a tight window.
-        ki2, mi2, visible = self._guided(feats, local, T_cw, self._refine_radius)
-        second = self._solve(feats, ki2, mi2, T_cw, use_ransac=False)
+        feats2 = feats
+        if rolling:
+            assert self._last_pose is not None
+            step = invert(self._last_pose) @ invert(T_cw)
+            feats2 = self._unroll(raw, (so3_log(step[:3, :3]), step[:3, 3].copy(), stamp_ns - self._last_stamp))
+        ki2, mi2, visible = self._guided(feats2, local, T_cw, self._refine_radius)
+        second = self._solve(feats2, ki2, mi2, T_cw, use_ransac=False)
         if second is not None and int(second[1].sum()) >= int(first[1].sum()) // 2:
             T_cw, inl = second
             ki, mi = ki2, mi2
+            feats = feats2
         else:
             inl = first[1]
         self._map.n_visible[visible] += 1
@@ -839,7 +844,11 @@ class RgbdOdometry:
         self._last_kp_state[ki] = KP_OUTLIER
         self._last_kp_state[ki[inl]] = KP_TRACKED
         self._last_local = local
-        return _Tracked(T_cw, ki[inl], mi[inl], int(ki.size), int(inl.sum()))
+        ki, mi = ki[inl], mi[inl]
+        uv, _ = self._project(mi, T_cw)
+        scaled = (uv - feats.uv[ki]) * (self._scale_factor ** -feats.octave[ki].astype(np.float64))[:, None]
+        residual = float(np.sqrt(np.mean(np.sum(scaled * scaled, axis=1)))) if ki.size else float("nan")
+        return _Tracked(T_cw, ki, mi, int(inl.size), int(inl.sum()), feats, residual)
 
     # -- keyframes ------------------------------------------------------------------------------
 
