@@ -198,7 +198,7 @@ def optimize_pose(
             dR = so3_exp(dx[3:])
             R = dR @ R
             t = dR @ t + dx[:3]
-            if float(dx @ dx) < 1e-12:  # below a micrometre / microradian
+            if float(dx @ dx) < 1e-10:  # below 10 micrometres / microradians
                 break
         _, _, chi2 = residuals(R, t)
         new_active = chi2 <= thr
@@ -772,7 +772,7 @@ class RgbdOdometry:
             inv_depth_sigma=self._inv_depth_sigma,
             inliers=init_inl,
             # After RANSAC the pose only seeds the tight second matching pass: two rounds suffice.
-            rounds=2 if use_ransac else 4,
+            rounds=2 if use_ransac else 3,
         )
         if int(inl_mask.sum()) < self._min_inliers or not np.all(np.isfinite(T)):
             return None
