@@ -19,7 +19,7 @@ import pytest
 from helpers import tum_first300
 from octolog.errors import TrackingError
 from octolog.geometry import Intrinsics, RgbdFrame, invert
-from tracker.features import Undistorter, bucket_select, hamming, match_by_projection
+from tracker.features import OrbExtractor, Undistorter, bucket_select, hamming, match_by_projection
 from tracker.odometry import RgbdOdometry, TrackResult, rotation_angle
 
 W, H = 640, 480
@@ -279,6 +279,21 @@ def test_bucketing_spreads_features() -> None:
     assert keep.size == 500 and np.unique(keep).size == 500
     assert np.sum(keep >= 2000) == 200  # every weak, spread-out corner survives
     assert np.array_equal(keep, bucket_select(pts, resp, 640, 480, 500, 8, 6))
+
+
+def test_low_contrast_frames_fall_back_to_the_low_fast_threshold() -> None:
+    """FAST runs at 20 first (cheap on textured frames) and at 7 where that finds too few corners."""
+    rng = np.random.default_rng(5)
+    texture = cv2.GaussianBlur(rng.uniform(0, 255, (480, 640)).astype(np.float32), (0, 0), 2.0)
+    texture = (texture - texture.mean()) / texture.std()
+    strong = np.clip(128 + 40 * texture, 0, 255).astype(np.uint8)
+    faint = np.clip(128 + 4 * texture, 0, 255).astype(np.uint8)  # a dim, low-contrast view
+    high_only = OrbExtractor(n_features=500, fast_threshold=20, min_fast_threshold=20)
+    with_fallback = OrbExtractor(n_features=500, fast_threshold=20, min_fast_threshold=7)
+    assert len(high_only.extract(strong)[0]) == 500  # textured: the first pass is enough
+    assert np.array_equal(with_fallback.extract(strong)[2], high_only.extract(strong)[2])
+    n_high, n_fallback = len(high_only.extract(faint)[0]), len(with_fallback.extract(faint)[0])
+    assert n_high < 250 and n_fallback == 500, (n_high, n_fallback)
 
 
 def test_match_by_projection_agrees_with_brute_force() -> None:

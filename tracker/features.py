@@ -43,7 +43,9 @@ class OrbExtractor:
 
     Detects `oversample` times more corners than wanted, keeps the strongest few per grid cell
     (then the strongest leftovers up to `n_features`) and only then computes descriptors, which is
-    cheaper than describing every candidate.
+    cheaper than describing every candidate. As ORB-SLAM, FAST runs with a high threshold first
+    (fewer, stronger corners, less work) and falls back to `min_fast_threshold` when that finds
+    fewer than `n_features` corners (low texture, dark or blurred frames).
     """
 
     def __init__(
@@ -55,7 +57,8 @@ class OrbExtractor:
         oversample: float = 2.0,
         scale_factor: float = 1.2,
         n_levels: int = 8,
-        fast_threshold: int = 12,
+        fast_threshold: int = 20,
+        min_fast_threshold: int = 7,
         edge_threshold: int = 19,
     ) -> None:
         self.n_features = n_features
@@ -63,18 +66,24 @@ class OrbExtractor:
         self.grid_rows = grid_rows
         self.scale_factor = scale_factor
         self.n_levels = n_levels
-        self._orb = cv2.ORB_create(
-            nfeatures=max(n_features, int(round(n_features * oversample))),
-            scaleFactor=scale_factor,
-            nlevels=n_levels,
-            edgeThreshold=edge_threshold,
-            patchSize=31,
-            fastThreshold=fast_threshold,
-        )
+        def orb(threshold: int) -> cv2.ORB:
+            return cv2.ORB_create(
+                nfeatures=max(n_features, int(round(n_features * oversample))),
+                scaleFactor=scale_factor,
+                nlevels=n_levels,
+                edgeThreshold=edge_threshold,
+                patchSize=31,
+                fastThreshold=threshold,
+            )
+
+        self._orb = orb(fast_threshold)
+        self._orb_low = orb(min_fast_threshold) if min_fast_threshold < fast_threshold else None
 
     def extract(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Pixel positions (N, 2), octaves (N,) and descriptors (N, 32) of one grey image."""
         kps = self._orb.detect(gray, None)
+        if len(kps) < self.n_features and self._orb_low is not None:
+            kps = self._orb_low.detect(gray, None)
         if not kps:
             return _empty_extract()
         pts = cv2.KeyPoint_convert(kps).astype(np.float64)

@@ -343,7 +343,8 @@ class RgbdOdometry:
         n_features: int = 1000,
         grid_cols: int = 8,
         grid_rows: int = 6,
-        fast_threshold: int = 12,
+        fast_threshold: int = 20,
+        min_fast_threshold: int = 7,
         n_levels: int = 8,
         scale_factor: float = 1.2,
         min_depth_m: float = 0.2,
@@ -411,6 +412,7 @@ class RgbdOdometry:
             grid_cols=grid_cols,
             grid_rows=grid_rows,
             fast_threshold=fast_threshold,
+            min_fast_threshold=min_fast_threshold,
             n_levels=n_levels,
             scale_factor=scale_factor,
         )
@@ -728,7 +730,8 @@ class RgbdOdometry:
         return n_inliers >= 3 * self._min_inliers and n_inliers >= self._confident_ratio * n_matches
 
     def _solve(
-        self, feats: FrameFeatures, kp_idx: np.ndarray, map_idx: np.ndarray, guess_cw: np.ndarray, use_ransac: bool
+        self, feats: FrameFeatures, kp_idx: np.ndarray, map_idx: np.ndarray, guess_cw: np.ndarray, use_ransac: bool,
+        rounds: int = 3,
     ) -> tuple[np.ndarray, np.ndarray] | None:
         """Pose (camera_from_world) and inlier mask from matches, or None when unreliable."""
         assert self._undistort is not None
@@ -772,7 +775,7 @@ class RgbdOdometry:
             inv_depth_sigma=self._inv_depth_sigma,
             inliers=init_inl,
             # After RANSAC the pose only seeds the tight second matching pass: two rounds suffice.
-            rounds=2 if use_ransac else 3,
+            rounds=2 if use_ransac else rounds,
         )
         if int(inl_mask.sum()) < self._min_inliers or not np.all(np.isfinite(T)):
             return None
@@ -811,7 +814,10 @@ class RgbdOdometry:
                 around = self._local_points(self._last_tracked_pose)
                 q, tr, _ = match_brute_force(feats.desc, self._map.desc[around], max_distance=64, ratio=0.8)
                 ki, mi = q, around[tr]
-            sol = self._solve(feats, ki, mi, guess_cw, use_ransac=True)
+            # Behind a tracked frame the motion model's pose is a good start: a robust fit from it
+            # needs no RANSAC (as ORB-SLAM's motion-model step); escalation brings RANSAC back.
+            trusted = attempt == 0 and self._last_ok and self._velocity is not None
+            sol = self._solve(feats, ki, mi, guess_cw, use_ransac=not trusted, rounds=2)
             if sol is not None and (best is None or int(sol[1].sum()) > int(best[1].sum())):
                 best = (sol[0], sol[1], ki, mi)
             if best is not None and self._confident(int(best[1].sum()), best[2].size):
