@@ -227,78 +227,112 @@ def match_by_projection(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One-to-one matches of projected map points to keypoints found within `radius` pixels.
 
-    A coarse grid of cell size = max radius gives each projection the keypoints of its 3x3 cell
-    block, so the cost grows with the candidates, not with (map points x keypoints). A match needs
-    Hamming distance <= max_distance and best < ratio * second best among its candidates; a
-    keypoint claimed by several map points goes to the closest descriptor.
+    A grid of square cells of about half the max radius gives each projection the keypoints of the
+    5 cell-row runs around it (each run is contiguous in cell order), so the cost grows with the
+    candidates, not with (map points x keypoints). A match needs Hamming distance <= max_distance
+    and best < ratio * second best among its candidates; a keypoint claimed by several map points
+    goes to the closest descriptor.
     Returns (map index, keypoint index, Hamming distance), sorted by map index.
     """
     empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64))
     m, n = proj_uv.shape[0], kp_uv.shape[0]
     if m == 0 or n == 0:
         return empty
-    rad = np.broadcast_to(np.asarray(radius, dtype=np.float64), (m,))
-    cell = max(float(rad.max()), 1.0)
-    kx = np.floor(kp_uv[:, 0] / cell).astype(np.int64)
-    ky = np.floor(kp_uv[:, 1] / cell).astype(np.int64)
-    x0, y0 = int(kx.min()) - 1, int(ky.min()) - 1
-    ncols = int(kx.max()) - x0 + 2
-    nrows = int(ky.max()) - y0 + 2
-    kcell = (ky - y0) * ncols + (kx - x0)
-    order = np.argsort(kcell, kind="stable")
-    counts = np.bincount(kcell, minlength=ncols * nrows)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-
-    px = np.floor(proj_uv[:, 0] / cell).astype(np.int64) - x0
-    py = np.floor(proj_uv[:, 1] / cell).astype(np.int64) - y0
-    d = np.array([-1, 0, 1])
-    qx = np.repeat(px[:, None], 9, 1) + np.tile(d, 3)
-    qy = np.repeat(py[:, None], 9, 1) + np.repeat(d, 3)
-    inside = (qx >= 0) & (qx < ncols) & (qy >= 0) & (qy < nrows)
-    qcell = np.where(inside, qy * ncols + qx, 0)
-    qcount = np.where(inside, counts[qcell], 0).ravel()
-    total = int(qcount.sum())
-    if total == 0:
-        return empty
-    owner = np.repeat(np.arange(m * 9), qcount)
-    block_first = np.cumsum(qcount) - qcount
-    within = np.arange(total) - np.repeat(block_first, qcount)
-    cand_kp = order[starts[qcell.ravel()][owner] + within]
-    cand_map = owner // 9
-
-    dx = kp_uv[:, 0][cand_kp] - proj_uv[:, 0][cand_map]
-    dy = kp_uv[:, 1][cand_kp] - proj_uv[:, 1][cand_map]
-    near = dx * dx + dy * dy <= (rad * rad)[cand_map]
-    cand_map, cand_kp = cand_map[near], cand_kp[near]
+    cand_map, cand_kp = _candidates_in_radius(proj_uv, kp_uv, radius)
     if cand_map.size == 0:
         return empty
-    dist = hamming64(as_words(proj_desc)[cand_map], as_words(kp_desc)[cand_kp])
+    dist = _hamming_of_pairs(as_words(proj_desc), as_words(kp_desc), cand_map, cand_kp)
 
-    # Best and second best per map point without sorting: candidates are already grouped by map
-    # index, so a segmented minimum of (distance, keypoint index) packed in one key finds the best
-    # (ties go to the lowest keypoint index); masking it out and repeating gives the second.
+    # Best and second best per map point without sorting: candidates are grouped by map index
+    # (each keypoint at most once per group), so a segmented minimum of (distance, keypoint index)
+    # packed in one key finds the best (ties go to the lowest keypoint index); masking it out and
+    # repeating gives the second.
     key = dist * n + cand_kp
-    head = np.ones(cand_map.size, dtype=bool)
-    head[1:] = cand_map[1:] != cand_map[:-1]
+    head = np.empty(cand_map.size, dtype=bool)
+    head[0] = True
+    np.not_equal(cand_map[1:], cand_map[:-1], out=head[1:])
     hi = np.flatnonzero(head)
     best = np.minimum.reduceat(key, hi)
-    group = np.cumsum(head) - 1
-    rest = np.where(key == best[group], np.iinfo(np.int64).max, key)
-    second_key = np.minimum.reduceat(rest, hi)
-    second = np.where(second_key == np.iinfo(np.int64).max, np.iinfo(np.int64).max, second_key // n)
-    bm, bk, bd = cand_map[hi], best % n, best // n
-    good = (bd <= max_distance) & (bd < ratio * second)
-    bm, bk, bd = bm[good], bk[good], bd[good]
+    big = np.iinfo(key.dtype).max
+    key[key == np.repeat(best, np.diff(hi, append=key.size))] = big
+    second_key = np.minimum.reduceat(key, hi)
+    bd = best // n
+    good = (bd <= max_distance) & ((second_key == big) | (bd < ratio * (second_key // n)))
+    bm, best, bd = cand_map[hi[good]], best[good], bd[good]
     if bm.size == 0:
         return empty
-    # One map point per keypoint: keep the smallest distance (ties: lowest map index).
-    o = np.lexsort((bm, bd, bk))
-    bm, bk, bd = bm[o], bk[o], bd[o]
-    first = np.ones(bk.size, dtype=bool)
-    first[1:] = bk[1:] != bk[:-1]
-    bm, bk, bd = bm[first], bk[first], bd[first]
-    o = np.argsort(bm, kind="stable")
-    return bm[o], bk[o], bd[o]
+    bk = best - bd * n
+    # One map point per keypoint: keep the smallest distance (ties: lowest map index). bm is
+    # ascending and unique, so the winners stay sorted by map index.
+    claim = bd * m + bm
+    win = np.full(n, np.iinfo(claim.dtype).max)
+    np.minimum.at(win, bk, claim)
+    keep = win[bk] == claim
+    return bm[keep].astype(np.int64), bk[keep].astype(np.int64), bd[keep].astype(np.int64)
+
+
+def _candidates_in_radius(
+    proj_uv: np.ndarray, kp_uv: np.ndarray, radius: float | np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(map index, keypoint index) pairs within `radius` pixels, grouped by ascending map index."""
+    m = proj_uv.shape[0]
+    rad = np.broadcast_to(np.asarray(radius, dtype=np.float64), (m,))
+    # Cells of (max radius + 2 slack) / 2: the cell rows within radius + slack of a projection
+    # are always 5. The slack (pixels) keeps the cell runs a superset under rounding; the exact
+    # distance test follows.
+    slack = 1e-3
+    h = (max(float(rad.max()), 1.0) + 2.0 * slack) / 2.0
+    kx = np.floor(kp_uv[:, 0] / h).astype(np.intp)
+    ky = np.floor(kp_uv[:, 1] / h).astype(np.intp)
+    x0, y0 = int(kx.min()), int(ky.min())
+    ncols = int(kx.max()) - x0 + 1
+    nrows = int(ky.max()) - y0 + 1
+    kcell = (ky - y0) * ncols + (kx - x0)
+    # The order within a cell does not matter: each map point's candidates are reduced with
+    # unique keys.
+    order = np.argsort(kcell)
+    starts = np.zeros(nrows * ncols + 1, dtype=np.intp)
+    np.cumsum(np.bincount(kcell, minlength=nrows * ncols), out=starts[1:])
+    # Keypoints in cell order as u + iv: one gather and one subtraction give (du, dv).
+    kz = np.empty(kp_uv.shape[0], dtype=np.complex128)
+    kz.real, kz.imag = kp_uv[order, 0], kp_uv[order, 1]
+
+    # Per projection and cell row: the run of cells [col_lo, col_hi) within radius + slack, which
+    # is the run [lo, lo + count) of keypoints in cell order.
+    pu, pv = proj_uv[:, 0], proj_uv[:, 1]
+    r_s = rad + slack
+    col_lo = np.clip(np.floor((pu - r_s) / h).astype(np.intp) - x0, 0, ncols)
+    col_hi = np.clip(np.floor((pu + r_s) / h).astype(np.intp) - (x0 - 1), 0, ncols)
+    row = (np.floor((pv - r_s) / h).astype(np.intp) - y0)[:, None] + np.arange(5)
+    row_ok = (row >= 0) & (row < nrows)
+    row_base = np.where(row_ok, row, 0) * ncols
+    lo = starts[row_base + col_lo[:, None]]
+    count = np.where(row_ok, starts[row_base + col_hi[:, None]] - lo, 0).ravel()
+    end = np.cumsum(count)
+    total = int(end[-1])
+    if total == 0:
+        return np.zeros(0, np.intp), np.zeros(0, np.intp)
+    # Expand the runs: candidate j of run b is keypoint lo[b] + (j - first[b]) in cell order.
+    pos = np.arange(total) + np.repeat(lo.ravel() - (end - count), count)
+    per_map = np.diff(end[4::5], prepend=0)
+    pz = np.empty(m, dtype=np.complex128)
+    pz.real, pz.imag = pu, pv
+    d = (kz[pos] - np.repeat(pz, per_map)).view(np.float64)
+    d *= d
+    cand_map = np.repeat(np.arange(m), per_map)
+    r2 = float(rad[0]) * float(rad[0]) if np.ndim(radius) == 0 else (rad * rad)[cand_map]
+    near = d[0::2] + d[1::2] <= r2
+    return cand_map[near], order[pos[near]]
+
+
+def _hamming_of_pairs(a: np.ndarray, b: np.ndarray, ia: np.ndarray, ib: np.ndarray) -> np.ndarray:
+    """Hamming distances between rows a[ia] and b[ib] of (K, 4) uint64 words, as int64."""
+    x = np.take(a, ia, axis=0)
+    np.bitwise_xor(x, np.take(b, ib, axis=0), out=x)
+    # The 4 per-word counts (<= 64 each) are the bytes of one uint32: add them pairwise.
+    v = np.bitwise_count(x).view(np.uint32).ravel()
+    v = (v & 0x00FF00FF) + ((v >> 8) & 0x00FF00FF)
+    return ((v & 0xFFFF) + (v >> 16)).astype(np.int64)
 
 
 def match_brute_force(

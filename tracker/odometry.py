@@ -134,63 +134,72 @@ def optimize_pose(
     thr = np.where(has_d, _CHI2_3, _CHI2_2)
     delta_h = np.sqrt(thr)
     active = np.ones(n, dtype=bool) if inliers is None else inliers.copy()
+    # Per-observation constants gathered once per iteration: sigma scale, Huber delta and the
+    # inverse-depth Jacobian factor (-dsig with depth, +0 without).
+    per_obs = np.stack([inv_sigma_px, delta_h, np.where(has_d, -dsig, 0.0)]).T.copy()
+    dsig_d = np.where(has_d, dsig, 0.0)
 
     def residuals(Rm: np.ndarray, tv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        # r rows: u, v, inverse depth (3, n), so that the rows of the active points concatenate
+        # to the Jacobian's row order with one gather.
         p = points_w @ Rm.T + tv
         z = p[:, 2]
-        iz = 1.0 / np.where(z > 1e-6, z, 1e-6)
-        r = np.empty((n, 3))
-        r[:, 0] = (fx * p[:, 0] * iz + cx - uv[:, 0]) * inv_sigma_px
-        r[:, 1] = (fy * p[:, 1] * iz + cy - uv[:, 1]) * inv_sigma_px
-        r[:, 2] = np.where(has_d, (iz - inv_z_meas) * dsig, 0.0)
-        chi2 = np.where(z > 1e-6, (r * r).sum(axis=1), np.inf)
+        front = z > 1e-6
+        iz = 1.0 / np.where(front, z, 1e-6)
+        r = np.empty((3, n))
+        np.multiply(fx * p[:, 0] * iz + cx - uv[:, 0], inv_sigma_px, out=r[0])
+        np.multiply(fy * p[:, 1] * iz + cy - uv[:, 1], inv_sigma_px, out=r[1])
+        np.multiply(iz - inv_z_meas, dsig_d, out=r[2])  # iz > 0: exactly +0 without depth
+        sq = r * r
+        chi2 = np.where(front, sq[0] + sq[1] + sq[2], np.inf)  # the order of a row sum
         return p, r, chi2
 
+    res = None  # residuals at the current pose, when already computed
     for rnd in range(rounds):
         if int(active.sum()) < 6:
             break
         for _ in range(iterations):
-            p, r, chi2 = residuals(R, t)
-            a = active & np.isfinite(chi2)
-            m = int(a.sum())
+            p, r, chi2 = residuals(R, t) if res is None else res
+            res = None
+            idx = np.flatnonzero(active & np.isfinite(chi2))
+            m = idx.size
             if m < 6:
                 break
-            x, y, z = p[a, 0], p[a, 1], p[a, 2]
-            s = inv_sigma_px[a]
+            pa = np.take(p, idx, axis=0)
+            x, y, z = pa[:, 0], pa[:, 1], pa[:, 2]
+            obs = np.take(per_obs, idx, axis=0)
+            s, dh, nd = obs[:, 0], obs[:, 1], obs[:, 2]
             iz = 1.0 / z
             xz, yz = x * iz, y * iz
             # Analytic Jacobians for the left perturbation p' = exp(phi) p + rho, columns
-            # (rho, phi): rows u, v and inverse depth (zeroed where there is no depth).
-            J = np.empty((3 * m, 6))
+            # (rho, phi): rows u, v and inverse depth (zeroed where there is no depth). Entries
+            # are written in place; the expressions keep the operand order of the formulas.
+            J = np.zeros((3 * m, 6))
+            Ju, Jv, Jd = J[:m], J[m : 2 * m], J[2 * m :]
             su, sv = s * fx, s * fy
-            J[:m, 0] = su * iz
-            J[:m, 1] = 0.0
-            J[:m, 2] = -su * xz * iz
-            J[:m, 3] = -su * xz * yz
-            J[:m, 4] = su * (1.0 + xz * xz)
-            J[:m, 5] = -su * yz
-            J[m : 2 * m, 0] = 0.0
-            J[m : 2 * m, 1] = sv * iz
-            J[m : 2 * m, 2] = -sv * yz * iz
-            J[m : 2 * m, 3] = -sv * (1.0 + yz * yz)
-            J[m : 2 * m, 4] = sv * xz * yz
-            J[m : 2 * m, 5] = sv * xz
-            c2 = np.where(has_d[a], -iz * iz * dsig, 0.0)
-            J[2 * m :, 0] = 0.0
-            J[2 * m :, 1] = 0.0
-            J[2 * m :, 2] = c2
-            J[2 * m :, 3] = y * c2
-            J[2 * m :, 4] = -x * c2
-            J[2 * m :, 5] = 0.0
-            ra = r[a]
-            rr = np.concatenate([ra[:, 0], ra[:, 1], ra[:, 2]])
-            e = np.sqrt(chi2[a])
-            w = np.where(e <= delta_h[a], 1.0, delta_h[a] / np.maximum(e, 1e-12))
-            w3 = np.concatenate([w, w, w])
-            Jw = J * w3[:, None]
+            nsu, nsv = -su, -sv
+            np.multiply(su, iz, out=Ju[:, 0])
+            nsu_xz = nsu * xz
+            np.multiply(nsu_xz, iz, out=Ju[:, 2])  # -su * xz * iz
+            np.multiply(nsu_xz, yz, out=Ju[:, 3])  # -su * xz * yz
+            np.multiply(su, 1.0 + xz * xz, out=Ju[:, 4])
+            np.multiply(nsu, yz, out=Ju[:, 5])  # -su * yz
+            np.multiply(sv, iz, out=Jv[:, 1])
+            np.multiply(nsv * yz, iz, out=Jv[:, 2])  # -sv * yz * iz
+            np.multiply(nsv, 1.0 + yz * yz, out=Jv[:, 3])  # -sv * (1 + yz^2)
+            np.multiply(sv, xz, out=Jv[:, 5])
+            np.multiply(Jv[:, 5], yz, out=Jv[:, 4])  # sv * xz * yz
+            c2 = Jd[:, 2]
+            np.multiply(iz * iz, nd, out=c2)  # -iz * iz * dsig with depth, +0 without
+            np.multiply(y, c2, out=Jd[:, 3])
+            np.multiply(x, -c2, out=Jd[:, 4])  # -x * c2 (same value, signed zeros included)
+            rr = np.take(r, idx, axis=1).ravel()
+            e = np.sqrt(np.take(chi2, idx))
+            w = np.minimum(dh / np.maximum(e, 1e-12), 1.0)  # Huber: 1 where e <= dh
+            Jw = (J.reshape(3, m, 6) * w[:, None]).reshape(3 * m, 6)
             H = Jw.T @ J
             g = Jw.T @ rr
-            H[np.diag_indices(6)] += 1e-9 + 1e-6 * np.diag(H)
+            H.flat[::7] += 1e-9 + 1e-6 * H.diagonal()
             try:
                 dx = -np.linalg.solve(H, g)
             except np.linalg.LinAlgError:
@@ -200,8 +209,8 @@ def optimize_pose(
             t = dR @ t + dx[:3]
             if float(dx @ dx) < 1e-10:  # below 10 micrometres / microradians
                 break
-        _, _, chi2 = residuals(R, t)
-        new_active = chi2 <= thr
+        res = residuals(R, t)  # also the next round's first residuals
+        new_active = res[2] <= thr
         if rnd > 0 and np.array_equal(new_active, active):
             break
         active = new_active
