@@ -381,7 +381,7 @@ class RgbdOdometry:
         local_ba: bool = True,
         ba_window: int = 5,
         ba_fixed: int = 6,
-        ba_iterations: int = 5,
+        ba_iterations: int = 3,
         ba_max_points: int = 800,
         ba_inv_depth_sigma: float = 0.01,
         global_ba: bool = True,
