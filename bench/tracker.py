@@ -56,7 +56,8 @@ def worker(backend: str, source: str, vocabulary: str, result_path: Path) -> Non
     src = open_source(source)
     frames = src.frames()
     first = next(frames)
-    odom = make_odometry(for_source(TrackerConfig(backend=backend, vocabulary=vocabulary), src))
+    cfg = for_source(TrackerConfig(backend=backend, vocabulary=vocabulary), src)
+    odom = make_odometry(cfg)
     rss_before = _vm("VmRSS")
     t0 = time.perf_counter()
     if hasattr(odom, "start"):
@@ -96,7 +97,7 @@ def worker(backend: str, source: str, vocabulary: str, result_path: Path) -> Non
         "online_tum": metrics.format_tum(np.array(stamps), np.array(poses)), "final_tum": final_tum,
         "startup_s": startup_s, "wall_s": wall_s, "cpu_s": cpu_s, "rss_before_mb": rss_before,
         "peak_rss_mb": _vm("VmHWM"), "worker_peak_rss_mb": kids1.ru_maxrss / 1024.0,
-        "readout_ms": for_source(TrackerConfig(), src).rolling_shutter_ms,
+        "readout_ms": cfg.rolling_shutter_ms,
     }))
 
 

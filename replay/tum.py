@@ -39,7 +39,7 @@ TUM_INTRINSICS = {
 
 # Rolling-shutter readout time of the colour camera (first row to last, s). freiburg1: picked on
 # fr1/xyz first300 by the tracker's own reprojection residual, no ground truth (bench/readout.py;
-# docs/tracker.md). freiburg2/3 are unmeasured here: 0 (no correction) until someone measures them.
+# docs/architecture.md). freiburg2/3 are unmeasured here: 0 (no correction) until someone measures them.
 TUM_READOUT_S = {"freiburg1": 0.020}
 
 

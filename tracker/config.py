@@ -42,7 +42,7 @@ class TrackerConfig:
     vocabulary: str = ""
     # native: the colour camera's rolling-shutter readout time, first row to last (ms); 0 = global
     # shutter (D455 colour, the synthetic scene). Unset (the default): `octolog run` and the
-    # benchmarks take it from the source (TUM freiburg1: 20 ms, see docs/tracker.md), else 0.
+    # benchmarks take it from the source (TUM freiburg1: 20 ms, see docs/architecture.md), else 0.
     rolling_shutter_ms: float | None = None
 
     def validate(self) -> None:
@@ -68,7 +68,7 @@ def for_source(cfg: TrackerConfig, source) -> TrackerConfig:
     """`cfg` with an unset rolling_shutter_ms taken from the source's camera (`readout_s`)."""
     if cfg.rolling_shutter_ms is not None:
         return cfg
-    return dataclasses.replace(cfg, rolling_shutter_ms=1e3 * float(getattr(source, "readout_s", 0.0)))
+    return dataclasses.replace(cfg, rolling_shutter_ms=1e3 * float(source.readout_s))
 
 
 def make_odometry(cfg: TrackerConfig):  # -> RgbdOdometry | OrbSlam3Odometry

@@ -340,8 +340,8 @@ class RgbdOdometry:
     depth against pixels, `min_inliers` below which a frame is LOST), keyframes (translation,
     rotation, overlap fraction) and the local map (keyframes near the pose plus the newest).
     `readout_s` is the colour camera's rolling-shutter readout time (0: global shutter): keypoints
-    are moved to mid-readout with the camera's velocity, first from the motion model, then, after
-    the first pose, from the previous frame to this one, and the pose is re-fitted (see
+    are moved to mid-readout with the camera's velocity, from the motion model for the first pose,
+    then from the previous frame to that pose for the second matching pass and the final fit (see
     `unroll_rolling_shutter`). Invalid values raise TrackingError. One instance per camera
     stream; not thread-safe.
     """
@@ -783,8 +783,7 @@ class RgbdOdometry:
             K,
             inv_depth_sigma=self._inv_depth_sigma,
             inliers=init_inl,
-            # After RANSAC the pose only seeds the tight second matching pass: two rounds suffice.
-            rounds=2 if use_ransac else rounds,
+            rounds=rounds,
         )
         if int(inl_mask.sum()) < self._min_inliers or not np.all(np.isfinite(T)):
             return None
@@ -825,6 +824,7 @@ class RgbdOdometry:
                 ki, mi = q, around[tr]
             # Behind a tracked frame the motion model's pose is a good start: a robust fit from it
             # needs no RANSAC (as ORB-SLAM's motion-model step); escalation brings RANSAC back.
+            # This pose only seeds the tight second matching pass: two rounds suffice.
             trusted = attempt == 0 and self._last_ok and self._velocity is not None
             sol = self._solve(feats, ki, mi, guess_cw, use_ransac=not trusted, rounds=2)
             if sol is not None and (best is None or int(sol[1].sum()) > int(best[1].sum())):
