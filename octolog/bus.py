@@ -52,6 +52,7 @@ HISTORY = "@history"  # a verbatim chunk: `**` subscribers and queries never mat
 HISTORY_MB = 64  # byte cap of an ordinary publisher's history, on top of `history` samples
 PROBE_S = 1.0  # an idle subscriber, or one with an open gap, asks the histories this often
 QUERY_TIMEOUT_S = 10.0
+WAKE_S = 0.2  # a thread blocked on an event wakes this often, so signal handlers run (see serve_router)
 BATCH = 16  # samples per history reply: a large backlog comes in several queries
 DONE = "_octolog/done"  # `<ns>/_octolog/done/<stage>`: put by a stage that finished without error
 
@@ -715,8 +716,15 @@ class Bus:
 
 
 def serve_router(listen: tuple[str, ...], *, zenoh_config: str | None = None,
-                 stop: threading.Event | None = None) -> None:
-    """Host a Zenoh router in this process until `stop` is set (or forever)."""
+                 stop: threading.Event | None = None, ready: Callable[[], None] | None = None) -> None:
+    """Host a Zenoh router in this process until `stop` is set (or forever); `ready()` is called
+    once its session is open."""
     cfg = BusConfig(mode="router", listen=listen, zenoh_config=zenoh_config, multicast_scouting=False)
+    stop = stop or threading.Event()
     with Bus(cfg, "router"):
-        (stop or threading.Event()).wait()
+        if ready is not None:
+            ready()
+        # in slices: a SIGTERM may be delivered to one of Zenoh's threads, and Python runs its
+        # handler (KeyboardInterrupt, see octolog.cli) only when this thread next runs bytecode
+        while not stop.wait(WAKE_S):
+            pass

@@ -222,8 +222,8 @@ def cmd_router(args: argparse.Namespace) -> int:
     from octolog.bus import serve_router
 
     listen = tuple(args.listen) or ("tcp/0.0.0.0:7447",)
-    print(f"router: listening on {', '.join(listen)} (Ctrl-C to stop)", flush=True)
-    serve_router(listen, zenoh_config=args.zenoh_config)
+    serve_router(listen, zenoh_config=args.zenoh_config,
+                 ready=lambda: print(f"router: listening on {', '.join(listen)} (Ctrl-C to stop)", flush=True))
     return 0
 
 

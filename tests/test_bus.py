@@ -238,3 +238,68 @@ def test_a_bad_zenoh_config_file_is_one_line(tmp_path):
             pass
     msg = str(err.value)
     assert "\n" not in msg and str(bad) in msg and "1:11" in msg and ".rs:" not in msg, msg
+
+
+_SYSCALLS = {"x86_64": {"tgkill": 234, "futex": 202}, "aarch64": {"tgkill": 131, "futex": 98}}
+
+
+def _syscall_numbers() -> dict[str, int]:
+    import platform
+
+    if platform.machine() not in _SYSCALLS:
+        pytest.skip(f"syscall numbers unknown on {platform.machine()}")
+    return _SYSCALLS[platform.machine()]
+
+
+def _signal_thread(pid: int, tid: int, sig: int) -> None:
+    """tgkill(2): deliver `sig` to one thread of another process, as the kernel may do with a kill."""
+    import ctypes
+    import os
+
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.syscall(_syscall_numbers()["tgkill"], pid, tid, sig) != 0:
+        raise OSError(ctypes.get_errno(), os.strerror(ctypes.get_errno()))
+
+
+def test_router_stops_when_sigterm_lands_on_a_zenoh_thread():
+    """A process-directed SIGTERM may be delivered to any thread that does not block it, here one of
+    Zenoh's Rust threads; Python then runs its handler only when the main thread next runs bytecode.
+    `octolog router` must still stop (exit 130), not sleep on forever (CI once hung on this)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from helpers import ROOT
+
+    ep = f"tcp/127.0.0.1:{_port()}"
+    proc = subprocess.Popen([sys.executable, "-m", "octolog", "router", "--listen", ep], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        assert "router: listening on" in proc.stdout.readline()  # printed once its session is open
+        tasks = Path(f"/proc/{proc.pid}/task")
+        sigterm_bit = 1 << (signal.SIGTERM - 1)
+
+        def takes_sigterm(tid: str) -> bool:
+            blocked = next(ln for ln in (tasks / tid / "status").read_text().splitlines() if ln.startswith("SigBlk:"))
+            return not int(blocked.split()[1], 16) & sigterm_bit
+
+        zenoh_threads = sorted(t.name for t in tasks.iterdir() if int(t.name) != proc.pid
+                               and (t / "comm").read_text().strip() in ("app-0", "net-0", "acc-0", "rx-0", "tx-0")
+                               and takes_sigterm(t.name))
+        assert zenoh_threads, "no Zenoh runtime thread found in the router process"
+        # the signal must come while the main thread sleeps in a futex (its wait for the stop event),
+        # not while it still runs Python code on the way there, where any handler would run at once
+        futex, deadline = _syscall_numbers()["futex"], time.monotonic() + 20
+        while (tasks / str(proc.pid) / "syscall").read_text().split()[0] != str(futex):
+            assert time.monotonic() < deadline, "the router's main thread never went to sleep"
+            time.sleep(0.01)
+        _signal_thread(proc.pid, int(zenoh_threads[0]), signal.SIGTERM)
+        assert proc.wait(timeout=15) == 130
+        assert "octolog router: interrupted" in proc.stdout.read()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()

@@ -73,8 +73,8 @@ def router(pki):
                             cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     line = proc.stdout.readline()
     assert "router: listening on" in line, line + proc.stdout.read()
-    # the line comes before the router's session opens: a certified client (retrying for up to 30 s)
-    # getting a session says it is up, so the refusals below are refusals, not a router still starting
+    # the line comes once the router's session is open; a certified client getting a session as well
+    # says TLS works, so the refusals below are refusals, not a router still starting
     with _bus(endpoint, _config(pki, "zenoh-tls-client.json5", "probe", cert="server"), "probe"):
         pass
     yield endpoint
