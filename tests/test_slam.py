@@ -273,6 +273,24 @@ def test_synthetic_accuracy(room, with_loops) -> None:
     assert _ate(room, with_loops[0]) <= 0.005
 
 
+def test_final_bundle_adjustment_is_bounded_to_the_newest_keyframes(loop_frames) -> None:
+    """The BA at the end of the stream covers every keyframe on a short session, and only the newest
+    `global_ba_keyframes` on a longer one (older keyframes stay where they are), so it cannot grow
+    with the session without bound."""
+    def moved(**kw) -> tuple[set[int], list[int]]:
+        odo = RgbdOdometry(loop_closing=False, **kw)
+        for f in loop_frames[:80]:
+            odo.track(f)
+        return set(odo.finish()), sorted(odo.keyframe_poses())
+
+    local, ids = moved(global_ba_keyframes=0)  # only the last local BA's result lands in finish
+    assert len(ids) > 20 and local <= set(ids[-5:]), (local, ids)
+    everything, _ = moved()
+    assert min(everything) < ids[-10], (everything, ids)
+    newest, _ = moved(global_ba_keyframes=10)
+    assert newest <= set(ids[-10:]) and newest & set(ids[-10:-5]), (newest, ids)
+
+
 def test_back_end_worker_process_returns_results_and_errors() -> None:
     import psutil
 

@@ -33,6 +33,10 @@ class TrackerConfig:
     # outputs are byte-identical with it on or off.
     local_ba: bool = True
     ba_window: int = 5
+    # the bundle adjustment at the end of the stream: over every keyframe up to this many, else over
+    # the newest this many with the keyframes that made their points held (bounded time and
+    # memory on long sessions); 0: none
+    global_ba_keyframes: int = 500
     loop_closing: bool = True
     relocalise: bool = True
     background: bool = True
@@ -52,6 +56,8 @@ class TrackerConfig:
             raise ConfigError(f"tracker.throttle_ms {self.throttle_ms}: want >= 0")
         if self.ba_window < 1:
             raise ConfigError(f"tracker.ba_window {self.ba_window}: want >= 1")
+        if self.global_ba_keyframes < 0:
+            raise ConfigError(f"tracker.global_ba_keyframes {self.global_ba_keyframes}: want >= 0 (0: none)")
         if self.rolling_shutter_ms is not None and not 0.0 <= self.rolling_shutter_ms <= 100.0:
             raise ConfigError(f"tracker.rolling_shutter_ms {self.rolling_shutter_ms}: want 0 to 100 (0 = global shutter)")
         if self.n_features < 100:
@@ -84,5 +90,6 @@ def make_odometry(cfg: TrackerConfig):  # -> RgbdOdometry | OrbSlam3Odometry
 
         vocabulary = load(cfg.vocabulary)
     return RgbdOdometry(n_features=cfg.n_features, local_ba=cfg.local_ba, ba_window=cfg.ba_window,
+                        global_ba_keyframes=cfg.global_ba_keyframes,
                         loop_closing=cfg.loop_closing, relocalise=cfg.relocalise, background=cfg.background,
                         vocabulary=vocabulary, readout_s=(cfg.rolling_shutter_ms or 0.0) / 1e3)

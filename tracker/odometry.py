@@ -384,7 +384,7 @@ class RgbdOdometry:
         ba_iterations: int = 3,
         ba_max_points: int = 800,
         ba_inv_depth_sigma: float = 0.01,
-        global_ba: bool = True,
+        global_ba_keyframes: int = 500,
         global_ba_iterations: int = 10,
         loop_closing: bool = True,
         loop_min_gap: int = 10,
@@ -410,8 +410,9 @@ class RgbdOdometry:
             raise TrackingError("n_local_keyframes and n_recent_keyframes must be at least 1")
         if not 0.0 < match_ratio <= 1.0:
             raise TrackingError(f"match_ratio={match_ratio}: must be in (0, 1]")
-        if ba_window < 1 or ba_fixed < 0 or ba_iterations < 1:
-            raise TrackingError("ba_window and ba_iterations must be at least 1, ba_fixed at least 0")
+        if ba_window < 1 or ba_fixed < 0 or ba_iterations < 1 or global_ba_keyframes < 0:
+            raise TrackingError("ba_window and ba_iterations must be at least 1, ba_fixed and global_ba_keyframes "
+                                "at least 0")
         if not 0.0 <= readout_s <= 0.1:
             raise TrackingError(f"readout_s={readout_s}: a rolling shutter's readout time is 0 to 0.1 s")
         if loop_min_gap < 1 or loop_min_inliers < 6:
@@ -455,7 +456,7 @@ class RgbdOdometry:
         self._ba_max_point_move = 0.05
         self._ba_max_points = ba_max_points
         self._ba_inv_depth_sigma = ba_inv_depth_sigma
-        self._global_ba = global_ba
+        self._global_ba_keyframes = global_ba_keyframes
         self._global_ba_iterations = global_ba_iterations
         self._loop_closing = loop_closing
         self._loop_gap = loop_min_gap
@@ -583,10 +584,13 @@ class RgbdOdometry:
         """Wait for the back end and apply its last result; returns the keyframe poses it moved."""
         before = self.keyframe_poses()
         self._sync_backend(np.eye(4))
-        if self._global_ba and self._local_ba and len(self._keyframes) >= 2:
-            # a last bundle adjustment over every keyframe (the first one fixed), as ORB-SLAM runs
-            # after a loop: the trajectory and map that are written out get the whole map's support
-            job = self._backend_job(window=len(self._keyframes), max_points=None, loop_closing=False)
+        if self._global_ba_keyframes > 0 and self._local_ba and len(self._keyframes) >= 2:
+            # a last bundle adjustment, as ORB-SLAM runs after a loop: the trajectory and map that
+            # are written out get the whole map's support. Over every keyframe (the first one fixed)
+            # up to `global_ba_keyframes`; beyond, over the newest that many with the keyframes that
+            # created their points held, so its time and memory stay bounded on long sessions
+            window = min(len(self._keyframes), self._global_ba_keyframes)
+            job = self._backend_job(window=window, max_points=None, loop_closing=False)
             self._pending = _run_backend(dataclasses.replace(job, iterations=self._global_ba_iterations))
             self._sync_backend(np.eye(4))
         if self._executor is not None:
