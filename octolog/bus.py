@@ -52,7 +52,7 @@ HISTORY = "@history"  # a verbatim chunk: `**` subscribers and queries never mat
 HISTORY_MB = 64  # byte cap of an ordinary publisher's history, on top of `history` samples
 PROBE_S = 1.0  # an idle subscriber, or one with an open gap, asks the histories this often
 QUERY_TIMEOUT_S = 10.0
-WAKE_S = 0.2  # a thread blocked on an event wakes this often, so signal handlers run (see serve_router)
+WAKE_S = 0.2  # a thread blocked on an event wakes this often, so signal handlers run (wait_interruptibly)
 BATCH = 16  # samples per history reply: a large backlog comes in several queries
 DONE = "_octolog/done"  # `<ns>/_octolog/done/<stage>`: put by a stage that finished without error
 
@@ -724,7 +724,12 @@ def serve_router(listen: tuple[str, ...], *, zenoh_config: str | None = None,
     with Bus(cfg, "router"):
         if ready is not None:
             ready()
-        # in slices: a SIGTERM may be delivered to one of Zenoh's threads, and Python runs its
-        # handler (KeyboardInterrupt, see octolog.cli) only when this thread next runs bytecode
-        while not stop.wait(WAKE_S):
-            pass
+        wait_interruptibly(stop)
+
+
+def wait_interruptibly(event: threading.Event) -> None:
+    """Block until `event` is set, in slices: a SIGTERM or Ctrl-C may be delivered to one of
+    Zenoh's threads, and Python runs its handler (KeyboardInterrupt, see octolog.cli) only when the
+    main thread next runs bytecode, which an untimed wait never does."""
+    while not event.wait(WAKE_S):
+        pass

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from octolog import __version__
-from octolog.bus import WAKE_S
+from octolog.bus import wait_interruptibly
 from octolog.errors import ConfigError, StageError
 
 STAGES = ("log", "mapper", "tracker", "replay")
@@ -194,8 +194,7 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
 
     thread = threading.Thread(target=router, daemon=True)
     thread.start()
-    while not router_ready.wait(WAKE_S):  # in slices, as in serve_router: Ctrl-C is not deferred
-        pass
+    wait_interruptibly(router_ready)
     if router_error:
         raise router_error[0]
     children = _Children(out / "logs")

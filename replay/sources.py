@@ -34,9 +34,7 @@ class TumSource:
     path: Path
 
     def __post_init__(self) -> None:
-        from replay.tum import open_tum
-
-        from replay.tum import readout_for
+        from replay.tum import open_tum, readout_for
 
         self.seq = open_tum(self.path)
         self.name = f"tum:{self.path}"

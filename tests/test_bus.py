@@ -291,7 +291,8 @@ def test_router_stops_when_sigterm_lands_on_a_zenoh_thread():
                                and takes_sigterm(t.name))
         assert zenoh_threads, "no Zenoh runtime thread found in the router process"
         # the signal must come while the main thread sleeps in a futex (its wait for the stop event),
-        # not while it still runs Python code on the way there, where any handler would run at once
+        # not while it still runs Python code on the way there, where any handler would run at once.
+        # Polled from /proc: the kernel gives no notice of another process's thread going to sleep.
         futex, deadline = _syscall_numbers()["futex"], time.monotonic() + 20
         while (tasks / str(proc.pid) / "syscall").read_text().split()[0] != str(futex):
             assert time.monotonic() < deadline, "the router's main thread never went to sleep"

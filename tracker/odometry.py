@@ -589,8 +589,8 @@ class RgbdOdometry:
             # are written out get the whole map's support. Over every keyframe (the first one fixed)
             # up to `global_ba_keyframes`; beyond, over the newest that many with the keyframes that
             # created their points held, so its time and memory stay bounded on long sessions
-            window = min(len(self._keyframes), self._global_ba_keyframes)
-            job = self._backend_job(window=window, max_points=None, loop_closing=False)
+            window_n = min(len(self._keyframes), self._global_ba_keyframes)
+            job = self._backend_job(window_n=window_n, max_points=None, loop_closing=False)
             self._pending = _run_backend(dataclasses.replace(job, iterations=self._global_ba_iterations))
             self._sync_backend(np.eye(4))
         if self._executor is not None:
@@ -962,7 +962,8 @@ class RgbdOdometry:
         """Start the back end for the newest keyframe (in the worker process when there is one)."""
         if not (self._local_ba or self._loop_closing):
             return
-        job = self._backend_job()
+        job = self._backend_job(window_n=self._ba_window, max_points=self._ba_max_points,
+                                loop_closing=self._loop_closing)
         self._pending = self._executor.submit(job) if self._executor else _run_backend(job)
 
     def _sync_backend(self, pose: np.ndarray) -> tuple[dict[int, np.ndarray], tuple[int, int] | None, np.ndarray]:
@@ -1000,14 +1001,10 @@ class RgbdOdometry:
         self._last_loop_kf = res.loop[0]
         return dict(res.poses), res.loop, delta @ pose
 
-    def _backend_job(self, *, window: int | None = None, max_points: int | None = -1,
-                     loop_closing: bool | None = None) -> _BackendJob:
+    def _backend_job(self, *, window_n: int, max_points: int | None, loop_closing: bool) -> _BackendJob:
         """A self-contained snapshot for the back end of the newest keyframe: BA over the newest
-        `window` keyframes (default `ba_window`) with at most `max_points` points (default
-        `ba_max_points`; None: all), and loop detection if `loop_closing` (default: as configured)."""
-        window_n = self._ba_window if window is None else window
-        max_points = self._ba_max_points if max_points == -1 else max_points
-        loop_closing = self._loop_closing if loop_closing is None else loop_closing
+        `window_n` keyframes with at most `max_points` points (None: all), and loop detection if
+        `loop_closing`."""
         mp, kfs = self._map, self._keyframes
         new = kfs[-1]
         n_kf = len(kfs)
