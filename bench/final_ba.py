@@ -21,7 +21,6 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 
 def _vm(key: str) -> float:
@@ -32,9 +31,9 @@ def _vm(key: str) -> float:
 def worker(frames: int, fps: float, cap: int) -> dict:
     import numpy as np
 
-    from octolog import metrics
-    from replay.synthetic import SyntheticScene
-    from tracker.odometry import RgbdOdometry
+    from octolog.kit import metrics
+    from octolog.replay.synthetic import SyntheticScene
+    from octolog.tracker.odometry import RgbdOdometry
 
     room = SyntheticScene(n_frames=frames, fps=fps)
     odo = RgbdOdometry(global_ba_keyframes=cap, background=False)

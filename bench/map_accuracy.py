@@ -14,15 +14,14 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
+import numpy as np  # noqa: E402
 from test_map_accuracy import KEYFRAMES, build, run  # noqa: E402
 
-from mapper.config import MapperConfig  # noqa: E402
-from mapper.evaluate import cloud_to_surface, voxel_accuracy  # noqa: E402
-from mapper.cloud import transform  # noqa: E402
-import numpy as np  # noqa: E402
+from octolog.mapper.cloud import transform  # noqa: E402
+from octolog.mapper.config import MapperConfig  # noqa: E402
+from octolog.mapper.evaluate import cloud_to_surface, voxel_accuracy  # noqa: E402
 
 
 def main() -> None:

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import time
 import tracemalloc
 from pathlib import Path
@@ -21,19 +20,18 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from mapper.cloud import backproject, keyframe_cloud, transform  # noqa: E402
-from mapper.octree import OccupancyOctree  # noqa: E402
-from mapper.voxelmap import VoxelOccupancyMap  # noqa: E402
+from octolog.mapper.cloud import backproject, keyframe_cloud, transform  # noqa: E402
+from octolog.mapper.octree import OccupancyOctree  # noqa: E402
+from octolog.mapper.voxelmap import VoxelOccupancyMap  # noqa: E402
 
 
 def keyframes(frames: int, every: int):
     data = Path(os.environ.get("OCTOLOG_DATA", ROOT.parent / "shared" / "data"))
     folder = data / "tum" / "rgbd_dataset_freiburg1_xyz_first300"
     if folder.is_dir():
-        from octolog.metrics import associate, read_tum
-        from replay.tum import open_tum
+        from octolog.kit.metrics import associate, read_tum
+        from octolog.replay.tum import open_tum
 
         seq = open_tum(folder)
         gt = read_tum(seq.groundtruth)
@@ -41,7 +39,7 @@ def keyframes(frames: int, every: int):
         ia, ib = associate(np.array([f.stamp_ns for f in fr]), gt.stamps_ns, 20_000_000)
         mats = gt.matrices()
         return f"TUM fr1/xyz first {frames}, every {every}th frame", [(fr[i], mats[j]) for i, j in zip(ia, ib)]
-    from replay.synthetic import SyntheticScene
+    from octolog.replay.synthetic import SyntheticScene
 
     sc = SyntheticScene(n_frames=frames)
     fr = [f for i, f in enumerate(sc.frames()) if i % every == 0]

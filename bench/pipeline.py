@@ -28,7 +28,6 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 
 def default_source() -> str:
@@ -48,8 +47,8 @@ def run_pipeline(source: str, out: Path) -> dict:
     subprocess.run([sys.executable, "-m", "octolog", "run", "--source", source, "--out", str(out), "--quiet",
                     "--rerun", "off"], check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
     wall = time.monotonic() - t0
-    from octolog.mcaplog import read_messages
-    from schemas import codec, topics
+    from octolog.kit.mcaplog import read_messages
+    from octolog.schemas import codec, topics
 
     frame_rx: dict[int, int] = {}
     track_ms, latency_ms, map_ms = [], [], []
@@ -76,9 +75,9 @@ def run_pipeline(source: str, out: Path) -> dict:
 
 def run_in_process(source: str) -> dict:
     """The reference: the same cores, one process, no transport, no logging."""
-    from mapper.config import MapperConfig, make_mapper
-    from replay.sources import open_source
-    from tracker.config import TrackerConfig, for_source, make_odometry
+    from octolog.mapper.config import MapperConfig, make_mapper
+    from octolog.replay.sources import open_source
+    from octolog.tracker.config import TrackerConfig, for_source, make_odometry
 
     src = open_source(source)
     frames = list(src.frames())  # decode up front: the pipeline's replay decodes concurrently

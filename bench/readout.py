@@ -16,20 +16,18 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 from pathlib import Path
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 from pipeline import default_source  # noqa: E402  (bench/ is this script's folder)
 
 
 def run(frames: list, readout_ms: float, groundtruth: str | None) -> tuple[float, float, int, float | None]:
-    from octolog import metrics
-    from tracker.config import TrackerConfig, make_odometry
+    from octolog.kit import metrics
+    from octolog.tracker.config import TrackerConfig, make_odometry
 
     odom = make_odometry(TrackerConfig(rolling_shutter_ms=readout_ms))
     results = [odom.track(f) for f in frames]
@@ -48,7 +46,7 @@ def main() -> None:
     ap.add_argument("--source", default=None, help="frame source (default: TUM fr1/xyz first300 under $OCTOLOG_DATA)")
     ap.add_argument("--ms", default="0,5,10,15,20,25,30,35", help="readout times to try, ms")
     args = ap.parse_args()
-    from replay.sources import open_source
+    from octolog.replay.sources import open_source
 
     source = args.source or default_source()
     src = open_source(source)

@@ -23,11 +23,9 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from recorder import node  # noqa: E402
-from recorder.capture import FrameConverter, SoftwareDeviceBackend  # noqa: E402
-from recorder.config import RecorderConfig, SoftwareConfig, capture_profile  # noqa: E402
+from octolog.recorder import node  # noqa: E402
+from octolog.recorder.capture import FrameConverter, SoftwareDeviceBackend  # noqa: E402
+from octolog.recorder.config import RecorderConfig, SoftwareConfig, capture_profile  # noqa: E402
 
 
 def cpu_s() -> float:

@@ -30,7 +30,6 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 
 from pipeline import default_source, pct  # noqa: E402  (bench/ is this script's folder)
@@ -49,9 +48,9 @@ def _vm(key: str) -> float:
 
 
 def worker(backend: str, source: str, vocabulary: str, result_path: Path) -> None:
-    from octolog import metrics
-    from replay.sources import open_source
-    from tracker.config import TrackerConfig, for_source, make_odometry
+    from octolog.kit import metrics
+    from octolog.replay.sources import open_source
+    from octolog.tracker.config import TrackerConfig, for_source, make_odometry
 
     src = open_source(source)
     frames = src.frames()
@@ -142,7 +141,7 @@ def ensure_vocabulary(source: str, given: str | None, cache: Path) -> tuple[str,
 
 
 def ate_cm(tum: str | None, gt) -> float:
-    from octolog import metrics
+    from octolog.kit import metrics
 
     if not tum:
         return float("nan")
@@ -167,8 +166,8 @@ def main() -> None:
         return
 
     source = args.source or default_source()
-    from octolog import metrics
-    from replay.sources import open_source
+    from octolog.kit import metrics
+    from octolog.replay.sources import open_source
 
     gt_text = open_source(source).groundtruth_tum()
     if not gt_text:

@@ -38,7 +38,6 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 HEAD = struct.Struct("<cQQ")  # phase, seq, send time (ns, CLOCK_MONOTONIC: one clock per host)
 LAT, THR, END = b"L", b"T", b"E"
@@ -50,14 +49,14 @@ LAT, THR, END = b"L", b"T", b"E"
 def frame_source():
     data = Path(os.environ.get("OCTOLOG_DATA", ROOT.parent / "shared" / "data"))
     folder = data / "tum" / "rgbd_dataset_freiburg1_xyz_first300"
-    from replay.sources import open_source
+    from octolog.replay.sources import open_source
 
     spec = f"tum:{folder}" if folder.is_dir() else "synthetic:2"
     return spec, open_source(spec)
 
 
 def payloads() -> tuple[str, dict[str, bytes]]:
-    from schemas import codec, topics
+    from octolog.schemas import codec, topics
 
     spec, src = frame_source()
     frame = next(src.frames(0, 1))
@@ -70,7 +69,7 @@ def payloads() -> tuple[str, dict[str, bytes]]:
 
 
 def _bus(mode: str, endpoint: str, shm: bool, stage: str):
-    from octolog.bus import Bus, BusConfig
+    from octolog.kit.bus import Bus, BusConfig
 
     cfg_file = Path(tempfile.mkdtemp()) / "zenoh.json5"
     cfg_file.write_text(json.dumps({"transport": {"shared_memory": {"enabled": shm}}}))
@@ -80,7 +79,7 @@ def _bus(mode: str, endpoint: str, shm: bool, stage: str):
 
 
 def role_sub(endpoint: str, shm: bool) -> None:
-    from schemas.topics import Topic
+    from octolog.schemas.topics import Topic
 
     data, ack = Topic("bench/data", "std_msgs/msg/String"), Topic("bench/ack", "std_msgs/msg/String")
     lat: list[int] = []
@@ -107,7 +106,7 @@ def role_sub(endpoint: str, shm: bool) -> None:
 
 
 def role_pub(endpoint: str, shm: bool, payload_file: str, n_lat: int, n_thr: int) -> None:
-    from schemas.topics import Topic
+    from octolog.schemas.topics import Topic
 
     body = Path(payload_file).read_bytes()
     data, ack = Topic("bench/data", "std_msgs/msg/String"), Topic("bench/ack", "std_msgs/msg/String")
@@ -231,7 +230,7 @@ def memcpy(body: bytes, n: int, *, fresh: bool = False) -> dict:
 def wire_table(n: int, link_mbit: float, netns_ok: bool, n_thr: int) -> list[str]:
     """Bytes per frame and codec cost per wire compression setting, on 640x480 frames, and the frame
     rate through the Bus between two namespaces over a link shaped to `link_mbit`."""
-    from schemas import codec, topics
+    from octolog.schemas import codec, topics
 
     spec, src = frame_source()
     frames = list(src.frames(0, n))

@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from octolog.errors import MapError
-from octolog.geometry import Intrinsics
+from octolog.kit.errors import MapError
+from octolog.kit.geometry import Intrinsics
 
 __all__ = [
     "DenseCloud",

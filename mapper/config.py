@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from octolog.errors import ConfigError
+from octolog.kit.errors import ConfigError
 
 
 @dataclass(frozen=True)
@@ -69,7 +69,7 @@ class MapperConfig:
         if self.start_poses and len(self.start_poses) != len(self.robots):
             raise ConfigError(f"mapper.start_poses: {len(self.start_poses)} poses for {len(self.robots)} robots "
                               f"(want one x y z qx qy qz qw per robot, or none)")
-        from mapper.fleet import start_pose_matrix
+        from octolog.mapper.fleet import start_pose_matrix
 
         for robot, pose in zip(self.robots, self.start_poses):
             start_pose_matrix(robot, pose)
@@ -78,7 +78,7 @@ class MapperConfig:
         """world_from_<robot> for each robot (identity when no start poses are given)."""
         import numpy as np
 
-        from mapper.fleet import start_pose_matrix
+        from octolog.mapper.fleet import start_pose_matrix
 
         if not self.start_poses:
             return [np.eye(4) for _ in self.robots]
@@ -86,7 +86,7 @@ class MapperConfig:
 
 
 def make_mapper(cfg: MapperConfig):  # -> mapper.core.Mapper
-    from mapper.core import Mapper
+    from octolog.mapper.core import Mapper
 
     return Mapper(resolution_m=cfg.resolution_m, voxel_m=cfg.voxel_m, max_range_m=cfg.max_range_m,
                   pixel_stride=cfg.pixel_stride, sor_neighbors=cfg.sor_neighbors, sor_std_ratio=cfg.sor_std_ratio,
@@ -95,7 +95,7 @@ def make_mapper(cfg: MapperConfig):  # -> mapper.core.Mapper
 
 
 def make_grid_projector(cfg: MapperConfig):  # -> mapper.core.GridProjector
-    from mapper.core import GridProjector
+    from octolog.mapper.core import GridProjector
 
     return GridProjector(up=cfg.grid_up, camera_height_m=cfg.grid_camera_height_m, z_min_m=cfg.grid_z_min_m,
                          z_max_m=cfg.grid_z_max_m, resolution_m=cfg.grid_resolution_m)

@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from octolog.errors import InputError
-from octolog.geometry import RgbdFrame
+from octolog.kit.errors import InputError
+from octolog.kit.geometry import RgbdFrame
 
 
 @dataclass
@@ -34,7 +34,7 @@ class Mapper:
                  pixel_stride: int = 2, sor_neighbors: int = 20, sor_std_ratio: float = 2.0, sor_first: bool = False,
                  max_extent_m: float = 1000.0, backend: str = "numpy", colour: bool = True,
                  grid: GridProjector | None = None) -> None:
-        from mapper.cloud import DenseCloud
+        from octolog.mapper.cloud import DenseCloud
 
         self.resolution_m = resolution_m
         self.voxel_m = voxel_m
@@ -53,7 +53,7 @@ class Mapper:
         self.rebuilds = 0
 
     def _new_octree(self) -> Any:
-        from mapper.voxelmap import make_occupancy_map
+        from octolog.mapper.voxelmap import make_occupancy_map
 
         return make_occupancy_map(self.backend, self.resolution_m, colour=self.colour)
 
@@ -67,7 +67,7 @@ class Mapper:
     def integrate(self, kf_id: int, world_from_camera: np.ndarray, frame: RgbdFrame) -> int:
         """Add one keyframe; returns its number of filtered points. Bad keyframes raise InputError
         before anything is changed."""
-        from mapper.cloud import keyframe_cloud
+        from octolog.mapper.cloud import keyframe_cloud
 
         self._check_pose(kf_id, world_from_camera)
         if kf_id in self.keyframes:
@@ -86,7 +86,7 @@ class Mapper:
         return len(pts)
 
     def _insert(self, kf_id: int, kf: KeyframeCloud) -> None:
-        from mapper.cloud import transform
+        from octolog.mapper.cloud import transform
 
         world = transform(kf.points_cam, kf.world_from_camera)
         self.cloud.add(kf_id, world, kf.colours)
@@ -119,7 +119,7 @@ class Mapper:
         return {**self.octree.stats(), "keyframes": len(self.keyframes), "rebuilds": self.rebuilds}
 
     def write(self, out_dir: Path, stem: str = "map") -> dict[str, str]:
-        from mapper.cloud import write_pcd, write_ply
+        from octolog.mapper.cloud import write_pcd, write_ply
 
         out_dir.mkdir(parents=True, exist_ok=True)
         bt, ply, pcd = out_dir / f"{stem}.bt", out_dir / "cloud.ply", out_dir / "cloud.pcd"
@@ -132,7 +132,7 @@ class Mapper:
         files = {"bt": str(bt), "ot": str(ot), "ply": str(ply), "pcd": str(pcd)}
         grid = self.grid.project(self.octree)
         if grid is not None:
-            from mapper.grid import write_map_server
+            from octolog.mapper.grid import write_map_server
 
             files.update({f"grid_{k}": v for k, v in write_map_server(grid, out_dir / stem).items()})
         return files
@@ -150,8 +150,8 @@ class GridProjector:
 
     def project(self, octree: Any) -> Any | None:
         """The grid, or None while no known voxel lies in the band."""
-        from mapper.grid import map_from_world_for_up, project_octree
-        from octolog.errors import MapError
+        from octolog.kit.errors import MapError
+        from octolog.mapper.grid import map_from_world_for_up, project_octree
 
         try:
             return project_octree(octree, map_from_world=map_from_world_for_up(np.array(self.up, dtype=float),

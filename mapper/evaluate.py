@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from octolog.errors import MapError
+from octolog.kit.errors import MapError
 
 __all__ = [
     "ObservedVoxels",

@@ -26,8 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from octolog.errors import ConfigError
-from octolog.geometry import pose_to_matrix
+from octolog.kit.errors import ConfigError
+from octolog.kit.geometry import pose_to_matrix
 
 
 def start_pose_matrix(robot: str, xyz_qxyzw: tuple[float, ...]) -> np.ndarray:

@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from octolog.errors import MapError
+from octolog.kit.errors import MapError
 
 __all__ = [
     "FREE",
@@ -256,7 +256,7 @@ def yaml_text(grid: OccupancyGrid2D, image: str) -> str:
 
 def write_map_server(grid: OccupancyGrid2D, stem_path: str | os.PathLike[str]) -> dict[str, str]:
     """Write `stem.pgm` and `stem.yaml` (atomically, PGM first); returns {"pgm": ..., "yaml": ...}."""
-    from mapper.cloud import write_bytes_atomic
+    from octolog.mapper.cloud import write_bytes_atomic
 
     stem = Path(stem_path)
     pgm = stem.with_name(stem.name + ".pgm")
@@ -277,7 +277,7 @@ def occupancy_grid_msg(grid: OccupancyGrid2D, stamp_ns: int, frame_id: str = "ma
     mapper's world frame (`grid.map_from_world`) is not in the message: it is a transform
     (map <- world) for TF. `data` is row-major from (0, 0), i.e. `grid.data.ravel()`.
     """
-    from schemas import codec
+    from octolog.schemas import codec
 
     data = _check_grid(grid)
     Time = codec.msgtype("builtin_interfaces/msg/Time")

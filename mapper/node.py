@@ -10,14 +10,24 @@ from typing import Any
 
 import numpy as np
 
-from mapper.config import MapperConfig, make_mapper
-from mapper.core import Mapper, bt_payload
-from octolog.bus import Bus, BusConfig
-from octolog.errors import InputError, MapError
-from octolog.viz import Viz
-from schemas import codec
-from schemas.topics import (
-    GRID, KEYFRAME, KEYFRAME_COMPRESSED, KEYFRAME_END, KEYFRAME_POSES, MAP_END, MAP_QUERY, MAP_SAVE, MAP_UPDATE, OCCUPIED, OCTOMAP,
+from octolog.kit.bus import Bus, BusConfig
+from octolog.kit.errors import InputError, MapError
+from octolog.kit.viz import Viz
+from octolog.mapper.config import MapperConfig, make_mapper
+from octolog.mapper.core import Mapper, bt_payload
+from octolog.schemas import codec
+from octolog.schemas.topics import (
+    GRID,
+    KEYFRAME,
+    KEYFRAME_COMPRESSED,
+    KEYFRAME_END,
+    KEYFRAME_POSES,
+    MAP_END,
+    MAP_QUERY,
+    MAP_SAVE,
+    MAP_UPDATE,
+    OCCUPIED,
+    OCTOMAP,
 )
 
 
@@ -56,7 +66,7 @@ class Publisher:
         self.pub_occupied.put(codec.point_cloud_msg(octree.occupied_centres(), stamp))
         self.grid = self.mapper.grid.project(octree)
         if self.grid is not None:
-            from mapper.grid import occupancy_grid_msg
+            from octolog.mapper.grid import occupancy_grid_msg
 
             self.pub_grid.put(occupancy_grid_msg(self.grid, stamp))
         self.stats = octree.stats()
@@ -118,7 +128,7 @@ def run_fleet(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: st
 
 def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list[Bus], viz: Viz,
                   publisher: Publisher, out_dir: Path) -> tuple[MapperResult, list[list[tuple[int, int]]]]:
-    from mapper.fleet import CorrectionItem, FleetMerge, KeyframeItem
+    from octolog.mapper.fleet import CorrectionItem, FleetMerge, KeyframeItem
 
     world_from_robot = cfg.start_pose_matrices()
     pub_update = bus.publisher(MAP_UPDATE)
@@ -215,7 +225,7 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
 def write_trajectories(mapper: Mapper, robots: tuple[str, ...], trajectories: list[list[tuple[int, int]]],
                        out_dir: Path) -> dict[str, dict]:
     """Each robot's keyframe trajectory in the common world (corrected poses), TUM format."""
-    from octolog.metrics import write_tum
+    from octolog.kit.metrics import write_tum
 
     out_dir.mkdir(parents=True, exist_ok=True)
     per_robot = {}

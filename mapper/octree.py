@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 import pyoctomap
 
-from mapper.cloud import write_bytes_atomic
-from octolog.errors import MapError
+from octolog.kit.errors import MapError
+from octolog.mapper.cloud import write_bytes_atomic
 
 __all__ = ["OccupancyOctree"]
 
@@ -48,7 +48,7 @@ class OccupancyOctree:
         occupancy_thres: float = 0.5,
         colour: bool = False,
     ) -> None:
-        from mapper.voxelmap import check_sensor_model
+        from octolog.mapper.voxelmap import check_sensor_model
 
         probs = check_sensor_model(resolution, prob_hit=prob_hit, prob_miss=prob_miss, clamp_min=clamp_min,
                                    clamp_max=clamp_max, occupancy_thres=occupancy_thres)
@@ -131,7 +131,7 @@ class OccupancyOctree:
     def _insert_colour(self, pts: np.ndarray, org: np.ndarray, colours: np.ndarray | None,
                        max_range_m: float) -> None:
         """Same scan into the ColorOcTree mirror, then averageNodeColor per occupied end voxel."""
-        from mapper.voxelmap import scan_voxel_colours
+        from octolog.mapper.voxelmap import scan_voxel_colours
 
         ctree = self._ctree
         ctree.insertPointCloud(pts, org, max_range=float(max_range_m) if max_range_m > 0 else -1.0,

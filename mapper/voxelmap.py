@@ -33,8 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mapper.cloud import write_bytes_atomic
-from octolog.errors import MapError
+from octolog.kit.errors import MapError
+from octolog.mapper.cloud import write_bytes_atomic
 
 __all__ = ["VoxelOccupancyMap", "logodds", "make_occupancy_map", "scan_voxel_colours"]
 
@@ -640,7 +640,7 @@ def make_occupancy_map(backend: str = "numpy", resolution: float = 0.05, *, colo
     if backend == "numpy":
         return VoxelOccupancyMap(resolution, colour=colour, **model)
     if backend == "octomap":
-        from mapper.octree import OccupancyOctree
+        from octolog.mapper.octree import OccupancyOctree
 
         return OccupancyOctree(resolution, colour=colour, **model)
     raise MapError(f"unknown occupancy map backend {backend!r} (want 'numpy' or 'octomap')")

@@ -1,5 +1,5 @@
 import sys
 
-from octolog.cli import main
+from octolog.shell.cli import main
 
 sys.exit(main())

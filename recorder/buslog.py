@@ -12,9 +12,9 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from octolog.bus import Bus, BusConfig
-from octolog.mcaplog import McapWriter
-from schemas import topics as T
+from octolog.kit.bus import Bus, BusConfig
+from octolog.kit.mcaplog import McapWriter
+from octolog.schemas import topics as T
 
 # end message -> (producing stage, the data topics it may close: the one its `topic` field names,
 # raw or compressed, else the first)

@@ -16,8 +16,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-
-from octolog.geometry import Intrinsics
+from octolog.kit.geometry import Intrinsics
 
 VIDEO_STREAMS = ("color", "depth", "aligned_depth")
 MOTION_STREAMS = ("gyro", "accel")
@@ -34,8 +33,7 @@ D455_IMU = {"bmi085": {"gyro": (200, 400), "accel": (100, 200)},
             "bmi055": {"gyro": (200, 400), "accel": (63, 250)}}
 
 
-from octolog.errors import DeviceLost, RecorderError  # noqa: E402  (re-exported for recorder modules)
-
+from octolog.kit.errors import DeviceLost, RecorderError  # noqa: E402  (re-exported for recorder modules)
 
 # --- what the recorder asks for and what it gets ---------------------------------------------------
 

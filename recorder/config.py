@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from octolog.errors import ConfigError
-from octolog.mcaplog import COMPRESSIONS
+from octolog.kit.errors import ConfigError
+from octolog.kit.mcaplog import COMPRESSIONS
 
 BACKENDS = ("realsense", "software")
 COLOR_CODECS = ("raw", "jpeg")
@@ -119,7 +119,7 @@ class RecorderConfig:
 
 
 def capture_profile(cfg: RecorderConfig):  # -> recorder.capture.CaptureProfile
-    from recorder.capture import CaptureProfile, DeviceOptions
+    from octolog.recorder.capture import CaptureProfile, DeviceOptions
 
     def onoff(v: str) -> bool | None:
         return None if v == "" else v == "on"
@@ -136,7 +136,7 @@ def capture_profile(cfg: RecorderConfig):  # -> recorder.capture.CaptureProfile
 
 
 def make_backend(cfg: RecorderConfig):  # -> recorder.capture.Backend
-    from recorder.capture import RealSenseBackend, SoftwareDeviceBackend
+    from octolog.recorder.capture import RealSenseBackend, SoftwareDeviceBackend
 
     if cfg.backend == "software":
         s = cfg.software
@@ -147,8 +147,8 @@ def make_backend(cfg: RecorderConfig):  # -> recorder.capture.Backend
 
 def make_recorder(cfg: RecorderConfig, part, device, *, sinks=(), block_when_full: bool = False):
     """The writer side (recorder.record.Recorder) for a resolved device."""
-    from octolog.config import to_json
-    from recorder.record import Encoding, Recorder
+    from octolog.kit.config import to_json
+    from octolog.recorder.record import Encoding, Recorder
 
     return Recorder(
         part, device, config_json=to_json(cfg), compression=cfg.compression,

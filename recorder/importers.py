@@ -24,10 +24,10 @@ from typing import Any
 
 import numpy as np
 
-from octolog.errors import InputError, OctologError
-from octolog.geometry import Intrinsics, invert, pose_to_matrix
-from schemas import codec
-from schemas.topics import (
+from octolog.kit.errors import InputError, OctologError
+from octolog.kit.geometry import Intrinsics, invert, pose_to_matrix
+from octolog.schemas import codec
+from octolog.schemas.topics import (
     ACCEL,
     ALIGNED_DEPTH,
     ALIGNED_DEPTH_INFO,
@@ -156,7 +156,7 @@ class _Sink:
 def _output(output: Path, *, overwrite: bool, compression: str,
             progress: Callable[[int], None] | None) -> Iterator[_Sink]:
     """An MCAP written beside OUTPUT and moved into place only when complete."""
-    from octolog.mcaplog import McapWriter
+    from octolog.kit.mcaplog import McapWriter
 
     output = Path(output)
     if output.exists() and not overwrite:
@@ -182,7 +182,7 @@ def import_tum(folder: Path, output: Path, *, overwrite: bool = False, compressi
     accelerometer.txt as Imu, groundtruth.txt as metadata; stamps exact from the decimal seconds."""
     import cv2
 
-    from replay.tum import TUM_DEPTH_SCALE_M, _read_list, _read_png, open_tum, readout_for, seconds_to_ns
+    from octolog.replay.tum import TUM_DEPTH_SCALE_M, _read_list, _read_png, open_tum, readout_for, seconds_to_ns
 
     folder = Path(folder)
     seq = open_tum(folder, intrinsics)  # validates the folder; intrinsics from the sequence name unless given
@@ -240,7 +240,7 @@ def import_tum(folder: Path, output: Path, *, overwrite: bool = False, compressi
 
 
 def _read_accelerometer(path: Path, to_ns: Callable[[str], int]) -> list[tuple[int, tuple[float, float, float]]]:
-    from replay.tum import read_rows
+    from octolog.replay.tum import read_rows
 
     if not path.is_file():
         return []

@@ -24,13 +24,13 @@ from typing import Any
 
 import numpy as np
 
-from octolog.errors import McapError
-from octolog.geometry import Intrinsics, invert
-from octolog.mcaplog import McapWriter
-from recorder.capture import Capture, DeviceDescription, RecorderError
-from schemas import codec
-from schemas import topics as T
-from schemas.topics import Topic
+from octolog.kit.errors import McapError
+from octolog.kit.geometry import Intrinsics, invert
+from octolog.kit.mcaplog import McapWriter
+from octolog.recorder.capture import Capture, DeviceDescription, RecorderError
+from octolog.schemas import codec
+from octolog.schemas import topics as T
+from octolog.schemas.topics import Topic
 
 STREAMS = ("color", "aligned_depth", "depth", "gyro", "accel")
 JPEG_FORMAT = "rgb8; jpeg compressed bgr8"  # image_transport's spelling

@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from octolog.errors import McapError
-from octolog.mcaplog import SalvageResult, salvage
+from octolog.kit.errors import McapError
+from octolog.kit.mcaplog import SalvageResult, salvage
 
 
 @dataclass(frozen=True)

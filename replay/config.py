@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from octolog.errors import ConfigError
+from octolog.kit.errors import ConfigError
 
 
 @dataclass(frozen=True)
@@ -53,7 +53,7 @@ class ReplayConfig:
             raise ConfigError(f"replay.start {self.start}: want >= 0")
         if not abs(self.time_shift_s) < 1e9:
             raise ConfigError(f"replay.time_shift_s {self.time_shift_s}: want a finite number of seconds")
-        from schemas.codec import parse_wire_compression
+        from octolog.schemas.codec import parse_wire_compression
 
         try:
             parse_wire_compression(self.wire_compression)
@@ -63,7 +63,7 @@ class ReplayConfig:
 
 def remapped(topic, remap: tuple[str, ...]):  # Topic -> Topic
     """`topic` under the name `remap` gives it, if any (same message type)."""
-    from schemas.topics import Topic
+    from octolog.schemas.topics import Topic
 
     table = dict(item.split("=", 1) for item in remap)
     name = table.get(topic.name)

@@ -7,15 +7,22 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
-from octolog.bus import Bus, BusConfig
-from octolog.viz import Viz
-from replay.config import ReplayConfig, remapped
-from replay.sources import Source, open_source
-from schemas import codec
-from octolog.errors import InputError
-from octolog.geometry import RgbdFrame
-from schemas.topics import (
-    KEYFRAME, KEYFRAME_COMPRESSED, KEYFRAME_END, KEYFRAME_POSES, RGBD, RGBD_COMPRESSED, RGBD_END, TRACKING_STATUS,
+from octolog.kit.bus import Bus, BusConfig
+from octolog.kit.errors import InputError
+from octolog.kit.geometry import RgbdFrame
+from octolog.kit.viz import Viz
+from octolog.replay.config import ReplayConfig, remapped
+from octolog.replay.sources import Source, open_source
+from octolog.schemas import codec
+from octolog.schemas.topics import (
+    KEYFRAME,
+    KEYFRAME_COMPRESSED,
+    KEYFRAME_END,
+    KEYFRAME_POSES,
+    RGBD,
+    RGBD_COMPRESSED,
+    RGBD_END,
+    TRACKING_STATUS,
 )
 
 Progress = Callable[[int, int, float], None]  # (frames done, total, seconds elapsed)
@@ -126,8 +133,8 @@ def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Pro
 
 def play_tracker_log(cfg: ReplayConfig, bus_cfg: BusConfig) -> ReplayResult:
     """Stand in for the tracker: publish its logged keyframes and pose corrections, in log order."""
-    from octolog.errors import ConfigError
-    from octolog.mcaplog import read_messages, summarize
+    from octolog.kit.errors import ConfigError
+    from octolog.kit.mcaplog import read_messages, summarize
 
     kind, _, path = cfg.source.partition(":")
     if kind != "mcap" or not path:

@@ -11,8 +11,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
-from octolog.errors import ConfigError, InputError
-from octolog.geometry import RgbdFrame
+from octolog.kit.errors import ConfigError, InputError
+from octolog.kit.geometry import RgbdFrame
 
 
 class Source(Protocol):
@@ -34,7 +34,7 @@ class TumSource:
     path: Path
 
     def __post_init__(self) -> None:
-        from replay.tum import open_tum, readout_for
+        from octolog.replay.tum import open_tum, readout_for
 
         self.seq = open_tum(self.path)
         self.name = f"tum:{self.path}"
@@ -65,8 +65,8 @@ class McapSource:
     only_consumed: bool = False
 
     def __post_init__(self) -> None:
-        from octolog.mcaplog import summarize
-        from schemas.topics import RGBD, RGBD_COMPRESSED
+        from octolog.kit.mcaplog import summarize
+        from octolog.schemas.topics import RGBD, RGBD_COMPRESSED
 
         self.name = f"mcap:{self.path}"
         summary = summarize(self.path)
@@ -78,7 +78,7 @@ class McapSource:
         ts = summary.topics.get(self._topic.name)
         self._standard = None
         if ts is None:
-            from replay.standard import has_standard_frames, open_standard
+            from octolog.replay.standard import has_standard_frames, open_standard
 
             if not has_standard_frames(summary.topics):
                 raise InputError(f"{self.path}: neither /{RGBD.name} nor colour + aligned depth topics "
@@ -126,8 +126,8 @@ class McapSource:
         if self._standard is not None:
             yield from self._standard.frames(start, end)
             return
-        from octolog.mcaplog import read_messages
-        from schemas import codec
+        from octolog.kit.mcaplog import read_messages
+        from octolog.schemas import codec
 
         i = 0
         topic = self._topic
@@ -150,9 +150,9 @@ class McapSource:
 
 def consumed_frames(path: Path) -> set[int]:
     """Sequence numbers of the frames a logged tracker processed (every status but SKIPPED)."""
-    from octolog.mcaplog import read_messages
-    from schemas import codec
-    from schemas.topics import TRACKING_STATUS
+    from octolog.kit.mcaplog import read_messages
+    from octolog.schemas import codec
+    from octolog.schemas.topics import TRACKING_STATUS
 
     skipped = codec.msgtype(TRACKING_STATUS.msgtype).SKIPPED
     seqs = set()
@@ -171,7 +171,7 @@ class SyntheticSource:
     readout_s = 0.0  # rendered, every row at once
 
     def __post_init__(self) -> None:
-        from replay.synthetic import SyntheticScene
+        from octolog.replay.synthetic import SyntheticScene
 
         self.scene = SyntheticScene(n_frames=self.n_frames)
         self.name = f"synthetic:{self.n_frames}"

@@ -17,10 +17,10 @@ from typing import Any
 
 import numpy as np
 
-from octolog.errors import InputError
-from octolog.geometry import Intrinsics, RgbdFrame
-from schemas import codec
-from schemas.topics import (
+from octolog.kit.errors import InputError
+from octolog.kit.geometry import Intrinsics, RgbdFrame
+from octolog.schemas import codec
+from octolog.schemas.topics import (
     ALIGNED_DEPTH,
     ALIGNED_DEPTH_INFO,
     ALIGNED_DEPTH_PNG,
@@ -64,7 +64,7 @@ class StandardSequence:
 
     def frames(self, start: int = 0, end: int | None = None) -> Iterator[RgbdFrame]:
         """Frames start..end in pair order; reads the file once, holding only images not yet paired."""
-        from octolog.mcaplog import read_messages
+        from octolog.kit.mcaplog import read_messages
 
         todo = list(enumerate(self.pairs[start:end], start))
         if not todo:
@@ -130,8 +130,8 @@ def _header_stamp(data: bytes) -> int:
 
 def open_standard(path: str | Path) -> StandardSequence:
     """Open a recorder-layout MCAP and pair its frames; InputError says what is missing."""
-    from octolog.mcaplog import read_messages, summarize
-    from replay.tum import associate
+    from octolog.kit.mcaplog import read_messages, summarize
+    from octolog.replay.tum import associate
 
     path = Path(path)
     summary = summarize(path)

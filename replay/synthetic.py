@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from octolog.geometry import Intrinsics, RgbdFrame, matrix_to_pose
+from octolog.kit.geometry import Intrinsics, RgbdFrame, matrix_to_pose
 
 ROOM_SIZE_M = (6.0, 5.0, 2.8)
 EPOCH_NS = 1_700_000_000 * 1_000_000_000

@@ -16,8 +16,8 @@ from typing import TypeVar
 import cv2
 import numpy as np
 
-from octolog.errors import InputError
-from octolog.geometry import Intrinsics, RgbdFrame
+from octolog.kit.errors import InputError
+from octolog.kit.geometry import Intrinsics, RgbdFrame
 
 T = TypeVar("T")
 

@@ -12,8 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from octolog.errors import InputError
-from octolog.geometry import Intrinsics, RgbdFrame, matrix_to_pose, pose_to_matrix
+from octolog.kit.errors import InputError
+from octolog.kit.geometry import Intrinsics, RgbdFrame, matrix_to_pose, pose_to_matrix
 
 MSG_DIR = Path(__file__).with_name("msg")
 OWN_PACKAGE = "octolog_msgs"
@@ -364,7 +364,7 @@ DEPTH_PNG_FORMAT = "16UC1; png compressed"
 def parse_wire_compression(spec: str) -> WireCompression | None:
     """`""`/`"raw"`: no compression; else `COLOUR[,DEPTH]` with COLOUR `jpeg[:QUALITY]` or `png[:LEVEL]`
     and DEPTH `png` (the default; depth is never compressed lossily)."""
-    from octolog.errors import ConfigError
+    from octolog.kit.errors import ConfigError
 
     if spec in ("", "raw"):
         return None

@@ -10,9 +10,9 @@ import time
 
 import pytest
 
-from octolog.bus import Bus, BusConfig
-from octolog.errors import BusError, StageError
-from schemas import codec, topics
+from octolog.kit.bus import Bus, BusConfig
+from octolog.kit.errors import BusError, StageError
+from octolog.schemas import codec, topics
 
 
 def _port() -> int:

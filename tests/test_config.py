@@ -2,11 +2,11 @@ from __future__ import annotations
 
 import pytest
 
-from mapper.config import MapperConfig
-from octolog.config import load, to_json
-from octolog.errors import ConfigError
-from replay.config import ReplayConfig
-from tracker.config import TrackerConfig
+from octolog.kit.config import load, to_json
+from octolog.kit.errors import ConfigError
+from octolog.mapper.config import MapperConfig
+from octolog.replay.config import ReplayConfig
+from octolog.tracker.config import TrackerConfig
 
 
 def test_defaults_and_overrides(tmp_path):

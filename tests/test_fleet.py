@@ -22,9 +22,9 @@ import numpy as np
 import pytest
 from helpers import ROOT, octolog, tum_first300
 
-from mapper.config import MapperConfig
-from mapper.fleet import CorrectionItem, FleetMerge, KeyframeItem, merged_order
-from octolog.errors import ConfigError
+from octolog.kit.errors import ConfigError
+from octolog.mapper.config import MapperConfig
+from octolog.mapper.fleet import CorrectionItem, FleetMerge, KeyframeItem, merged_order
 
 FRAMES = 40
 HALF = FRAMES // 2
@@ -96,8 +96,8 @@ def test_config_checks_robots_and_start_poses():
 
 
 def _start_poses() -> list[list[float]]:
-    from octolog.geometry import invert, matrix_to_pose
-    from replay.synthetic import SyntheticScene
+    from octolog.kit.geometry import invert, matrix_to_pose
+    from octolog.replay.synthetic import SyntheticScene
 
     scene = SyntheticScene(n_frames=FRAMES)
     poses = []
@@ -116,12 +116,12 @@ def _reference(out: Path, start_poses: list[list[float]], *, source: str = f"syn
     final poses), and the mapper's map always equals the map built from scratch, in integration order,
     with every keyframe's latest pose (mapper.core). So: the keyframes sorted by (stamp, robot), each
     at the last pose its robot sent for it after sending it, integrated once."""
-    from mapper.config import make_mapper
-    from octolog.geometry import pose_to_matrix
-    from octolog.metrics import write_tum
-    from replay.sources import open_source
-    from schemas import codec
-    from tracker.config import TrackerConfig, make_odometry
+    from octolog.kit.geometry import pose_to_matrix
+    from octolog.kit.metrics import write_tum
+    from octolog.mapper.config import make_mapper
+    from octolog.replay.sources import open_source
+    from octolog.schemas import codec
+    from octolog.tracker.config import TrackerConfig, make_odometry
 
     src = open_source(source)
     def wire(T: np.ndarray) -> np.ndarray:  # a pose as the messages carry it (position + quaternion)
@@ -215,7 +215,7 @@ def test_two_robots_fuse_into_the_map_built_on_one_host(fleet):
         assert (procs / name).read_bytes() == (ref / name).read_bytes(), name
     import json
 
-    from octolog.metrics import read_tum
+    from octolog.kit.metrics import read_tum
 
     r1, r2 = (read_tum(procs / f"keyframes_{r}.txt").stamps_ns for r in ROBOTS)
     assert r2[0] < r1[-1] and r1[0] < r2[-1]  # the two robots' keyframes interleave in time
@@ -231,8 +231,8 @@ def test_fused_map_lies_on_the_scene_and_trajectories_follow_ground_truth(fleet)
     import octomap
     from scipy.spatial import cKDTree
 
-    from octolog.metrics import read_tum
-    from replay.synthetic import SyntheticScene
+    from octolog.kit.metrics import read_tum
+    from octolog.replay.synthetic import SyntheticScene
 
     _, procs = fleet
     scene = SyntheticScene(n_frames=FRAMES)
@@ -270,9 +270,9 @@ def test_two_halves_of_a_tum_sequence_fuse_like_on_one_host(tmp_path):
     """Two robots on real frames: r1 the first half, r2 the second, shifted to run alongside; r2's
     start pose from the TUM ground truth. Byte-identical to the in-process reference, and each
     robot's keyframes near the ground truth in the common world."""
-    from octolog.geometry import invert, matrix_to_pose
-    from octolog.metrics import associate, parse_tum, read_tum
-    from replay.sources import open_source
+    from octolog.kit.geometry import invert, matrix_to_pose
+    from octolog.kit.metrics import associate, parse_tum, read_tum
+    from octolog.replay.sources import open_source
 
     source = f"tum:{tum_first300()}"
     src = open_source(source)

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 import yaml
 
-from mapper.grid import (
+from octolog.kit.errors import MapError
+from octolog.mapper.grid import (
     FREE,
     OCCUPIED,
     UNKNOWN,
@@ -25,9 +26,8 @@ from mapper.grid import (
     write_map_server,
     yaml_text,
 )
-from mapper.octree import OccupancyOctree
-from octolog.errors import MapError
-from schemas import codec
+from octolog.mapper.octree import OccupancyOctree
+from octolog.schemas import codec
 
 RES = 0.1
 

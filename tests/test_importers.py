@@ -9,13 +9,13 @@ import pytest
 from helpers import rerun_cli, tum_first300
 from test_tum import make_tum
 
-from octolog.errors import InputError
-from octolog.geometry import Intrinsics, invert, pose_to_matrix
-from octolog.mcaplog import McapWriter, read_messages, summarize
-from recorder.importers import import_source, parse_topic_map
-from replay.standard import count_standard_frames, open_standard, read_standard_frames
-from replay.tum import TUM_DEPTH_SCALE_M, open_tum
-from schemas import codec, topics
+from octolog.kit.errors import InputError
+from octolog.kit.geometry import Intrinsics, invert, pose_to_matrix
+from octolog.kit.mcaplog import McapWriter, read_messages, summarize
+from octolog.recorder.importers import import_source, parse_topic_map
+from octolog.replay.standard import count_standard_frames, open_standard, read_standard_frames
+from octolog.replay.tum import TUM_DEPTH_SCALE_M, open_tum
+from octolog.schemas import codec, topics
 
 SMALL = Intrinsics(64, 48, 50.0, 51.0, 31.5, 23.5, (0.1, -0.2, 0.001, 0.002, 0.05))
 REALSENSE_BAGS = ("d435_single_depth_color_640x480.bag", "d435_1280x720_color1920x1080.bag")
@@ -55,7 +55,7 @@ def assert_same_frames(got: list, want: list) -> None:
 def test_tum_round_trip_is_byte_identical(tmp_path):
     folder = tiny_tum(tmp_path)
     out = tmp_path / "tum.mcap"
-    from recorder.importers import import_tum
+    from octolog.recorder.importers import import_tum
 
     result = import_tum(folder, out, intrinsics=SMALL)
     assert result.counts == {topics.COLOR.name: 5, topics.COLOR_INFO.name: 5, topics.ALIGNED_DEPTH.name: 5,
@@ -404,7 +404,7 @@ def _rerun_converts(path: Path, tmp_path: Path) -> None:
 
 
 def test_imported_tum_opens_in_rosbags_and_rerun(tmp_path):
-    from recorder.importers import import_tum
+    from octolog.recorder.importers import import_tum
 
     out = tmp_path / "tum.mcap"
     import_tum(tiny_tum(tmp_path), out, intrinsics=SMALL)
@@ -519,7 +519,7 @@ def test_refuses_existing_output_unless_overwrite(tmp_path):
     with pytest.raises(InputError, match=r"o\.mcap: exists; pass overwrite"):
         import_source(folder, out)
     assert out.read_bytes() == b"keep me"
-    from recorder.importers import import_tum
+    from octolog.recorder.importers import import_tum
 
     import_tum(folder, out, overwrite=True, intrinsics=SMALL)
     assert count_standard_frames(out) == 5

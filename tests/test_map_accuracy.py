@@ -14,13 +14,13 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from mapper.cloud import transform
-from mapper.config import MapperConfig, make_mapper
-from mapper.evaluate import ObservedVoxels, cloud_to_surface, observed_voxels, voxel_accuracy
-from mapper.grid import FREE, OCCUPIED, map_from_world_for_up, project_octree, write_map_server
-from octolog.errors import MapError
-from replay.synthetic import SyntheticScene
-from schemas import codec
+from octolog.kit.errors import MapError
+from octolog.mapper.cloud import transform
+from octolog.mapper.config import MapperConfig, make_mapper
+from octolog.mapper.evaluate import ObservedVoxels, cloud_to_surface, observed_voxels, voxel_accuracy
+from octolog.mapper.grid import FREE, OCCUPIED, map_from_world_for_up, project_octree, write_map_server
+from octolog.replay.synthetic import SyntheticScene
+from octolog.schemas import codec
 
 KEYFRAMES = list(range(0, 150, 10))
 
@@ -154,7 +154,7 @@ def test_navigation_grid_from_the_map(run: Run, default_map, tmp_path) -> None:
 
 def wall_view(depth_m: float, w: int = 64, h: int = 48):
     """A fronto-parallel wall `depth_m` ahead of a camera at the origin looking along +z."""
-    from octolog.geometry import Intrinsics, RgbdFrame
+    from octolog.kit.geometry import Intrinsics, RgbdFrame
 
     K = Intrinsics(w, h, 50.0, 50.0, (w - 1) / 2, (h - 1) / 2)
     depth = np.full((h, w), round(depth_m * 1000), dtype=np.uint16)

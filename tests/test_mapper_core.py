@@ -14,7 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapper.cloud import (
+from octolog.kit.errors import MapError
+from octolog.kit.geometry import Intrinsics, pose_to_matrix
+from octolog.mapper.cloud import (
     DenseCloud,
     backproject,
     keyframe_cloud,
@@ -23,9 +25,7 @@ from mapper.cloud import (
     voxel_downsample,
     write_ply,
 )
-from mapper.octree import OccupancyOctree
-from octolog.errors import MapError
-from octolog.geometry import Intrinsics, pose_to_matrix
+from octolog.mapper.octree import OccupancyOctree
 
 K = Intrinsics(640, 480, 525.0, 525.0, 319.5, 239.5)
 SCALE = 0.001  # 1 mm per depth unit

@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 from helpers import ROOT
 
-from mapper.config import MapperConfig, make_mapper
-from octolog.errors import InputError
-from octolog.geometry import pose_to_matrix
-from replay.synthetic import SyntheticScene
+from octolog.kit.errors import InputError
+from octolog.kit.geometry import pose_to_matrix
+from octolog.mapper.config import MapperConfig, make_mapper
+from octolog.replay.synthetic import SyntheticScene
 
 
 @pytest.fixture(scope="module")
@@ -81,9 +81,9 @@ def _port() -> int:
 
 def test_mapper_process_follows_corrections_and_serves_late_joiners(scene, tmp_path):
     """The real `octolog map` process; this test plays the tracker over a real Zenoh link."""
-    from octolog.bus import Bus, BusConfig
-    from schemas import codec
-    from schemas.topics import KEYFRAME, KEYFRAME_END, KEYFRAME_POSES, MAP_UPDATE, OCTOMAP
+    from octolog.kit.bus import Bus, BusConfig
+    from octolog.schemas import codec
+    from octolog.schemas.topics import KEYFRAME, KEYFRAME_END, KEYFRAME_POSES, MAP_UPDATE, OCTOMAP
 
     ep = f"tcp/127.0.0.1:{_port()}"
     kfs = _keyframes(scene)
@@ -108,10 +108,10 @@ def test_mapper_process_follows_corrections_and_serves_late_joiners(scene, tmp_p
             assert updates == octomaps == len(kfs)
             # a late joiner asks for the current map
             with Bus(BusConfig(connect=(ep,), multicast_scouting=False), "viewer") as late:
-                from mapper.node import fetch_map
+                from octolog.mapper.node import fetch_map
 
                 got = fetch_map(late, timeout_s=20)
-                from schemas.topics import MAP_SAVE
+                from octolog.schemas.topics import MAP_SAVE
 
                 saved = late.fetch(MAP_SAVE, timeout_s=30)  # "write the files now"
             assert got is not None and got.binary and got.resolution == pytest.approx(0.05) and len(got.data) > 100

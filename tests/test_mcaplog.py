@@ -2,14 +2,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from octolog.errors import McapError
-from octolog.geometry import pose_to_matrix
-from octolog.mcaplog import McapWriter, read_messages, summarize
-from schemas import codec, topics
-
-import numpy as np
+from octolog.kit.errors import McapError
+from octolog.kit.geometry import pose_to_matrix
+from octolog.kit.mcaplog import McapWriter, read_messages, summarize
+from octolog.schemas import codec, topics
 
 
 def _write(path: Path, n: int, compression: str) -> list[bytes]:

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from octolog.errors import InputError
-from octolog.metrics import (
+from octolog.kit.errors import InputError
+from octolog.kit.metrics import (
     Trajectory,
     associate,
     ate,

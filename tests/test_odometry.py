@@ -15,12 +15,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
 from helpers import tum_first300
-from octolog.errors import TrackingError
-from octolog.geometry import Intrinsics, RgbdFrame, invert
-from tracker.features import OrbExtractor, Undistorter, bucket_select, hamming, match_by_projection
-from tracker.odometry import RgbdOdometry, TrackResult, rotation_angle
+
+from octolog.kit.errors import TrackingError
+from octolog.kit.geometry import Intrinsics, RgbdFrame, invert
+from octolog.tracker.features import OrbExtractor, Undistorter, bucket_select, hamming, match_by_projection
+from octolog.tracker.odometry import RgbdOdometry, TrackResult, rotation_angle
 
 W, H = 640, 480
 INTR = Intrinsics(W, H, 525.0, 525.0, 319.5, 239.5, ())
@@ -355,7 +355,7 @@ def _ate_rmse(gt_path: Path, stamps_ns: list[int], poses: list[np.ndarray]) -> f
 
 
 def test_tum_fr1_xyz_first300_accuracy() -> None:
-    from replay.sources import open_source
+    from octolog.replay.sources import open_source
 
     src = open_source(f"tum:{tum_first300()}")
     seq = src.seq

@@ -13,11 +13,11 @@ import sys
 import cv2
 import numpy as np
 import pytest
-
 from helpers import octolog, tum_first300
-from octolog import metrics
-from octolog.errors import ConfigError, TrackingError
-from tracker.config import TrackerConfig, make_odometry
+
+from octolog.kit import metrics
+from octolog.kit.errors import ConfigError, TrackingError
+from octolog.tracker.config import TrackerConfig, make_odometry
 
 needs_orbslam3 = pytest.mark.skipif(importlib.util.find_spec("pyorbslam3") is None,
                                     reason="pyorbslam3 (the orbslam3 extra) is not installed")
@@ -26,7 +26,7 @@ N_FRAMES = 40
 
 @pytest.fixture(scope="module")
 def scene():
-    from replay.synthetic import SyntheticScene
+    from octolog.replay.synthetic import SyntheticScene
 
     sc = SyntheticScene(n_frames=N_FRAMES)
     return sc, [sc.render(i) for i in range(N_FRAMES)]
@@ -77,7 +77,7 @@ def test_tracks_the_synthetic_room(scene, synthetic_vocabulary):
 @needs_orbslam3
 def test_tracks_tum_first100_with_a_vocabulary_built_from_its_images(tmp_path):
     folder = tum_first300()
-    from replay.sources import open_source
+    from octolog.replay.sources import open_source
 
     voc = tmp_path / "fr1_voc.txt"
     out = octolog("vocab", "build", str(folder / "rgb"), "--out", str(voc), "--max-images", "30", "--k", "8",
@@ -151,7 +151,7 @@ def test_missing_pyorbslam3_is_a_config_error(monkeypatch, tmp_path):
 
 
 def test_backend_is_validated():
-    from octolog.config import load
+    from octolog.kit.config import load
 
     with pytest.raises(ConfigError, match="tracker.backend 'orb'"):
         load(TrackerConfig, None, ["backend=orb"], section="tracker")
@@ -159,8 +159,8 @@ def test_backend_is_validated():
 
 
 def test_settings_come_from_the_intrinsics():
-    from octolog.geometry import Intrinsics
-    from tracker.orbslam3 import settings_yaml
+    from octolog.kit.geometry import Intrinsics
+    from octolog.tracker.orbslam3 import settings_yaml
 
     intr = Intrinsics(640, 480, 517.306408, 516.469215, 318.643040, 255.313989,
                       (0.262383, -0.953104, -0.005358, 0.002628, 1.163314))

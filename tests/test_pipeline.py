@@ -47,7 +47,7 @@ DETERMINISTIC_TOPICS = ("camera/rgbd", "tracker/pose", "tracker/keyframe", "mapp
 
 def test_outputs_are_deterministic_and_independent_of_rerun(runs):
     """Every field docs/architecture.md calls deterministic, across two runs (one with Rerun, one without)."""
-    from octolog.mcaplog import read_messages
+    from octolog.kit.mcaplog import read_messages
 
     a, b = runs
     for name in DETERMINISTIC_FILES:
@@ -64,7 +64,7 @@ def test_bt_opens_in_octomap_and_lies_on_the_scene(runs):
     import octomap
     from scipy.spatial import cKDTree
 
-    from replay.synthetic import SyntheticScene
+    from octolog.replay.synthetic import SyntheticScene
 
     tree = octomap.OcTree(0.05)
     assert tree.readBinary(str(runs[0] / "map.bt").encode())
@@ -81,7 +81,7 @@ def test_bt_opens_in_octomap_and_lies_on_the_scene(runs):
 def test_session_mcap_reads_back_everywhere(runs):
     from rosbags.highlevel import AnyReader
 
-    from octolog.mcaplog import read_messages
+    from octolog.kit.mcaplog import read_messages
 
     a = runs[0]
     counts: dict[str, int] = {}

@@ -17,17 +17,23 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from octolog import mcaplog
-from octolog.config import to_json
-from octolog.errors import ConfigError, McapError
-from octolog.mcaplog import read_messages, summarize
-from recorder import node
-from recorder.capture import CaptureProfile, RecorderError, RealSenseBackend, SoftwareDeviceBackend, SyntheticScene
-from recorder.config import RecorderConfig, SoftwareConfig
-from recorder.record import JPEG_FORMAT, PNG_FORMAT
-from recorder.recover import recover
-from schemas import codec
-from schemas import topics as T
+from octolog.kit import mcaplog
+from octolog.kit.config import to_json
+from octolog.kit.errors import ConfigError, McapError
+from octolog.kit.mcaplog import read_messages, summarize
+from octolog.recorder import node
+from octolog.recorder.capture import (
+    CaptureProfile,
+    RealSenseBackend,
+    RecorderError,
+    SoftwareDeviceBackend,
+    SyntheticScene,
+)
+from octolog.recorder.config import RecorderConfig, SoftwareConfig
+from octolog.recorder.record import JPEG_FORMAT, PNG_FORMAT
+from octolog.recorder.recover import recover
+from octolog.schemas import codec
+from octolog.schemas import topics as T
 
 ROOT = Path(__file__).resolve().parents[1]
 BASE = RecorderConfig(backend="software")
@@ -177,7 +183,7 @@ def test_split_by_duration_and_size(tmp_path):
 
 def test_writer_behind_drops_are_counted_not_silent(tmp_path, monkeypatch):
     """A real-time source and a stalled writer: what the queue cannot hold is counted per stream."""
-    from recorder.record import Recorder
+    from octolog.recorder.record import Recorder
 
     gate = threading.Event()
     real_encode = Recorder._encode
@@ -210,9 +216,9 @@ def test_writer_behind_drops_are_counted_not_silent(tmp_path, monkeypatch):
 
 
 def test_device_frame_gaps_are_counted(tmp_path):
-    from recorder.capture import Capture
-    from recorder.config import make_recorder
-    from recorder.record import output_paths
+    from octolog.recorder.capture import Capture
+    from octolog.recorder.config import make_recorder
+    from octolog.recorder.record import output_paths
 
     b = SoftwareDeviceBackend(frames=1)
     device = b.open(CaptureProfile())
@@ -228,7 +234,7 @@ def test_device_frame_gaps_are_counted(tmp_path):
 
 
 def _spawn(tmp_path: Path, *args: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "recorder.cli", "record", *args], cwd=ROOT,
+    return subprocess.Popen([sys.executable, "-m", "octolog", "record", *args], cwd=ROOT,
                             stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
 
 
@@ -261,7 +267,7 @@ def _on_disk(line: str) -> int:
 
 
 def test_sigkill_mid_recording_then_recover(tmp_path):
-    from octolog.info import describe
+    from octolog.shell.info import describe
 
     out = tmp_path / "killed.mcap"
     proc = _spawn(tmp_path, str(out), "--backend", "software", "--set", "chunk_size_mb=1", "--set",
@@ -390,7 +396,7 @@ def test_no_camera_cli(tmp_path):
 
     if len(rs.context().query_devices()):
         pytest.skip("a RealSense camera is attached")
-    r = subprocess.run([sys.executable, "-m", "recorder.cli", "record", str(tmp_path / "x.mcap")], cwd=ROOT,
+    r = subprocess.run([sys.executable, "-m", "octolog", "record", str(tmp_path / "x.mcap")], cwd=ROOT,
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 1 and r.stderr.strip() == \
         "octolog record: error: no RealSense device found (is the camera plugged in, and does " \
@@ -443,8 +449,9 @@ def test_options_and_config_errors(tmp_path):
     assert opts["emitter"] == 0.0 and opts["visual_preset"] == 3.0 and opts["color_exposure"] == 300.0
     with pytest.raises(ConfigError, match="recorder.visual_preset 'shiny'"):
         dataclasses.replace(BASE, visual_preset="shiny").validate()
-    from recorder.cli import add_parsers, overrides
     import argparse
+
+    from octolog.shell.record import add_parsers, overrides
 
     parser = argparse.ArgumentParser()
     add_parsers(parser.add_subparsers(), lambda p: None, lambda p: None,
@@ -468,7 +475,7 @@ def _port() -> int:
 
 def test_publishes_live_while_recording(tmp_path):
     """Camera topics and camera/rgbd on Zenoh; what a slow consumer missed is counted as live drops."""
-    from octolog.bus import Bus, BusConfig
+    from octolog.kit.bus import Bus, BusConfig
 
     ep = f"tcp/127.0.0.1:{_port()}"
     sub_cfg = BusConfig(listen=(ep,), multicast_scouting=False, namespace="rec")
@@ -542,7 +549,7 @@ def test_record_into_a_session_folder(tmp_path):
     """`octolog record DIR`: the recording plus its resolved config and a summary, like `octolog run`."""
     from helpers import octolog as cli
 
-    from octolog.config import load
+    from octolog.kit.config import load
 
     out = tmp_path / "field"
     cli("record", str(out), "--backend", "software", "--duration", "1", "--quiet")

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from octolog.errors import ConfigError
-from octolog.geometry import Intrinsics, RgbdFrame
-from replay.config import ReplayConfig, remapped
-from replay.node import looped
-from schemas.topics import RGBD
+from octolog.kit.errors import ConfigError
+from octolog.kit.geometry import Intrinsics, RgbdFrame
+from octolog.replay.config import ReplayConfig, remapped
+from octolog.replay.node import looped
+from octolog.schemas.topics import RGBD
 
 
 class FakeSource:
@@ -57,6 +57,6 @@ def test_remap_topics():
     assert remapped(RGBD, ("camera/rgbd=/cam2/rgbd",)).key("robot1") == "robot1/cam2/rgbd"
     assert remapped(RGBD, ("other=x",)) is RGBD
     with pytest.raises(ConfigError, match="want FROM=TO"):
-        from octolog.config import load
+        from octolog.kit.config import load
 
         load(ReplayConfig, None, ['remap=["camera/rgbd"]'])

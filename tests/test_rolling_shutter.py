@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from octolog.errors import ConfigError, TrackingError
-from tracker.config import TrackerConfig, for_source
-from tracker.features import FrameFeatures
-from tracker.odometry import RgbdOdometry, optimize_pose, so3_exp, unroll_rolling_shutter
+from octolog.kit.errors import ConfigError, TrackingError
+from octolog.tracker.config import TrackerConfig, for_source
+from octolog.tracker.features import FrameFeatures
+from octolog.tracker.odometry import RgbdOdometry, optimize_pose, so3_exp, unroll_rolling_shutter
 
 H, W = 480, 640
 K = np.array([[525.0, 0.0, 319.5], [0.0, 525.0, 239.5], [0.0, 0.0, 1.0]])
@@ -113,7 +113,7 @@ def test_readout_comes_from_the_source_unless_configured(tmp_path) -> None:
     assert for_source(TrackerConfig(rolling_shutter_ms=0.0), Kinect()).rolling_shutter_ms == 0.0
     assert for_source(TrackerConfig(rolling_shutter_ms=12.5), Kinect()).rolling_shutter_ms == 12.5
 
-    from replay.sources import open_source
+    from octolog.replay.sources import open_source
 
     # the TUM folder's name says which Kinect took it; only freiburg1's readout is measured
     for name, want in (("rgbd_dataset_freiburg1_desk", 0.02), ("rgbd_dataset_freiburg3_office", 0.0)):

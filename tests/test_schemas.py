@@ -3,9 +3,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from octolog.errors import InputError
-from octolog.geometry import Intrinsics, RgbdFrame, pose_to_matrix
-from schemas import codec, topics
+from octolog.kit.errors import InputError
+from octolog.kit.geometry import Intrinsics, RgbdFrame, pose_to_matrix
+from octolog.schemas import codec, topics
 
 
 def _frame(seq: int = 3) -> RgbdFrame:

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from helpers import octolog, rerun_cli
 
-from octolog.mcaplog import read_messages
+from octolog.kit.mcaplog import read_messages
 
 
 @pytest.fixture(scope="module")

@@ -13,12 +13,12 @@ import hashlib
 import numpy as np
 import pytest
 
-from octolog import metrics
-from octolog.geometry import invert
-from replay.synthetic import SyntheticScene
-from tracker.odometry import RgbdOdometry, optimize_pose, so3_exp
-from tracker.optimize import BundleProblem, bundle_adjust, optimize_pose_graph
-from tracker.places import rigid_ransac, verify, vote
+from octolog.kit import metrics
+from octolog.kit.geometry import invert
+from octolog.replay.synthetic import SyntheticScene
+from octolog.tracker.odometry import RgbdOdometry, optimize_pose, so3_exp
+from octolog.tracker.optimize import BundleProblem, bundle_adjust, optimize_pose_graph
+from octolog.tracker.places import rigid_ransac, verify, vote
 
 K = (500.0, 500.0, 320.0, 240.0)
 KM = np.array([[K[0], 0, K[2]], [0, K[1], K[3]], [0, 0, 1.0]])
@@ -157,13 +157,13 @@ def test_place_recognition_finds_the_revisited_place_and_only_it(room, loop_fram
 @pytest.fixture(scope="module")
 def vocabulary(loop_frames):
     """A small vocabulary tree (8^3 words) trained on frames of the first half loop."""
-    from tracker.vocab import train
+    from octolog.tracker.vocab import train
 
     return train([_features(loop_frames[i])[0].desc for i in range(0, 100, 10)], k=8, levels=3, seed=0)
 
 
 def test_bow_index_ranks_the_revisited_place_first(loop_frames, vocabulary) -> None:
-    from tracker.places import BowIndex
+    from octolog.tracker.places import BowIndex
 
     index = BowIndex(vocabulary)
     for i in range(0, 90, 10):
@@ -294,7 +294,7 @@ def test_final_bundle_adjustment_is_bounded_to_the_newest_keyframes(loop_frames)
 def test_back_end_worker_process_returns_results_and_errors() -> None:
     import psutil
 
-    from tracker.worker import Worker
+    from octolog.tracker.worker import Worker
 
     w = Worker()
     child = psutil.Process(w._proc.pid)

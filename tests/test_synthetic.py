@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from octolog.geometry import pose_to_matrix
-from replay.synthetic import EPOCH_NS, OBJECTS, ROOM, SyntheticScene
+from octolog.kit.geometry import pose_to_matrix
+from octolog.replay.synthetic import EPOCH_NS, OBJECTS, ROOM, SyntheticScene
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -184,7 +184,7 @@ def _digest(f) -> str:
 def test_render_is_deterministic_across_processes(small: SyntheticScene) -> None:
     code = (
         "import hashlib, sys\n"
-        "from replay.synthetic import SyntheticScene\n"
+        "from octolog.replay.synthetic import SyntheticScene\n"
         "assert 'open3d' not in sys.modules  # lazy: nothing heavy at import\n"
         "f = SyntheticScene(n_frames=540, width=160, height=120, nthreads=1).render(77)\n"
         "print(hashlib.sha256(f.rgb.tobytes() + f.depth.tobytes()).hexdigest())\n"

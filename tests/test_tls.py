@@ -19,10 +19,10 @@ from pathlib import Path
 import pytest
 from helpers import ROOT, octolog
 
-from octolog.bus import Bus, BusConfig
-from octolog.errors import BusError
-from schemas import codec
-from schemas.topics import RGBD, Topic
+from octolog.kit.bus import Bus, BusConfig
+from octolog.kit.errors import BusError
+from octolog.schemas import codec
+from octolog.schemas.topics import RGBD, Topic
 
 EXAMPLES = ROOT / "docs" / "examples"
 N = 20
@@ -113,7 +113,7 @@ def test_certified_nodes_join_and_access_control_limits_what_they_get(pki, route
     no camera frame."""
     import numpy as np
 
-    from octolog.geometry import Intrinsics, RgbdFrame
+    from octolog.kit.geometry import Intrinsics, RgbdFrame
 
     server_cfg = _config(pki, "zenoh-tls-client.json5", "server", cert="server")
     viewer_cfg = _config(pki, "zenoh-tls-client.json5", "viewer", cert="viewer")
@@ -176,7 +176,7 @@ def test_a_late_joiner_recovers_the_history_only_where_access_control_allows_it(
     beside `robot1/**`. With the history rule removed, nothing is recovered."""
     import numpy as np
 
-    from octolog.geometry import Intrinsics, RgbdFrame
+    from octolog.kit.geometry import Intrinsics, RgbdFrame
 
     text = (EXAMPLES / "zenoh-tls-router.json5").read_text().replace('"certs/', f'"{pki}/certs/')
     if not history_rule:

@@ -10,9 +10,9 @@ import sys
 import numpy as np
 from helpers import ROOT
 
-from octolog.geometry import Intrinsics
-from replay.synthetic import SyntheticScene
-from tracker.node import STATE_CODES
+from octolog.kit.geometry import Intrinsics
+from octolog.replay.synthetic import SyntheticScene
+from octolog.tracker.node import STATE_CODES
 
 
 def _port() -> int:
@@ -22,9 +22,9 @@ def _port() -> int:
 
 
 def test_bad_frames_are_lost_and_tracking_goes_on(tmp_path):
-    from octolog.bus import Bus, BusConfig
-    from schemas import codec
-    from schemas.topics import RGBD, RGBD_END, TRACKING_STATUS
+    from octolog.kit.bus import Bus, BusConfig
+    from octolog.schemas import codec
+    from octolog.schemas.topics import RGBD, RGBD_END, TRACKING_STATUS
 
     frames = list(SyntheticScene(n_frames=16).frames())
     bad = {

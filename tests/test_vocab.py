@@ -12,10 +12,10 @@ import math
 import cv2
 import numpy as np
 import pytest
-
 from helpers import octolog
-from octolog.errors import InputError
-from tracker import vocab
+
+from octolog.kit.errors import InputError
+from octolog.tracker import vocab
 
 
 def clustered(n_protos: int, per_image: int, n_images: int, flips: int,
@@ -148,7 +148,7 @@ def test_training_is_deterministic_and_seeded():
 @pytest.fixture(scope="module")
 def image_dir(tmp_path_factory):
     """A few frames of the synthetic room as PNG files (no ../shared needed)."""
-    from replay.synthetic import SyntheticScene
+    from octolog.replay.synthetic import SyntheticScene
 
     folder = tmp_path_factory.mktemp("images")
     scene = SyntheticScene(n_frames=60)

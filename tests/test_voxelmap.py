@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapper.cloud import backproject, keyframe_cloud, transform
-from mapper.octree import OccupancyOctree
-from mapper.voxelmap import VoxelOccupancyMap, make_occupancy_map
-from octolog.errors import MapError
-from octolog.geometry import Intrinsics, pose_to_matrix
+from octolog.kit.errors import MapError
+from octolog.kit.geometry import Intrinsics, pose_to_matrix
+from octolog.mapper.cloud import backproject, keyframe_cloud, transform
+from octolog.mapper.octree import OccupancyOctree
+from octolog.mapper.voxelmap import VoxelOccupancyMap, make_occupancy_map
 
 K = Intrinsics(640, 480, 525.0, 525.0, 319.5, 239.5)
 SCALE = 0.001
@@ -316,8 +316,8 @@ def test_rejects_bad_inputs(tmp_path):
 
 def tum_keyframes(data: Path, n: int = 10, every: int = 10):
     """(frame, world_from_camera) for n frames `every` apart with a GT pose within 20 ms."""
-    from octolog.metrics import associate, read_tum
-    from replay.tum import open_tum
+    from octolog.kit.metrics import associate, read_tum
+    from octolog.replay.tum import open_tum
 
     seq = open_tum(data / "tum" / "rgbd_dataset_freiburg1_xyz_first300")
     gt = read_tum(seq.groundtruth)

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from helpers import octolog
 
-from octolog.errors import ConfigError, InputError
-from replay.sources import SyntheticSource
-from schemas import codec, topics
+from octolog.kit.errors import ConfigError, InputError
+from octolog.replay.sources import SyntheticSource
+from octolog.schemas import codec, topics
 
 N_FRAMES = 30
 

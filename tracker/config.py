@@ -5,8 +5,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
-from octolog.errors import ConfigError
-
+from octolog.kit.errors import ConfigError
 
 BACKENDS = ("native", "orbslam3")
 
@@ -62,7 +61,7 @@ class TrackerConfig:
             raise ConfigError(f"tracker.rolling_shutter_ms {self.rolling_shutter_ms}: want 0 to 100 (0 = global shutter)")
         if self.n_features < 100:
             raise ConfigError(f"tracker.n_features {self.n_features}: want >= 100")
-        from schemas.codec import parse_wire_compression
+        from octolog.schemas.codec import parse_wire_compression
 
         try:
             parse_wire_compression(self.wire_compression)
@@ -79,14 +78,14 @@ def for_source(cfg: TrackerConfig, source) -> TrackerConfig:
 
 def make_odometry(cfg: TrackerConfig):  # -> RgbdOdometry | OrbSlam3Odometry
     if cfg.backend == "orbslam3":
-        from tracker.orbslam3 import OrbSlam3Odometry
+        from octolog.tracker.orbslam3 import OrbSlam3Odometry
 
         return OrbSlam3Odometry(cfg.vocabulary, n_features=cfg.n_features)
-    from tracker.odometry import RgbdOdometry
+    from octolog.tracker.odometry import RgbdOdometry
 
     vocabulary = None
     if cfg.vocabulary:  # native: loop and relocalisation candidates from a bag-of-words index
-        from tracker.vocab import load
+        from octolog.tracker.vocab import load
 
         vocabulary = load(cfg.vocabulary)
     return RgbdOdometry(n_features=cfg.n_features, local_ba=cfg.local_ba, ba_window=cfg.ba_window,

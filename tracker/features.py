@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from octolog.geometry import Intrinsics
+from octolog.kit.geometry import Intrinsics
 
 DESCRIPTOR_BYTES = 32
 

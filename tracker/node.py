@@ -8,15 +8,22 @@ from pathlib import Path
 
 import numpy as np
 
-from octolog.bus import Bus, BusConfig, Received
-from octolog.errors import InputError, TrackingError
-from octolog.viz import Viz
-from schemas import codec
-from schemas.topics import (
-    KEYFRAME, KEYFRAME_COMPRESSED, KEYFRAME_END, KEYFRAME_POSES, POSE, RGBD, RGBD_COMPRESSED, RGBD_END,
+from octolog.kit.bus import Bus, BusConfig, Received
+from octolog.kit.errors import InputError, TrackingError
+from octolog.kit.viz import Viz
+from octolog.schemas import codec
+from octolog.schemas.topics import (
+    KEYFRAME,
+    KEYFRAME_COMPRESSED,
+    KEYFRAME_END,
+    KEYFRAME_POSES,
+    POSE,
+    RGBD,
+    RGBD_COMPRESSED,
+    RGBD_END,
     TRACKING_STATUS,
 )
-from tracker.config import TrackerConfig, make_odometry
+from octolog.tracker.config import TrackerConfig, make_odometry
 
 STATE_CODES = {"INIT": 0, "OK": 1, "LOST": 2, "SKIPPED": 3}
 
@@ -43,7 +50,7 @@ def run(cfg: TrackerConfig, bus_cfg: BusConfig, *, trajectory: Path | None = Non
     with Bus(bus_cfg, "tracker") as bus, Viz(rerun, "tracker", recording_id) as viz:
         result = track(odometry, cfg, bus, viz)
     if trajectory is not None:
-        from octolog.metrics import write_tum
+        from octolog.kit.metrics import write_tum
 
         if hasattr(odometry, "trajectory"):
             # every tracked frame through the final pose of its keyframe: what BA and loop

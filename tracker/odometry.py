@@ -20,11 +20,9 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from octolog.errors import TrackingError
-from octolog.geometry import Intrinsics, RgbdFrame, invert
-from tracker.optimize import BundleProblem, bundle_adjust, optimize_pose_graph
-from tracker.worker import Worker
-from tracker.features import (
+from octolog.kit.errors import TrackingError
+from octolog.kit.geometry import Intrinsics, RgbdFrame, invert
+from octolog.tracker.features import (
     DESCRIPTOR_BYTES,
     FrameFeatures,
     OrbExtractor,
@@ -34,6 +32,8 @@ from tracker.features import (
     match_brute_force,
     match_by_projection,
 )
+from octolog.tracker.optimize import BundleProblem, bundle_adjust, optimize_pose_graph
+from octolog.tracker.worker import Worker
 
 STATE_OK = "OK"
 STATE_LOST = "LOST"
@@ -470,7 +470,7 @@ class RgbdOdometry:
         self._readout_s = readout_s
         # with a vocabulary (tracker.vocab.Vocabulary), loop and relocalisation candidates come from
         # a bag-of-words index (the best `bow_candidates`), else every keyframe is a candidate
-        from tracker.places import BowIndex
+        from octolog.tracker.places import BowIndex
 
         self._bow = BowIndex(vocabulary) if vocabulary is not None else None
         self._bow_top = bow_candidates
@@ -933,7 +933,7 @@ class RgbdOdometry:
 
     def _relocalisation_guess(self, feats: FrameFeatures) -> np.ndarray | None:
         """world_from_camera of a lost frame from a place match against every keyframe, or None."""
-        from tracker.places import verify, vote
+        from octolog.tracker.places import verify, vote
 
         if int(feats.has_depth.sum()) < self._min_inliers or not self._keyframes:
             return None
@@ -1135,7 +1135,7 @@ def _run_backend(job: _BackendJob) -> _BackendResult:
 
 
 def _backend(job: _BackendJob) -> _BackendResult:
-    from tracker.places import verify, vote
+    from octolog.tracker.places import verify, vote
 
     poses = job.poses_wc.copy()
     moved: dict[int, np.ndarray] = {}

@@ -26,9 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
-from octolog.errors import ConfigError, TrackingError
-from octolog.geometry import Intrinsics, RgbdFrame
-from tracker.odometry import STATE_INIT, STATE_LOST, STATE_OK, TrackResult, rotation_angle
+from octolog.kit.errors import ConfigError, TrackingError
+from octolog.kit.geometry import Intrinsics, RgbdFrame
+from octolog.tracker.odometry import STATE_INIT, STATE_LOST, STATE_OK, TrackResult, rotation_angle
 
 VOCABULARY_ENV = "OCTOLOG_ORB_VOCABULARY"
 
@@ -56,7 +56,7 @@ def import_pyorbslam3():
 def resolve_vocabulary(path: str = "") -> Path:
     """The vocabulary file: `path` (tracker.vocabulary), else $OCTOLOG_ORB_VOCABULARY, else the
     pyorbslam3 cache (`$PYORBSLAM3_VOCAB` or a vocabulary it downloaded earlier: never downloads)."""
-    from tracker.vocab import check_header
+    from octolog.tracker.vocab import check_header
 
     source = "tracker.vocabulary"
     if not path:

@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from octolog.errors import InputError
-from octolog.metrics import umeyama_se3
-from tracker.features import FrameFeatures, match_brute_force
+from octolog.kit.errors import InputError
+from octolog.kit.metrics import umeyama_se3
+from octolog.tracker.features import FrameFeatures, match_brute_force
 
 _SEED = 0x100C
 
@@ -111,7 +111,7 @@ def verify(query: FrameFeatures, kf: FrameFeatures, keyframe: int, *, min_inlier
         return None
     qi, ki = qi[inl], ki[inl]
     if refine is not None:
-        from tracker.odometry import optimize_pose
+        from octolog.tracker.odometry import optimize_pose
 
         K, scale, inv_depth_sigma = refine
         T_qk, ok = optimize_pose(np.linalg.inv(T), kf.xyz[ki], query.uv[qi],

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from octolog.errors import InputError
+from octolog.kit.errors import InputError
 
 DESCRIPTOR_BYTES = 32
 SCORING_L1 = 0  # DBoW2 ScoringType L1_NORM

@@ -42,7 +42,7 @@ class Worker:
     """One back-end job at a time in a child process: `submit(job)`, then `result()`."""
 
     def __init__(self) -> None:
-        self._proc = subprocess.Popen([sys.executable, "-m", "tracker.worker", str(os.getpid())],
+        self._proc = subprocess.Popen([sys.executable, "-m", "octolog.tracker.worker", str(os.getpid())],
                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE, close_fds=True)
         self._writer: threading.Thread | None = None
         self._busy = False
@@ -58,7 +58,7 @@ class Worker:
         return self
 
     def result(self) -> Any:
-        from octolog.errors import TrackingError
+        from octolog.kit.errors import TrackingError
 
         assert self._writer is not None
         self._writer.join()
@@ -94,7 +94,7 @@ def _die_with(parent: int) -> None:
 
 def main() -> None:
     _die_with(int(sys.argv[1]))
-    from tracker.odometry import _run_backend
+    from octolog.tracker.odometry import _run_backend
 
     stdin, stdout = sys.stdin.buffer, sys.stdout.buffer
     while True:

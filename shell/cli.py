@@ -11,50 +11,11 @@ import json
 import os
 import signal
 import sys
-import uuid
 from pathlib import Path
-from typing import Any
 
-from octolog.errors import ConfigError, OctologError
-
-
-# --- shared flags ------------------------------------------------------------------------------
-
-
-def add_bus_arguments(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("transport (Zenoh)")
-    g.add_argument("--mode", choices=("peer", "client", "router"), default="peer", help="Zenoh mode (default peer)")
-    g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="e.g. tcp/10.0.0.2:7447")
-    g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT", help="e.g. tcp/0.0.0.0:7447")
-    g.add_argument("--namespace", default="", help="key prefix for every topic (e.g. robot1)")
-    g.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config (TLS, access control, ...)")
-    g.add_argument("--no-multicast", action="store_true", help="disable multicast scouting")
-
-
-def bus_config(args: argparse.Namespace) -> Any:
-    from octolog.bus import BusConfig
-
-    cfg = BusConfig(mode=args.mode, connect=tuple(args.connect), listen=tuple(args.listen),
-                    namespace=args.namespace, zenoh_config=args.zenoh_config,
-                    multicast_scouting=not args.no_multicast)
-    cfg.validate()
-    return cfg
-
-
-def add_viz_arguments(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("Rerun")
-    g.add_argument("--rerun", default=None, metavar="SPEC",
-                   help="off (default; a SESSION replay: save into OUT/rerun), save:DIR or connect[:URL]")
-    g.add_argument("--recording-id", default=None, help="shared by all stages of one session")
-
-
-def add_config_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", metavar="FILE", help="TOML file with [replay] [tracker] [mapper] sections")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
-
-
-def _recording_id(args: argparse.Namespace) -> str:
-    return args.recording_id or str(uuid.uuid4())
+from octolog.kit.errors import ConfigError, OctologError
+from octolog.shell import record
+from octolog.shell.args import add_bus_arguments, add_config_arguments, add_viz_arguments, bus_config, recording_id
 
 
 def _progress(done: int, total: int, elapsed: float) -> None:
@@ -73,14 +34,14 @@ def _progress(done: int, total: int, elapsed: float) -> None:
 def cmd_replay(args: argparse.Namespace) -> int:
     if args.session:
         return cmd_replay_session(args)
-    from octolog.config import load
-    from replay import node
-    from replay.config import ReplayConfig
+    from octolog.kit.config import load
+    from octolog.replay import node
+    from octolog.replay.config import ReplayConfig
 
     cfg = load(ReplayConfig, args.config, args.set, section="replay")
     if args.source:
         cfg = dataclasses.replace(cfg, source=args.source)
-    res = node.run(cfg, bus_config(args), rerun=args.rerun, recording_id=_recording_id(args),
+    res = node.run(cfg, bus_config(args), rerun=args.rerun, recording_id=recording_id(args),
                    progress=None if args.quiet else _progress)
     print(f"replay: {res.frames} frames in {res.wall_s:.1f} s "
           f"(real-time factor {res.duration_s / res.wall_s if res.wall_s else 0:.2f})")
@@ -88,7 +49,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_replay_session(args: argparse.Namespace) -> int:
-    from octolog import run
+    from octolog.shell import run
 
     stages = ("mapper",) if args.from_stage == "tracker" else tuple(args.stages.split(","))
     if args.from_stage not in (None, "tracker"):
@@ -96,13 +57,13 @@ def cmd_replay_session(args: argparse.Namespace) -> int:
     out = Path(args.out or (Path(args.session) / "replay"))
     summary = run.replay_session(Path(args.session), out=out, stages=stages, overrides=args.set,
                                  rerun=args.rerun,
-                                 recording_id=_recording_id(args), quiet=args.quiet)
+                                 recording_id=recording_id(args), quiet=args.quiet)
     print(run.format_summary(summary))
     return 0
 
 
 def cmd_view(args: argparse.Namespace) -> int:
-    from octolog import run
+    from octolog.shell import run
 
     merged = run.merge_rrd(Path(args.session))
     if args.headless or not os.environ.get("DISPLAY"):
@@ -112,13 +73,13 @@ def cmd_view(args: argparse.Namespace) -> int:
 
 
 def cmd_track(args: argparse.Namespace) -> int:
-    from octolog.config import load
-    from tracker import node
-    from tracker.config import TrackerConfig
+    from octolog.kit.config import load
+    from octolog.tracker import node
+    from octolog.tracker.config import TrackerConfig
 
     cfg = load(TrackerConfig, args.config, args.set, section="tracker")
     res = node.run(cfg, bus_config(args), trajectory=Path(args.trajectory) if args.trajectory else None,
-                   rerun=args.rerun, recording_id=_recording_id(args))
+                   rerun=args.rerun, recording_id=recording_id(args))
     print(f"tracker: {res.frames} frames, {res.tracked} tracked, {res.lost} lost, {res.skipped} skipped, "
           f"{res.rejected} rejected, {res.keyframes} keyframes, {res.loops} loops closed, "
           f"{res.relocalisations} relocalisations")
@@ -128,20 +89,20 @@ def cmd_track(args: argparse.Namespace) -> int:
 
 
 def cmd_map(args: argparse.Namespace) -> int:
-    from mapper import node
-    from mapper.config import MapperConfig
-    from octolog.config import load
+    from octolog.kit.config import load
+    from octolog.mapper import node
+    from octolog.mapper.config import MapperConfig
 
     cfg = load(MapperConfig, args.config, args.set, section="mapper")
     res = node.run(cfg, bus_config(args), out_dir=Path(args.out), rerun=args.rerun,
-                   recording_id=_recording_id(args))
+                   recording_id=recording_id(args))
     print(f"mapper: {res.keyframes} keyframes ({res.skipped} skipped), {res.stats.get('occupied_voxels', 0)} occupied "
           f"and {res.stats.get('free_voxels', 0)} free voxels, {res.cloud_points} cloud points → {args.out}")
     return 0
 
 
 def cmd_log(args: argparse.Namespace) -> int:
-    from recorder import buslog
+    from octolog.recorder import buslog
 
     metadata = json.loads(Path(args.metadata).read_text()) if args.metadata else None
     res = buslog.run(bus_config(args), Path(args.out), compression=args.compression, metadata=metadata,
@@ -151,11 +112,11 @@ def cmd_log(args: argparse.Namespace) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from octolog import run
+    from octolog.shell import run
 
     summary = run.run_session(
         source=args.source, out=Path(args.out), config=args.config, overrides=args.set, rerun=args.rerun,
-        recording_id=_recording_id(args), quiet=args.quiet,
+        recording_id=recording_id(args), quiet=args.quiet,
     )
     print(run.format_summary(summary))
     return 0
@@ -167,7 +128,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_import(args: argparse.Namespace) -> int:
-    from recorder.importers import import_source, parse_topic_map
+    from octolog.recorder.importers import import_source, parse_topic_map
 
     res = import_source(args.source, Path(args.output), overwrite=args.overwrite,
                         topic_map=parse_topic_map(args.map), compression=args.compression,
@@ -183,7 +144,7 @@ def cmd_import(args: argparse.Namespace) -> int:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from octolog import metrics
+    from octolog.kit import metrics
 
     est, gt = metrics.read_tum(args.trajectory), metrics.read_tum(args.groundtruth)
     a = metrics.ate(est, gt, max_dt_ns=int(args.max_dt * 1e9))
@@ -193,14 +154,14 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 
 def cmd_info(args: argparse.Namespace) -> int:
-    from octolog.info import describe
+    from octolog.shell.info import describe
 
     print(describe(Path(args.file)))
     return 0
 
 
 def cmd_vocab(args: argparse.Namespace) -> int:
-    from tracker import vocab
+    from octolog.tracker import vocab
 
     out = Path(args.out)
     if out.exists() and not args.overwrite:
@@ -219,7 +180,7 @@ def cmd_vocab(args: argparse.Namespace) -> int:
 
 
 def cmd_router(args: argparse.Namespace) -> int:
-    from octolog.bus import serve_router
+    from octolog.kit.bus import serve_router
 
     listen = tuple(args.listen) or ("tcp/0.0.0.0:7447",)
     serve_router(listen, zenoh_config=args.zenoh_config,
@@ -287,9 +248,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stages", default="replay,tracker,mapper", help="producers whose end messages end the log")
     p.set_defaults(func=cmd_log)
 
-    from recorder.cli import add_parsers as add_recorder_parsers
-
-    add_recorder_parsers(sub, add_bus_arguments, add_viz_arguments, add_config_arguments)
+    record.add_parsers(sub)
 
     p = sub.add_parser("import", help="a TUM folder, RealSense .bag/.db3 or ROS bag → octolog MCAP")
     p.add_argument("source", help="TUM folder, .bag (ROS 1), .db3 or rosbag2 folder (ROS 2), .mcap")

@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from octolog.errors import McapError
-from schemas import codec
+from octolog.kit.errors import McapError
+from octolog.schemas import codec
 
 COMPRESSIONS = ("none", "lz4", "zstd")
 

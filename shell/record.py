@@ -1,7 +1,6 @@
 """`octolog record` and `octolog recover`: parsers and thin command functions.
 
-`add_parsers` registers both on octolog's subcommand parser; `python -m recorder.cli record ...`
-runs them through octolog's own main (same error handling and SIGTERM) before that wiring exists.
+`add_parsers` registers both on octolog's subcommand parser (`octolog.shell.cli`).
 """
 
 from __future__ import annotations
@@ -14,14 +13,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from octolog.errors import ConfigError
+from octolog.kit.errors import ConfigError
+from octolog.shell.args import add_bus_arguments, add_config_arguments, add_viz_arguments, bus_config
 
 _PROFILE = re.compile(r"^(\d+)x(\d+)@(\d+)$")
 
 
-def add_parsers(sub: Any, add_bus_arguments: Callable[[argparse.ArgumentParser], None],
-                add_viz_arguments: Callable[[argparse.ArgumentParser], None],
-                add_config_arguments: Callable[[argparse.ArgumentParser], None]) -> None:
+def add_parsers(sub: Any) -> None:
     """Register `record` and `recover` on an argparse subparsers object."""
     p = sub.add_parser("record", help="record a RealSense camera (colour, depth, IMU) to MCAP",
                        description="Record colour, depth and IMU to MCAP (ROS 2 profile) with calibration, "
@@ -98,7 +96,7 @@ def overrides(args: argparse.Namespace) -> list[str]:
 
 
 def _status_printer() -> Callable[[Any], None]:
-    from recorder.record import format_status
+    from octolog.recorder.record import format_status
 
     tty = sys.stderr.isatty()
 
@@ -109,10 +107,9 @@ def _status_printer() -> Callable[[Any], None]:
 
 
 def cmd_record(args: argparse.Namespace) -> int:
-    from octolog.cli import bus_config
-    from octolog.config import load
-    from recorder import node
-    from recorder.config import RecorderConfig
+    from octolog.kit.config import load
+    from octolog.recorder import node
+    from octolog.recorder.config import RecorderConfig
 
     cfg = load(RecorderConfig, args.config, overrides(args), section="recorder")
     if args.duration < 0:
@@ -145,8 +142,8 @@ def _write_session_files(folder: Path, cfg: Any, res: Any) -> None:
     """config.toml and summary.json beside a recording, as in a session folder from `octolog run`."""
     import json
 
-    from octolog.config import to_dict, to_toml
-    from octolog.run import versions
+    from octolog.kit.config import to_dict, to_toml
+    from octolog.shell.run import versions
 
     (folder / "config.toml").write_text(to_toml({"recorder": to_dict(cfg)}))
     streams = {name: {"frames": st.frames, "dropped": st.dropped} for name, st in res.streams.items()}
@@ -158,30 +155,9 @@ def _write_session_files(folder: Path, cfg: Any, res: Any) -> None:
 
 
 def cmd_recover(args: argparse.Namespace) -> int:
-    from recorder.recover import recover
+    from octolog.recorder.recover import recover
 
     r = recover(Path(args.input), Path(args.output), overwrite=args.overwrite, compression=args.compression)
     state = "was complete" if r.source_complete else f"was cut short ({r.problem}); {r.bytes_lost} bytes lost"
     print(f"recover: {r.messages} messages from {r.chunks} chunks -> {r.out} (source {state})")
     return 0
-
-
-def _main(argv: list[str] | None = None) -> int:
-    """octolog's main with these commands added (until octolog.cli registers them itself)."""
-    from octolog import cli
-
-    build = cli.build_parser
-
-    def build_with_recorder() -> argparse.ArgumentParser:
-        parser = build()
-        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))  # noqa: SLF001
-        if "record" not in sub.choices:
-            add_parsers(sub, cli.add_bus_arguments, cli.add_viz_arguments, cli.add_config_arguments)
-        return parser
-
-    cli.build_parser = build_with_recorder  # type: ignore[assignment]
-    return cli.main(argv)
-
-
-if __name__ == "__main__":
-    sys.exit(_main())

@@ -21,8 +21,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from octolog import __version__
-from octolog.bus import wait_interruptibly
-from octolog.errors import ConfigError, StageError
+from octolog.kit.bus import wait_interruptibly
+from octolog.kit.errors import ConfigError, StageError
 
 STAGES = ("log", "mapper", "tracker", "replay")
 # A killed mapper is started again: it rebuilds its map from the tracker's keyframe history (the
@@ -65,10 +65,10 @@ def _split_overrides(overrides: list[str]) -> dict[str, list[str]]:
 def _resolve_configs(source: str, config: str | None, per: dict[str, list[str]]) -> dict[str, object]:
     import dataclasses
 
-    from mapper.config import MapperConfig
-    from octolog.config import load
-    from replay.config import ReplayConfig
-    from tracker.config import TrackerConfig
+    from octolog.kit.config import load
+    from octolog.mapper.config import MapperConfig
+    from octolog.replay.config import ReplayConfig
+    from octolog.tracker.config import TrackerConfig
 
     replay = load(ReplayConfig, config, per["replay"], section="replay")
     consumers = ("tracker", "mapper", "log") if replay.play == "camera" else ("mapper", "log")
@@ -146,10 +146,10 @@ class _Children:
 
 def run_session(*, source: str, out: Path, config: str | None = None, overrides: list[str] | None = None,
                 rerun: str = "save", recording_id: str, quiet: bool = False) -> SessionSummary:
-    from octolog.config import to_dict, to_toml
-    from octolog.viz import parse_spec
-    from replay.sources import open_source
-    from tracker.config import for_source
+    from octolog.kit.config import to_dict, to_toml
+    from octolog.kit.viz import parse_spec
+    from octolog.replay.sources import open_source
+    from octolog.tracker.config import for_source
 
     cfgs = _resolve_configs(source, config, _split_overrides(overrides or []))
     replay_cfg = cfgs["replay"]
@@ -182,7 +182,7 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     router_error: list[BaseException] = []
 
     def router() -> None:
-        from octolog.bus import Bus, BusConfig
+        from octolog.kit.bus import Bus, BusConfig
 
         try:
             with Bus(BusConfig(mode="router", listen=(endpoint,), multicast_scouting=False), "router"):
@@ -237,9 +237,9 @@ def versions() -> dict[str, str]:
 
 def frame_counts(log: Path) -> dict[str, int]:
     """What the session log says about frames: published, consumed by the tracker, skipped."""
-    from octolog.mcaplog import read_messages
-    from schemas import codec
-    from schemas.topics import RGBD, RGBD_COMPRESSED, TRACKING_STATUS
+    from octolog.kit.mcaplog import read_messages
+    from octolog.schemas import codec
+    from octolog.schemas.topics import RGBD, RGBD_COMPRESSED, TRACKING_STATUS
 
     skipped_code = codec.msgtype(TRACKING_STATUS.msgtype).SKIPPED
     published = consumed = skipped = 0
@@ -254,7 +254,7 @@ def frame_counts(log: Path) -> dict[str, int]:
 
 
 def _summarize(out: Path, source: str, src, wall: float, recording_id: str) -> SessionSummary:
-    from octolog import metrics
+    from octolog.kit import metrics
 
     s = SessionSummary(out=out, source=source, wall_s=wall, duration_s=src.duration_ns * 1e-9)
     s.map = json.loads((out / "map_stats.json").read_text())
@@ -300,8 +300,8 @@ def replay_session(session: Path, *, out: Path, stages: tuple[str, ...] = ("trac
     `stages` run fresh; the others are fed from the log. tracker+mapper: the frames the live tracker
     consumed, in lockstep; mapper alone: the logged keyframes and pose corrections.
     """
-    from octolog.errors import InputError
-    from octolog.mcaplog import summarize
+    from octolog.kit.errors import InputError
+    from octolog.kit.mcaplog import summarize
 
     key = tuple(s for s in ("tracker", "mapper") if s in stages)
     if key not in STAGE_CHOICES or set(stages) - {"tracker", "mapper"}:
@@ -329,7 +329,7 @@ def replay_session(session: Path, *, out: Path, stages: tuple[str, ...] = ("trac
 
 def merge_rrd(session: Path) -> Path:
     """Merge a session's per-stage .rrd files into `session.rrd` (one recording, one timeline)."""
-    from octolog.errors import InputError
+    from octolog.kit.errors import InputError
 
     parts = sorted((session / "rerun").glob("*.rrd"))
     parts = [p for p in parts if p.name != "session.rrd"]

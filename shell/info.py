@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from octolog.mcaplog import summarize
+from octolog.kit.mcaplog import summarize
 
 
 def describe(path: Path) -> str:
@@ -47,7 +47,7 @@ def describe(path: Path) -> str:
 
 def describe_map(path: Path) -> str:
     """Header and leaf counts of an OctoMap file, read by OctoMap itself; MapError if unreadable."""
-    from octolog.errors import MapError
+    from octolog.kit.errors import MapError
 
     try:
         head = path.read_bytes()[:512]

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from octolog.errors import InputError
+from octolog.kit.errors import InputError
 
 NS_PER_S = 1_000_000_000
 DEFAULT_MAX_DT_NS = 20_000_000

@@ -13,7 +13,7 @@ import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
-from octolog.errors import ConfigError
+from octolog.kit.errors import ConfigError
 
 T = TypeVar("T")
 

@@ -22,17 +22,16 @@ import queue
 import re
 import struct
 import threading
-import zlib
 import time
+import zlib
 from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
-from octolog.errors import BusError, StageError
-from schemas import codec
-from schemas.topics import Topic, stage_token
-
+from octolog.kit.errors import BusError, StageError
+from octolog.schemas import codec
+from octolog.schemas.topics import Topic, stage_token
 
 _BLOCK_CLOSE = "transport/link/tx/queue/congestion_control/block/wait_before_close"
 _ZENOH_DEFAULT_BLOCK_CLOSE_US = 5_000_000

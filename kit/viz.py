@@ -13,8 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from octolog.errors import ConfigError
-from octolog.geometry import Intrinsics, matrix_to_pose
+from octolog.kit.errors import ConfigError
+from octolog.kit.geometry import Intrinsics, matrix_to_pose
 
 APPLICATION_ID = "octolog"
 

@@ -1,0 +1,1 @@
+"""The kit: transport, logs, viewer, config, errors, geometry, metrics. Imports no stage."""

@@ -1,0 +1,42 @@
+"""Flags shared by the commands: transport, Rerun, config (as zenoh-python's and rerun's helpers)."""
+
+from __future__ import annotations
+
+import argparse
+import uuid
+
+from octolog.kit.bus import BusConfig
+
+
+def add_bus_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("transport (Zenoh)")
+    g.add_argument("--mode", choices=("peer", "client", "router"), default="peer", help="Zenoh mode (default peer)")
+    g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="e.g. tcp/10.0.0.2:7447")
+    g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT", help="e.g. tcp/0.0.0.0:7447")
+    g.add_argument("--namespace", default="", help="key prefix for every topic (e.g. robot1)")
+    g.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config (TLS, access control, ...)")
+    g.add_argument("--no-multicast", action="store_true", help="disable multicast scouting")
+
+
+def bus_config(args: argparse.Namespace) -> BusConfig:
+    cfg = BusConfig(mode=args.mode, connect=tuple(args.connect), listen=tuple(args.listen),
+                    namespace=args.namespace, zenoh_config=args.zenoh_config,
+                    multicast_scouting=not args.no_multicast)
+    cfg.validate()
+    return cfg
+
+
+def add_viz_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("Rerun")
+    g.add_argument("--rerun", default=None, metavar="SPEC",
+                   help="off (default; a SESSION replay: save into OUT/rerun), save:DIR or connect[:URL]")
+    g.add_argument("--recording-id", default=None, help="shared by all stages of one session")
+
+
+def add_config_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", metavar="FILE", help="TOML file with [replay] [tracker] [mapper] sections")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
+
+
+def recording_id(args: argparse.Namespace) -> str:
+    return args.recording_id or str(uuid.uuid4())
