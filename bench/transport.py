@@ -12,7 +12,7 @@ geometry_msgs/PoseStamped, as the tracker publishes per frame). Transports:
 - tcp: the same with shared memory off;
 - netns: TCP between two network namespaces joined by a veth pair (needs root and `ip netns`).
 
-Publisher and subscriber are separate processes using octolog.bus.Bus (reliable, congestion control
+Publisher and subscriber are separate processes using octolog.kit.bus.Bus (reliable, congestion control
 BLOCK, bounded inbox), as the stages do. Throughput: the publisher sends back to back, the subscriber
 times first to last arrival. Latency: one message at a time (the next goes after the subscriber's
 ack), one-way = arrival - send on the shared monotonic clock. With `--wire` a second table gives bytes

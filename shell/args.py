@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import uuid
 
-from octolog.kit.bus import BusConfig
+from octolog.kit.busconfig import BusConfig
 
 
 def add_bus_arguments(p: argparse.ArgumentParser) -> None:

@@ -5,12 +5,15 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import socket
+import subprocess
+import sys
 import threading
 import time
 
 import pytest
 
-from octolog.kit.bus import Bus, BusConfig
+from octolog.kit.bus import Bus, BusConfig, wire
+from octolog.kit.bus.publishing import History
 from octolog.kit.errors import BusError, StageError
 from octolog.schemas import codec, topics
 
@@ -104,7 +107,47 @@ def test_bad_zenoh_config(tmp_path):
         BusConfig(mode="satellite").validate()
 
 
+def test_the_transport_flags_import_neither_zenoh_nor_the_codec():
+    """`octolog --help`, `eval` and `info` build a BusConfig while parsing: that must stay cheap."""
+    from helpers import ROOT
+
+    code = ("import sys, octolog.shell.args; "
+            "print(sorted(m for m in ('zenoh', 'octolog.schemas.codec', 'octolog.kit.bus') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
 # --- recovery: sequence numbers, publisher history, late joiners -------------------------------
+
+
+def test_numbering_and_history_queries_round_trip_through_the_wire_format():
+    a, b, c = b"a" * 16, b"b" * 16, b"c" * 16
+    att = wire.numbered_attachment(5, b, [wire.dependency(a, 7, 3)])
+    assert wire.parse_numbered(att) == wire.Numbered(5, b, ((a, 7, 3),))
+    assert wire.parse_numbered(b"a ROS bridge's") is None and wire.parse_numbered(att + b"x") is None
+    assert wire.parse_history_reply(wire.history_attachment(2, att)) == (2, wire.parse_numbered(att))
+    selector = wire.history_selector("t/k", [(b, 4, 9), (c, 0, None)])
+    assert selector.startswith("t/k/@history/*?")
+    params = dict(p.split("=") for p in selector.split("?")[1].split(";"))
+    assert wire.requested_range(params, b) == (4, 9)
+    assert wire.requested_range(params, c) == (0, None)
+    assert wire.requested_range(params, a) == (0, None)  # not named: everything from `from`
+    assert wire.requested_range({"from": "x"}, a) is None
+
+
+def test_a_history_keeps_its_newest_samples_within_its_bounds():
+    by_count = History(3, 1 << 20)
+    for i in range(5):
+        by_count.add(i, b"x", b"")
+    oldest, items = by_count.since(3, 16)
+    assert oldest == 2 and [seq for seq, _, _ in items] == [3, 4]
+    by_bytes = History(None, 10)
+    by_bytes.add(0, bytes(8), b"")
+    by_bytes.add(1, bytes(8), b"")
+    assert by_bytes.since(0, 16)[0] == 1
+    by_bytes.add(2, bytes(100), b"")  # over the cap alone: the newest always stays
+    assert [seq for seq, _, _ in by_bytes.since(0, 16)[1]] == [2]
+
 
 NUMBERED = topics.Topic("test/numbered", "octolog_msgs/msg/StreamEnd")  # `count` carries the number
 
