@@ -20,6 +20,13 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
+from octolog.kit import metrics
+from octolog.replay.synthetic import SyntheticScene
+from octolog.tracker.config import TrackerConfig
+from octolog.tracker.odometry import RgbdOdometry
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -29,14 +36,8 @@ def _vm(key: str) -> float:
 
 
 def worker(frames: int, fps: float, cap: int) -> dict:
-    import numpy as np
-
-    from octolog.kit import metrics
-    from octolog.replay.synthetic import SyntheticScene
-    from octolog.tracker.odometry import RgbdOdometry
-
     room = SyntheticScene(n_frames=frames, fps=fps)
-    odo = RgbdOdometry(global_ba_keyframes=cap, background=False)
+    odo = RgbdOdometry(TrackerConfig(global_ba_keyframes=cap).odometry_params(), background=False)
     for f in room.frames():
         odo.track(f)
     odo._sync_backend(np.eye(4))  # the last local BA lands first, outside the timed part

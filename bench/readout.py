@@ -20,19 +20,22 @@ from pathlib import Path
 
 import numpy as np
 
+from octolog.kit import metrics
+from octolog.replay.sources import open_source
+from octolog.tracker.config import TrackerConfig
+from octolog.tracker.factory import make_odometry
+from octolog.tracker.interface import TrackingState
+
 ROOT = Path(__file__).resolve().parents[1]
 
 from pipeline import default_source  # noqa: E402  (bench/ is this script's folder)
 
 
 def run(frames: list, readout_ms: float, groundtruth: str | None) -> tuple[float, float, int, float | None]:
-    from octolog.kit import metrics
-    from octolog.tracker.config import TrackerConfig, make_odometry
-
     odom = make_odometry(TrackerConfig(rolling_shutter_ms=readout_ms))
     results = [odom.track(f) for f in frames]
     odom.finish()
-    residuals = [r.residual for r in results if r.state == "OK" and np.isfinite(r.residual)]
+    residuals = [r.residual for r in results if r.state == TrackingState.OK and np.isfinite(r.residual)]
     ate = None
     if groundtruth:
         stamps, poses = odom.trajectory()
@@ -46,7 +49,6 @@ def main() -> None:
     ap.add_argument("--source", default=None, help="frame source (default: TUM fr1/xyz first300 under $OCTOLOG_DATA)")
     ap.add_argument("--ms", default="0,5,10,15,20,25,30,35", help="readout times to try, ms")
     args = ap.parse_args()
-    from octolog.replay.sources import open_source
 
     source = args.source or default_source()
     src = open_source(source)

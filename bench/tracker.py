@@ -29,6 +29,14 @@ from pathlib import Path
 
 import numpy as np
 
+from octolog.kit import metrics
+from octolog.replay.sources import open_source
+from octolog.tracker.config import TrackerConfig, for_source
+from octolog.tracker.factory import make_odometry
+from octolog.tracker.interface import TrackingState
+from octolog.tracker.odometry import RgbdOdometry
+from octolog.tracker.orbslam3 import OrbSlam3Odometry
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -48,10 +56,6 @@ def _vm(key: str) -> float:
 
 
 def worker(backend: str, source: str, vocabulary: str, result_path: Path) -> None:
-    from octolog.kit import metrics
-    from octolog.replay.sources import open_source
-    from octolog.tracker.config import TrackerConfig, for_source, make_odometry
-
     src = open_source(source)
     frames = src.frames()
     first = next(frames)
@@ -59,7 +63,7 @@ def worker(backend: str, source: str, vocabulary: str, result_path: Path) -> Non
     odom = make_odometry(cfg)
     rss_before = _vm("VmRSS")
     t0 = time.perf_counter()
-    if hasattr(odom, "start"):
+    if isinstance(odom, OrbSlam3Odometry):
         odom.start(first)  # ORB-SLAM3: settings + vocabulary load, reported apart from frame times
     startup_s = time.perf_counter() - t0
     cpu0 = resource.getrusage(resource.RUSAGE_SELF)
@@ -76,13 +80,13 @@ def worker(backend: str, source: str, vocabulary: str, result_path: Path) -> Non
         states.append(r.state)
         frame = next(frames, None)
     final_tum = None
-    if hasattr(odom, "finish"):  # native: wait for the back end, then its corrected trajectory
-        odom.finish()
+    odom.finish()  # native: waits for the back end; ORB-SLAM3: nothing (close() below stops it)
+    if isinstance(odom, RgbdOdometry):  # the trajectory the back end corrected
         fs, fp = odom.trajectory()
         final_tum = metrics.format_tum(np.array(fs), np.array(fp))
     n_keyframes = odom.n_keyframes
     orb_keyframes = None
-    if hasattr(odom, "close"):  # ORB-SLAM3: stop its threads, read its keyframes and trajectory
+    if isinstance(odom, OrbSlam3Odometry):  # stop its threads, read its keyframes and trajectory
         odom.close()
         final_tum, orb_keyframes = odom.final_trajectory_tum, odom.orb_keyframes
     wall_s = time.perf_counter() - wall0
@@ -141,8 +145,6 @@ def ensure_vocabulary(source: str, given: str | None, cache: Path) -> tuple[str,
 
 
 def ate_cm(tum: str | None, gt) -> float:
-    from octolog.kit import metrics
-
     if not tum:
         return float("nan")
     return metrics.ate(metrics.parse_tum(tum), gt).rmse * 100.0
@@ -166,9 +168,6 @@ def main() -> None:
         return
 
     source = args.source or default_source()
-    from octolog.kit import metrics
-    from octolog.replay.sources import open_source
-
     gt_text = open_source(source).groundtruth_tum()
     if not gt_text:
         sys.exit(f"bench: {source} has no ground truth")
@@ -180,7 +179,7 @@ def main() -> None:
     load1 = os.getloadavg()
 
     def ok(r: dict) -> int:
-        return sum(s == "OK" for s in r["states"])
+        return sum(s == TrackingState.OK for s in r["states"])
 
     n = len(native["states"])
     orb_ate = [ate_cm(r["online_tum"], gt) for r in orbs]

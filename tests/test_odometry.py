@@ -17,10 +17,13 @@ import numpy as np
 import pytest
 from helpers import tum_first300
 
-from octolog.kit.errors import TrackingError
+from octolog.kit.errors import ConfigError, TrackingError
 from octolog.kit.geometry import Intrinsics, RgbdFrame, invert
+from octolog.tracker.config import DepthParams, TrackerConfig
 from octolog.tracker.features import OrbExtractor, Undistorter, bucket_select, hamming, match_by_projection
-from octolog.tracker.odometry import RgbdOdometry, TrackResult, rotation_angle
+from octolog.tracker.interface import Tracker, TrackingState, TrackResult
+from octolog.tracker.odometry import RgbdOdometry
+from octolog.tracker.pose import rotation_angle
 
 W, H = 640, 480
 INTR = Intrinsics(W, H, 525.0, 525.0, 319.5, 239.5, ())
@@ -114,8 +117,8 @@ def scene() -> tuple[list[RgbdFrame], list[np.ndarray]]:
     return frames, poses
 
 
-def _track_all(frames: list[RgbdFrame], **kw) -> list[TrackResult]:
-    odo = RgbdOdometry(**kw)
+def _track_all(frames: list[RgbdFrame]) -> list[TrackResult]:
+    odo = RgbdOdometry()
     return [odo.track(f) for f in frames]
 
 
@@ -126,16 +129,16 @@ def _track_all(frames: list[RgbdFrame], **kw) -> list[TrackResult]:
 def test_synthetic_motion_is_recovered(scene) -> None:
     frames, poses = scene
     results = _track_all(frames)
-    assert results[0].state == "INIT" and results[0].is_keyframe and results[0].keyframe_id == 0
+    assert results[0].state == TrackingState.INIT and results[0].is_keyframe and results[0].keyframe_id == 0
     np.testing.assert_array_equal(results[0].world_from_camera, np.eye(4))
-    assert [r.state for r in results[1:]] == ["OK"] * (len(frames) - 1)
+    assert [r.state for r in results[1:]] == [TrackingState.OK] * (len(frames) - 1)
     for r, T in zip(results, poses):
         # World = first camera, and the true first pose is the identity, so they compare directly.
         err = invert(T) @ r.world_from_camera
         assert r.world_from_camera.dtype == np.float64 and r.world_from_camera.shape == (4, 4)
         assert np.linalg.norm(err[:3, 3]) < 0.005, f"frame {r.seq}: translation error {err[:3, 3]}"
         assert np.degrees(rotation_angle(err[:3, :3])) < 0.3, f"frame {r.seq}: rotation error"
-        assert r.n_inliers >= 100 and r.n_matches >= r.n_inliers or r.state == "INIT"
+        assert r.n_inliers >= 100 and r.n_matches >= r.n_inliers or r.state == TrackingState.INIT
     # 13 cm of motion with the default thresholds must have produced new keyframes, numbered 1, 2...
     kf_ids = [r.keyframe_id for r in results if r.is_keyframe]
     assert kf_ids == list(range(len(kf_ids))) and len(kf_ids) >= 2
@@ -146,7 +149,7 @@ def test_skipped_frames_are_bridged(scene) -> None:
     """Every other frame: twice the motion per step, the constant-velocity prior must keep up."""
     frames, poses = scene
     results = _track_all(frames[::2])
-    assert all(r.state in ("INIT", "OK") for r in results)
+    assert all(r.state in (TrackingState.INIT, TrackingState.OK) for r in results)
     err = invert(poses[-2]) @ results[-1].world_from_camera
     assert np.linalg.norm(err[:3, 3]) < 0.005
 
@@ -200,20 +203,20 @@ def test_black_frame_is_lost_and_tracking_resumes(scene) -> None:
     out = [odo.track(f) for f in frames[:4]]
     black = RgbdFrame(4, frames[4].stamp_ns, np.zeros_like(frames[4].rgb), frames[4].depth, DEPTH_SCALE, INTR)
     lost = odo.track(black)
-    assert lost.state == "LOST" and not lost.is_keyframe and lost.keyframe_id == -1
+    assert lost.state == TrackingState.LOST and not lost.is_keyframe and lost.keyframe_id == -1
     # The LOST pose is the constant-velocity prediction: close to the truth on this smooth path.
     err = invert(poses[4]) @ lost.world_from_camera
     assert np.linalg.norm(err[:3, 3]) < 0.01
     # Without depth the frame still tracks by 2D-3D matches to the map, but cannot be a keyframe.
     no_depth = RgbdFrame(5, frames[5].stamp_ns, frames[5].rgb, np.zeros_like(frames[5].depth), DEPTH_SCALE, INTR)
     r5 = odo.track(no_depth)
-    assert r5.state == "OK" and not r5.is_keyframe
+    assert r5.state == TrackingState.OK and not r5.is_keyframe
     assert np.linalg.norm((invert(poses[5]) @ r5.world_from_camera)[:3, 3]) < 0.005
     back = [odo.track(f) for f in frames[6:]]
-    assert [r.state for r in back] == ["OK"] * len(back)
+    assert [r.state for r in back] == [TrackingState.OK] * len(back)
     err = invert(poses[-1]) @ back[-1].world_from_camera
     assert np.linalg.norm(err[:3, 3]) < 0.005
-    assert out[0].state == "INIT"
+    assert out[0].state == TrackingState.INIT
 
 
 def test_recovers_after_a_long_gap(scene) -> None:
@@ -225,21 +228,22 @@ def test_recovers_after_a_long_gap(scene) -> None:
     for k in range(3, 9):
         blank = RgbdFrame(k, frames[k].stamp_ns, np.zeros_like(frames[k].rgb), np.zeros_like(frames[k].depth),
                           DEPTH_SCALE, INTR)
-        assert odo.track(blank).state == "LOST"
+        assert odo.track(blank).state == TrackingState.LOST
     r = odo.track(frames[9])
-    assert r.state == "OK"
+    assert r.state == TrackingState.OK
     assert np.linalg.norm((invert(poses[9]) @ r.world_from_camera)[:3, 3]) < 0.005
 
 
 def test_frames_before_initialisation_are_lost() -> None:
     odo = RgbdOdometry()
+    assert isinstance(odo, Tracker)
     blank = RgbdFrame(0, 0, np.zeros((H, W, 3), np.uint8), np.zeros((H, W), np.uint16), DEPTH_SCALE, INTR)
     r = odo.track(blank)
-    assert r.state == "LOST" and r.keyframe_id == -1
+    assert r.state == TrackingState.LOST and r.keyframe_id == -1
     np.testing.assert_array_equal(r.world_from_camera, np.eye(4))
 
 
-def test_configuration_mistakes_raise_tracking_error() -> None:
+def test_configuration_mistakes_raise() -> None:
     odo = RgbdOdometry()
     small = RgbdFrame(0, 0, np.zeros((240, 320, 3), np.uint8), np.zeros((240, 320), np.uint16), DEPTH_SCALE, INTR)
     with pytest.raises(TrackingError, match="intrinsics"):
@@ -247,10 +251,11 @@ def test_configuration_mistakes_raise_tracking_error() -> None:
     bad_depth = RgbdFrame(0, 0, np.zeros((H, W, 3), np.uint8), np.zeros((H, W), np.float32), DEPTH_SCALE, INTR)
     with pytest.raises(TrackingError, match="depth"):
         odo.track(bad_depth)
-    with pytest.raises(TrackingError):
-        RgbdOdometry(n_features=10)
-    with pytest.raises(TrackingError):
-        RgbdOdometry(min_depth_m=3.0, max_depth_m=1.0)
+    # parameters are checked once, where they are built from the config
+    with pytest.raises(ConfigError, match="tracker.n_features 10"):
+        RgbdOdometry(TrackerConfig(n_features=10).odometry_params())
+    with pytest.raises(ConfigError, match="tracker.depth.max_m 1.0"):
+        RgbdOdometry(TrackerConfig(depth=DepthParams(min_m=3.0, max_m=1.0)).odometry_params())
 
 
 # ----------------------------------------------------------------------------------------------
@@ -363,10 +368,11 @@ def test_tum_fr1_xyz_first300_accuracy() -> None:
     assert src.readout_s > 0.0  # freiburg1's Kinect has a rolling shutter
 
     def online_ate(readout_s: float) -> float:
-        odo = RgbdOdometry(readout_s=readout_s)
+        # as `octolog run` sets it from the source (config.for_source)
+        odo = RgbdOdometry(TrackerConfig(rolling_shutter_ms=1e3 * readout_s).odometry_params())
         results = [odo.track(f) for f in seq.frames()]
-        assert results[0].state == "INIT"
-        assert [r.state for r in results[1:]] == ["OK"] * (len(results) - 1)
+        assert results[0].state == TrackingState.INIT
+        assert [r.state for r in results[1:]] == [TrackingState.OK] * (len(results) - 1)
         return _ate_rmse(seq.groundtruth, [r.stamp_ns for r in results], [r.world_from_camera for r in results])
 
     # Online poses (no final global BA). Measured 0.74 cm with the rolling-shutter model and

@@ -6,10 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from octolog.kit.errors import ConfigError, TrackingError
+from octolog.kit.errors import ConfigError
+from octolog.replay.sources import open_source
 from octolog.tracker.config import TrackerConfig, for_source
 from octolog.tracker.features import FrameFeatures
-from octolog.tracker.odometry import RgbdOdometry, optimize_pose, so3_exp, unroll_rolling_shutter
+from octolog.tracker.pose import optimize_pose, so3_exp, unroll_rolling_shutter
 
 H, W = 480, 640
 K = np.array([[525.0, 0.0, 319.5], [0.0, 525.0, 239.5], [0.0, 0.0, 1.0]])
@@ -113,8 +114,6 @@ def test_readout_comes_from_the_source_unless_configured(tmp_path) -> None:
     assert for_source(TrackerConfig(rolling_shutter_ms=0.0), Kinect()).rolling_shutter_ms == 0.0
     assert for_source(TrackerConfig(rolling_shutter_ms=12.5), Kinect()).rolling_shutter_ms == 12.5
 
-    from octolog.replay.sources import open_source
-
     # the TUM folder's name says which Kinect took it; only freiburg1's readout is measured
     for name, want in (("rgbd_dataset_freiburg1_desk", 0.02), ("rgbd_dataset_freiburg3_office", 0.0)):
         folder = tmp_path / name
@@ -129,5 +128,7 @@ def test_bad_readout_is_a_config_error() -> None:
         TrackerConfig(rolling_shutter_ms=-1.0).validate()
     with pytest.raises(ConfigError, match="rolling_shutter_ms"):
         TrackerConfig(rolling_shutter_ms=250.0).validate()
-    with pytest.raises(TrackingError, match="readout_s"):
-        RgbdOdometry(readout_s=0.5)
+    with pytest.raises(ConfigError, match="rolling_shutter_ms"):  # checked where the core's parameters are built
+        TrackerConfig(rolling_shutter_ms=500.0).odometry_params()
+    assert TrackerConfig(rolling_shutter_ms=20.0).odometry_params().readout_s == pytest.approx(0.02)
+    assert TrackerConfig().odometry_params().readout_s == 0.0  # unset: a global shutter

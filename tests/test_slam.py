@@ -16,12 +16,22 @@ import pytest
 from octolog.kit import metrics
 from octolog.kit.geometry import invert
 from octolog.replay.synthetic import SyntheticScene
-from octolog.tracker.odometry import RgbdOdometry, optimize_pose, so3_exp
+from octolog.tracker.config import TrackerConfig
+from octolog.tracker.interface import TrackingState
+from octolog.tracker.odometry import RgbdOdometry
 from octolog.tracker.optimize import BundleProblem, bundle_adjust, optimize_pose_graph
-from octolog.tracker.places import rigid_ransac, verify, vote
+from octolog.tracker.places import BowIndex, rigid_ransac, verify, vote
+from octolog.tracker.pose import optimize_pose, so3_exp
+from octolog.tracker.vocab import train
+from octolog.tracker.worker import Worker
 
 K = (500.0, 500.0, 320.0, 240.0)
 KM = np.array([[K[0], 0, K[2]], [0, K[1], K[3]], [0, 0, 1.0]])
+
+
+def _odometry(*, vocabulary=None, background: bool = False, **config) -> RgbdOdometry:
+    """RgbdOdometry with `TrackerConfig(**config)`'s parameters, as `octolog track` builds it."""
+    return RgbdOdometry(TrackerConfig(**config).odometry_params(), vocabulary=vocabulary, background=background)
 
 
 def _pose(rotvec, t) -> np.ndarray:
@@ -157,14 +167,10 @@ def test_place_recognition_finds_the_revisited_place_and_only_it(room, loop_fram
 @pytest.fixture(scope="module")
 def vocabulary(loop_frames):
     """A small vocabulary tree (8^3 words) trained on frames of the first half loop."""
-    from octolog.tracker.vocab import train
-
     return train([_features(loop_frames[i])[0].desc for i in range(0, 100, 10)], k=8, levels=3, seed=0)
 
 
 def test_bow_index_ranks_the_revisited_place_first(loop_frames, vocabulary) -> None:
-    from octolog.tracker.places import BowIndex
-
     index = BowIndex(vocabulary)
     for i in range(0, 90, 10):
         index.add(i // 10, _features(loop_frames[i])[0].desc)
@@ -178,14 +184,14 @@ def test_bow_index_ranks_the_revisited_place_first(loop_frames, vocabulary) -> N
 
 @pytest.mark.parametrize("with_bow", [False, True], ids=["all-keyframes", "bag-of-words"])
 def test_relocalisation_after_a_jump_to_a_known_place(room, loop_frames, vocabulary, with_bow) -> None:
-    odo = RgbdOdometry(loop_closing=False, vocabulary=vocabulary if with_bow else None)
+    odo = _odometry(loop_closing=False, vocabulary=vocabulary if with_bow else None)
     for f in loop_frames[:100]:
         odo.track(f)
     # half a loop later the camera is suddenly back where frame 8 was (kidnapped): the prediction
     # and the local map around the last pose are of no use, only a search of all keyframes is
     back = dataclasses.replace(loop_frames[8], seq=100, stamp_ns=loop_frames[100].stamp_ns)
     r = odo.track(back)
-    assert r.state == "OK" and r.relocalised
+    assert r.state == TrackingState.OK and r.relocalised
     # where the map itself puts frame 8 now (its world is the first camera frame), and the truth
     mapped = odo.trajectory()[1][8]
     truth = invert(room.pose(0)) @ room.pose(8)
@@ -197,7 +203,7 @@ def test_relocalisation_after_a_jump_to_a_known_place(room, loop_frames, vocabul
 
 
 def _run(frames, **kw) -> tuple[RgbdOdometry, list]:
-    odo = RgbdOdometry(**kw)
+    odo = _odometry(**kw)
     results = [odo.track(f) for f in frames]
     odo.finish()
     return odo, results
@@ -232,7 +238,7 @@ def test_loop_closing_halves_the_error_of_a_loop(room, loop_frames) -> None:
     # visual odometry alone (no local BA) accumulates drift over the loop; closing it must halve the ATE
     odo, results = _run(loop_frames, local_ba=False, background=True)
     assert odo.loops and any(old <= 2 for _, old in odo.loops), odo.loops  # the start is found again
-    assert all(r.state in ("INIT", "OK") for r in results)
+    assert all(r.state in (TrackingState.INIT, TrackingState.OK) for r in results)
     closed = [r for r in results if r.loop is not None]
     assert closed and all(len(r.corrected) == r.loop[0] + 1 for r in closed)
     no_loops, _ = _run(loop_frames, local_ba=False, loop_closing=False, background=True)
@@ -259,8 +265,8 @@ def test_recovers_after_30_black_frames(room, loop_frames, with_loops) -> None:
         stamps.append(f.stamp_ns + 30 * dt)
     odo, results = _run(frames, background=True)
     states = [r.state for r in results]
-    assert states[half:half + 30] == ["LOST"] * 30
-    assert states[half + 30:] == ["OK"] * (len(loop_frames) - half)
+    assert states[half:half + 30] == [TrackingState.LOST] * 30
+    assert states[half + 30:] == [TrackingState.OK] * (len(loop_frames) - half)
     gt = np.concatenate([room.poses()[:half], room.poses()[half:]])
     a_dark = _ate(room, odo, stamps, gt)
     a_plain = _ate(room, with_loops[0])
@@ -278,7 +284,7 @@ def test_final_bundle_adjustment_is_bounded_to_the_newest_keyframes(loop_frames)
     `global_ba_keyframes` on a longer one (older keyframes stay where they are), so it cannot grow
     with the session without bound."""
     def moved(**kw) -> tuple[set[int], list[int]]:
-        odo = RgbdOdometry(loop_closing=False, **kw)
+        odo = _odometry(loop_closing=False, **kw)
         for f in loop_frames[:80]:
             odo.track(f)
         return set(odo.finish()), sorted(odo.keyframe_poses())
@@ -293,8 +299,6 @@ def test_final_bundle_adjustment_is_bounded_to_the_newest_keyframes(loop_frames)
 
 def test_back_end_worker_process_returns_results_and_errors() -> None:
     import psutil
-
-    from octolog.tracker.worker import Worker
 
     w = Worker()
     child = psutil.Process(w._proc.pid)

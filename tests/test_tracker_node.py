@@ -10,9 +10,13 @@ import sys
 import numpy as np
 from helpers import ROOT
 
+from octolog.kit.bus import Bus, BusConfig
 from octolog.kit.geometry import Intrinsics
 from octolog.replay.synthetic import SyntheticScene
-from octolog.tracker.node import STATE_CODES
+from octolog.schemas import codec
+from octolog.schemas.topics import RGBD, RGBD_END, TRACKING_STATUS
+from octolog.tracker.interface import TrackingState
+from octolog.tracker.node import status_code
 
 
 def _port() -> int:
@@ -22,10 +26,6 @@ def _port() -> int:
 
 
 def test_bad_frames_are_lost_and_tracking_goes_on(tmp_path):
-    from octolog.kit.bus import Bus, BusConfig
-    from octolog.schemas import codec
-    from octolog.schemas.topics import RGBD, RGBD_END, TRACKING_STATUS
-
     frames = list(SyntheticScene(n_frames=16).frames())
     bad = {
         5: dataclasses.replace(frames[5], rgb=np.full_like(frames[5].rgb, 255)),  # saturated
@@ -63,7 +63,7 @@ def test_bad_frames_are_lost_and_tracking_goes_on(tmp_path):
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == 0, err
-    lost, ok = STATE_CODES["LOST"], STATE_CODES["OK"]
+    lost, ok = status_code(TrackingState.LOST), status_code(TrackingState.OK)
     assert [states[k] for k in (5, 7, 8)] == [lost] * 3, states
     # a frame without depth still tracks from its colour against the map (it just adds no points)
     assert states[6] in (lost, ok)
@@ -71,3 +71,8 @@ def test_bad_frames_are_lost_and_tracking_goes_on(tmp_path):
     assert "1 rejected" in out and "rejected frame 8" in out and "1280x960" not in err, out
     assert "Traceback" not in err
     assert len(traj.read_text().splitlines()) >= 1 + 16 - 4  # header + every tracked frame
+
+
+def test_state_codes_on_the_wire_are_the_messages_constants():
+    """The enum's values name TrackingStatus's constants; their codes never change (logs keep them)."""
+    assert [(str(s), status_code(s)) for s in TrackingState] == [("INIT", 0), ("OK", 1), ("LOST", 2), ("SKIPPED", 3)]

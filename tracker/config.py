@@ -1,13 +1,135 @@
-"""Tracker settings."""
+"""Tracker settings: `TrackerConfig` (the `[tracker]` table and `--set tracker.…`), validated once, and
+`OdometryParams`, the native core's whole parameter object built from it.
+
+The switches and sizes people tune (`n_features`, `local_ba`, `ba_window`, ...) are top-level keys;
+every other tunable of the native core sits in a section named after the stage that uses it
+(`tracker.features.grid_cols`, `tracker.loops.min_votes`, ...). Defaults live here only: they are
+the values measured on TUM fr1/xyz at 640x480, and changing one changes the outputs.
+"""
 
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from octolog.kit.errors import ConfigError
+from octolog.schemas.codec import parse_wire_compression
 
 BACKENDS = ("native", "orbslam3")
+
+
+@dataclass(frozen=True)
+class FeatureParams:
+    """ORB extraction (tracker.features.OrbExtractor); `n_features` is a top-level key."""
+
+    grid_cols: int = 8  # keypoints are spread over a grid of cells ...
+    grid_rows: int = 6  # ... this many rows of them
+    fast_threshold: int = 20  # FAST corner threshold ...
+    min_fast_threshold: int = 7  # ... lowered to this in cells where the first finds too few
+    n_levels: int = 8  # image pyramid levels
+    scale_factor: float = 1.2  # scale between pyramid levels (also a keypoint's pixel sigma per level)
+
+
+@dataclass(frozen=True)
+class DepthParams:
+    """Which depth readings keypoints take (tracker.features.lookup_depth)."""
+
+    min_m: float = 0.2  # readings nearer than this are ignored
+    max_m: float = 6.0  # readings farther than this are ignored
+    max_new_point_m: float = 4.0  # a keyframe makes map points only from readings up to this range
+    # a reading whose 3x3 neighbourhood spreads more than this fraction of it sits on an edge: ignored
+    edge_spread: float = 0.04
+
+
+@dataclass(frozen=True)
+class TrackingParams:
+    """Matching the local map and fitting the pose, per frame."""
+
+    search_radius_px: float = 15.0  # match window around the motion model's prediction (x3 if weak)
+    refine_radius_px: float = 4.0  # match window around the first pose, for the second pass
+    max_hamming: int = 80  # descriptor distance limit of a projected match
+    match_ratio: float = 0.9  # best/second-best distance ratio of a projected match
+    # a pose with this share of its matches as inliers (and 3 x min_inliers) ends the search early
+    confident_ratio: float = 0.5
+    ransac_reproj_px: float = 4.0  # PnP RANSAC inlier threshold
+    ransac_iterations: int = 100  # PnP RANSAC iterations
+    # sigma of an inverse-depth residual (1/m) in the pose fit: weighs depth against pixels
+    inv_depth_sigma: float = 0.03
+    min_inliers: int = 20  # fewer inliers: the frame is LOST
+    # keypoints with depth a frame needs to start the map, or to become a keyframe
+    min_init_points: int = 100
+
+
+@dataclass(frozen=True)
+class KeyframeParams:
+    """When a tracked frame becomes a keyframe (any one of these)."""
+
+    translation_m: float = 0.06  # moved this far from the last keyframe
+    rotation_deg: float = 6.0  # turned this far from the last keyframe
+    # shares less than this fraction of the points the last keyframe shared with its next frame
+    min_overlap: float = 0.3
+
+
+@dataclass(frozen=True)
+class LocalMapParams:
+    """The map points a frame is matched against, and which points are kept."""
+
+    n_keyframes: int = 8  # keyframes nearest to the pose (by position and viewing direction) ...
+    n_recent_keyframes: int = 2  # ... always including the newest this many
+    cull_min_visible: int = 12  # a point in view this often ...
+    cull_min_found_ratio: float = 0.2  # ... but matched less than this share of those times is retired
+    fuse_depth: bool = True  # a keyframe averages its depth readings into the points it matched
+
+
+@dataclass(frozen=True)
+class BundleAdjustmentParams:
+    """Local BA at every keyframe (window size: `ba_window`) and the final BA (`global_ba_keyframes`)."""
+
+    fixed_keyframes: int = 6  # earlier keyframes that made most window points, held fixed
+    iterations: int = 3  # Levenberg-Marquardt iterations per local BA run
+    max_points: int = 800  # local BA keeps the best-observed this many points
+    inv_depth_sigma: float = 0.01  # sigma of a depth reading's inverse depth (1/m) in BA
+    max_point_move_m: float = 0.05  # a point local BA moves farther was badly observed: retired
+    global_iterations: int = 10  # iterations of the final BA at the end of the stream
+
+
+@dataclass(frozen=True)
+class LoopParams:
+    """Loop closing (`loop_closing`): candidates, verification, and which corrections are applied."""
+
+    min_gap: int = 10  # keyframes between a loop's ends, and between two closed loops
+    min_votes: int = 40  # descriptor votes a candidate keyframe needs to be verified
+    min_inliers: int = 40  # 3D-3D inliers a verified loop needs
+    min_correction_m: float = 0.02  # smaller corrections (and ...
+    min_correction_deg: float = 1.0  # ... turns): the map already agrees, nothing is done
+    max_correction_m: float = 2.0  # larger corrections (or ...
+    max_correction_deg: float = 45.0  # ... turns) are more than drift can explain: rejected
+    # two consecutive keyframes must ask for the same world correction, within these, to close a loop
+    consistency_m: float = 0.03
+    consistency_deg: float = 1.0
+
+
+@dataclass(frozen=True)
+class OdometryParams:
+    """Everything `RgbdOdometry` needs, grouped by the part of the core that uses it, and nothing of
+    the process around it. Built by `TrackerConfig.odometry_params()`, where it is validated; the
+    defaults live in `TrackerConfig` and its sections (shared with this), so there is one source of them."""
+
+    n_features: int
+    features: FeatureParams
+    depth: DepthParams
+    tracking: TrackingParams
+    keyframes: KeyframeParams
+    local_map: LocalMapParams
+    local_ba: bool
+    ba_window: int
+    bundle_adjustment: BundleAdjustmentParams
+    global_ba_keyframes: int
+    loop_closing: bool
+    loops: LoopParams
+    relocalise: bool
+    bow_candidates: int
+    readout_s: float  # rolling-shutter readout, first row to last (0: global shutter)
 
 
 @dataclass(frozen=True)
@@ -43,30 +165,97 @@ class TrackerConfig:
     # $OCTOLOG_ORB_VOCABULARY); native: optional, a bag-of-words index over it picks loop and
     # relocalisation candidates (else every keyframe is voted on)
     vocabulary: str = ""
+    # native, with a vocabulary: the best-scoring this many keyframes are the loop and relocalisation
+    # candidates
+    bow_candidates: int = 10
     # native: the colour camera's rolling-shutter readout time, first row to last (ms); 0 = global
     # shutter (D455 colour, the synthetic scene). Unset (the default): `octolog run` and the
     # benchmarks take it from the source (TUM freiburg1: 20 ms, see docs/architecture.md), else 0.
     rolling_shutter_ms: float | None = None
+    # native core, by stage (docs/cli.md lists every key)
+    features: FeatureParams = field(default_factory=FeatureParams)
+    depth: DepthParams = field(default_factory=DepthParams)
+    tracking: TrackingParams = field(default_factory=TrackingParams)
+    keyframes: KeyframeParams = field(default_factory=KeyframeParams)
+    local_map: LocalMapParams = field(default_factory=LocalMapParams)
+    bundle_adjustment: BundleAdjustmentParams = field(default_factory=BundleAdjustmentParams)
+    loops: LoopParams = field(default_factory=LoopParams)
 
     def validate(self) -> None:
-        if self.backend not in BACKENDS:
-            raise ConfigError(f"tracker.backend {self.backend!r}: want one of {', '.join(BACKENDS)}")
-        if self.throttle_ms < 0:
-            raise ConfigError(f"tracker.throttle_ms {self.throttle_ms}: want >= 0")
-        if self.ba_window < 1:
-            raise ConfigError(f"tracker.ba_window {self.ba_window}: want >= 1")
-        if self.global_ba_keyframes < 0:
-            raise ConfigError(f"tracker.global_ba_keyframes {self.global_ba_keyframes}: want >= 0 (0: none)")
-        if self.rolling_shutter_ms is not None and not 0.0 <= self.rolling_shutter_ms <= 100.0:
-            raise ConfigError(f"tracker.rolling_shutter_ms {self.rolling_shutter_ms}: want 0 to 100 (0 = global shutter)")
-        if self.n_features < 100:
-            raise ConfigError(f"tracker.n_features {self.n_features}: want >= 100")
-        from octolog.schemas.codec import parse_wire_compression
-
+        """The one check of every tracker setting; ConfigError names the key."""
+        _want(self.backend in BACKENDS, "backend", self.backend, f"want one of {', '.join(BACKENDS)}")
+        _want(self.throttle_ms >= 0, "throttle_ms", self.throttle_ms, "want >= 0")
+        _want(self.wait_timeout_s > 0, "wait_timeout_s", self.wait_timeout_s, "want > 0")
+        _want(self.n_features >= 100, "n_features", self.n_features, "want >= 100")
+        _want(self.ba_window >= 1, "ba_window", self.ba_window, "want >= 1")
+        _want(self.global_ba_keyframes >= 0, "global_ba_keyframes", self.global_ba_keyframes, "want >= 0 (0: none)")
+        _want(self.bow_candidates >= 1, "bow_candidates", self.bow_candidates, "want >= 1")
+        if self.rolling_shutter_ms is not None:
+            _want(0.0 <= self.rolling_shutter_ms <= 100.0, "rolling_shutter_ms", self.rolling_shutter_ms,
+                  "want 0 to 100 (0 = global shutter)")
         try:
             parse_wire_compression(self.wire_compression)
         except ConfigError as exc:
             raise ConfigError(f"tracker.wire_compression: {exc}") from None
+        f, d, t, k, m = self.features, self.depth, self.tracking, self.keyframes, self.local_map
+        _want(f.grid_cols >= 1, "features.grid_cols", f.grid_cols, "want >= 1")
+        _want(f.grid_rows >= 1, "features.grid_rows", f.grid_rows, "want >= 1")
+        _want(0 < f.min_fast_threshold <= f.fast_threshold, "features.min_fast_threshold", f.min_fast_threshold,
+              f"want 1 to features.fast_threshold ({f.fast_threshold})")
+        _want(f.n_levels >= 1, "features.n_levels", f.n_levels, "want >= 1")
+        _want(f.scale_factor > 1.0, "features.scale_factor", f.scale_factor, "want > 1")
+        _want(d.min_m > 0.0, "depth.min_m", d.min_m, "want > 0")
+        _want(d.max_m > d.min_m, "depth.max_m", d.max_m, f"want > depth.min_m ({d.min_m}): the range is empty")
+        _want(d.max_new_point_m > 0.0, "depth.max_new_point_m", d.max_new_point_m, "want > 0")
+        _want(d.edge_spread > 0.0, "depth.edge_spread", d.edge_spread, "want > 0")
+        for key in ("search_radius_px", "refine_radius_px", "ransac_reproj_px", "inv_depth_sigma"):
+            _want(getattr(t, key) > 0.0, f"tracking.{key}", getattr(t, key), "want > 0")
+        _want(0 <= t.max_hamming <= 256, "tracking.max_hamming", t.max_hamming, "want 0 to 256 (bits)")
+        _want(0.0 < t.match_ratio <= 1.0, "tracking.match_ratio", t.match_ratio, "want in (0, 1]")
+        _want(0.0 <= t.confident_ratio <= 1.0, "tracking.confident_ratio", t.confident_ratio, "want 0 to 1")
+        _want(t.ransac_iterations >= 1, "tracking.ransac_iterations", t.ransac_iterations, "want >= 1")
+        _want(t.min_inliers >= 6, "tracking.min_inliers", t.min_inliers, "a pose needs at least 6 inliers")
+        _want(t.min_init_points >= 1, "tracking.min_init_points", t.min_init_points, "want >= 1")
+        _want(k.translation_m > 0.0, "keyframes.translation_m", k.translation_m, "want > 0")
+        _want(k.rotation_deg > 0.0, "keyframes.rotation_deg", k.rotation_deg, "want > 0")
+        _want(0.0 <= k.min_overlap <= 1.0, "keyframes.min_overlap", k.min_overlap, "want 0 to 1")
+        _want(m.n_keyframes >= 1, "local_map.n_keyframes", m.n_keyframes, "want >= 1")
+        _want(m.n_recent_keyframes >= 1, "local_map.n_recent_keyframes", m.n_recent_keyframes, "want >= 1")
+        _want(m.cull_min_visible >= 1, "local_map.cull_min_visible", m.cull_min_visible, "want >= 1")
+        _want(0.0 <= m.cull_min_found_ratio <= 1.0, "local_map.cull_min_found_ratio", m.cull_min_found_ratio,
+              "want 0 to 1")
+        b, lp = self.bundle_adjustment, self.loops
+        _want(b.fixed_keyframes >= 0, "bundle_adjustment.fixed_keyframes", b.fixed_keyframes, "want >= 0")
+        _want(b.iterations >= 1, "bundle_adjustment.iterations", b.iterations, "want >= 1")
+        _want(b.max_points >= 1, "bundle_adjustment.max_points", b.max_points, "want >= 1")
+        _want(b.inv_depth_sigma > 0.0, "bundle_adjustment.inv_depth_sigma", b.inv_depth_sigma, "want > 0")
+        _want(b.max_point_move_m > 0.0, "bundle_adjustment.max_point_move_m", b.max_point_move_m, "want > 0")
+        _want(b.global_iterations >= 1, "bundle_adjustment.global_iterations", b.global_iterations, "want >= 1")
+        _want(lp.min_gap >= 1, "loops.min_gap", lp.min_gap, "want >= 1")
+        _want(lp.min_votes >= 0, "loops.min_votes", lp.min_votes, "want >= 0")
+        _want(lp.min_inliers >= 6, "loops.min_inliers", lp.min_inliers, "a loop's pose needs at least 6 inliers")
+        for key in ("min_correction_m", "min_correction_deg", "consistency_m", "consistency_deg"):
+            _want(getattr(lp, key) >= 0.0, f"loops.{key}", getattr(lp, key), "want >= 0")
+        _want(lp.max_correction_m > lp.min_correction_m, "loops.max_correction_m", lp.max_correction_m,
+              f"want > loops.min_correction_m ({lp.min_correction_m})")
+        _want(lp.max_correction_deg > lp.min_correction_deg, "loops.max_correction_deg", lp.max_correction_deg,
+              f"want > loops.min_correction_deg ({lp.min_correction_deg})")
+
+    def odometry_params(self) -> OdometryParams:
+        """The native core's parameters (validated here); an unset rolling shutter is a global one."""
+        self.validate()
+        return OdometryParams(
+            n_features=self.n_features, features=self.features, depth=self.depth, tracking=self.tracking,
+            keyframes=self.keyframes, local_map=self.local_map, local_ba=self.local_ba, ba_window=self.ba_window,
+            bundle_adjustment=self.bundle_adjustment, global_ba_keyframes=self.global_ba_keyframes,
+            loop_closing=self.loop_closing, loops=self.loops, relocalise=self.relocalise,
+            bow_candidates=self.bow_candidates, readout_s=(self.rolling_shutter_ms or 0.0) / 1e3,
+        )
+
+
+def _want(ok: bool, key: str, value: object, what: str) -> None:
+    if not ok:
+        raise ConfigError(f"tracker.{key} {value!r}: {what}")
 
 
 def for_source(cfg: TrackerConfig, source) -> TrackerConfig:
@@ -74,21 +263,3 @@ def for_source(cfg: TrackerConfig, source) -> TrackerConfig:
     if cfg.rolling_shutter_ms is not None:
         return cfg
     return dataclasses.replace(cfg, rolling_shutter_ms=1e3 * float(source.readout_s))
-
-
-def make_odometry(cfg: TrackerConfig):  # -> RgbdOdometry | OrbSlam3Odometry
-    if cfg.backend == "orbslam3":
-        from octolog.tracker.orbslam3 import OrbSlam3Odometry
-
-        return OrbSlam3Odometry(cfg.vocabulary, n_features=cfg.n_features)
-    from octolog.tracker.odometry import RgbdOdometry
-
-    vocabulary = None
-    if cfg.vocabulary:  # native: loop and relocalisation candidates from a bag-of-words index
-        from octolog.tracker.vocab import load
-
-        vocabulary = load(cfg.vocabulary)
-    return RgbdOdometry(n_features=cfg.n_features, local_ba=cfg.local_ba, ba_window=cfg.ba_window,
-                        global_ba_keyframes=cfg.global_ba_keyframes,
-                        loop_closing=cfg.loop_closing, relocalise=cfg.relocalise, background=cfg.background,
-                        vocabulary=vocabulary, readout_s=(cfg.rolling_shutter_ms or 0.0) / 1e3)

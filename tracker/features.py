@@ -1,17 +1,20 @@
 """ORB features for the RGB-D tracker: extraction spread over the image, depth lookup and matching.
 
-Pure numpy/OpenCV, no state between frames: `RgbdOdometry` owns the map and calls these helpers.
+Pure numpy/OpenCV, no state between frames: `RgbdOdometry` (tracker.odometry) owns the map and calls
+these helpers.
 Every step is deterministic (stable sorts with explicit tie-breaks, no hashing, no randomness).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
-from octolog.kit.geometry import Intrinsics
+from octolog.kit.errors import TrackingError
+from octolog.kit.geometry import Intrinsics, RgbdFrame
 
 DESCRIPTOR_BYTES = 32
 
@@ -156,6 +159,26 @@ class Undistorter:
             criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-6),
         )
         return out.reshape(-1, 2).astype(np.float64)
+
+
+def grey_image(frame: RgbdFrame) -> np.ndarray:
+    """Grey image of a frame; TrackingError when its images do not match its intrinsics or each other."""
+    intr = frame.intrinsics
+    rgb, depth = frame.rgb, frame.depth
+    if rgb.ndim not in (2, 3) or (rgb.ndim == 3 and rgb.shape[2] != 3) or rgb.dtype != np.uint8:
+        raise TrackingError(f"frame {frame.seq}: colour must be (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
+    if rgb.shape[:2] != (intr.height, intr.width):
+        raise TrackingError(
+            f"frame {frame.seq}: image is {rgb.shape[1]}x{rgb.shape[0]} but intrinsics say "
+            f"{intr.width}x{intr.height}"
+        )
+    if depth.ndim != 2 or depth.shape != rgb.shape[:2]:
+        raise TrackingError(f"frame {frame.seq}: depth {depth.shape} does not match colour {rgb.shape[:2]}")
+    if not np.issubdtype(depth.dtype, np.integer):
+        raise TrackingError(f"frame {frame.seq}: depth must be integer sensor units, got {depth.dtype}")
+    if not (frame.depth_scale_m > 0.0 and math.isfinite(frame.depth_scale_m)):
+        raise TrackingError(f"frame {frame.seq}: depth_scale_m={frame.depth_scale_m} must be positive")
+    return rgb if rgb.ndim == 2 else cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
 
 
 def lookup_depth(

@@ -10,6 +10,7 @@ import numpy as np
 
 from octolog.kit.bus import Bus, BusConfig, Received
 from octolog.kit.errors import InputError, TrackingError
+from octolog.kit.metrics import write_tum
 from octolog.kit.viz import Viz
 from octolog.schemas import codec
 from octolog.schemas.topics import (
@@ -23,9 +24,14 @@ from octolog.schemas.topics import (
     RGBD_END,
     TRACKING_STATUS,
 )
-from octolog.tracker.config import TrackerConfig, make_odometry
+from octolog.tracker.config import TrackerConfig
+from octolog.tracker.factory import make_odometry
+from octolog.tracker.interface import Tracker, TrackingState, TrackResult
 
-STATE_CODES = {"INIT": 0, "OK": 1, "LOST": 2, "SKIPPED": 3}
+
+def status_code(state: TrackingState) -> int:
+    """The `TrackingStatus.state` code of a state: the message's constant of the same name."""
+    return int(getattr(codec.msgtype(TRACKING_STATUS.msgtype), state.value))
 
 
 @dataclass
@@ -50,18 +56,13 @@ def run(cfg: TrackerConfig, bus_cfg: BusConfig, *, trajectory: Path | None = Non
     with Bus(bus_cfg, "tracker") as bus, Viz(rerun, "tracker", recording_id) as viz:
         result = track(odometry, cfg, bus, viz)
     if trajectory is not None:
-        from octolog.kit.metrics import write_tum
-
-        if hasattr(odometry, "trajectory"):
-            # every tracked frame through the final pose of its keyframe: what BA and loop
-            # closing corrected reaches the whole trajectory (LOST frames have no pose to give)
-            write_tum(trajectory, *odometry.trajectory())
-        else:
-            write_tum(trajectory, result.stamps_ns, result.poses)
+        # native: every tracked frame through the final pose of its keyframe, so what BA and loop
+        # closing corrected reaches the whole trajectory (LOST frames have no pose to give)
+        write_tum(trajectory, *odometry.trajectory())
     return result
 
 
-def track(odometry, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerResult:
+def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerResult:
     pub_pose, pub_status = bus.publisher(POSE), bus.publisher(TRACKING_STATUS)
     wire = codec.parse_wire_compression(cfg.wire_compression)
     pub_kf = bus.publisher(KEYFRAME if wire is None else KEYFRAME_COMPRESSED)
@@ -93,7 +94,8 @@ def track(odometry, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerResult:
                     held = newer
                     break
                 old = r.decode()
-                pub_status.put(_status(old.seq, codec.stamp_ns(old.header), "SKIPPED", False, -1, 0, 0, 0.0))
+                skipped = TrackingState.SKIPPED
+                pub_status.put(_status(old.seq, codec.stamp_ns(old.header), skipped, False, -1, 0, 0, 0.0))
                 result.skipped += 1
                 result.frames += 1
                 r = newer
@@ -107,7 +109,7 @@ def track(odometry, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerResult:
             # intrinsics), is consumed and reported LOST, never a crash
             result.rejected += 1
             result.problems.append(f"frame {msg.seq}: {exc}")
-            pub_status.put(_status(msg.seq, codec.stamp_ns(msg.header), "LOST", False, -1, 0, 0, 0.0))
+            pub_status.put(_status(msg.seq, codec.stamp_ns(msg.header), TrackingState.LOST, False, -1, 0, 0, 0.0))
             continue
         if cfg.throttle_ms:
             time.sleep(max(0.0, cfg.throttle_ms / 1e3 - (time.perf_counter() - t0)))
@@ -115,8 +117,8 @@ def track(odometry, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerResult:
         result.ms.append(ms)
         result.stamps_ns.append(frame.stamp_ns)
         result.poses.append(res.world_from_camera)
-        result.tracked += res.state == "OK"
-        result.lost += res.state == "LOST"
+        result.tracked += res.state == TrackingState.OK
+        result.lost += res.state == TrackingState.LOST
         pub_pose.put(codec.pose_stamped_msg(res.world_from_camera, frame.stamp_ns))
         if res.corrected:  # a loop closed: the mapper moves those keyframes
             pub_poses.put(codec.keyframe_poses_msg(res.corrected, frame.stamp_ns))
@@ -130,37 +132,38 @@ def track(odometry, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerResult:
                                res.n_matches, res.n_inliers, ms))
         if viz.enabled:
             _log(viz, frame, res, result, odometry)
-    if hasattr(odometry, "finish"):
-        # the back end's last word: every keyframe at its final pose, so the map matches the
-        # trajectory. Sent before the end messages, whose count for it the mapper waits for.
-        moved = odometry.finish()
-        if moved:
-            pub_poses.put(codec.keyframe_poses_msg(odometry.keyframe_poses(), result.stamps_ns[-1]))
+    # the back end's last word: every keyframe at its final pose, so the map matches the
+    # trajectory. Sent before the end messages, whose count for it the mapper waits for.
+    moved = odometry.finish()
+    if moved:
+        pub_poses.put(codec.keyframe_poses_msg(odometry.keyframe_poses(), result.stamps_ns[-1]))
     pub_kf_end.put(codec.stream_end_msg(KEYFRAME_POSES.name, pub_poses.count))
     pub_kf_end.put(codec.stream_end_msg(pub_kf.topic.name, pub_kf.count))
     bus.linger("mapper")
     return result
 
 
-def _status(seq: int, stamp: int, state: str, is_kf: bool, kf_id: int, n_matches: int, n_inliers: int, ms: float):
+def _status(seq: int, stamp: int, state: TrackingState, is_kf: bool, kf_id: int, n_matches: int, n_inliers: int,
+            ms: float):
     return codec.msgtype(TRACKING_STATUS.msgtype)(
-        header=codec.header(stamp, "world"), seq=seq, state=STATE_CODES[state], is_keyframe=is_kf,
+        header=codec.header(stamp, "world"), seq=seq, state=status_code(state), is_keyframe=is_kf,
         keyframe_id=kf_id, n_matches=n_matches, n_inliers=n_inliers, processing_ms=ms)
 
 
-# keypoint colours by state: unmatched grey, rejected red, tracked green, new map point blue
+# keypoint colours by KeypointState: unmatched grey, rejected red, tracked green, new map point blue
 KP_COLOURS = np.array([[160, 160, 160], [230, 40, 40], [40, 220, 60], [40, 140, 255]], np.uint8)
 
 
-def _log(viz: Viz, frame, res, result: TrackerResult, odometry=None) -> None:
+def _log(viz: Viz, frame, res: TrackResult, result: TrackerResult, odometry: Tracker) -> None:
     viz.set_time(frame.stamp_ns, frame.seq)
     if result.frames == 1:
         viz.camera("world/tracker/camera", frame.intrinsics)
     viz.pose("world/tracker/camera", res.world_from_camera)
     viz.rgb("world/tracker/camera/image", frame.rgb)
     viz.scalar("tracker/inliers", float(res.n_inliers))
-    if hasattr(odometry, "keypoints"):
-        pts, state = odometry.keypoints()
+    keypoints = odometry.keypoints()
+    if keypoints is not None:
+        pts, state = keypoints
         viz.points2d("world/tracker/camera/image/keypoints", pts, KP_COLOURS[state])
     viz.scalar("tracker/ms", result.ms[-1])
     if res.is_keyframe:
@@ -169,8 +172,9 @@ def _log(viz: Viz, frame, res, result: TrackerResult, odometry=None) -> None:
         viz.points3d("world/tracker/keyframes", np.array([res.world_from_camera[:3, 3]]), [0, 200, 255],
                      radius=0.02)
         viz.text("tracker/events", f"keyframe {res.keyframe_id} at frame {frame.seq}")
-        if hasattr(odometry, "local_map"):
-            viz.points3d("world/tracker/local_map", odometry.local_map(), [255, 255, 255], radius=0.004)
+        local_map = odometry.local_map()
+        if local_map is not None:
+            viz.points3d("world/tracker/local_map", local_map, [255, 255, 255], radius=0.004)
     if res.loop is not None:
         viz.text("tracker/events", f"loop closed: keyframe {res.loop[0]} with keyframe {res.loop[1]}, "
                                    f"{len(res.corrected)} keyframes moved")

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-_CHI2_2 = 5.991
-_CHI2_3 = 7.815
+from octolog.tracker.pose import CHI2_2DOF, CHI2_3DOF
+
 # sigma (rad, m) of the prior holding a fixed keyframe: ~200x tighter than its pose is known from ~500
 # pixel observations, loose enough that the normal equations keep their precision
 FIXED_SIGMA = 1e-6
@@ -93,11 +93,12 @@ def bundle_adjust(problem: BundleProblem, *, iterations: int = 5) -> BundleResul
         key = (stereo, sigma)
         if key not in noise:
             base = gtsam.noiseModel.Isotropic.Sigma(3 if stereo else 2, sigma)
-            k = math.sqrt(_CHI2_3 if stereo else _CHI2_2)
+            k = math.sqrt(CHI2_3DOF if stereo else CHI2_2DOF)
             noise[key] = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(k), base)
         return noise[key]
 
-    def solve(active: np.ndarray, poses: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, float, float]:
+    def solve(active: np.ndarray, poses: np.ndarray,
+              pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, float, float]:
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         used_kf = np.unique(problem.obs_kf[active])
@@ -145,10 +146,11 @@ def bundle_adjust(problem: BundleProblem, *, iterations: int = 5) -> BundleResul
     n_obs = np.bincount(problem.obs_pt, minlength=len(problem.points))
     active = n_obs[problem.obs_pt] >= 2
     if not np.any(active) or np.all(problem.fixed[np.unique(problem.obs_kf[active])]):
-        inl = observation_chi2(problem, problem.poses_wc, problem.points) <= np.where(problem.obs_z > 0, _CHI2_3, _CHI2_2)
+        chi2 = observation_chi2(problem, problem.poses_wc, problem.points)
+        inl = chi2 <= np.where(problem.obs_z > 0, CHI2_3DOF, CHI2_2DOF)
         return BundleResult(problem.poses_wc.copy(), problem.points.copy(), inl, 0, 0.0, 0.0)
     poses, pts, it1, before, _ = solve(active, problem.poses_wc, problem.points)
-    thr = np.where(problem.obs_z > 0, _CHI2_3, _CHI2_2)
+    thr = np.where(problem.obs_z > 0, CHI2_3DOF, CHI2_2DOF)
     inl = observation_chi2(problem, poses, pts) <= thr
     active2 = active & inl
     n_obs2 = np.bincount(problem.obs_pt[active2], minlength=len(problem.points))

@@ -1,6 +1,6 @@
 """ORB-SLAM3 (RGB-D) behind the native tracker's interface, for comparison: `pyorbslam3`, an extra.
 
-`OrbSlam3Odometry.track(frame) -> TrackResult` like `RgbdOdometry`. The ORB-SLAM3 settings file
+`OrbSlam3Odometry` implements tracker.interface.Tracker like `RgbdOdometry`. The ORB-SLAM3 settings file
 is generated from the first frame's intrinsics and depth scale; the vocabulary is a DBoW2 text
 file (`octolog vocab build` trains one). What the binding does not expose is derived here:
 
@@ -28,9 +28,17 @@ import numpy as np
 
 from octolog.kit.errors import ConfigError, TrackingError
 from octolog.kit.geometry import Intrinsics, RgbdFrame
-from octolog.tracker.odometry import STATE_INIT, STATE_LOST, STATE_OK, TrackResult, rotation_angle
+from octolog.tracker.interface import TrackingState, TrackResult
+from octolog.tracker.pose import rotation_angle
+from octolog.tracker.vocab import check_header
 
 VOCABULARY_ENV = "OCTOLOG_ORB_VOCABULARY"
+# A frame is published as a keyframe when its pose moved this far or turned this much from the last
+# published one (pyorbslam3 reports no keyframe events).
+KEYFRAME_TRANSLATION_M = 0.1
+KEYFRAME_ROTATION_DEG = 10.0
+# The camera rate written to ORB-SLAM3's settings (ORB-SLAM3 derives its keyframe timing from it).
+CAMERA_FPS = 30.0
 
 
 def _release(slam, folder: Path) -> None:
@@ -46,7 +54,7 @@ def _release(slam, folder: Path) -> None:
 
 def import_pyorbslam3():
     try:
-        import pyorbslam3
+        import pyorbslam3  # optional (the `orbslam3` extra, GPL-3.0): imported only when this backend is chosen
     except ImportError as exc:
         raise ConfigError(f"tracker.backend orbslam3 needs the pyorbslam3 package (pip install 'octolog[orbslam3]'; "
                           f"import failed: {exc})") from None
@@ -56,8 +64,6 @@ def import_pyorbslam3():
 def resolve_vocabulary(path: str = "") -> Path:
     """The vocabulary file: `path` (tracker.vocabulary), else $OCTOLOG_ORB_VOCABULARY, else the
     pyorbslam3 cache (`$PYORBSLAM3_VOCAB` or a vocabulary it downloaded earlier: never downloads)."""
-    from octolog.tracker.vocab import check_header
-
     source = "tracker.vocabulary"
     if not path:
         path, source = os.environ.get(VOCABULARY_ENV, ""), f"${VOCABULARY_ENV}"
@@ -116,14 +122,14 @@ def settings_yaml(intr: Intrinsics, depth_scale_m: float, *, n_features: int = 1
 
 
 class OrbSlam3Odometry:
-    """ORB-SLAM3 RGB-D tracking. Call `track` once per frame in time order, `close` at the end."""
+    """ORB-SLAM3 RGB-D tracking (a tracker.interface.Tracker). Call `track` once per frame in time
+    order, `close` at the end. `n_features` is validated with the config (tracker.n_features)."""
 
-    def __init__(self, vocabulary: str | os.PathLike[str] = "", *, n_features: int = 1000, fps: float = 30.0,
-                 kf_translation_m: float = 0.1, kf_rotation_deg: float = 10.0) -> None:
+    def __init__(self, vocabulary: str | os.PathLike[str] = "", *, n_features: int = 1000, fps: float = CAMERA_FPS,
+                 kf_translation_m: float = KEYFRAME_TRANSLATION_M,
+                 kf_rotation_deg: float = KEYFRAME_ROTATION_DEG) -> None:
         self._pos = import_pyorbslam3()
         self.vocabulary = resolve_vocabulary(os.fspath(vocabulary))
-        if n_features < 100:
-            raise ConfigError(f"n_features {n_features}: want >= 100")
         self._n_features = n_features
         self._fps = fps
         self._kf_trans = kf_translation_m
@@ -136,6 +142,9 @@ class OrbSlam3Odometry:
         self._last_pose = np.eye(4)
         self._last_kf_pose: np.ndarray | None = None
         self._n_kf = 0
+        self._kf_poses: dict[int, np.ndarray] = {}  # published keyframes: id -> world_from_camera
+        self._stamps: list[int] = []  # every tracked frame's stamp and pose, for `trajectory`
+        self._poses: list[np.ndarray] = []
         self.orb_keyframes: int | None = None  # ORB-SLAM3's own count, known after close()
         self.final_trajectory_tum: str | None = None  # its optimised trajectory, after close()
         self.closed = False
@@ -144,6 +153,26 @@ class OrbSlam3Odometry:
     def n_keyframes(self) -> int:
         """Keyframes published so far (see the module docstring for how they are chosen)."""
         return self._n_kf
+
+    def finish(self) -> dict[int, np.ndarray]:
+        """Nothing moved that the tracker process could report: ORB-SLAM3 corrects its map on its own
+        threads and pyorbslam3 does not expose keyframe corrections. `close` stops it."""
+        return {}
+
+    def keyframe_poses(self) -> dict[int, np.ndarray]:
+        return {i: T.copy() for i, T in self._kf_poses.items()}
+
+    def trajectory(self) -> tuple[list[int], list[np.ndarray]]:
+        """Stamps and poses as they were reported, every tracked frame (the last valid pose when none)."""
+        return list(self._stamps), [T.copy() for T in self._poses]
+
+    def keypoints(self) -> None:
+        """pyorbslam3 does not expose keypoints."""
+        return None
+
+    def local_map(self) -> None:
+        """pyorbslam3 does not expose the local map."""
+        return None
 
     def start(self, frame: RgbdFrame) -> None:
         """Write the settings for this camera and start ORB-SLAM3 (loads the vocabulary: seconds)."""
@@ -179,16 +208,19 @@ class OrbSlam3Odometry:
         except (RuntimeError, ValueError) as exc:
             raise TrackingError(f"frame {frame.seq}: ORB-SLAM3: {exc}") from None
         name = r.state.name
-        state = STATE_OK if name in ("OK", "OK_KLT") else STATE_LOST if name in ("RECENTLY_LOST", "LOST") \
-            else STATE_INIT
+        state = TrackingState.OK if name in ("OK", "OK_KLT") \
+            else TrackingState.LOST if name in ("RECENTLY_LOST", "LOST") else TrackingState.INIT
         if r.pose_valid and r.pose_wc is not None:
             self._last_pose = np.array(r.pose_wc, dtype=np.float64)
-        is_kf = state == STATE_OK and self._need_keyframe(self._last_pose)
+        is_kf = state == TrackingState.OK and self._need_keyframe(self._last_pose)
         kf_id = -1
         if is_kf:
             kf_id = self._n_kf
             self._n_kf += 1
             self._last_kf_pose = self._last_pose.copy()
+            self._kf_poses[kf_id] = self._last_pose.copy()
+        self._stamps.append(frame.stamp_ns)
+        self._poses.append(self._last_pose.copy())
         n = int(r.num_tracked_points)
         return TrackResult(seq=frame.seq, stamp_ns=frame.stamp_ns, world_from_camera=self._last_pose.copy(),
                            state=state, is_keyframe=is_kf, keyframe_id=kf_id, n_matches=n, n_inliers=n)

@@ -17,8 +17,23 @@ import numpy as np
 from octolog.kit.errors import InputError
 from octolog.kit.metrics import umeyama_se3
 from octolog.tracker.features import FrameFeatures, match_brute_force
+from octolog.tracker.pose import optimize_pose
+from octolog.tracker.vocab import Vocabulary
 
 _SEED = 0x100C
+# Descriptor matching between two views of a place: Hamming limit and best/second-best ratio, tighter
+# than the tracker's projected matching (0.9) because nothing but the descriptor narrows the search.
+PLACE_MAX_HAMMING = 64
+PLACE_RATIO = 0.8
+# Keypoints of the query that vote: enough to rank candidates, at a bounded cost per candidate.
+VOTE_SUBSAMPLE = 400
+# RANSAC over 3-point rigid fits: iterations, and the inlier distance at 1 m (grows with depth squared).
+RIGID_RANSAC_ITERATIONS = 200
+VERIFY_THRESHOLD_M = 0.03
+# Repeated texture gives many matches of which a minority agree: a verified match needs a majority.
+VERIFY_MIN_INLIER_RATIO = 0.5
+# Loop and relocalisation verify at most this many best-voted candidates (verification is the costly step).
+PLACES_VERIFIED = 3
 
 
 @dataclass(frozen=True)
@@ -33,8 +48,8 @@ class PlaceMatch:
     n_inliers: int
 
 
-def vote(query: FrameFeatures, candidates: list[FrameFeatures], *, max_distance: int = 64,
-         ratio: float = 0.8, subsample: int = 400) -> np.ndarray:
+def vote(query: FrameFeatures, candidates: list[FrameFeatures], *, max_distance: int = PLACE_MAX_HAMMING,
+         ratio: float = PLACE_RATIO, subsample: int = VOTE_SUBSAMPLE) -> np.ndarray:
     """Number of ratio-test descriptor matches between the query and each candidate.
 
     Only the query's first `subsample` keypoints with depth vote (the extractor orders keypoints
@@ -48,7 +63,7 @@ def vote(query: FrameFeatures, candidates: list[FrameFeatures], *, max_distance:
     return scores
 
 
-def rigid_ransac(src: np.ndarray, dst: np.ndarray, *, threshold_m: float, iterations: int = 200,
+def rigid_ransac(src: np.ndarray, dst: np.ndarray, *, threshold_m: float, iterations: int = RIGID_RANSAC_ITERATIONS,
                  seed: int = _SEED) -> tuple[np.ndarray, np.ndarray]:
     """T (4x4) with dst ~ T src from 3-point samples; returns (T, inlier mask). Deterministic.
 
@@ -90,7 +105,7 @@ def rigid_ransac(src: np.ndarray, dst: np.ndarray, *, threshold_m: float, iterat
 
 
 def verify(query: FrameFeatures, kf: FrameFeatures, keyframe: int, *, min_inliers: int,
-           threshold_m: float = 0.03, min_inlier_ratio: float = 0.5,
+           threshold_m: float = VERIFY_THRESHOLD_M, min_inlier_ratio: float = VERIFY_MIN_INLIER_RATIO,
            refine: tuple[np.ndarray, float, float] | None = None) -> PlaceMatch | None:
     """Relative pose of the query in a keyframe's camera frame from 3D-3D matches, or None.
 
@@ -99,20 +114,17 @@ def verify(query: FrameFeatures, kf: FrameFeatures, keyframe: int, *, min_inlier
     where the 3D-3D fit is only as good as the depth noise.
     """
     qd, kd = np.flatnonzero(query.has_depth), np.flatnonzero(kf.has_depth)
-    qi, ki, _ = match_brute_force(query.desc[qd], kf.desc[kd], max_distance=64, ratio=0.8)
+    qi, ki, _ = match_brute_force(query.desc[qd], kf.desc[kd], max_distance=PLACE_MAX_HAMMING, ratio=PLACE_RATIO)
     if qi.size < min_inliers:
         return None
     qi, ki = qd[qi], kd[ki]
     n_matches = int(qi.size)
     T, inl = rigid_ransac(query.xyz[qi], kf.xyz[ki], threshold_m=threshold_m)
     n_inl = int(inl.sum())
-    # repeated texture gives many matches but a minority of them agree: demand a majority
     if n_inl < min_inliers or n_inl < min_inlier_ratio * qi.size:
         return None
     qi, ki = qi[inl], ki[inl]
     if refine is not None:
-        from octolog.tracker.odometry import optimize_pose
-
         K, scale, inv_depth_sigma = refine
         T_qk, ok = optimize_pose(np.linalg.inv(T), kf.xyz[ki], query.uv[qi],
                                  scale ** (-query.octave[qi].astype(np.float64)), query.z[qi], K,
@@ -121,6 +133,21 @@ def verify(query: FrameFeatures, kf: FrameFeatures, keyframe: int, *, min_inlier
             return None
         T, qi, ki, n_inl = np.linalg.inv(T_qk), qi[ok], ki[ok], int(ok.sum())
     return PlaceMatch(keyframe, T, qi, ki, n_matches, n_inl)
+
+
+def recognise(query: FrameFeatures, candidates: np.ndarray, cand_feats: list[FrameFeatures], *, min_votes: int,
+              min_inliers: int, refine: tuple[np.ndarray, float, float] | None = None) -> PlaceMatch | None:
+    """The first verified match among the best-voted `PLACES_VERIFIED` candidates (keyframe ids
+    `candidates`, features `cand_feats`) with at least `min_votes` votes, or None. Ties by id."""
+    scores = vote(query, cand_feats)
+    order = np.lexsort((candidates, -scores))
+    for o in order[:PLACES_VERIFIED]:
+        if scores[o] < min_votes:
+            break
+        match = verify(query, cand_feats[o], int(candidates[o]), min_inliers=min_inliers, refine=refine)
+        if match is not None:
+            return match
+    return None
 
 
 class BowIndex:
@@ -132,7 +159,7 @@ class BowIndex:
     With it, loop and relocalisation candidates are the best-scoring keyframes instead of all.
     """
 
-    def __init__(self, vocabulary) -> None:  # tracker.vocab.Vocabulary
+    def __init__(self, vocabulary: Vocabulary) -> None:
         self._voc = vocabulary
         self._table = vocabulary.children_table()
         self._word_of_node = np.full(vocabulary.parents.shape[0], -1, dtype=np.int64)

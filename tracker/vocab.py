@@ -374,7 +374,7 @@ def list_images(folders: Sequence[str | os.PathLike[str]], max_images: int | Non
 def extract(files: Sequence[Path], *, n_features: int = 1000,
             progress: Callable[[int, int], None] | None = None) -> list[np.ndarray]:
     """ORB descriptors of each image (OpenCV ORB, ORB-SLAM's pyramid: 8 levels, scale 1.2)."""
-    import cv2
+    import cv2  # heavy, and only training needs it: loading a vocabulary (BowIndex, orbslam3) does not
 
     orb = cv2.ORB_create(nfeatures=n_features, scaleFactor=1.2, nlevels=8)
     out = []

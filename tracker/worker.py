@@ -1,6 +1,6 @@
-"""The tracker's back-end worker process: `python -m tracker.worker`, jobs in on stdin, results out.
+"""The tracker's back-end worker process: `python -m octolog.tracker.worker`, jobs in on stdin, results out.
 
-The back end (local BA, loop closing) runs in its own process because gtsam holds Python's GIL while
+The back end (tracker.backend: local BA, loop closing) runs in its own process because gtsam holds Python's GIL while
 it optimises, which stalled the tracking thread for tens of milliseconds at every keyframe. Each
 message is a pickle preceded by its length (8 bytes, little endian). The worker exits when its
 input closes or its parent dies, whichever comes first.
@@ -8,14 +8,19 @@ input closes or its parent dies, whichever comes first.
 
 from __future__ import annotations
 
+import ctypes
 import os
 import pickle
+import signal
 import struct
 import subprocess
 import sys
 import threading
 import weakref
 from typing import Any, BinaryIO
+
+from octolog.kit.errors import TrackingError
+from octolog.tracker.backend import run_backend
 
 _LEN = struct.Struct("<Q")
 
@@ -58,8 +63,6 @@ class Worker:
         return self
 
     def result(self) -> Any:
-        from octolog.kit.errors import TrackingError
-
         assert self._writer is not None
         self._writer.join()
         try:
@@ -82,9 +85,6 @@ class Worker:
 
 def _die_with(parent: int) -> None:
     try:  # Linux: the kernel kills this process when its parent dies
-        import ctypes
-        import signal
-
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):
         pass
@@ -94,8 +94,6 @@ def _die_with(parent: int) -> None:
 
 def main() -> None:
     _die_with(int(sys.argv[1]))
-    from octolog.tracker.odometry import _run_backend
-
     stdin, stdout = sys.stdin.buffer, sys.stdout.buffer
     while True:
         try:
@@ -103,7 +101,7 @@ def main() -> None:
         except EOFError:
             return
         try:
-            out = ("ok", _run_backend(job))
+            out = ("ok", run_backend(job))
         except Exception as exc:  # the parent re-raises it where it waits for the result
             out = ("error", exc)
         _write(stdout, out)

@@ -1,0 +1,230 @@
+"""The tracker's back end: local bundle adjustment, loop closing and the final global BA, as jobs.
+
+`build_job` takes a self-contained snapshot of the map around the newest keyframe; `run_backend`
+turns it into a `BackendResult` (moved keyframes and points, a closed loop) that the front end
+(tracker.odometry) applies at its next keyframe. A job touches nothing of the front end, so it runs
+the same inline or in the worker process (tracker.worker), which is what keeps outputs byte-identical
+with `background` on or off.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from octolog.kit.geometry import invert
+from octolog.tracker.config import OdometryParams
+from octolog.tracker.features import FrameFeatures
+from octolog.tracker.keyframe_map import Keyframe, MapPoints
+from octolog.tracker.optimize import BundleProblem, bundle_adjust, optimize_pose_graph
+from octolog.tracker.places import BowIndex, recognise
+from octolog.tracker.pose import rotation_angle
+
+# A keyframe sharing fewer map points than this with the new one is a loop candidate: the map lost
+# track of that place and would only find it again by recognising it.
+LOOP_MAX_SHARED_POINTS = 10
+
+
+@dataclass
+class BackendJob:
+    kf_id: int
+    poses_wc: np.ndarray  # (N, 4, 4) every keyframe
+    ba: BundleProblem | None
+    ba_kf: np.ndarray  # keyframe id of each BA pose
+    ba_point_ids: np.ndarray  # map point id of each BA point
+    iterations: int
+    candidates: np.ndarray  # loop candidate keyframe ids
+    new_feats: FrameFeatures
+    cand_feats: list[FrameFeatures]
+    covis: list[tuple[int, int]]  # pose-graph edges besides the consecutive ones
+    loop_edges: list[tuple[int, int, np.ndarray]]
+    xyz: np.ndarray | None  # all map points (only when loop closing may move them)
+    ref_kf: np.ndarray | None  # the keyframe that created each of them
+    min_votes: int
+    min_inliers: int
+    min_m: float
+    min_rad: float
+    max_m: float
+    max_rad: float
+    previous_candidate: np.ndarray | None
+    consistency_m: float
+    consistency_rad: float
+    refine: tuple[np.ndarray, float, float]
+
+
+@dataclass
+class BackendResult:
+    kf_id: int
+    poses: dict[int, np.ndarray]  # moved keyframes
+    point_ids: np.ndarray
+    points: np.ndarray
+    loop: tuple[int, int] | None = None
+    loop_edge: tuple[int, int, np.ndarray] | None = None
+    candidate: np.ndarray | None = None  # world correction asked by an unconfirmed loop
+
+
+@dataclass(frozen=True)
+class LoopState:
+    """What the back end remembers between keyframes about loops (owned by the front end)."""
+
+    edges: list[tuple[int, int, np.ndarray]]  # (old, new, old_from_new) of every closed loop
+    last_loop_kf: int  # the newest keyframe of the last closed loop
+    # the correction the previous keyframe's unconfirmed loop asked for, if it was the newest's predecessor
+    previous_candidate: np.ndarray | None
+
+
+def build_job(points: MapPoints, keyframes: list[Keyframe], params: OdometryParams, *, K: np.ndarray,
+              bow: BowIndex | None, loops: LoopState, window_n: int, max_points: int | None, loop_closing: bool,
+              iterations: int) -> BackendJob:
+    """A self-contained snapshot for the back end of the newest keyframe: BA over the newest
+    `window_n` keyframes with at most `max_points` points (None: all), `iterations` long, and loop
+    detection if `loop_closing`."""
+    mp, kfs = points, keyframes
+    ba_params, lp = params.bundle_adjustment, params.loops
+    scale_factor = params.features.scale_factor
+    new = kfs[-1]
+    n_kf = len(kfs)
+    ba = None
+    ba_kf = np.zeros(0, np.int64)
+    ba_pids = np.zeros(0, np.int64)
+    if params.local_ba and n_kf >= 2:
+        window = np.arange(max(0, n_kf - window_n), n_kf)
+        pids = np.unique(np.concatenate([kfs[i].point_ids for i in window]))
+        pids = pids[~mp.bad[pids]]
+        if max_points is not None and pids.size > max_points:
+            # the best-observed points carry the most information per factor: keep those
+            n_obs = np.zeros(pids.size, np.int64)
+            for i in window:
+                n_obs += np.isin(pids, kfs[i].point_ids, assume_unique=True)
+            pids = np.sort(pids[np.lexsort((pids, -n_obs))[:max_points]])
+        # fixed neighbours: the earlier keyframes that created most of the window's points
+        creators = mp.ref_kf[pids]
+        counts = np.bincount(creators[creators < window[0]], minlength=n_kf)
+        order = np.lexsort((np.arange(n_kf), -counts))
+        n_fixed = ba_params.fixed_keyframes
+        fixed = np.sort(order[:n_fixed][counts[order[:n_fixed]] > 0])
+        ba_kf = np.concatenate([fixed, window])
+        kf_idx, pt_idx, uv, zz, sig = [], [], [], [], []
+        for li, i in enumerate(ba_kf):
+            kf = kfs[i]
+            pos = np.searchsorted(pids, kf.obs_pid)
+            pos = np.minimum(pos, pids.size - 1)
+            ok = pids[pos] == kf.obs_pid
+            ok &= kf.feats.z[kf.obs_kp] > 0.0  # depth-less rays (near-parallel here) let points run off
+            kp = kf.obs_kp[ok]
+            kf_idx.append(np.full(kp.size, li))
+            pt_idx.append(pos[ok])
+            uv.append(kf.feats.uv[kp])
+            zz.append(kf.feats.z[kp])
+            sig.append(scale_factor ** kf.feats.octave[kp].astype(np.float64))
+        ba = BundleProblem(
+            poses_wc=np.stack([kfs[i].world_from_camera for i in ba_kf]),
+            # as ORB-SLAM3 does: with fewer than two fixed neighbours (a new area) the oldest
+            # window keyframe is held too, or the window would be free to drift as a whole
+            fixed=np.array([i < window[0] or i == 0 or (fixed.size < 2 and i == window[0]) for i in ba_kf]),
+            points=mp.xyz[pids].copy(),
+            obs_kf=np.concatenate(kf_idx), obs_pt=np.concatenate(pt_idx), obs_uv=np.concatenate(uv),
+            obs_z=np.concatenate(zz), obs_sigma=np.concatenate(sig),
+            K=(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])),
+            bf=1.0 / ba_params.inv_depth_sigma,
+        )
+        ba_pids = pids
+    candidates = np.zeros(0, np.int64)
+    if loop_closing and new.id - loops.last_loop_kf > lp.min_gap:
+        # old keyframes that share (almost) no map points with the new one: a match with one
+        # of them is a place seen again after the map lost track of it
+        shared = np.bincount(mp.ref_kf[new.point_ids], minlength=n_kf)
+        candidates = np.flatnonzero((np.arange(n_kf) <= new.id - lp.min_gap) & (shared < LOOP_MAX_SHARED_POINTS))
+        if bow is not None and candidates.size:
+            candidates = np.sort(bow.query(new.feats.desc, top=params.bow_candidates, allowed=candidates)[0])
+    return BackendJob(
+        kf_id=new.id, poses_wc=np.stack([kf.world_from_camera for kf in kfs]), ba=ba, ba_kf=ba_kf,
+        ba_point_ids=ba_pids, iterations=iterations, candidates=candidates,
+        new_feats=new.feats, cand_feats=[kfs[i].feats for i in candidates],
+        covis=[(i, j) for i in range(1, n_kf) for j in kfs[i].covis], loop_edges=list(loops.edges),
+        # every map point and its creator: only a loop correction moves them all
+        xyz=mp.xyz[: mp.size].copy() if candidates.size else None,
+        ref_kf=mp.ref_kf[: mp.size].copy() if candidates.size else None,
+        min_votes=lp.min_votes, min_inliers=lp.min_inliers, min_m=lp.min_correction_m,
+        min_rad=math.radians(lp.min_correction_deg), max_m=lp.max_correction_m,
+        max_rad=math.radians(lp.max_correction_deg),
+        refine=(K, scale_factor, params.tracking.inv_depth_sigma),
+        previous_candidate=loops.previous_candidate,
+        consistency_m=lp.consistency_m, consistency_rad=math.radians(lp.consistency_deg),
+    )
+
+
+def run_backend(job: BackendJob) -> BackendResult:
+    """Local BA around the newest keyframe, then loop detection and pose-graph correction.
+
+    A step that fails numerically (gtsam's indeterminate system, degenerate geometry) is skipped:
+    the back end improves the map when it can and never stops tracking. Failures depend only on
+    the input, so skipping stays deterministic.
+    """
+    try:
+        return _backend(job)
+    except (RuntimeError, np.linalg.LinAlgError, cv2.error):
+        if job.ba is None:
+            return BackendResult(job.kf_id, {}, job.ba_point_ids, np.zeros((0, 3)))
+        try:
+            return _backend(dataclasses.replace(job, candidates=np.zeros(0, np.int64), cand_feats=[]))
+        except (RuntimeError, np.linalg.LinAlgError, cv2.error):
+            return BackendResult(job.kf_id, {}, np.zeros(0, np.int64), np.zeros((0, 3)))
+
+
+def _backend(job: BackendJob) -> BackendResult:
+    poses = job.poses_wc.copy()
+    moved: dict[int, np.ndarray] = {}
+    point_ids, points = job.ba_point_ids, np.zeros((0, 3))
+    if job.ba is not None:
+        res = bundle_adjust(job.ba, iterations=job.iterations)
+        for li, i in enumerate(job.ba_kf):
+            if not job.ba.fixed[li]:
+                poses[i] = res.poses_wc[li]
+                moved[int(i)] = res.poses_wc[li]
+        points = res.points
+    if job.candidates.size == 0:
+        return BackendResult(job.kf_id, moved, point_ids, points)
+
+    match = recognise(job.new_feats, job.candidates, job.cand_feats, min_votes=job.min_votes,
+                      min_inliers=job.min_inliers, refine=job.refine)
+    if match is None:
+        return BackendResult(job.kf_id, moved, point_ids, points)
+    old, new = match.keyframe, job.kf_id
+    measured = match.T_kf_query  # old_from_new
+    err = invert(invert(poses[old]) @ poses[new]) @ measured
+    err_m, err_rad = float(np.linalg.norm(err[:3, 3])), rotation_angle(err[:3, :3])
+    if err_m < job.min_m and err_rad < job.min_rad:
+        return BackendResult(job.kf_id, moved, point_ids, points)  # the map already agrees
+    if err_m > job.max_m or err_rad > job.max_rad:
+        return BackendResult(job.kf_id, moved, point_ids, points)  # more than drift can explain
+    # The correction this loop asks for, as a world-frame transform. A loop is closed only when
+    # two consecutive keyframes ask for the same correction (as ORB-SLAM demands consistent
+    # candidates): a single look-alike place cannot bend the map.
+    C = poses[old] @ measured @ invert(poses[new])
+    prev = job.previous_candidate
+    if prev is None:
+        return BackendResult(job.kf_id, moved, point_ids, points, candidate=C)
+    here = poses[new][:3, 3]
+    d = invert(prev) @ C
+    if float(np.linalg.norm(C[:3, :3] @ here + C[:3, 3] - (prev[:3, :3] @ here + prev[:3, 3]))) > job.consistency_m \
+            or rotation_angle(d[:3, :3]) > job.consistency_rad:
+        return BackendResult(job.kf_id, moved, point_ids, points, candidate=C)
+    rel = lambda i, j: invert(poses[i]) @ poses[j]  # noqa: E731
+    edges = [(i - 1, i, rel(i - 1, i), 1.0) for i in range(1, len(poses))]
+    edges += [(j, i, rel(j, i), 1.0) for i, j in job.covis]
+    edges += [(i, j, T, 1.0) for i, j, T in job.loop_edges]
+    edges.append((old, new, measured, 1.0))
+    corrected = optimize_pose_graph(poses, edges, fixed=0)
+    delta = corrected @ np.stack([invert(T) for T in poses])
+    assert job.xyz is not None and job.ref_kf is not None
+    xyz = job.xyz.copy()
+    xyz[point_ids] = points
+    d = delta[job.ref_kf]
+    xyz = np.einsum("nij,nj->ni", d[:, :3, :3], xyz) + d[:, :3, 3]
+    return BackendResult(job.kf_id, {i: corrected[i] for i in range(len(poses))}, np.arange(xyz.shape[0]), xyz,
+                         (new, old), (old, new, measured))

@@ -1,0 +1,23 @@
+"""The tracker a config names: `make_odometry(cfg)`, native `RgbdOdometry` or `OrbSlam3Odometry`.
+
+Apart from tracker.node so that benchmarks and tests build a tracker without the bus and viewer.
+"""
+
+from __future__ import annotations
+
+from octolog.tracker.config import TrackerConfig
+from octolog.tracker.interface import Tracker
+from octolog.tracker.odometry import RgbdOdometry
+from octolog.tracker.orbslam3 import OrbSlam3Odometry
+from octolog.tracker.vocab import load as load_vocabulary
+
+
+def make_odometry(cfg: TrackerConfig) -> Tracker:
+    """The tracker `cfg.backend` names, set up from `cfg` (ConfigError when `cfg` is invalid)."""
+    if cfg.backend == "orbslam3":
+        cfg.validate()
+        return OrbSlam3Odometry(cfg.vocabulary, n_features=cfg.n_features)
+    # native: with a vocabulary, loop and relocalisation candidates come from a bag-of-words index
+    params = cfg.odometry_params()
+    vocabulary = load_vocabulary(cfg.vocabulary) if cfg.vocabulary else None
+    return RgbdOdometry(params, vocabulary=vocabulary, background=cfg.background)
