@@ -24,8 +24,9 @@ from dataclasses import replace
 from pathlib import Path
 
 from octolog.recorder import node  # noqa: E402
-from octolog.recorder.capture import FrameConverter, SoftwareDeviceBackend  # noqa: E402
 from octolog.recorder.config import RecorderConfig, SoftwareConfig, capture_profile  # noqa: E402
+from octolog.recorder.frame_converter import FrameConverter  # noqa: E402
+from octolog.recorder.software_d455 import SoftwareDeviceBackend  # noqa: E402
 
 
 def cpu_s() -> float:

@@ -41,3 +41,11 @@ class RecorderError(OctologError):
 
 class DeviceLost(RecorderError):
     """The camera went away mid-recording (unplugged, powered off, USB reset)."""
+
+
+class WriteFailed(RecorderError):
+    """Writing the recording failed mid-way (I/O error); the file keeps everything before it."""
+
+
+class DiskFull(WriteFailed):
+    """The disk filled up mid-recording (ENOSPC)."""

@@ -2,17 +2,24 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
+from octolog.kit.config import to_json
 from octolog.kit.errors import ConfigError
 from octolog.kit.mcaplog import COMPRESSIONS
+from octolog.recorder.capture import Backend, CaptureProfile, DeviceDescription, DeviceOptions
+from octolog.recorder.realsense_camera import RealSenseBackend
+from octolog.recorder.record import Encoding, LiveSink, Recorder
+from octolog.recorder.software_d455 import D455_IMU, SoftwareDeviceBackend
 
 BACKENDS = ("realsense", "software")
 COLOR_CODECS = ("raw", "jpeg")
 DEPTH_CODECS = ("raw", "png")
 EMITTER = ("", "off", "on", "auto")
+IMU_CHIPS = tuple(D455_IMU)  # the chips the software D455 can pose with
 PRESETS = ("", "custom", "default", "hand", "high_accuracy", "high_density", "medium_density")
-IMU_CHIPS = ("bmi085", "bmi055")
 
 
 @dataclass(frozen=True)
@@ -118,8 +125,8 @@ class RecorderConfig:
 # --- factories: config -> plain constructor arguments -------------------------------------------
 
 
-def capture_profile(cfg: RecorderConfig):  # -> recorder.capture.CaptureProfile
-    from octolog.recorder.capture import CaptureProfile, DeviceOptions
+def capture_profile(cfg: RecorderConfig) -> CaptureProfile:
+    """The streams and device options to ask the backend for."""
 
     def onoff(v: str) -> bool | None:
         return None if v == "" else v == "on"
@@ -135,9 +142,8 @@ def capture_profile(cfg: RecorderConfig):  # -> recorder.capture.CaptureProfile
                           raw_depth=cfg.raw_depth, options=opts)
 
 
-def make_backend(cfg: RecorderConfig):  # -> recorder.capture.Backend
-    from octolog.recorder.capture import RealSenseBackend, SoftwareDeviceBackend
-
+def make_backend(cfg: RecorderConfig) -> Backend:
+    """The configured frame source: a RealSense camera, or the software D455."""
     if cfg.backend == "software":
         s = cfg.software
         return SoftwareDeviceBackend(frames=s.frames, paced=s.paced, unplug_after=s.unplug_after,
@@ -145,11 +151,9 @@ def make_backend(cfg: RecorderConfig):  # -> recorder.capture.Backend
     return RealSenseBackend(cfg.serial)
 
 
-def make_recorder(cfg: RecorderConfig, part, device, *, sinks=(), block_when_full: bool = False):
+def make_recorder(cfg: RecorderConfig, part: Callable[[int], Path], device: DeviceDescription, *,
+                  sinks: Sequence[LiveSink] = (), block_when_full: bool = False) -> Recorder:
     """The writer side (recorder.record.Recorder) for a resolved device."""
-    from octolog.kit.config import to_json
-    from octolog.recorder.record import Encoding, Recorder
-
     return Recorder(
         part, device, config_json=to_json(cfg), compression=cfg.compression,
         chunk_size=int(cfg.chunk_size_mb * 2**20),

@@ -14,9 +14,13 @@ from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
+from octolog.kit.bus import Bus
+from octolog.kit.errors import DeviceLost, RecorderError
 from octolog.kit.geometry import RgbdFrame
-from octolog.recorder.capture import Backend, Capture, DeviceDescription, DeviceLost, FrameConverter, RecorderError
+from octolog.kit.viz import Viz
+from octolog.recorder.capture import Backend, Capture, DeviceDescription
 from octolog.recorder.config import RecorderConfig, capture_profile, make_backend, make_recorder
+from octolog.recorder.frame_converter import FrameConverter
 from octolog.recorder.record import Encoded, LiveSink, Recorder, RecordResult, Status, output_paths
 from octolog.schemas import codec
 from octolog.schemas import topics as T
@@ -116,8 +120,6 @@ def open_sinks(stack: ExitStack, cfg: RecorderConfig, device: DeviceDescription,
                recording_id: str) -> list[LiveSink]:
     sinks: list[LiveSink] = []
     if bus_cfg is not None:
-        from octolog.kit.bus import Bus
-
         bus = stack.enter_context(Bus(bus_cfg, "recorder"))
         pub = BusPublisher(bus, device, f"{cfg.frame_prefix}_color_optical_frame")
         bus.watch(cfg.wait_for)
@@ -126,8 +128,6 @@ def open_sinks(stack: ExitStack, cfg: RecorderConfig, device: DeviceDescription,
         stack.callback(sink.close)  # before the bus closes (callbacks run last-in first-out)
         sinks.append(sink)
     if rerun != "off":
-        from octolog.kit.viz import Viz
-
         viz = stack.enter_context(Viz(rerun, "recorder", recording_id))
         sink = LiveSink("rerun", VizLogger(viz, device), size=cfg.live_queue_frames)
         stack.callback(sink.close)

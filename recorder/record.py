@@ -10,6 +10,7 @@ metadata record.
 
 from __future__ import annotations
 
+import errno
 import json
 import queue
 import shutil
@@ -22,12 +23,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
-from octolog.kit.errors import McapError
+from octolog.kit.errors import DiskFull, McapError, RecorderError, WriteFailed
 from octolog.kit.geometry import Intrinsics, invert
 from octolog.kit.mcaplog import McapWriter
-from octolog.recorder.capture import Capture, DeviceDescription, RecorderError
+from octolog.recorder.capture import Capture, DeviceDescription
 from octolog.schemas import codec
 from octolog.schemas import topics as T
 from octolog.schemas.topics import Topic
@@ -35,6 +37,8 @@ from octolog.schemas.topics import Topic
 STREAMS = ("color", "aligned_depth", "depth", "gyro", "accel")
 JPEG_FORMAT = "rgb8; jpeg compressed bgr8"  # image_transport's spelling
 PNG_FORMAT = "16UC1; png compressed"  # lossless 16-bit PNG of the depth image, in sensor units
+MOTION_BATCH = 64  # IMU samples per queue entry without a frame: the queue counts frames, not IMU samples
+DISK_CHECK_S = 0.5  # free-space checks at most this often (and after every chunk): statvfs is not free
 # camera_link (x forward, y left, z up) from an optical frame (x right, y down, z forward)
 LINK_FROM_OPTICAL = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0, 0, 0, 1.0]])
 
@@ -229,11 +233,11 @@ class Recorder:
 
     def submit(self, cap: Capture) -> None:
         """Queue one Capture. IMU-only captures are batched into the next frame's (or flushed at
-        64 samples) so the queue counts frames, not IMU samples."""
+        MOTION_BATCH samples) so the queue counts frames, not IMU samples."""
         self._account(cap)
         if cap.color is None and cap.depth is None and cap.aligned_depth is None:
             self._motion_batch += cap.motion
-            if len(self._motion_batch) < 64:
+            if len(self._motion_batch) < MOTION_BATCH:
                 return
             cap = Capture()
         if self._motion_batch:
@@ -289,9 +293,9 @@ class Recorder:
         path = self._writer.path if self._writer else None
         finish_error = self._close_file()
         self.result.wall_s = time.monotonic() - self._t0
-        if self.error is not None and self.error.args[0].startswith(("disk full", "write failed")):
+        if isinstance(self.error, WriteFailed):  # say what is on disk, now that it is known
             tail = f"; {finish_error}" if finish_error else f"; {path} is finished with everything before that"
-            raise RecorderError(self.error.args[0] + tail)
+            raise type(self.error)(self.error.args[0] + tail)
         if self.error is not None:
             raise self.error
         if self._crash is not None:
@@ -388,8 +392,6 @@ class Recorder:
 
     def _encode(self, cap: Capture) -> list[Encoded]:
         """CDR messages of one Capture (runs in the encode pool; cv2 releases the GIL)."""
-        import cv2
-
         out: list[Encoded] = []
         e = self._enc
         if cap.color is not None:
@@ -458,7 +460,7 @@ class Recorder:
         now = time.monotonic()
         written = self._bytes_written()
         if now >= self._next_disk_check or written - self._checked_bytes >= self._chunk_size:
-            self._next_disk_check = now + 0.5
+            self._next_disk_check = now + DISK_CHECK_S
             self._checked_bytes = written
             self._free_bytes = self._disk_free()
             if self._min_free and self._free_bytes < self._min_free:
@@ -466,11 +468,14 @@ class Recorder:
                                     f"{self._min_free / 1e6:.0f} MB): recording stopped; "
                                     f"{self._writer.path if self._writer else ''} is complete")
 
-    def _write_failure(self, exc: McapError) -> RecorderError:
-        what = "disk full" if "disk full" in str(exc) else f"write failed ({exc})"
-        # completed in close(), once it is known whether the file could be finished
-        return RecorderError(f"{what}: recording stopped after {self.result.messages + self._writer_count()} "
-                             f"messages")
+    def _write_failure(self, exc: McapError) -> WriteFailed:
+        """The error for a failed write; close() completes its message once it is known whether the
+        file could be finished. McapWriter raises McapError from the OSError, whose errno tells a
+        full disk from other I/O errors."""
+        cause = exc.__context__
+        full = isinstance(cause, OSError) and cause.errno == errno.ENOSPC
+        kind, what = (DiskFull, "disk full") if full else (WriteFailed, f"write failed ({exc})")
+        return kind(f"{what}: recording stopped after {self.result.messages + self._writer_count()} messages")
 
     def _writer_count(self) -> int:
         return self._writer.count if self._writer else 0

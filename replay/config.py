@@ -1,10 +1,12 @@
-"""Replay settings."""
+"""Replay settings: what to play, how fast, which part, under which topic names."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 from octolog.kit.errors import ConfigError
+from octolog.schemas.codec import parse_wire_compression
+from octolog.schemas.topics import Topic
 
 
 @dataclass(frozen=True)
@@ -38,6 +40,8 @@ class ReplayConfig:
     wait_timeout_s: float = 60.0
 
     def validate(self) -> None:
+        """The one check of the replay settings, run where the config is read (the source spec is
+        checked by sources.open_source: the shell sets `source` after loading, from --source)."""
         if self.rate < 0:
             raise ConfigError(f"replay.rate {self.rate}: want 0 (lockstep) or a positive factor")
         if self.window < 1:
@@ -53,18 +57,14 @@ class ReplayConfig:
             raise ConfigError(f"replay.start {self.start}: want >= 0")
         if not abs(self.time_shift_s) < 1e9:
             raise ConfigError(f"replay.time_shift_s {self.time_shift_s}: want a finite number of seconds")
-        from octolog.schemas.codec import parse_wire_compression
-
         try:
             parse_wire_compression(self.wire_compression)
         except ConfigError as exc:
             raise ConfigError(f"replay.wire_compression: {exc}") from None
 
 
-def remapped(topic, remap: tuple[str, ...]):  # Topic -> Topic
+def remapped(topic: Topic, remap: tuple[str, ...]) -> Topic:
     """`topic` under the name `remap` gives it, if any (same message type)."""
-    from octolog.schemas.topics import Topic
-
     table = dict(item.split("=", 1) for item in remap)
     name = table.get(topic.name)
     return Topic(name.strip("/"), topic.msgtype) if name else topic

@@ -8,8 +8,9 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 from octolog.kit.bus import Bus, BusConfig
-from octolog.kit.errors import InputError
+from octolog.kit.errors import ConfigError, InputError
 from octolog.kit.geometry import RgbdFrame
+from octolog.kit.mcaplog import read_messages, summarize
 from octolog.kit.viz import Viz
 from octolog.replay.config import ReplayConfig, remapped
 from octolog.replay.sources import Source, open_source
@@ -133,9 +134,6 @@ def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Pro
 
 def play_tracker_log(cfg: ReplayConfig, bus_cfg: BusConfig) -> ReplayResult:
     """Stand in for the tracker: publish its logged keyframes and pose corrections, in log order."""
-    from octolog.kit.errors import ConfigError
-    from octolog.kit.mcaplog import read_messages, summarize
-
     kind, _, path = cfg.source.partition(":")
     if kind != "mcap" or not path:
         raise ConfigError(f"replay.play = tracker needs an mcap:PATH source, got {cfg.source!r}")

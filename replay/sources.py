@@ -13,6 +13,12 @@ from typing import Protocol
 
 from octolog.kit.errors import ConfigError, InputError
 from octolog.kit.geometry import RgbdFrame
+from octolog.kit.mcaplog import read_messages, summarize
+from octolog.replay.standard import has_standard_frames, open_standard
+from octolog.replay.synthetic import SyntheticScene
+from octolog.replay.tum import open_tum, readout_for
+from octolog.schemas import codec
+from octolog.schemas.topics import RGBD, RGBD_COMPRESSED, TRACKING_STATUS
 
 
 class Source(Protocol):
@@ -34,8 +40,6 @@ class TumSource:
     path: Path
 
     def __post_init__(self) -> None:
-        from octolog.replay.tum import open_tum, readout_for
-
         self.seq = open_tum(self.path)
         self.name = f"tum:{self.path}"
         self.readout_s = readout_for(self.path)  # the colour camera's rolling shutter (0 = unknown)
@@ -65,9 +69,6 @@ class McapSource:
     only_consumed: bool = False
 
     def __post_init__(self) -> None:
-        from octolog.kit.mcaplog import summarize
-        from octolog.schemas.topics import RGBD, RGBD_COMPRESSED
-
         self.name = f"mcap:{self.path}"
         summary = summarize(self.path)
         if not summary.complete:
@@ -78,8 +79,6 @@ class McapSource:
         ts = summary.topics.get(self._topic.name)
         self._standard = None
         if ts is None:
-            from octolog.replay.standard import has_standard_frames, open_standard
-
             if not has_standard_frames(summary.topics):
                 raise InputError(f"{self.path}: neither /{RGBD.name} nor colour + aligned depth topics "
                                  f"(topics: {', '.join(sorted(summary.topics)) or 'none'})")
@@ -126,9 +125,6 @@ class McapSource:
         if self._standard is not None:
             yield from self._standard.frames(start, end)
             return
-        from octolog.kit.mcaplog import read_messages
-        from octolog.schemas import codec
-
         i = 0
         topic = self._topic
         for n, m in enumerate(read_messages(self.path, [topic.name])):
@@ -150,10 +146,6 @@ class McapSource:
 
 def consumed_frames(path: Path) -> set[int]:
     """Sequence numbers of the frames a logged tracker processed (every status but SKIPPED)."""
-    from octolog.kit.mcaplog import read_messages
-    from octolog.schemas import codec
-    from octolog.schemas.topics import TRACKING_STATUS
-
     skipped = codec.msgtype(TRACKING_STATUS.msgtype).SKIPPED
     seqs = set()
     for m in read_messages(path, [TRACKING_STATUS.name]):
@@ -171,8 +163,6 @@ class SyntheticSource:
     readout_s = 0.0  # rendered, every row at once
 
     def __post_init__(self) -> None:
-        from octolog.replay.synthetic import SyntheticScene
-
         self.scene = SyntheticScene(n_frames=self.n_frames)
         self.name = f"synthetic:{self.n_frames}"
 

@@ -19,6 +19,8 @@ import numpy as np
 
 from octolog.kit.errors import InputError
 from octolog.kit.geometry import Intrinsics, RgbdFrame
+from octolog.kit.mcaplog import read_messages, summarize
+from octolog.replay.tum import associate
 from octolog.schemas import codec
 from octolog.schemas.topics import (
     ALIGNED_DEPTH,
@@ -64,8 +66,6 @@ class StandardSequence:
 
     def frames(self, start: int = 0, end: int | None = None) -> Iterator[RgbdFrame]:
         """Frames start..end in pair order; reads the file once, holding only images not yet paired."""
-        from octolog.kit.mcaplog import read_messages
-
         todo = list(enumerate(self.pairs[start:end], start))
         if not todo:
             return
@@ -130,9 +130,6 @@ def _header_stamp(data: bytes) -> int:
 
 def open_standard(path: str | Path) -> StandardSequence:
     """Open a recorder-layout MCAP and pair its frames; InputError says what is missing."""
-    from octolog.kit.mcaplog import read_messages, summarize
-    from octolog.replay.tum import associate
-
     path = Path(path)
     summary = summarize(path)
     if not summary.complete:

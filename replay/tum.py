@@ -62,7 +62,7 @@ def read_rows(path: Path, parse: Callable[[list[str]], T], want: str) -> list[T]
     return rows
 
 
-def _read_list(path: Path) -> list[tuple[int, str]]:
+def read_list(path: Path) -> list[tuple[int, str]]:
     if not path.is_file():
         raise InputError(f"{path}: missing (a TUM RGB-D folder needs rgb.txt and depth.txt)")
 
@@ -132,8 +132,8 @@ class TumSequence:
 
     def frames(self, start: int = 0, end: int | None = None) -> Iterator[RgbdFrame]:
         for seq, (rgb_ns, rgb_file, _depth_ns, depth_file) in enumerate(self.pairs[start:end], start):
-            rgb = _read_png(self.folder / rgb_file, cv2.IMREAD_COLOR)
-            depth = _read_png(self.folder / depth_file, cv2.IMREAD_ANYDEPTH)
+            rgb = read_png(self.folder / rgb_file, cv2.IMREAD_COLOR)
+            depth = read_png(self.folder / depth_file, cv2.IMREAD_ANYDEPTH)
             if rgb.ndim != 3 or rgb.shape[2] != 3:
                 raise InputError(f"{self.folder / rgb_file}: not a 3-channel colour image")
             if depth.dtype != np.uint16 or depth.ndim != 2:
@@ -150,7 +150,7 @@ class TumSequence:
             )
 
 
-def _read_png(path: Path, flags: int) -> np.ndarray:
+def read_png(path: Path, flags: int) -> np.ndarray:
     if not path.is_file():
         raise InputError(f"{path}: image listed but missing")
     img = cv2.imread(str(path), flags)
@@ -164,8 +164,8 @@ def open_tum(folder: str | Path, intrinsics: Intrinsics | None = None) -> TumSeq
     folder = Path(folder)
     if not folder.is_dir():
         raise InputError(f"{folder}: not a folder (want a TUM RGB-D sequence folder)")
-    rgb = _read_list(folder / "rgb.txt")
-    depth = _read_list(folder / "depth.txt")
+    rgb = read_list(folder / "rgb.txt")
+    depth = read_list(folder / "depth.txt")
     pairs = associate([t for t, _ in rgb], [t for t, _ in depth])
     if not pairs:
         raise InputError(f"{folder}: no colour/depth pairs within 20 ms")

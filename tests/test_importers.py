@@ -13,6 +13,7 @@ from octolog.kit.errors import InputError
 from octolog.kit.geometry import Intrinsics, invert, pose_to_matrix
 from octolog.kit.mcaplog import McapWriter, read_messages, summarize
 from octolog.recorder.importers import import_source, parse_topic_map
+from octolog.recorder.tum_import import import_tum
 from octolog.replay.standard import count_standard_frames, open_standard, read_standard_frames
 from octolog.replay.tum import TUM_DEPTH_SCALE_M, open_tum
 from octolog.schemas import codec, topics
@@ -55,8 +56,6 @@ def assert_same_frames(got: list, want: list) -> None:
 def test_tum_round_trip_is_byte_identical(tmp_path):
     folder = tiny_tum(tmp_path)
     out = tmp_path / "tum.mcap"
-    from octolog.recorder.importers import import_tum
-
     result = import_tum(folder, out, intrinsics=SMALL)
     assert result.counts == {topics.COLOR.name: 5, topics.COLOR_INFO.name: 5, topics.ALIGNED_DEPTH.name: 5,
                              topics.ALIGNED_DEPTH_INFO.name: 5, topics.ACCEL.name: 2}
@@ -404,8 +403,6 @@ def _rerun_converts(path: Path, tmp_path: Path) -> None:
 
 
 def test_imported_tum_opens_in_rosbags_and_rerun(tmp_path):
-    from octolog.recorder.importers import import_tum
-
     out = tmp_path / "tum.mcap"
     import_tum(tiny_tum(tmp_path), out, intrinsics=SMALL)
     _rosbags_reads(out, 22)
@@ -519,8 +516,6 @@ def test_refuses_existing_output_unless_overwrite(tmp_path):
     with pytest.raises(InputError, match=r"o\.mcap: exists; pass overwrite"):
         import_source(folder, out)
     assert out.read_bytes() == b"keep me"
-    from octolog.recorder.importers import import_tum
-
     import_tum(folder, out, overwrite=True, intrinsics=SMALL)
     assert count_standard_frames(out) == 5
 

@@ -19,19 +19,15 @@ import pytest
 
 from octolog.kit import mcaplog
 from octolog.kit.config import to_json
-from octolog.kit.errors import ConfigError, McapError
+from octolog.kit.errors import ConfigError, McapError, RecorderError
 from octolog.kit.mcaplog import read_messages, summarize
 from octolog.recorder import node
-from octolog.recorder.capture import (
-    CaptureProfile,
-    RealSenseBackend,
-    RecorderError,
-    SoftwareDeviceBackend,
-    SyntheticScene,
-)
-from octolog.recorder.config import RecorderConfig, SoftwareConfig
-from octolog.recorder.record import JPEG_FORMAT, PNG_FORMAT
+from octolog.recorder.capture import Capture, CaptureProfile
+from octolog.recorder.config import RecorderConfig, SoftwareConfig, make_recorder
+from octolog.recorder.realsense_camera import RealSenseBackend
+from octolog.recorder.record import JPEG_FORMAT, PNG_FORMAT, output_paths
 from octolog.recorder.recover import recover
+from octolog.recorder.software_d455 import SoftwareDeviceBackend, SyntheticPattern
 from octolog.schemas import codec
 from octolog.schemas import topics as T
 
@@ -60,7 +56,7 @@ def _check_file(path: Path, backend: SoftwareDeviceBackend, cfg: RecorderConfig,
     pushed: dict[str, list] = {}
     for p in backend.pushed:
         pushed.setdefault(p.stream, []).append(p)
-    scene = backend.scene
+    scene = backend.pattern
     assert scene is not None
     color_topic = T.COLOR_JPEG if cfg.color_codec == "jpeg" else T.COLOR
     depth_topics = []
@@ -115,7 +111,7 @@ def _check_file(path: Path, backend: SoftwareDeviceBackend, cfg: RecorderConfig,
         assert [p.frame_number for p in pushed[stream]] == list(range(len(got)))
         for k in (0, len(got) // 2, len(got) - 1):
             v = got[k].angular_velocity if stream == "gyro" else got[k].linear_acceleration
-            assert (v.x, v.y, v.z) == SyntheticScene.motion(stream, k)
+            assert (v.x, v.y, v.z) == SyntheticPattern.motion(stream, k)
     # static transforms once, metadata
     (tf,) = [codec.decode(m.data, T.TF_STATIC.msgtype) for m in msgs[T.TF_STATIC.name]]
     children = {t.child_frame_id for t in tf.transforms}
@@ -216,10 +212,6 @@ def test_writer_behind_drops_are_counted_not_silent(tmp_path, monkeypatch):
 
 
 def test_device_frame_gaps_are_counted(tmp_path):
-    from octolog.recorder.capture import Capture
-    from octolog.recorder.config import make_recorder
-    from octolog.recorder.record import output_paths
-
     b = SoftwareDeviceBackend(frames=1)
     device = b.open(CaptureProfile())
     b.close()
@@ -454,8 +446,7 @@ def test_options_and_config_errors(tmp_path):
     from octolog.shell.record import add_parsers, overrides
 
     parser = argparse.ArgumentParser()
-    add_parsers(parser.add_subparsers(), lambda p: None, lambda p: None,
-                lambda p: p.add_argument("--set", action="append", default=[]))
+    add_parsers(parser.add_subparsers())
     with pytest.raises(ConfigError, match="--color '1280x720': want WIDTHxHEIGHT@FPS"):
         overrides(parser.parse_args(["record", "x.mcap", "--color", "1280x720"]))
     args = parser.parse_args(["record", "x.mcap", "--color", "640x480@15", "--depth-streams", "both", "--no-imu",

@@ -15,7 +15,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from octolog.kit.geometry import pose_to_matrix
-from octolog.replay.synthetic import EPOCH_NS, OBJECTS, ROOM, SyntheticScene
+from octolog.replay.synthetic import EPOCH_NS, SyntheticScene
+from octolog.replay.synthetic_room import OBJECTS, ROOM
 
 REPO = Path(__file__).resolve().parents[1]
 
