@@ -31,7 +31,7 @@ def keyframes(frames: int, every: int):
     folder = data / "tum" / "rgbd_dataset_freiburg1_xyz_first300"
     if folder.is_dir():
         from octolog.kit.metrics import associate, read_tum
-        from octolog.replay.tum import open_tum
+        from octolog.kit.tum import open_tum
 
         seq = open_tum(folder)
         gt = read_tum(seq.groundtruth)

@@ -9,7 +9,7 @@ ATE column only shows whether that choice also lands near the most accurate one.
 
     python bench/readout.py [--source tum:PATH] [--ms 0,5,10,15,20,25,30,35]
 
-This is how `replay.tum.TUM_READOUT_S["freiburg1"]` was picked (docs/results.md).
+This is how `octolog.kit.tum.TUM_READOUT_S["freiburg1"]` was picked (docs/results.md).
 """
 
 from __future__ import annotations

@@ -15,8 +15,8 @@ import numpy as np
 
 from octolog.kit.errors import InputError
 from octolog.kit.geometry import Intrinsics
+from octolog.kit.tum import TUM_DEPTH_SCALE_M, open_tum, read_list, read_png, read_rows, readout_for, seconds_to_ns
 from octolog.recorder.import_output import ACCEL_FRAME, COLOR_FRAME, ImportResult, intrinsics_fields, open_output
-from octolog.replay.tum import TUM_DEPTH_SCALE_M, open_tum, read_list, read_png, read_rows, readout_for, seconds_to_ns
 from octolog.schemas import codec
 from octolog.schemas.topics import ACCEL, ALIGNED_DEPTH, ALIGNED_DEPTH_INFO, COLOR, COLOR_INFO
 

@@ -14,9 +14,9 @@ from typing import Protocol
 from octolog.kit.errors import ConfigError, InputError
 from octolog.kit.geometry import RgbdFrame
 from octolog.kit.mcaplog import read_messages, summarize
+from octolog.kit.tum import open_tum, readout_for
 from octolog.replay.standard import has_standard_frames, open_standard
 from octolog.replay.synthetic import SyntheticScene
-from octolog.replay.tum import open_tum, readout_for
 from octolog.schemas import codec
 from octolog.schemas.topics import RGBD, RGBD_COMPRESSED, TRACKING_STATUS
 

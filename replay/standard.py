@@ -20,7 +20,7 @@ import numpy as np
 from octolog.kit.errors import InputError
 from octolog.kit.geometry import Intrinsics, RgbdFrame
 from octolog.kit.mcaplog import read_messages, summarize
-from octolog.replay.tum import associate
+from octolog.kit.tum import associate
 from octolog.schemas import codec
 from octolog.schemas.topics import (
     ALIGNED_DEPTH,

@@ -12,10 +12,10 @@ from test_tum import make_tum
 from octolog.kit.errors import InputError
 from octolog.kit.geometry import Intrinsics, invert, pose_to_matrix
 from octolog.kit.mcaplog import McapWriter, read_messages, summarize
+from octolog.kit.tum import TUM_DEPTH_SCALE_M, open_tum
 from octolog.recorder.importers import import_source, parse_topic_map
 from octolog.recorder.tum_import import import_tum
 from octolog.replay.standard import count_standard_frames, open_standard, read_standard_frames
-from octolog.replay.tum import TUM_DEPTH_SCALE_M, open_tum
 from octolog.schemas import codec, topics
 
 SMALL = Intrinsics(64, 48, 50.0, 51.0, 31.5, 23.5, (0.1, -0.2, 0.001, 0.002, 0.05))

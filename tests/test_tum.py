@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from octolog.kit.errors import InputError
-from octolog.replay.tum import TUM_DEPTH_SCALE_M, associate, open_tum, seconds_to_ns
+from octolog.kit.tum import TUM_DEPTH_SCALE_M, associate, open_tum, seconds_to_ns
 
 
 def make_tum(folder: Path, n: int = 4) -> Path:

@@ -17,8 +17,10 @@ import pytest
 from octolog.kit.errors import MapError
 from octolog.kit.geometry import Intrinsics, pose_to_matrix
 from octolog.mapper.cloud import backproject, keyframe_cloud, transform
+from octolog.mapper.occupancy import make_occupancy_map
 from octolog.mapper.octree import OccupancyOctree
-from octolog.mapper.voxelmap import VoxelOccupancyMap, make_occupancy_map
+from octolog.mapper.sensor_model import SensorModel
+from octolog.mapper.voxelmap import VoxelOccupancyMap
 
 K = Intrinsics(640, 480, 525.0, 525.0, 319.5, 239.5)
 SCALE = 0.001
@@ -305,7 +307,7 @@ def test_rejects_bad_inputs(tmp_path):
     with pytest.raises(MapError):
         VoxelOccupancyMap(0.0)
     with pytest.raises(MapError):
-        VoxelOccupancyMap(prob_hit=0.3)
+        VoxelOccupancyMap(model=SensorModel(prob_hit=0.3))
     with pytest.raises(MapError, match="cannot write"):
         m.write_bt(tmp_path / "missing" / "x.bt")
     assert m.insert(np.zeros((0, 3)), np.zeros(3)) == 0
@@ -317,7 +319,7 @@ def test_rejects_bad_inputs(tmp_path):
 def tum_keyframes(data: Path, n: int = 10, every: int = 10):
     """(frame, world_from_camera) for n frames `every` apart with a GT pose within 20 ms."""
     from octolog.kit.metrics import associate, read_tum
-    from octolog.replay.tum import open_tum
+    from octolog.kit.tum import open_tum
 
     seq = open_tum(data / "tum" / "rgbd_dataset_freiburg1_xyz_first300")
     gt = read_tum(seq.groundtruth)

@@ -1,4 +1,5 @@
-"""TUM RGB-D folders: rgb.txt, depth.txt, PNG images and an optional groundtruth.txt.
+"""TUM RGB-D folders (the kit's reader, shared by the replay source and `octolog import`): rgb.txt, depth.txt,
+PNG images and an optional groundtruth.txt.
 
 Colour and depth are paired by nearest timestamp within 20 ms (as the TUM tools do); depth keeps
 its units (5000 per metre). Intrinsics come from the sequence name (freiburg1/2/3, the ROS default
