@@ -49,3 +49,31 @@ class WriteFailed(RecorderError):
 
 class DiskFull(WriteFailed):
     """The disk filled up mid-recording (ENOSPC)."""
+
+
+class StageFailed(StageError):
+    """A stage process of `octolog run` ended badly; `stage` names it, `log` is its log file.
+
+    `reason` is the stage's own account: its known error's message when it reported one, else the
+    last line of its log (a traceback's last line, or whatever it printed before it died).
+    """
+
+    def __init__(self, stage: str, how: str, reason: str, log: str) -> None:
+        super().__init__(f"the {stage} stage {how}: {reason} (log: {log})")
+        self.stage, self.reason, self.log = stage, reason, log
+
+
+class StageKilled(StageFailed):
+    """A stage process was killed by a signal (OOM killer, kill -9, ...), not asked to stop."""
+
+    def __init__(self, stage: str, signal: int, reason: str, log: str) -> None:
+        super().__init__(stage, f"killed by signal {signal}", reason, log)
+        self.signal = signal
+
+
+class StageExited(StageFailed):
+    """A stage process exited with a non-zero code (its own error: bad input, config, transport)."""
+
+    def __init__(self, stage: str, code: int, reason: str, log: str) -> None:
+        super().__init__(stage, f"exited with code {code}", reason, log)
+        self.code = code

@@ -13,6 +13,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO
 
+from mcap.data_stream import RecordBuilder
+from mcap.exceptions import McapError as RawMcapError
+from mcap.reader import NonSeekingReader
+from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
+
 from octolog.kit.errors import McapError
 from octolog.schemas import codec
 
@@ -86,8 +93,6 @@ class McapWriter:
     """
 
     def __init__(self, path: str | Path, *, compression: str = "zstd", chunk_size: int = 4 * 1024 * 1024) -> None:
-        from mcap.writer import CompressionType, Writer
-
         if compression not in COMPRESSIONS:
             raise McapError(f"compression {compression!r}: want one of {', '.join(COMPRESSIONS)}")
         self.path = Path(path)
@@ -180,10 +185,6 @@ class McapWriter:
         # mcap's Writer state after a failed chunk write is inconsistent (its indexes name the lost
         # chunk), so its finish() must not run. DataEnd + a footer with no summary is a complete
         # MCAP file: readers without a summary scan the data section.
-        from mcap.data_stream import RecordBuilder
-        from mcap.records import DataEnd, Footer
-        from mcap.writer import MCAP0_MAGIC
-
         rb = RecordBuilder()
         DataEnd(0).write(rb)
         Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(rb)
@@ -215,9 +216,6 @@ def _open(path: str | Path) -> BinaryIO:
 
 def read_messages(path: str | Path, topics: Iterable[str] | None = None) -> Iterator[LoggedMessage]:
     """Messages in file order. A truncated or corrupt file raises McapError naming the problem."""
-    from mcap.exceptions import McapError as RawMcapError
-    from mcap.reader import NonSeekingReader
-
     wanted = None if topics is None else {t if t.startswith("/") else "/" + t for t in topics}
     p = Path(path)
     n = 0
@@ -265,18 +263,12 @@ class McapSummary:
 
 def summarize(path: str | Path) -> McapSummary:
     """Scan a whole file: topics, counts, time spans, metadata; reports truncation instead of raising."""
-    from mcap.exceptions import McapError as RawMcapError
-    from mcap.records import Footer, Header, Message, Metadata
-    from mcap.stream_reader import StreamReader
-
     p = Path(path)
     out = McapSummary(p)
     with _open(p) as f:
         out.size_bytes = p.stat().st_size
         channels: dict[int, tuple[str, str]] = {}
         schemas: dict[int, str] = {}
-        from mcap.records import Channel, Schema
-
         seen_footer = False
         try:
             for rec in StreamReader(f).records:
@@ -327,10 +319,6 @@ def salvage(src: str | Path, dst: str | Path, *, compression: str | None = None,
     torn record): a file left by a killed writer loses at most its unfinished chunk. Compression
     defaults to that of the source's first chunk. `extra_metadata(result)` adds records at the end.
     """
-    from mcap.exceptions import McapError as RawMcapError
-    from mcap.records import Channel, Chunk, Footer, Message, Metadata, Schema
-    from mcap.stream_reader import StreamReader, breakup_chunk
-
     p = Path(src)
     res = SalvageResult()
     with _open(p) as f:

@@ -41,7 +41,7 @@ class Viz:
         self.path: Path | None = None
         if self.kind == "off":
             return
-        import rerun as rr
+        import rerun as rr  # here, not at the top: rerun-sdk takes ~1.5 s to import; "off" never needs it
 
         self._rr = rr
         self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)

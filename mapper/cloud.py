@@ -343,4 +343,5 @@ def pcd_bytes(points: np.ndarray, colours: np.ndarray) -> bytes:
 
 
 def write_pcd(path: str | os.PathLike[str], points: np.ndarray, colours: np.ndarray) -> None:
+    """Write a binary PCD atomically (temporary file then rename)."""
     write_bytes_atomic(path, pcd_bytes(points, colours))

@@ -1,19 +1,36 @@
-"""Mapper settings."""
+"""Mapper settings: the `[mapper]` config section, its one validator, and the core's parameters."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
+import numpy as np
+
 from octolog.kit.errors import ConfigError
+from octolog.mapper.fleet import start_pose_matrix
+from octolog.mapper.params import BACKENDS, CloudParams, GridParams, MapperParams, OccupancyParams
+from octolog.mapper.sensor_model import PROBABILITIES, SensorModel
+
+_OCTOMAP = SensorModel()  # OctoMap's defaults
 
 
 @dataclass(frozen=True)
 class MapperConfig:
+    """The mapper process's settings (`--set mapper.KEY=V`); documented in docs/cli.md."""
+
     resolution_m: float = 0.05  # occupancy octree leaf size
     # "numpy": our vectorised occupancy map (same states and files as OctoMap, 1.4-3x faster);
     # "octomap": OctoMap itself through pyoctomap, the reference
     backend: str = "numpy"
     colour: bool = True  # colour per occupied voxel (map.ot is a ColorOcTree)
+    # OctoMap's sensor model (mapper/sensor_model.py): the probability an end point / a ray's voxel
+    # is occupied, the clamping of the log-odds, and the occupancy threshold; OctoMap's defaults
+    prob_hit: float = _OCTOMAP.prob_hit
+    prob_miss: float = _OCTOMAP.prob_miss
+    clamp_min: float = _OCTOMAP.clamp_min
+    clamp_max: float = _OCTOMAP.clamp_max
+    occupancy_thres: float = _OCTOMAP.occupancy_thres
     voxel_m: float = 0.01  # dense cloud voxel filter (second layer)
     max_range_m: float = 4.0  # depth readings beyond this are ignored
     pixel_stride: int = 2  # back-project every n-th pixel in each direction
@@ -38,8 +55,8 @@ class MapperConfig:
     grid_z_min_m: float = -1.0
     grid_z_max_m: float = 0.3
     grid_resolution_m: float = 0.05
-    wait_for: tuple[str, ...] = ()
-    wait_timeout_s: float = 60.0
+    wait_for: tuple[str, ...] = ()  # stages that must be up before the mapper starts listening
+    wait_timeout_s: float = 60.0  # how long to wait for them
     # several robots into one map: the robots' namespaces (each a replay/recorder + tracker pair);
     # empty: one robot, in the mapper's own namespace. See mapper/fleet.py for the integration order.
     robots: tuple[str, ...] = ()
@@ -48,19 +65,28 @@ class MapperConfig:
     start_poses: tuple[tuple[float, ...], ...] = ()
 
     def validate(self) -> None:
-        for key in ("resolution_m", "voxel_m", "max_range_m"):
+        """The one check of every value; the core and the backends trust what passes it."""
+        for key in ("resolution_m", "voxel_m", "max_range_m", "max_extent_m", "grid_resolution_m"):
             if not getattr(self, key) > 0:
                 raise ConfigError(f"mapper.{key} {getattr(self, key)}: want > 0")
         if len(self.grid_up) != 3 or not any(self.grid_up):
             raise ConfigError(f"mapper.grid_up {self.grid_up}: want a non-zero 3-vector")
         if not self.grid_z_min_m < self.grid_z_max_m:
             raise ConfigError(f"mapper.grid_z_min_m {self.grid_z_min_m} must be below grid_z_max_m {self.grid_z_max_m}")
-        if self.backend not in ("numpy", "octomap"):
+        if self.backend not in BACKENDS:
             raise ConfigError(f"mapper.backend {self.backend!r}: want numpy or octomap")
         if self.publish_every < 0:
             raise ConfigError(f"mapper.publish_every {self.publish_every}: want >= 0")
         if self.pixel_stride < 1:
             raise ConfigError(f"mapper.pixel_stride {self.pixel_stride}: want >= 1")
+        if self.sor_neighbors < 1:
+            raise ConfigError(f"mapper.sor_neighbors {self.sor_neighbors}: want >= 1")
+        if not math.isfinite(self.sor_std_ratio):
+            raise ConfigError(f"mapper.sor_std_ratio {self.sor_std_ratio}: want a finite number")
+        wrong = self.sensor_model().problem()
+        if wrong is not None:
+            what, why = wrong
+            raise ConfigError(f"mapper.{what} {why}" if what in PROBABILITIES else f"mapper {what} {why}")
         for robot in self.robots:
             if not robot.strip("/") or any(c in robot for c in "*$?#"):
                 raise ConfigError(f"mapper.robots {robot!r}: want a Zenoh key prefix such as robot1")
@@ -69,33 +95,30 @@ class MapperConfig:
         if self.start_poses and len(self.start_poses) != len(self.robots):
             raise ConfigError(f"mapper.start_poses: {len(self.start_poses)} poses for {len(self.robots)} robots "
                               f"(want one x y z qx qy qz qw per robot, or none)")
-        from octolog.mapper.fleet import start_pose_matrix
-
         for robot, pose in zip(self.robots, self.start_poses):
             start_pose_matrix(robot, pose)
 
-    def start_pose_matrices(self) -> list:
+    def sensor_model(self) -> SensorModel:
+        """OctoMap's sensor model from the `prob_*`, `clamp_*` and `occupancy_thres` keys."""
+        return SensorModel(prob_hit=self.prob_hit, prob_miss=self.prob_miss, clamp_min=self.clamp_min,
+                           clamp_max=self.clamp_max, occupancy_thres=self.occupancy_thres)
+
+    def params(self) -> MapperParams:
+        """The core's parameter object (`Mapper` takes it whole), from a validated config."""
+        self.validate()
+        return MapperParams(
+            cloud=CloudParams(max_range_m=self.max_range_m, pixel_stride=self.pixel_stride, voxel_m=self.voxel_m,
+                              sor_neighbors=self.sor_neighbors, sor_std_ratio=self.sor_std_ratio,
+                              sor_first=self.sor_first),
+            occupancy=OccupancyParams(backend=self.backend, resolution_m=self.resolution_m, colour=self.colour,
+                                      sensor=self.sensor_model()),
+            grid=GridParams(up=self.grid_up, camera_height_m=self.grid_camera_height_m, z_min_m=self.grid_z_min_m,
+                            z_max_m=self.grid_z_max_m, resolution_m=self.grid_resolution_m),
+            max_extent_m=self.max_extent_m,
+        )
+
+    def start_pose_matrices(self) -> list[np.ndarray]:
         """world_from_<robot> for each robot (identity when no start poses are given)."""
-        import numpy as np
-
-        from octolog.mapper.fleet import start_pose_matrix
-
         if not self.start_poses:
             return [np.eye(4) for _ in self.robots]
         return [start_pose_matrix(r, p) for r, p in zip(self.robots, self.start_poses)]
-
-
-def make_mapper(cfg: MapperConfig):  # -> mapper.core.Mapper
-    from octolog.mapper.core import Mapper
-
-    return Mapper(resolution_m=cfg.resolution_m, voxel_m=cfg.voxel_m, max_range_m=cfg.max_range_m,
-                  pixel_stride=cfg.pixel_stride, sor_neighbors=cfg.sor_neighbors, sor_std_ratio=cfg.sor_std_ratio,
-                  sor_first=cfg.sor_first, max_extent_m=cfg.max_extent_m, backend=cfg.backend, colour=cfg.colour,
-                  grid=make_grid_projector(cfg))
-
-
-def make_grid_projector(cfg: MapperConfig):  # -> mapper.core.GridProjector
-    from octolog.mapper.core import GridProjector
-
-    return GridProjector(up=cfg.grid_up, camera_height_m=cfg.grid_camera_height_m, z_min_m=cfg.grid_z_min_m,
-                         z_max_m=cfg.grid_z_max_m, resolution_m=cfg.grid_resolution_m)

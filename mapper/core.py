@@ -10,16 +10,24 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
-from octolog.kit.errors import InputError
+from octolog.kit.errors import InputError, MapError
 from octolog.kit.geometry import RgbdFrame
+from octolog.mapper.cloud import DenseCloud, keyframe_cloud, transform, write_pcd, write_ply
+from octolog.mapper.config import MapperConfig
+from octolog.mapper.grid import OccupancyGrid2D, map_from_world_for_up, project_octree, write_map_server
+from octolog.mapper.occupancy import OccupancyMap, make_occupancy_map
+from octolog.mapper.params import GridParams, MapperParams
+
+__all__ = ["KeyframeCloud", "Mapper", "bt_payload", "make_mapper", "project_grid"]
 
 
 @dataclass
 class KeyframeCloud:
+    """One integrated keyframe: its filtered cloud in the camera frame and its current pose."""
+
     points_cam: np.ndarray  # (N, 3) float64, filtered, camera frame
     colours: np.ndarray  # (N, 3) uint8
     world_from_camera: np.ndarray  # 4x4
@@ -30,69 +38,57 @@ class KeyframeCloud:
 class Mapper:
     """Integrates keyframes; `correct` moves keyframes; `write` produces the map files."""
 
-    def __init__(self, *, resolution_m: float = 0.05, voxel_m: float = 0.01, max_range_m: float = 4.0,
-                 pixel_stride: int = 2, sor_neighbors: int = 20, sor_std_ratio: float = 2.0, sor_first: bool = False,
-                 max_extent_m: float = 1000.0, backend: str = "numpy", colour: bool = True,
-                 grid: GridProjector | None = None) -> None:
-        from octolog.mapper.cloud import DenseCloud
-
-        self.resolution_m = resolution_m
-        self.voxel_m = voxel_m
-        self.max_range_m = max_range_m
-        self.pixel_stride = pixel_stride
-        self.sor_neighbors = sor_neighbors
-        self.sor_std_ratio = sor_std_ratio
-        self.sor_first = sor_first
-        self.max_extent_m = max_extent_m
-        self.backend = backend
-        self.colour = colour
-        self.grid = grid or GridProjector()
+    def __init__(self, params: MapperParams) -> None:
+        self.params = params
         self.keyframes: dict[int, KeyframeCloud] = {}  # insertion order = integration order
-        self.cloud = DenseCloud(voxel_m=voxel_m)
+        self.cloud = DenseCloud(voxel_m=params.cloud.voxel_m)
         self.octree = self._new_octree()
         self.rebuilds = 0
 
-    def _new_octree(self) -> Any:
-        from octolog.mapper.voxelmap import make_occupancy_map
+    @property
+    def resolution_m(self) -> float:
+        """The occupancy map's voxel size."""
+        return self.params.occupancy.resolution_m
 
-        return make_occupancy_map(self.backend, self.resolution_m, colour=self.colour)
+    def _new_octree(self) -> OccupancyMap:
+        occ = self.params.occupancy
+        return make_occupancy_map(occ.backend, occ.resolution_m, colour=occ.colour, model=occ.sensor)
 
     def _check_pose(self, kf_id: int, T: np.ndarray) -> None:
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise InputError(f"keyframe {kf_id}: pose is not a finite 4x4 transform")
-        if np.abs(T[:3, 3]).max() > self.max_extent_m:
+        max_extent_m = self.params.max_extent_m
+        if np.abs(T[:3, 3]).max() > max_extent_m:
             raise InputError(f"keyframe {kf_id}: camera at {np.round(T[:3, 3], 1).tolist()} m is outside the "
-                             f"map bounds (±{self.max_extent_m:g} m)")
+                             f"map bounds (±{max_extent_m:g} m)")
 
     def integrate(self, kf_id: int, world_from_camera: np.ndarray, frame: RgbdFrame) -> int:
         """Add one keyframe; returns its number of filtered points. Bad keyframes raise InputError
         before anything is changed."""
-        from octolog.mapper.cloud import keyframe_cloud
-
         self._check_pose(kf_id, world_from_camera)
         if kf_id in self.keyframes:
             raise InputError(f"keyframe {kf_id}: already integrated")
         if not np.any(frame.depth):
             raise InputError(f"keyframe {kf_id}: no valid depth")
+        c = self.params.cloud
         pts, cols = keyframe_cloud(
             frame.depth, frame.rgb, frame.intrinsics, frame.depth_scale_m, np.eye(4),
-            max_range_m=self.max_range_m, stride=self.pixel_stride, nb_neighbors=self.sor_neighbors,
-            std_ratio=self.sor_std_ratio, voxel_m=self.voxel_m, sor_first=self.sor_first)
+            max_range_m=c.max_range_m, stride=c.pixel_stride, nb_neighbors=c.sor_neighbors,
+            std_ratio=c.sor_std_ratio, voxel_m=c.voxel_m, sor_first=c.sor_first)
         if len(pts) == 0:
-            raise InputError(f"keyframe {kf_id}: no valid depth within {self.max_range_m} m")
+            raise InputError(f"keyframe {kf_id}: no valid depth within {c.max_range_m} m")
         kf = KeyframeCloud(pts, cols, world_from_camera.copy(), frame.stamp_ns, frame.seq)
         self.keyframes[kf_id] = kf
         self._insert(kf_id, kf)
         return len(pts)
 
     def _insert(self, kf_id: int, kf: KeyframeCloud) -> None:
-        from octolog.mapper.cloud import transform
-
         world = transform(kf.points_cam, kf.world_from_camera)
         self.cloud.add(kf_id, world, kf.colours)
         # the range limit was applied when back-projecting (depth <= max_range_m), so the dense cloud
         # and the octree hold the same points; a second, Euclidean cut here would make them differ
-        self.octree.insert(world, kf.world_from_camera[:3, 3], colours=kf.colours if self.colour else None,
+        colour = self.params.occupancy.colour
+        self.octree.insert(world, kf.world_from_camera[:3, 3], colours=kf.colours if colour else None,
                            max_range_m=-1.0)
 
     def correct(self, poses: dict[int, np.ndarray]) -> int:
@@ -116,11 +112,15 @@ class Mapper:
         self.rebuilds += 1
 
     def stats(self) -> dict:
+        """The occupancy map's counts plus keyframes and rebuilds, for map_stats.json."""
         return {**self.octree.stats(), "keyframes": len(self.keyframes), "rebuilds": self.rebuilds}
 
-    def write(self, out_dir: Path, stem: str = "map") -> dict[str, str]:
-        from octolog.mapper.cloud import write_pcd, write_ply
+    def project_grid(self) -> OccupancyGrid2D | None:
+        """The 2D grid of the current octree, or None while no known voxel lies in the band."""
+        return project_grid(self.octree, self.params.grid)
 
+    def write(self, out_dir: Path, stem: str = "map") -> dict[str, str]:
+        """Write the map files (.bt, .ot, cloud .ply/.pcd, the 2D grid if any); returns {kind: path}."""
         out_dir.mkdir(parents=True, exist_ok=True)
         bt, ply, pcd = out_dir / f"{stem}.bt", out_dir / "cloud.ply", out_dir / "cloud.pcd"
         ot = out_dir / f"{stem}.ot"
@@ -130,35 +130,26 @@ class Mapper:
         write_ply(ply, pts, cols)
         write_pcd(pcd, pts, cols)
         files = {"bt": str(bt), "ot": str(ot), "ply": str(ply), "pcd": str(pcd)}
-        grid = self.grid.project(self.octree)
+        grid = self.project_grid()
         if grid is not None:
-            from octolog.mapper.grid import write_map_server
-
             files.update({f"grid_{k}": v for k, v in write_map_server(grid, out_dir / stem).items()})
         return files
 
 
-@dataclass(frozen=True)
-class GridProjector:
-    """The 2D occupancy grid from the octree: a height band in a level frame (see mapper.grid)."""
+def make_mapper(cfg: MapperConfig) -> Mapper:
+    """A `Mapper` from the `[mapper]` config (validated once, here, through `cfg.params()`)."""
+    return Mapper(cfg.params())
 
-    up: tuple[float, ...] = (0.0, -1.0, 0.0)
-    camera_height_m: float = 0.0
-    z_min_m: float = -1.0
-    z_max_m: float = 0.3
-    resolution_m: float = 0.05
 
-    def project(self, octree: Any) -> Any | None:
-        """The grid, or None while no known voxel lies in the band."""
-        from octolog.kit.errors import MapError
-        from octolog.mapper.grid import map_from_world_for_up, project_octree
-
-        try:
-            return project_octree(octree, map_from_world=map_from_world_for_up(np.array(self.up, dtype=float),
-                                                                                height_m=self.camera_height_m),
-                                  z_min_m=self.z_min_m, z_max_m=self.z_max_m, resolution_m=self.resolution_m)
-        except MapError:
-            return None
+def project_grid(octree: OccupancyMap, params: GridParams) -> OccupancyGrid2D | None:
+    """The 2D occupancy grid of `octree`: a height band in a level frame (see mapper.grid), or None
+    while no known voxel lies in the band."""
+    try:
+        return project_octree(octree, map_from_world=map_from_world_for_up(np.array(params.up, dtype=float),
+                                                                            height_m=params.camera_height_m),
+                              z_min_m=params.z_min_m, z_max_m=params.z_max_m, resolution_m=params.resolution_m)
+    except MapError:
+        return None
 
 
 def bt_payload(bt_file_bytes: bytes) -> bytes:

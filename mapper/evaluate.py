@@ -41,6 +41,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from octolog.kit.errors import MapError
 
@@ -84,8 +85,6 @@ def cloud_to_surface(
     (exact, e.g. `SyntheticScene.distance_to_surface`) or surface samples (M, 3), in which case the
     distance to the nearest sample is used (an over-estimate of up to half the sample spacing).
     """
-    from scipy.spatial import cKDTree
-
     p = _points(points)
     if p.shape[0] == 0:
         raise MapError("cloud_to_surface needs at least one point")

@@ -43,6 +43,8 @@ def start_pose_matrix(robot: str, xyz_qxyzw: tuple[float, ...]) -> np.ndarray:
 
 @dataclass(frozen=True)
 class KeyframeItem:
+    """A robot's keyframe waiting in its stream, with what the merge orders it by."""
+
     stamp_ns: int
     kf_id: int  # the robot's own keyframe id
     payload: Any  # whatever the caller needs to integrate it (decoded message, frame, ...)
@@ -50,6 +52,8 @@ class KeyframeItem:
 
 @dataclass(frozen=True)
 class CorrectionItem:
+    """A robot's pose correction waiting in its stream (applied before any keyframe)."""
+
     poses: Any  # the robot's {kf_id: robot_from_camera}, or whatever the caller stores
 
 
@@ -67,6 +71,7 @@ class FleetMerge:
         self._streams = [_Stream() for _ in robots]
 
     def push(self, robot: int, item: KeyframeItem | CorrectionItem) -> None:
+        """Append an item to robot `robot`'s stream, in the order its tracker sent it."""
         self._streams[robot].items.append(item)
 
     def end(self, robot: int) -> None:
@@ -78,9 +83,11 @@ class FleetMerge:
         return [i for i, s in enumerate(self._streams) if not s.items and not s.ended]
 
     def has_items(self, robot: int) -> bool:
+        """Whether robot `robot` has items waiting."""
         return bool(self._streams[robot].items)
 
     def done(self) -> bool:
+        """Every stream has ended and been drained."""
         return all(s.ended and not s.items for s in self._streams)
 
     def pop(self) -> tuple[int, KeyframeItem | CorrectionItem] | None:

@@ -32,6 +32,8 @@ from typing import Any
 import numpy as np
 
 from octolog.kit.errors import MapError
+from octolog.mapper.cloud import write_bytes_atomic
+from octolog.schemas import codec
 
 __all__ = [
     "FREE",
@@ -71,10 +73,12 @@ class OccupancyGrid2D:
 
     @property
     def height(self) -> int:
+        """Rows (cells along map y)."""
         return int(self.data.shape[0])
 
     @property
     def width(self) -> int:
+        """Columns (cells along map x)."""
         return int(self.data.shape[1])
 
     def cell_of(self, xy_map: np.ndarray) -> np.ndarray:
@@ -256,8 +260,6 @@ def yaml_text(grid: OccupancyGrid2D, image: str) -> str:
 
 def write_map_server(grid: OccupancyGrid2D, stem_path: str | os.PathLike[str]) -> dict[str, str]:
     """Write `stem.pgm` and `stem.yaml` (atomically, PGM first); returns {"pgm": ..., "yaml": ...}."""
-    from octolog.mapper.cloud import write_bytes_atomic
-
     stem = Path(stem_path)
     pgm = stem.with_name(stem.name + ".pgm")
     yml = stem.with_name(stem.name + ".yaml")
@@ -277,8 +279,6 @@ def occupancy_grid_msg(grid: OccupancyGrid2D, stamp_ns: int, frame_id: str = "ma
     mapper's world frame (`grid.map_from_world`) is not in the message: it is a transform
     (map <- world) for TF. `data` is row-major from (0, 0), i.e. `grid.data.ravel()`.
     """
-    from octolog.schemas import codec
-
     data = _check_grid(grid)
     Time = codec.msgtype("builtin_interfaces/msg/Time")
     Point = codec.msgtype("geometry_msgs/msg/Point")

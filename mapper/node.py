@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import json
 import time
 from dataclasses import dataclass, field
@@ -12,9 +14,12 @@ import numpy as np
 
 from octolog.kit.bus import Bus, BusConfig
 from octolog.kit.errors import InputError, MapError
+from octolog.kit.metrics import write_tum
 from octolog.kit.viz import Viz
-from octolog.mapper.config import MapperConfig, make_mapper
-from octolog.mapper.core import Mapper, bt_payload
+from octolog.mapper.config import MapperConfig
+from octolog.mapper.core import Mapper, bt_payload, make_mapper
+from octolog.mapper.fleet import CorrectionItem, FleetMerge, KeyframeItem
+from octolog.mapper.grid import OccupancyGrid2D, occupancy_grid_msg
 from octolog.schemas import codec
 from octolog.schemas.topics import (
     GRID,
@@ -33,6 +38,8 @@ from octolog.schemas.topics import (
 
 @dataclass
 class MapperResult:
+    """What the mapper did: counts, per-keyframe times, the files it wrote, the problems it skipped."""
+
     keyframes: int = 0
     skipped: int = 0
     corrections: int = 0
@@ -50,30 +57,31 @@ class Publisher:
         self.bus, self.mapper, self.every = bus, mapper, every
         self.pub_octomap, self.pub_occupied = bus.publisher(OCTOMAP), bus.publisher(OCCUPIED)
         self.pub_grid = bus.publisher(GRID)
-        self.grid = None
+        self.grid: OccupancyGrid2D | None = None
         self.latest: bytes | None = None  # immutable bytes: swapped atomically, read by the queryable
         self.stats: dict = {}
         bus.serve(MAP_QUERY, lambda: self.latest)
 
     def maybe(self, n_integrated: int, stamp: int) -> None:
+        """Publish a snapshot if `n_integrated` keyframes is a multiple of the period."""
         if self.every and n_integrated % self.every == 0:
             self.now(stamp)
 
     def now(self, stamp: int) -> None:
+        """Publish a snapshot now: the octomap, the occupied voxels and the 2D grid."""
         octree = self.mapper.octree
         msg = codec.octomap_msg(bt_payload(octree.bt_bytes()), self.mapper.resolution_m, stamp)
         self.latest = self.pub_octomap.put(msg)
         self.pub_occupied.put(codec.point_cloud_msg(octree.occupied_centres(), stamp))
-        self.grid = self.mapper.grid.project(octree)
+        self.grid = self.mapper.project_grid()
         if self.grid is not None:
-            from octolog.mapper.grid import occupancy_grid_msg
-
             self.pub_grid.put(occupancy_grid_msg(self.grid, stamp))
         self.stats = octree.stats()
 
 
 def run(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: str = "off",
         recording_id: str = "octolog") -> MapperResult:
+    """The mapper process: consume keyframes until the tracker's stream ends, then write the map."""
     if cfg.robots:
         return run_fleet(cfg, bus_cfg, out_dir=out_dir, rerun=rerun, recording_id=recording_id)
     mapper = make_mapper(cfg)
@@ -110,9 +118,6 @@ def run_fleet(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: st
     """One mapper for several robots: one Zenoh session per robot namespace (each subscribes to that
     robot's keyframes and announces the mapper there), one for the map outputs in the mapper's own
     namespace. Keyframes are merged in the order mapper/fleet.py defines."""
-    import contextlib
-    import dataclasses
-
     mapper = make_mapper(cfg)
     with contextlib.ExitStack() as stack:
         bus = stack.enter_context(Bus(bus_cfg, "mapper"))
@@ -128,8 +133,7 @@ def run_fleet(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: st
 
 def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list[Bus], viz: Viz,
                   publisher: Publisher, out_dir: Path) -> tuple[MapperResult, list[list[tuple[int, int]]]]:
-    from octolog.mapper.fleet import CorrectionItem, FleetMerge, KeyframeItem
-
+    """Receive every robot's keyframes and corrections and integrate them in the merge's order."""
     world_from_robot = cfg.start_pose_matrices()
     pub_update = bus.publisher(MAP_UPDATE)
     bus.accept(MAP_SAVE)
@@ -225,8 +229,6 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
 def write_trajectories(mapper: Mapper, robots: tuple[str, ...], trajectories: list[list[tuple[int, int]]],
                        out_dir: Path) -> dict[str, dict]:
     """Each robot's keyframe trajectory in the common world (corrected poses), TUM format."""
-    from octolog.kit.metrics import write_tum
-
     out_dir.mkdir(parents=True, exist_ok=True)
     per_robot = {}
     for robot, traj in zip(robots, trajectories):
@@ -257,6 +259,7 @@ def _answer_save(r: Any, mapper: Mapper, out_dir: Path) -> None:
 
 def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: Publisher,
             out_dir: Path) -> MapperResult:
+    """Integrate keyframes and corrections until every one the tracker announced has arrived."""
     pub_update = bus.publisher(MAP_UPDATE)
     bus.accept(MAP_SAVE)
     bus.start([KEYFRAME, KEYFRAME_COMPRESSED, KEYFRAME_POSES, KEYFRAME_END], wait_for=cfg.wait_for,

@@ -1,7 +1,7 @@
 """Probabilistic occupancy octree (OctoMap, via pyoctomap) with ray-cast free space.
 
-Wraps `pyoctomap.OcTree` with OctoMap's sensor model set explicitly (hit 0.7, miss 0.4, clamping
-0.12/0.97). Quirks of the binding handled here:
+Wraps `pyoctomap.OcTree` with OctoMap's sensor model set explicitly (a `SensorModel`; by default
+hit 0.7, miss 0.4, clamping 0.12/0.97). Quirks of the binding handled here:
 
 - OctoMap's `writeBinary` converts the tree to maximum likelihood and prunes it *in place*, which
   destroys the log-odds needed for later inserts. `bt_bytes()` therefore serialises the full tree
@@ -28,38 +28,25 @@ import pyoctomap
 
 from octolog.kit.errors import MapError
 from octolog.mapper.cloud import write_bytes_atomic
+from octolog.mapper.octokeys import TREE_MAX_VAL, scan_voxel_colours
+from octolog.mapper.sensor_model import SensorModel
 
 __all__ = ["OccupancyOctree"]
 
-_TREE_MAX_VAL = 32768  # OctoMap's key offset for a 16-level tree
-
 
 class OccupancyOctree:
-    """An OctoMap OcTree at `resolution` metres with an explicit, fixed sensor model."""
+    """An OctoMap OcTree at `resolution` metres with an explicit, fixed sensor model (`model`)."""
 
-    def __init__(
-        self,
-        resolution: float = 0.05,
-        *,
-        prob_hit: float = 0.7,
-        prob_miss: float = 0.4,
-        clamp_min: float = 0.12,
-        clamp_max: float = 0.97,
-        occupancy_thres: float = 0.5,
-        colour: bool = False,
-    ) -> None:
-        from octolog.mapper.voxelmap import check_sensor_model
+    backend = "octomap"
 
-        probs = check_sensor_model(resolution, prob_hit=prob_hit, prob_miss=prob_miss, clamp_min=clamp_min,
-                                   clamp_max=clamp_max, occupancy_thres=occupancy_thres)
+    def __init__(self, resolution: float = 0.05, *, model: SensorModel = SensorModel(), colour: bool = False) -> None:
+        model.check(resolution)
         self.resolution = float(resolution)
-        self._model = probs
+        self.model = model
         self.colour = bool(colour)
         self._tree = self._new_tree()
         self._ctree = self._new_colour_tree() if self.colour else None
         self._leaf_cache: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-
-    backend = "octomap"
 
     def _new_colour_tree(self) -> pyoctomap.ColorOcTree:
         tree = pyoctomap.ColorOcTree(self.resolution)
@@ -72,12 +59,12 @@ class OccupancyOctree:
         return tree
 
     def _apply_model(self, tree: pyoctomap.OcTree) -> None:
-        m = self._model
-        tree.setProbHit(m["prob_hit"])
-        tree.setProbMiss(m["prob_miss"])
-        tree.setClampingThresMin(m["clamp_min"])
-        tree.setClampingThresMax(m["clamp_max"])
-        tree.setOccupancyThres(m["occupancy_thres"])
+        m = self.model
+        tree.setProbHit(float(m.prob_hit))
+        tree.setProbMiss(float(m.prob_miss))
+        tree.setClampingThresMin(float(m.clamp_min))
+        tree.setClampingThresMax(float(m.clamp_max))
+        tree.setOccupancyThres(float(m.occupancy_thres))
 
     @property
     def tree(self) -> pyoctomap.OcTree:
@@ -114,7 +101,7 @@ class OccupancyOctree:
             raise MapError(f"max_range_m must be > 0 (or negative for unlimited), got {max_range_m}")
         if colours is not None and (np.shape(colours) != pts.shape or np.asarray(colours).dtype != np.uint8):
             raise MapError(f"colours must be ({pts.shape[0]}, 3) uint8, got {np.shape(colours)}")
-        limit = _TREE_MAX_VAL * self.resolution
+        limit = TREE_MAX_VAL * self.resolution
         if pts.shape[0] and (np.abs(pts).max() >= limit or np.abs(org).max() >= limit):
             raise MapError(f"points outside the octree's addressable cube of +/-{limit:g} m")
         if pts.shape[0] == 0:
@@ -131,8 +118,6 @@ class OccupancyOctree:
     def _insert_colour(self, pts: np.ndarray, org: np.ndarray, colours: np.ndarray | None,
                        max_range_m: float) -> None:
         """Same scan into the ColorOcTree mirror, then averageNodeColor per occupied end voxel."""
-        from octolog.mapper.voxelmap import scan_voxel_colours
-
         ctree = self._ctree
         ctree.insertPointCloud(pts, org, max_range=float(max_range_m) if max_range_m > 0 else -1.0,
                                lazy_eval=False, discretize=True)

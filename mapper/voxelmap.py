@@ -13,7 +13,8 @@ the same tree, not just a similar one:
 - max range: centres farther than `max_range_m` give a ray cut at that range (float32
   `origin + dir.normalized() * (float) maxrange`) and no hit;
 - each voxel updated once per scan, occupied winning over free; float32 `value += update`, then
-  clamped to [logit(0.12), logit(0.97)]; occupied iff log-odds >= logit(0.5) = 0, as OctoMap.
+  clamped to [logit(clamp_min), logit(clamp_max)]; occupied iff log-odds >= logit(occupancy_thres),
+  as OctoMap (the sensor model: mapper/sensor_model.py).
 
 Colour follows `ColorOcTree::averageNodeColor`, applied once per scan and voxel: the scan's mean
 colour of the points in an occupied end-point voxel (rounded half to even) is averaged with the
@@ -35,55 +36,19 @@ import numpy as np
 
 from octolog.kit.errors import MapError
 from octolog.mapper.cloud import write_bytes_atomic
+from octolog.mapper.octokeys import TREE_DEPTH, TREE_MAX_VAL, key_to_coord, norm32, pack, to_key, unpack
+from octolog.mapper.sensor_model import SensorModel
 
-__all__ = ["VoxelOccupancyMap", "logodds", "make_occupancy_map", "scan_voxel_colours"]
+__all__ = ["VoxelOccupancyMap"]
 
-TREE_DEPTH = 16
-TREE_MAX_VAL = 32768  # key offset of a 16-level OctoMap tree
 _DBL_MAX = float(np.finfo(np.float64).max)
-_DENSE_MAX_CELLS = 1 << 26  # per-scan scratch grid limit (uint8), beyond it use np.unique
+_DENSE_MAX_CELLS = 1 << 26  # per-scan scratch grid limit (64 MiB of uint8), beyond it use np.unique
+_RAY_CHUNK = 65536  # rays per DDA batch: caps its working arrays (~100 bytes a ray) at a few MB
 _WHITE = 255
 
 BT_HEADER = "# Octomap OcTree binary file"
 OT_HEADER = "# Octomap OcTree file"
 _COMMENT = "\n# (feel free to add / change comments, but leave the first line as it is!)\n#\n"
-
-
-def logodds(p: float) -> np.float32:
-    """OctoMap's `logodds()`: float(log(p / (1 - p)))."""
-    return np.float32(np.log(p / (1.0 - p)))
-
-
-def _to_key(c32: np.ndarray, res_factor: float) -> np.ndarray:
-    """OctoMap `coordToKey` of float32 coordinates (computed in double), as int64."""
-    x = c32.astype(np.float64)
-    x *= res_factor
-    np.floor(x, out=x)
-    k = x.astype(np.int64)
-    k += TREE_MAX_VAL
-    return k
-
-
-def _key_to_coord(key: np.ndarray, res: float) -> np.ndarray:
-    """OctoMap `keyToCoord` (double): ((key - 32768) + 0.5) * res."""
-    return ((np.asarray(key, dtype=np.int64) - TREE_MAX_VAL).astype(np.float64) + 0.5) * res
-
-
-def _norm32(d: np.ndarray) -> np.ndarray:
-    """octomath `Vector3::norm()`: float32 sum of squares, sqrt in double."""
-    x, y, z = d[..., 0], d[..., 1], d[..., 2]
-    return np.sqrt(((x * x + y * y) + z * z).astype(np.float64))
-
-
-def _pack(keys: np.ndarray) -> np.ndarray:
-    """(N,3) keys in [0, 65536) -> int64 (x << 32 | y << 16 | z), ordered like (x, y, z)."""
-    k = keys.astype(np.int64)
-    return (k[:, 0] << 32) | (k[:, 1] << 16) | k[:, 2]
-
-
-def _unpack(packed: np.ndarray) -> np.ndarray:
-    p = packed.astype(np.int64)
-    return np.stack([(p >> 32) & 0xFFFF, (p >> 16) & 0xFFFF, p & 0xFFFF], axis=1)
 
 
 def _spread3(v: np.ndarray) -> np.ndarray:
@@ -115,11 +80,13 @@ class _ScanGrid:
         self._free: list[np.ndarray] = []
 
     def lin(self, keys: np.ndarray) -> np.ndarray:
+        """Linear indices of (N,3) keys in the scan's key box."""
         s0, s1 = int(self.strides[0]), int(self.strides[1])
         lo = self.lo
         return (keys[:, 0] - lo[0]) * s0 + (keys[:, 1] - lo[1]) * s1 + (keys[:, 2] - lo[2])
 
     def mark_free(self, lin: np.ndarray) -> None:
+        """Mark the voxels at linear indices `lin` as passed by a ray."""
         if self.dense:
             self.grid[lin] = 1
         else:
@@ -146,8 +113,8 @@ class _ScanGrid:
 def _cast_rays(grid: _ScanGrid, origin32: np.ndarray, ends32: np.ndarray, res: float) -> None:
     """OctoMap `computeRayKeys(origin, end)` for all rays at once; marks the ray voxels in `grid`."""
     rf = 1.0 / res
-    ko = _to_key(origin32[None, :], rf)[0]
-    ke = _to_key(ends32, rf)
+    ko = to_key(origin32[None, :], rf)[0]
+    ke = to_key(ends32, rf)
     moving = np.any(ke != ko, axis=1)  # same cell: OctoMap adds nothing, not even the origin
     if not moving.any():
         return
@@ -155,13 +122,13 @@ def _cast_rays(grid: _ScanGrid, origin32: np.ndarray, ends32: np.ndarray, res: f
     grid.mark_free(grid.lin(ko[None, :]))
 
     direction = ends32 - origin32  # float32
-    length = _norm32(direction).astype(np.float32)
+    length = norm32(direction).astype(np.float32)
     direction = direction / length[:, None]  # float32 division, as Vector3::operator/=
     length = length.astype(np.float64)
     step = np.sign(direction).astype(np.int64)
     dir64 = direction.astype(np.float64)
     half = (step.astype(np.float64) * res * 0.5).astype(np.float32).astype(np.float64)
-    border = _key_to_coord(ko, res)[None, :] + half
+    border = key_to_coord(ko, res)[None, :] + half
     with np.errstate(divide="ignore", invalid="ignore"):
         t_max = np.where(step != 0, (border - origin32.astype(np.float64)[None, :]) / dir64, _DBL_MAX)
         t_delta = np.where(step != 0, res / np.abs(dir64), _DBL_MAX)
@@ -210,46 +177,22 @@ def _cast_rays(grid: _ScanGrid, origin32: np.ndarray, ends32: np.ndarray, res: f
         raise MapError("ray casting did not terminate (inconsistent ray geometry)")
 
 
-def check_sensor_model(resolution: float, **probs: float) -> dict[str, float]:
-    """Validate a resolution and OctoMap sensor model (prob_hit, prob_miss, clamp_min, clamp_max,
-    occupancy_thres); both occupancy backends share it. Returns the probabilities as floats."""
-    if not (np.isfinite(resolution) and resolution > 0):
-        raise MapError(f"octree resolution must be a positive number, got {resolution}")
-    for name, p in probs.items():
-        if not (np.isfinite(p) and 0.0 < p < 1.0):
-            raise MapError(f"octree {name} must be a probability in (0, 1), got {p}")
-    if not (probs["prob_miss"] < probs["occupancy_thres"] < probs["prob_hit"]):
-        raise MapError("octree sensor model needs prob_miss < occupancy_thres < prob_hit")
-    if not (probs["clamp_min"] < probs["occupancy_thres"] < probs["clamp_max"]):
-        raise MapError("octree clamping needs clamp_min < occupancy_thres < clamp_max")
-    return {k: float(v) for k, v in probs.items()}
-
-
 class VoxelOccupancyMap:
     """Sparse occupancy voxels with OctoMap's sensor model; OctoMap-compatible `.bt` / `.ot` output."""
 
     backend = "numpy"
 
-    def __init__(
-        self,
-        resolution: float = 0.05,
-        *,
-        prob_hit: float = 0.7,
-        prob_miss: float = 0.4,
-        clamp_min: float = 0.12,
-        clamp_max: float = 0.97,
-        occupancy_thres: float = 0.5,
-        colour: bool = True,
-    ) -> None:
-        check_sensor_model(resolution, prob_hit=prob_hit, prob_miss=prob_miss, clamp_min=clamp_min,
-                           clamp_max=clamp_max, occupancy_thres=occupancy_thres)
+    def __init__(self, resolution: float = 0.05, *, model: SensorModel = SensorModel(), colour: bool = True) -> None:
+        model.check(resolution)
         self.resolution = float(resolution)
+        self.model = model
         self.colour = bool(colour)
-        self._hit = logodds(prob_hit)
-        self._miss = logodds(prob_miss)
-        self._lmin = logodds(clamp_min)
-        self._lmax = logodds(clamp_max)
-        self._thres = logodds(occupancy_thres)
+        lo = model.logodds()
+        self._hit = lo.hit
+        self._miss = lo.miss
+        self._lmin = lo.clamp_min
+        self._lmax = lo.clamp_max
+        self._thres = lo.occupancy_thres
         self.clear()
 
     def clear(self) -> None:
@@ -306,8 +249,8 @@ class VoxelOccupancyMap:
         rf = 1.0 / res
         p32 = pts.astype(np.float32)
         o32 = org.astype(np.float32)
-        keys = _to_key(p32, rf)
-        ko = _to_key(o32[None, :], rf)[0]
+        keys = to_key(p32, rf)
+        ko = to_key(o32[None, :], rf)[0]
         lo = np.minimum([keys[:, i].min() for i in range(3)], ko)
         hi = np.maximum([keys[:, i].max() for i in range(3)], ko)
         if lo.min() < 0 or hi.max() >= 2 * TREE_MAX_VAL:
@@ -328,13 +271,13 @@ class VoxelOccupancyMap:
             del mark
         else:
             ulin, inverse = np.unique(plin, return_inverse=True)
-        ukeys = _unpack(box._to_packed(ulin))
+        ukeys = unpack(box._to_packed(ulin))
 
         if discretize:
-            ends = _key_to_coord(ukeys, res).astype(np.float32)
+            ends = key_to_coord(ukeys, res).astype(np.float32)
         else:
             ends = p32
-        dist = _norm32(ends - o32[None, :])
+        dist = norm32(ends - o32[None, :])
         in_range = np.ones(ends.shape[0], dtype=bool) if max_range < 0 else dist <= max_range
         if not in_range.all():
             far = ~in_range
@@ -349,14 +292,13 @@ class VoxelOccupancyMap:
             occ_keys = keys[in_range]
 
         # Ray end voxels may lie outside the points' box (rays cut at max range stay inside it).
-        ray_keys = _to_key(ends, rf)
+        ray_keys = to_key(ends, rf)
         glo = np.minimum(lo, ray_keys.min(axis=0))
         ghi = np.maximum(hi, ray_keys.max(axis=0))
         # Pad one voxel: the DDA never leaves the segment's key box, but be safe at borders.
         grid = _ScanGrid(glo - 1, ghi + 1)
-        chunk = 65536
-        for s in range(0, ends.shape[0], chunk):
-            _cast_rays(grid, o32, ends[s:s + chunk], res)
+        for s in range(0, ends.shape[0], _RAY_CHUNK):
+            _cast_rays(grid, o32, ends[s:s + _RAY_CHUNK], res)
         free, occ = grid.result(grid.lin(occ_keys))
 
         # Merge: free cells get the miss update, occupied cells the hit update (once per scan).
@@ -406,7 +348,7 @@ class VoxelOccupancyMap:
 
     def keys(self) -> np.ndarray:
         """Known voxel keys (N,3) int64, sorted by (x, y, z)."""
-        return _unpack(self._keys)
+        return unpack(self._keys)
 
     def logodds_values(self) -> np.ndarray:
         """Log-odds (N,) float32 of the known voxels, in `keys()` order."""
@@ -417,6 +359,7 @@ class VoxelOccupancyMap:
         return self._rgb.copy()
 
     def occupied_mask(self) -> np.ndarray:
+        """Per known voxel (in `keys()` order): log-odds at or above the occupancy threshold."""
         return self._logodds >= self._thres
 
     def _centres(self, want_occupied: bool, max_voxels: int | None) -> np.ndarray:
@@ -424,7 +367,7 @@ class VoxelOccupancyMap:
         n = int(sel.sum())
         if max_voxels is not None and n > max_voxels:
             raise MapError(f"{n} voxels exceed max_voxels={max_voxels}")
-        return _key_to_coord(_unpack(self._keys[sel]), self.resolution)
+        return key_to_coord(unpack(self._keys[sel]), self.resolution)
 
     def occupied_centres(self, max_voxels: int | None = None) -> np.ndarray:
         """Centres (N,3) of occupied voxels, sorted by (x, y, z) index."""
@@ -446,9 +389,9 @@ class VoxelOccupancyMap:
         out = np.full(pts.shape[0], -1, dtype=np.int8)
         if pts.shape[0] == 0 or self._keys.shape[0] == 0:
             return out
-        k = _to_key(pts.astype(np.float32), 1.0 / self.resolution)
+        k = to_key(pts.astype(np.float32), 1.0 / self.resolution)
         ok = np.all((k >= 0) & (k < 2 * TREE_MAX_VAL), axis=1)
-        packed = _pack(np.clip(k, 0, 2 * TREE_MAX_VAL - 1))
+        packed = pack(np.clip(k, 0, 2 * TREE_MAX_VAL - 1))
         pos = np.clip(np.searchsorted(self._keys, packed), 0, self._keys.shape[0] - 1)
         hit = ok & (self._keys[pos] == packed)
         out[hit] = np.where(self._logodds[pos[hit]] >= self._thres, 1, 0)
@@ -604,43 +547,3 @@ def _build_tree(keys: np.ndarray, prune_key: np.ndarray, value: np.ndarray, occu
     if rgb is not None:
         tree.rgb = np.concatenate([p[6] for p in parts])[order].astype(np.uint8)
     return tree
-
-
-def scan_voxel_colours(points_world: np.ndarray, colours: np.ndarray, origin: np.ndarray,
-                       resolution: float, max_range_m: float = -1.0) -> tuple[np.ndarray, np.ndarray]:
-    """Per occupied end-point voxel of one scan: (centre (M,3) float64, mean colour (M,3) uint8).
-
-    The same rule `VoxelOccupancyMap` applies (voxels whose centre is within `max_range_m` of the
-    origin; mean rounded half to even), for feeding `ColorOcTree.averageNodeColor` in the
-    OctoMap backend.
-    """
-    p32 = np.asarray(points_world, dtype=np.float64).astype(np.float32)
-    o32 = np.asarray(origin, dtype=np.float64).reshape(3).astype(np.float32)
-    keys = _to_key(p32, 1.0 / resolution)
-    ukeys, inverse = np.unique(_pack(keys), return_inverse=True)
-    ukeys = _unpack(ukeys)
-    centres32 = _key_to_coord(ukeys, resolution).astype(np.float32)
-    ok = np.ones(ukeys.shape[0], bool) if max_range_m < 0 else _norm32(centres32 - o32) <= max_range_m
-    m = ukeys.shape[0]
-    cnt = np.bincount(inverse, minlength=m)
-    mean = np.stack([np.bincount(inverse, weights=colours[:, j].astype(np.float64), minlength=m)
-                     for j in range(3)], axis=1)
-    mean = np.clip(np.rint(mean / np.maximum(cnt, 1)[:, None]), 0, 255).astype(np.uint8)
-    return _key_to_coord(ukeys[ok], resolution), mean[ok]
-
-
-def make_occupancy_map(backend: str = "numpy", resolution: float = 0.05, *, colour: bool = True,
-                       **model: float):
-    """An occupancy map with the common interface (insert, write_bt, write_ot, stats, centres, clear).
-
-    backend "numpy": `VoxelOccupancyMap` (own, vectorised); "octomap": `OccupancyOctree`
-    (pyoctomap, the reference), with a `ColorOcTree` mirror for colour when `colour` is true.
-    `model` passes prob_hit, prob_miss, clamp_min, clamp_max, occupancy_thres.
-    """
-    if backend == "numpy":
-        return VoxelOccupancyMap(resolution, colour=colour, **model)
-    if backend == "octomap":
-        from octolog.mapper.octree import OccupancyOctree
-
-        return OccupancyOctree(resolution, colour=colour, **model)
-    raise MapError(f"unknown occupancy map backend {backend!r} (want 'numpy' or 'octomap')")

@@ -10,9 +10,11 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from octolog.kit.errors import InputError
+from octolog.kit.errors import ConfigError, InputError
 from octolog.kit.geometry import Intrinsics, RgbdFrame, matrix_to_pose, pose_to_matrix
 
 MSG_DIR = Path(__file__).with_name("msg")
@@ -24,8 +26,6 @@ VENDORED = {"Octomap": "octomap_msgs"}
 @cache
 def typestore() -> Any:
     """ROS 2 (Jazzy) type store with octolog's own message types registered."""
-    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-
     store = get_typestore(Stores.ROS2_JAZZY)
     types: dict[str, Any] = {}
     for path in sorted(MSG_DIR.glob("*.msg")):
@@ -264,8 +264,6 @@ def decode_compressed_image(msg: Any) -> np.ndarray:
     Reads plain png/jpeg, image_transport's "rgb8; jpeg compressed bgr8" and "16UC1; png compressed",
     and compressed_depth_image_transport's "16UC1; compressedDepth png" (as librealsense 2.59 records).
     """
-    import cv2
-
     fmt = str(msg.format)
     data = np.asarray(msg.data, dtype=np.uint8)
     if "compresseddepth" in fmt.lower():
@@ -295,8 +293,6 @@ def compressed_image_msg(data: bytes, fmt: str, stamp: int, frame_id: str) -> An
 
 def compressed_image_array(msg: Any) -> np.ndarray:
     """Decode a JPEG (to RGB) or PNG (16-bit depth kept as uint16) CompressedImage."""
-    import cv2
-
     raw = np.asarray(msg.data, dtype=np.uint8)
     img = cv2.imdecode(raw, cv2.IMREAD_UNCHANGED)
     if img is None:
@@ -364,8 +360,6 @@ DEPTH_PNG_FORMAT = "16UC1; png compressed"
 def parse_wire_compression(spec: str) -> WireCompression | None:
     """`""`/`"raw"`: no compression; else `COLOUR[,DEPTH]` with COLOUR `jpeg[:QUALITY]` or `png[:LEVEL]`
     and DEPTH `png` (the default; depth is never compressed lossily)."""
-    from octolog.kit.errors import ConfigError
-
     if spec in ("", "raw"):
         return None
     colour, _, depth = spec.partition(",")
@@ -385,8 +379,6 @@ def parse_wire_compression(spec: str) -> WireCompression | None:
 
 
 def _encode(image: np.ndarray, ext: str, params: list[int]) -> np.ndarray:
-    import cv2
-
     ok, buf = cv2.imencode(ext, image, params)
     if not ok:
         raise InputError(f"cannot encode a {image.shape} {image.dtype} image as {ext}")
@@ -396,8 +388,6 @@ def _encode(image: np.ndarray, ext: str, params: list[int]) -> np.ndarray:
 def _wire_images(frame: RgbdFrame, wire: WireCompression) -> tuple[Any, Any]:
     """(colour, depth) as CompressedImage messages. OpenCV's encoders are deterministic: the same
     pixels give the same bytes, so lossy JPEG keeps the pipeline's determinism."""
-    import cv2
-
     bgr = np.ascontiguousarray(frame.rgb[..., ::-1])
     if wire.colour == "jpeg":
         colour = _encode(bgr, ".jpg", [cv2.IMWRITE_JPEG_QUALITY, wire.quality])
@@ -410,8 +400,6 @@ def _wire_images(frame: RgbdFrame, wire: WireCompression) -> tuple[Any, Any]:
 
 def wire_image_array(msg: Any) -> np.ndarray:
     """Pixels of a wire CompressedImage: RGB colour, uint16 depth; bad data is an InputError."""
-    import cv2
-
     raw = np.asarray(msg.data, dtype=np.uint8)
     img = cv2.imdecode(raw, cv2.IMREAD_UNCHANGED) if raw.size else None
     if img is None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from octolog.kit.errors import MapError
 from octolog.kit.mcaplog import summarize
 
 
@@ -47,8 +48,6 @@ def describe(path: Path) -> str:
 
 def describe_map(path: Path) -> str:
     """Header and leaf counts of an OctoMap file, read by OctoMap itself; MapError if unreadable."""
-    from octolog.kit.errors import MapError
-
     try:
         head = path.read_bytes()[:512]
     except FileNotFoundError:
@@ -57,7 +56,7 @@ def describe_map(path: Path) -> str:
     fields = dict(ln.decode("ascii", "replace").split(" ", 1) for ln in lines[1:6] if b" " in ln)
     if not lines[0].startswith(b"# Octomap OcTree") or "res" not in fields or "id" not in fields:
         raise MapError(f"{path}: not an OctoMap file (no '# Octomap OcTree' header with id and res)")
-    import pyoctomap
+    import pyoctomap  # here, not at the top: it loads numpy (~0.2 s), which MCAP summaries never need
 
     res = float(fields["res"])
     tree = pyoctomap.OcTree(res)

@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import re
 import sys
 import uuid
@@ -13,8 +14,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from octolog.kit.config import load, to_dict, to_toml
 from octolog.kit.errors import ConfigError
 from octolog.shell.args import add_bus_arguments, add_config_arguments, add_viz_arguments, bus_config
+from octolog.shell.versions import versions
+
+# The recorder's modules are imported inside the commands below, never here: they load pyrealsense2,
+# OpenCV and mcap, and cli.py imports this module for every command (`octolog --help` stays ~0.3 s).
 
 _PROFILE = re.compile(r"^(\d+)x(\d+)@(\d+)$")
 
@@ -107,7 +113,7 @@ def _status_printer() -> Callable[[Any], None]:
 
 
 def cmd_record(args: argparse.Namespace) -> int:
-    from octolog.kit.config import load
+    """`octolog record`: capture from the camera into an MCAP file or a session folder."""
     from octolog.recorder import node
     from octolog.recorder.config import RecorderConfig
 
@@ -140,11 +146,6 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 def _write_session_files(folder: Path, cfg: Any, res: Any) -> None:
     """config.toml and summary.json beside a recording, as in a session folder from `octolog run`."""
-    import json
-
-    from octolog.kit.config import to_dict, to_toml
-    from octolog.shell.run import versions
-
     (folder / "config.toml").write_text(to_toml({"recorder": to_dict(cfg)}))
     streams = {name: {"frames": st.frames, "dropped": st.dropped} for name, st in res.streams.items()}
     (folder / "summary.json").write_text(json.dumps(
@@ -155,6 +156,7 @@ def _write_session_files(folder: Path, cfg: Any, res: Any) -> None:
 
 
 def cmd_recover(args: argparse.Namespace) -> int:
+    """`octolog recover`: rebuild a complete MCAP file from one a killed recorder left."""
     from octolog.recorder.recover import recover
 
     r = recover(Path(args.input), Path(args.output), overwrite=args.overwrite, compression=args.compression)

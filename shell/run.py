@@ -9,6 +9,7 @@ signal (not asked to stop) is started again and rebuilds the same map from the t
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -19,10 +20,23 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from octolog import __version__
-from octolog.kit.bus import wait_interruptibly
-from octolog.kit.errors import ConfigError, StageError
+from octolog.kit import metrics
+from octolog.kit.bus import Bus, BusConfig, wait_interruptibly
+from octolog.kit.config import load, to_dict, to_toml
+from octolog.kit.errors import ConfigError, InputError, StageError, StageExited, StageKilled
+from octolog.kit.mcaplog import read_messages, summarize
+from octolog.kit.viz import parse_spec
+from octolog.mapper.config import MapperConfig
+from octolog.replay.config import ReplayConfig
+from octolog.replay.sources import Source, open_source
+from octolog.schemas import codec
+from octolog.schemas.topics import RGBD, RGBD_COMPRESSED, TRACKING_STATUS
+from octolog.shell import errorfile
+from octolog.shell.versions import versions
+from octolog.tracker.config import TrackerConfig, for_source
 
 STAGES = ("log", "mapper", "tracker", "replay")
 # A killed mapper is started again: it rebuilds its map from the tracker's keyframe history (the
@@ -34,6 +48,8 @@ MAX_RESTARTS = 3
 
 @dataclass
 class SessionSummary:
+    """What `octolog run` reports: frames, times, ATE, map statistics and the files written."""
+
     out: Path
     source: str
     frames: int = 0
@@ -62,14 +78,8 @@ def _split_overrides(overrides: list[str]) -> dict[str, list[str]]:
     return per
 
 
-def _resolve_configs(source: str, config: str | None, per: dict[str, list[str]]) -> dict[str, object]:
-    import dataclasses
-
-    from octolog.kit.config import load
-    from octolog.mapper.config import MapperConfig
-    from octolog.replay.config import ReplayConfig
-    from octolog.tracker.config import TrackerConfig
-
+def _resolve_configs(source: str, config: str | None, per: dict[str, list[str]]) -> dict[str, Any]:
+    """Each stage's config from the file and the overrides; the replay's source and consumers set here."""
     replay = load(ReplayConfig, config, per["replay"], section="replay")
     consumers = ("tracker", "mapper", "log") if replay.play == "camera" else ("mapper", "log")
     replay = dataclasses.replace(replay, source=source, wait_for=consumers)
@@ -90,8 +100,10 @@ class _Children:
         self.restarts: dict[str, int] = {}
 
     def start(self, name: str, argv: list[str], *, show_stderr: bool = False, append: bool = False) -> None:
+        """Start stage `name` as `python -m octolog ARGV`, its output in logs/NAME.log."""
         log = open(self.logs / f"{name}.log", "ab" if append else "wb")  # noqa: SIM115 - owned by the child
-        env = {**os.environ, "PYTHONHASHSEED": "0", "PYTHONUNBUFFERED": "1"}
+        self.error_file(name).unlink(missing_ok=True)
+        env = {**os.environ, "PYTHONHASHSEED": "0", "PYTHONUNBUFFERED": "1", errorfile.ENV: str(self.error_file(name))}
         self.argv[name] = (argv, show_stderr)
         self.procs[name] = subprocess.Popen(
             [sys.executable, "-m", "octolog", *argv], stdout=log, stderr=None if show_stderr else log, env=env,
@@ -110,6 +122,7 @@ class _Children:
         return True
 
     def wait_all(self) -> None:
+        """Wait until every stage has exited; restart a killed mapper; raise StageFailed for a failed stage."""
         pending = dict(self.procs)
         while pending:
             for name, proc in list(pending.items()):
@@ -122,16 +135,26 @@ class _Children:
                     continue
                 if code != 0:
                     self.stop_all()
-                    why = f"killed by signal {-code}" if code < 0 else f"exited with code {code}"
-                    raise StageError(f"the {name} stage {why}: {self.last_line(name)} (log: {self.logs / name}.log)")
+                    log = f"{self.logs / name}.log"
+                    if code < 0:
+                        raise StageKilled(name, -code, self.reason(name), log)
+                    raise StageExited(name, code, self.reason(name), log)
             time.sleep(0.1)
 
-    def last_line(self, name: str) -> str:
+    def error_file(self, name: str) -> Path:
+        """Where stage `name` records its known error (shell/errorfile.py)."""
+        return self.logs / f"{name}.error.json"
+
+    def reason(self, name: str) -> str:
+        """Why stage `name` failed: the error it recorded, else the last line of its log."""
+        record = errorfile.read(self.error_file(name))
+        if record is not None:
+            return record.message
         lines = [ln for ln in (self.logs / f"{name}.log").read_text(errors="replace").splitlines() if ln.strip()]
-        errors = [ln for ln in lines if "error" in ln.lower()]
-        return (errors or lines or ["(no output)"])[-1].strip()
+        return (lines or ["(no output)"])[-1].strip()
 
     def stop_all(self) -> None:
+        """Stop every stage still running: SIGTERM to its process group, SIGKILL after 5 s."""
         for proc in self.procs.values():
             if proc.poll() is None:
                 os.killpg(proc.pid, signal.SIGTERM)
@@ -146,11 +169,7 @@ class _Children:
 
 def run_session(*, source: str, out: Path, config: str | None = None, overrides: list[str] | None = None,
                 rerun: str = "save", recording_id: str, quiet: bool = False) -> SessionSummary:
-    from octolog.kit.config import to_dict, to_toml
-    from octolog.kit.viz import parse_spec
-    from octolog.replay.sources import open_source
-    from octolog.tracker.config import for_source
-
+    """Run the whole pipeline on `source` into `out` (config, logs, session.mcap, map, trajectory)."""
     cfgs = _resolve_configs(source, config, _split_overrides(overrides or []))
     replay_cfg = cfgs["replay"]
     feed_tracker = replay_cfg.play == "tracker"  # a log player stands in for the tracker
@@ -182,8 +201,6 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     router_error: list[BaseException] = []
 
     def router() -> None:
-        from octolog.kit.bus import Bus, BusConfig
-
         try:
             with Bus(BusConfig(mode="router", listen=(endpoint,), multicast_scouting=False), "router"):
                 router_ready.set()
@@ -219,28 +236,8 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     return _summarize(out, source, src, wall, recording_id)
 
 
-PINNED = ("eclipse-zenoh", "mcap", "rerun-sdk", "numpy", "scipy", "opencv-python-headless", "open3d-cpu",
-          "pyoctomap", "rosbags", "pyrealsense2", "gtsam", "pyorbslam3")
-
-
-def versions() -> dict[str, str]:
-    from importlib.metadata import PackageNotFoundError, version
-
-    out = {"octolog": __version__, "python": sys.version.split()[0]}
-    for name in PINNED:
-        try:
-            out[name] = version(name)
-        except PackageNotFoundError:
-            out[name] = "missing"
-    return out
-
-
 def frame_counts(log: Path) -> dict[str, int]:
     """What the session log says about frames: published, consumed by the tracker, skipped."""
-    from octolog.kit.mcaplog import read_messages
-    from octolog.schemas import codec
-    from octolog.schemas.topics import RGBD, RGBD_COMPRESSED, TRACKING_STATUS
-
     skipped_code = codec.msgtype(TRACKING_STATUS.msgtype).SKIPPED
     published = consumed = skipped = 0
     for m in read_messages(log, [RGBD.name, RGBD_COMPRESSED.name, TRACKING_STATUS.name]):
@@ -253,9 +250,7 @@ def frame_counts(log: Path) -> dict[str, int]:
     return {"published": published, "consumed": consumed, "skipped": skipped}
 
 
-def _summarize(out: Path, source: str, src, wall: float, recording_id: str) -> SessionSummary:
-    from octolog.kit import metrics
-
+def _summarize(out: Path, source: str, src: Source, wall: float, recording_id: str) -> SessionSummary:
     s = SessionSummary(out=out, source=source, wall_s=wall, duration_s=src.duration_ns * 1e-9)
     s.map = json.loads((out / "map_stats.json").read_text())
     frames = frame_counts(out / "session.mcap")
@@ -277,6 +272,7 @@ def _summarize(out: Path, source: str, src, wall: float, recording_id: str) -> S
 
 
 def format_summary(s: SessionSummary) -> str:
+    """The summary `octolog run` prints: frames and rate, ATE, map, files."""
     lines = [f"session {s.out}: {s.frames} frames from {s.source} in {s.wall_s:.1f} s "
              f"(real-time factor {s.duration_s / s.wall_s if s.wall_s else 0:.2f})"]
     if s.ate:
@@ -300,9 +296,6 @@ def replay_session(session: Path, *, out: Path, stages: tuple[str, ...] = ("trac
     `stages` run fresh; the others are fed from the log. tracker+mapper: the frames the live tracker
     consumed, in lockstep; mapper alone: the logged keyframes and pose corrections.
     """
-    from octolog.kit.errors import InputError
-    from octolog.kit.mcaplog import summarize
-
     key = tuple(s for s in ("tracker", "mapper") if s in stages)
     if key not in STAGE_CHOICES or set(stages) - {"tracker", "mapper"}:
         raise ConfigError(f"--stages {','.join(stages)}: want tracker,mapper or mapper (= --from tracker)")
@@ -329,8 +322,6 @@ def replay_session(session: Path, *, out: Path, stages: tuple[str, ...] = ("trac
 
 def merge_rrd(session: Path) -> Path:
     """Merge a session's per-stage .rrd files into `session.rrd` (one recording, one timeline)."""
-    from octolog.kit.errors import InputError
-
     parts = sorted((session / "rerun").glob("*.rrd"))
     parts = [p for p in parts if p.name != "session.rrd"]
     if not parts:

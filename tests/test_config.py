@@ -1,10 +1,14 @@
 from __future__ import annotations
 
+import dataclasses
+import tomllib
+
 import pytest
 
 from octolog.kit.config import load, to_json
 from octolog.kit.errors import ConfigError
 from octolog.mapper.config import MapperConfig
+from octolog.mapper.sensor_model import SensorModel
 from octolog.replay.config import ReplayConfig
 from octolog.tracker.config import TrackerConfig
 
@@ -44,3 +48,30 @@ def test_missing_and_invalid_files(tmp_path):
 def test_resolved_config_is_canonical():
     assert to_json(MapperConfig()) == to_json(load(MapperConfig, None, []))
     assert '"resolution_m": 0.05' in to_json(MapperConfig())
+
+
+@pytest.mark.parametrize(
+    ("overrides", "fragment"),
+    [
+        (["prob_hit=1.5"], "mapper.prob_hit must be a probability in \\(0, 1\\)"),
+        (["prob_hit=0.45"], "prob_miss < occupancy_thres < prob_hit"),
+        (["clamp_max=0.4"], "clamp_min < occupancy_thres < clamp_max"),
+        (["sor_neighbors=0"], "mapper.sor_neighbors 0"),
+        (["grid_resolution_m=0"], "mapper.grid_resolution_m 0"),
+    ],
+)
+def test_mapper_config_checks_every_value_once(overrides, fragment):
+    with pytest.raises(ConfigError, match=fragment):
+        load(MapperConfig, None, overrides)
+    with pytest.raises(ConfigError, match=fragment):  # params() validates a config built in code too
+        dataclasses.replace(MapperConfig(), **{k: tomllib.loads(f"v = {v}")["v"]
+                                               for k, v in (o.split("=") for o in overrides)}).params()
+
+
+def test_mapper_params_group_the_config_and_keep_octomaps_defaults():
+    p = load(MapperConfig, None, ["prob_hit=0.8", "voxel_m=0.02", "grid_z_max_m=0.5", "backend=octomap"]).params()
+    assert p.occupancy.sensor == SensorModel(prob_hit=0.8)
+    assert (p.occupancy.backend, p.cloud.voxel_m, p.grid.z_max_m, p.max_extent_m) == ("octomap", 0.02, 0.5, 1000.0)
+    assert MapperConfig().params().occupancy.sensor == SensorModel() == SensorModel(0.7, 0.4, 0.12, 0.97, 0.5)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        p.cloud.voxel_m = 0.5  # type: ignore[misc]

@@ -118,7 +118,7 @@ def _reference(out: Path, start_poses: list[list[float]], *, source: str = f"syn
     at the last pose its robot sent for it after sending it, integrated once."""
     from octolog.kit.geometry import pose_to_matrix
     from octolog.kit.metrics import write_tum
-    from octolog.mapper.config import make_mapper
+    from octolog.mapper.core import make_mapper
     from octolog.replay.sources import open_source
     from octolog.schemas import codec
     from octolog.tracker.config import TrackerConfig, make_odometry

@@ -16,7 +16,8 @@ import pytest
 
 from octolog.kit.errors import MapError
 from octolog.mapper.cloud import transform
-from octolog.mapper.config import MapperConfig, make_mapper
+from octolog.mapper.config import MapperConfig
+from octolog.mapper.core import make_mapper
 from octolog.mapper.evaluate import ObservedVoxels, cloud_to_surface, observed_voxels, voxel_accuracy
 from octolog.mapper.grid import FREE, OCCUPIED, map_from_world_for_up, project_octree, write_map_server
 from octolog.replay.synthetic import SyntheticScene

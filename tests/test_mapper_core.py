@@ -26,6 +26,7 @@ from octolog.mapper.cloud import (
     write_ply,
 )
 from octolog.mapper.octree import OccupancyOctree
+from octolog.mapper.sensor_model import SensorModel
 
 K = Intrinsics(640, 480, 525.0, 525.0, 319.5, 239.5)
 SCALE = 0.001  # 1 mm per depth unit
@@ -341,7 +342,7 @@ def test_octree_rejects_bad_inputs(tmp_path):
     with pytest.raises(MapError):
         OccupancyOctree(0.0)
     with pytest.raises(MapError):
-        OccupancyOctree(prob_hit=0.4)
+        OccupancyOctree(model=SensorModel(prob_hit=0.4))
     with pytest.raises(MapError, match="cannot write"):
         tree.write_bt(tmp_path / "missing-dir" / "x.bt")
     assert tree.insert(np.zeros((0, 3)), np.zeros(3)) == 0

@@ -15,7 +15,8 @@ from helpers import ROOT
 
 from octolog.kit.errors import InputError
 from octolog.kit.geometry import pose_to_matrix
-from octolog.mapper.config import MapperConfig, make_mapper
+from octolog.mapper.config import MapperConfig
+from octolog.mapper.core import make_mapper
 from octolog.replay.synthetic import SyntheticScene
 
 

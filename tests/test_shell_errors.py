@@ -1,0 +1,42 @@
+"""A stage's known error reaches `octolog run` as a typed record, and stage failures have types."""
+
+from __future__ import annotations
+
+import pytest
+
+from octolog.kit.errors import InputError, StageExited, StageFailed, StageKilled
+from octolog.shell import cli, errorfile
+from octolog.shell.run import _Children
+
+
+def test_a_known_error_is_recorded_for_the_orchestrator(tmp_path, monkeypatch, capsys):
+    record = tmp_path / "eval.error.json"
+    monkeypatch.setenv(errorfile.ENV, str(record))
+    assert cli.main(["eval", str(tmp_path / "nope.txt"), str(tmp_path / "gt.txt")]) == 1
+    line = capsys.readouterr().err.strip()
+    got = errorfile.read(record)
+    assert got is not None and got.type == "InputError"
+    assert line == f"octolog eval: error: {got.message}"
+
+
+def test_no_record_without_the_variable_or_for_a_success(tmp_path, monkeypatch):
+    monkeypatch.delenv(errorfile.ENV, raising=False)
+    errorfile.write(InputError("x"))  # not a stage of `octolog run`: nothing written anywhere
+    assert errorfile.read(tmp_path / "missing.json") is None
+    (tmp_path / "bad.json").write_text("[1, 2]")
+    assert errorfile.read(tmp_path / "bad.json") is None
+
+
+def test_stage_failures_are_typed_and_name_the_stage(tmp_path):
+    children = _Children(tmp_path)
+    (tmp_path / "tracker.log").write_text("frame 10\nTraceback (most recent call last):\nValueError: boom\n\n")
+    assert children.reason("tracker") == "ValueError: boom"  # no record: the log's last line
+    children.error_file("tracker").write_text('{"type": "MapError", "message": "cannot write map.bt"}')
+    assert children.reason("tracker") == "cannot write map.bt"
+    killed = StageKilled("tracker", 9, "x", "t.log")
+    exited = StageExited("replay", 1, "bad image", "r.log")
+    assert str(killed) == "the tracker stage killed by signal 9: x (log: t.log)" and killed.signal == 9
+    assert str(exited) == "the replay stage exited with code 1: bad image (log: r.log)" and exited.code == 1
+    for exc in (killed, exited):
+        with pytest.raises(StageFailed):
+            raise exc
