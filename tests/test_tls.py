@@ -2,7 +2,7 @@
 
 The router is `octolog router` in its own process with docs/examples/zenoh-tls-router.json5; the
 certificates come from docs/examples/make-certs.sh (openssl), so the documented example is what
-runs here. Clients are real Zenoh sessions (octolog.bus.Bus) with docs/examples/zenoh-tls-client.json5
+runs here. Clients are real Zenoh sessions (octolog.kit.bus.Bus) with docs/examples/zenoh-tls-client.json5
 pointed at their own certificates.
 """
 
