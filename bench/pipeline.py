@@ -75,9 +75,11 @@ def run_pipeline(source: str, out: Path) -> dict:
 
 def run_in_process(source: str) -> dict:
     """The reference: the same cores, one process, no transport, no logging."""
-    from octolog.mapper.config import MapperConfig, make_mapper
+    from octolog.mapper.config import MapperConfig
+    from octolog.mapper.core import make_mapper
     from octolog.replay.sources import open_source
-    from octolog.tracker.config import TrackerConfig, for_source, make_odometry
+    from octolog.tracker.config import TrackerConfig, for_source
+    from octolog.tracker.factory import make_odometry
 
     src = open_source(source)
     frames = list(src.frames())  # decode up front: the pipeline's replay decodes concurrently

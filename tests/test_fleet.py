@@ -121,7 +121,8 @@ def _reference(out: Path, start_poses: list[list[float]], *, source: str = f"syn
     from octolog.mapper.core import make_mapper
     from octolog.replay.sources import open_source
     from octolog.schemas import codec
-    from octolog.tracker.config import TrackerConfig, make_odometry
+    from octolog.tracker.config import TrackerConfig
+    from octolog.tracker.factory import make_odometry
 
     src = open_source(source)
     def wire(T: np.ndarray) -> np.ndarray:  # a pose as the messages carry it (position + quaternion)
