@@ -23,6 +23,10 @@ class BusError(OctologError):
     """A Zenoh session or transport problem."""
 
 
+class VizError(OctologError):
+    """A Rerun recording that cannot be written or sent."""
+
+
 class StageError(OctologError):
     """A pipeline stage failed or a peer stage disappeared."""
 
@@ -48,7 +52,7 @@ class WriteFailed(RecorderError):
 
 
 class DiskFull(WriteFailed):
-    """The disk filled up mid-recording (ENOSPC)."""
+    """The disk filled up (ENOSPC) mid-recording or mid-run."""
 
 
 class StageFailed(StageError):

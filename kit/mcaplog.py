@@ -116,8 +116,13 @@ class McapWriter:
     def __enter__(self) -> McapWriter:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: object, *rest: object) -> None:
+        try:
+            self.close()
+        except McapError:
+            if exc_type is None:
+                raise
+            # the error that stopped the writing says more than a failed finish after it
 
     def channel(self, topic: str, msgtype: str) -> int:
         key = (topic, msgtype)
@@ -200,7 +205,8 @@ class McapWriter:
         except OSError as exc:
             self.failed = True
             if exc.errno == errno.ENOSPC:
-                raise McapError(f"{self.path}: disk full after {self.count} messages") from None
+                raise McapError(f"disk full: {self.path} after {self.count} messages (no space left on the disk "
+                                f"holding {self.path.parent})") from None
             raise McapError(f"{self.path}: write failed: {exc.strerror}") from None
 
 
@@ -212,6 +218,15 @@ def _open(path: str | Path) -> BinaryIO:
         raise McapError(f"{p}: no such MCAP file") from None
     except OSError as exc:
         raise McapError(f"{p}: cannot open: {exc.strerror}") from None
+
+
+def _require_magic(f: BinaryIO, p: Path) -> None:
+    """McapError unless `f` starts with the MCAP magic: random bytes are no recording, not a damaged one."""
+    head = f.read(len(MCAP0_MAGIC))
+    f.seek(0)
+    if head != MCAP0_MAGIC:
+        what = "an empty file" if not head else "no MCAP magic at its start"
+        raise McapError(f"{p}: not an MCAP file ({what}); nothing to read")
 
 
 def read_messages(path: str | Path, topics: Iterable[str] | None = None) -> Iterator[LoggedMessage]:
@@ -262,10 +277,13 @@ class McapSummary:
 
 
 def summarize(path: str | Path) -> McapSummary:
-    """Scan a whole file: topics, counts, time spans, metadata; reports truncation instead of raising."""
+    """Scan a whole file: topics, counts, time spans, metadata; reports truncation instead of raising.
+
+    A file that is not MCAP at all (no magic) raises McapError."""
     p = Path(path)
     out = McapSummary(p)
     with _open(p) as f:
+        _require_magic(f, p)
         out.size_bytes = p.stat().st_size
         channels: dict[int, tuple[str, str]] = {}
         schemas: dict[int, str] = {}
@@ -322,6 +340,7 @@ def salvage(src: str | Path, dst: str | Path, *, compression: str | None = None,
     p = Path(src)
     res = SalvageResult()
     with _open(p) as f:
+        _require_magic(f, p)
         res.source_bytes = p.stat().st_size
         schemas: dict[int, Schema] = {}
         channels: dict[int, Channel] = {}

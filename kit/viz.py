@@ -8,12 +8,13 @@ Entity paths mirror topic names.
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from octolog.kit.errors import ConfigError
+from octolog.kit.errors import ConfigError, DiskFull, VizError
 from octolog.kit.geometry import Intrinsics, matrix_to_pose
 
 APPLICATION_ID = "octolog"
@@ -58,10 +59,27 @@ class Viz:
         return self.rec is not None
 
     def close(self) -> None:
-        if self.rec is not None:
-            self.rec.flush()
-            self.rec.disconnect()
-            self.rec = None
+        """Flush and close; a recording that could not be written raises DiskFull or VizError."""
+        if self.rec is None:
+            return
+        rec, self.rec = self.rec, None
+        try:
+            rec.flush()
+        except RuntimeError as exc:  # rerun's file writer died (it logs the OS error itself)
+            raise self._write_error(exc) from None
+        finally:
+            rec.disconnect()
+
+    def _write_error(self, exc: RuntimeError) -> Exception:
+        if self.path is None:
+            return VizError(f"rerun: cannot send the recording: {exc}")
+        try:
+            full = shutil.disk_usage(self.path.parent).free < 1024 * 1024
+        except OSError:
+            full = False
+        if full:
+            return DiskFull(f"disk full: {self.path} (no space left on the disk holding {self.path.parent})")
+        return VizError(f"{self.path}: rerun could not write the recording ({exc})")
 
     def __enter__(self) -> Viz:
         return self

@@ -38,6 +38,8 @@ def recover(src: Path, out: Path, *, overwrite: bool = False, compression: str |
 
     try:
         res: SalvageResult = salvage(src, tmp, compression=compression, extra_metadata=note)
+        if not res.complete and not (res.messages or res.metadata):
+            raise McapError(f"{src}: no intact MCAP records to recover ({res.problem}); nothing written")
         tmp.replace(out)
     finally:
         tmp.unlink(missing_ok=True)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import errno
 import json
 import os
 import signal
@@ -14,19 +15,33 @@ import sys
 from pathlib import Path
 
 from octolog.kit.config import load
-from octolog.kit.errors import ConfigError, OctologError
+from octolog.kit.errors import ConfigError, DiskFull, OctologError
 from octolog.shell import errorfile, record
 from octolog.shell.args import add_bus_arguments, add_config_arguments, add_viz_arguments, bus_config, recording_id
 
+_line_open = False  # a progress line is on stderr without its newline yet
+
 
 def _progress(done: int, total: int, elapsed: float) -> None:
+    global _line_open
     if done % 10 and done != total:
         return
     rate = done / elapsed if elapsed > 0 else 0.0
     left = (total - done) / rate if rate > 0 else 0.0
     print(f"\r  {done}/{total} frames  {rate:5.1f} fps  {left:5.0f} s left", end="", file=sys.stderr, flush=True)
+    _line_open = done != total
     if done == total:
         print(file=sys.stderr)
+
+
+def _error_line(text: str) -> None:
+    """`text` on a line of its own on stderr: an open progress line is ended first."""
+    global _line_open
+    try:
+        print(("\n" if _line_open else "") + text, file=sys.stderr, flush=True)
+    except OSError:
+        pass  # stderr is a log on a full disk: the error record (errorfile) carries the message
+    _line_open = False
 
 
 # --- commands ----------------------------------------------------------------------------------
@@ -63,7 +78,7 @@ def cmd_replay_session(args: argparse.Namespace) -> int:
     out = Path(args.out or (Path(args.session) / "replay"))
     summary = run.replay_session(Path(args.session), out=out, stages=stages, overrides=args.set,
                                  rerun=args.rerun,
-                                 recording_id=recording_id(args), quiet=args.quiet)
+                                 recording_id=recording_id(args), quiet=args.quiet, overwrite=args.overwrite)
     print(run.format_summary(summary))
     return 0
 
@@ -125,7 +140,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     summary = run.run_session(
         source=args.source, out=Path(args.out), config=args.config, overrides=args.set, rerun=args.rerun,
-        recording_id=recording_id(args), quiet=args.quiet,
+        recording_id=recording_id(args), quiet=args.quiet, overwrite=args.overwrite,
     )
     print(run.format_summary(summary))
     return 0
@@ -224,6 +239,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="save (default: one .rrd per stage in OUT/rerun), off, save:DIR or connect[:URL]")
         p.add_argument("--recording-id", default=None, help="Rerun recording id (default: a new one)")
         p.add_argument("--quiet", action="store_true", help="no progress line")
+        p.add_argument("--overwrite", action="store_true",
+                       help="replace a session already in --out (its files are removed first)")
 
     p = sub.add_parser("run", help="whole pipeline as separate processes on one machine")
     p.add_argument("--source", required=True, help="tum:PATH, mcap:PATH or synthetic[:N]")
@@ -244,6 +261,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--from", dest="from_stage", metavar="STAGE",
                    help="SESSION: feed the logged output of STAGE (tracker) to fresh downstream stages")
     p.add_argument("--out", help="SESSION: output folder (default SESSION/replay)")
+    p.add_argument("--overwrite", action="store_true", help="SESSION: replace a session already in --out")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_replay)
 
@@ -327,11 +345,19 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args))
     except OctologError as exc:
-        print(f"octolog {args.command}: error: {exc}", file=sys.stderr)
-        errorfile.write(exc)  # for `octolog run`, when this is one of its stages
+        errorfile.write(exc)  # for `octolog run`, when this is one of its stages; first: stderr may be full
+        _error_line(f"octolog {args.command}: error: {exc}")
+        return 1
+    except OSError as exc:
+        if exc.errno != errno.ENOSPC:
+            raise
+        # a write no stage guards (a trajectory, a log line): still a known error, named by its file
+        full = DiskFull(f"disk full: {exc.filename or 'a write'} failed: {exc.strerror}")
+        errorfile.write(full)
+        _error_line(f"octolog {args.command}: error: {full}")
         return 1
     except KeyboardInterrupt:
-        print(f"octolog {args.command}: interrupted", file=sys.stderr)
+        _error_line(f"octolog {args.command}: interrupted")
         return 130
     except BrokenPipeError:
         os._exit(1)

@@ -3,6 +3,8 @@
 `octolog run` starts each stage as a child process with `OCTOLOG_ERROR_FILE` set; when the child's
 command fails with an `OctologError`, `cli.main` writes the error's type and message there, so
 the orchestrator learns what went wrong without searching the child's log for the word "error".
+The orchestrator reserves the file's space before the stage starts (`reserve`), so the record can
+be written on a disk the stage has just filled: the stage overwrites bytes that are already there.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from pathlib import Path
 from octolog.kit.errors import OctologError
 
 ENV = "OCTOLOG_ERROR_FILE"
+RESERVED_BYTES = 8192  # a record longer than this is cut (its message: to fit)
 
 
 @dataclass(frozen=True)
@@ -30,16 +33,32 @@ def write(exc: OctologError) -> None:
     path = os.environ.get(ENV)
     if not path:
         return
+    message = str(exc)
+    data = json.dumps({"type": type(exc).__name__, "message": message}).encode()
+    while len(data) > RESERVED_BYTES:
+        message = message[: len(message) - (len(data) - RESERVED_BYTES) - 4] + "..."
+        data = json.dumps({"type": type(exc).__name__, "message": message}).encode()
     try:
-        Path(path).write_text(json.dumps({"type": type(exc).__name__, "message": str(exc)}))
+        # in place over the reserved bytes (no new blocks needed), then cut to length
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT, 0o644)
+        try:
+            os.pwrite(fd, data, 0)
+            os.ftruncate(fd, len(data))
+        finally:
+            os.close(fd)
     except OSError:
         pass  # best effort: the error's line is in the stage's log all the same
+
+
+def reserve(path: Path) -> None:
+    """Make `path` an empty record (no error yet) holding RESERVED_BYTES of disk space for one."""
+    path.write_bytes(b" " * RESERVED_BYTES)
 
 
 def read(path: Path) -> ErrorRecord | None:
     """The record a stage wrote, or None if it wrote none (it succeeded, crashed or was killed)."""
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(path.read_text())  # a reserved file (blanks only) is no JSON: no record
     except (OSError, ValueError):
         return None
     if not isinstance(data, dict):

@@ -4,15 +4,39 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from octolog.kit.errors import MapError
+from octolog.kit.errors import InputError, MapError, McapError
 from octolog.kit.mcaplog import summarize
+from octolog.shell.sessiondir import INCOMPLETE, incomplete_reason
 
 
 def describe(path: Path) -> str:
-    """An MCAP recording/session, or an OctoMap file (.bt, .ot)."""
+    """An MCAP recording/session, a session folder, or an OctoMap file (.bt, .ot)."""
+    if path.is_dir():
+        return describe_session(path)
     if path.suffix in (".bt", ".ot"):
         return describe_map(path)
+    text = describe_mcap(path)
+    why = incomplete_reason(path.parent) if path.name == "session.mcap" else None
+    return text if why is None else f"{text}\n  session {path.parent}: INCOMPLETE ({INCOMPLETE}: {why})"
+
+
+def describe_session(folder: Path) -> str:
+    """A session folder: whether its run finished, then its session.mcap."""
+    why = incomplete_reason(folder)
+    log = folder / "session.mcap"
+    if why is None and not (folder / "summary.json").is_file():
+        raise InputError(f"{folder}: not an octolog session folder (no summary.json, no {INCOMPLETE})")
+    head = f"session {folder}: " + ("complete" if why is None else f"INCOMPLETE ({INCOMPLETE}: {why})")
+    if not log.is_file():
+        return f"{head}\n  no session.mcap"
+    return f"{head}\n{describe_mcap(log)}"
+
+
+def describe_mcap(path: Path) -> str:
+    """An MCAP file: profile, topics, rates, gaps, calibration and metadata."""
     s = summarize(path)
+    if not s.complete and not (s.profile or s.topics or s.metadata):
+        raise McapError(f"{path}: no readable MCAP records after the magic ({s.problem})")
     lines = [f"{path}: {s.size_bytes / 1e6:.1f} MB, profile {s.profile or '(none)'}, "
              + ("complete" if s.complete else f"INCOMPLETE: {s.problem}")]
     if s.topics:

@@ -26,7 +26,7 @@ from octolog import __version__
 from octolog.kit import metrics
 from octolog.kit.bus import Bus, BusConfig, wait_interruptibly
 from octolog.kit.config import load, to_dict, to_toml
-from octolog.kit.errors import ConfigError, InputError, StageError, StageExited, StageKilled
+from octolog.kit.errors import ConfigError, InputError, OctologError, StageError, StageExited, StageKilled
 from octolog.kit.mcaplog import read_messages, summarize
 from octolog.kit.viz import parse_spec
 from octolog.mapper.config import MapperConfig
@@ -35,6 +35,7 @@ from octolog.replay.sources import Source, open_source
 from octolog.schemas import codec
 from octolog.schemas.topics import RGBD, RGBD_COMPRESSED, TRACKING_STATUS
 from octolog.shell import errorfile
+from octolog.shell.sessiondir import INCOMPLETE, incomplete_reason, prepare_out
 from octolog.shell.versions import versions
 from octolog.tracker.config import TrackerConfig, for_source
 
@@ -98,16 +99,40 @@ class _Children:
         self.procs: dict[str, subprocess.Popen] = {}
         self.argv: dict[str, tuple[list[str], bool]] = {}
         self.restarts: dict[str, int] = {}
+        self.relays: list[threading.Thread] = []
+        self.line_open = False  # a relayed stderr (the replay's progress line) ended without a newline
 
     def start(self, name: str, argv: list[str], *, show_stderr: bool = False, append: bool = False) -> None:
         """Start stage `name` as `python -m octolog ARGV`, its output in logs/NAME.log."""
         log = open(self.logs / f"{name}.log", "ab" if append else "wb")  # noqa: SIM115 - owned by the child
-        self.error_file(name).unlink(missing_ok=True)
+        errorfile.reserve(self.error_file(name))
         env = {**os.environ, "PYTHONHASHSEED": "0", "PYTHONUNBUFFERED": "1", errorfile.ENV: str(self.error_file(name))}
         self.argv[name] = (argv, show_stderr)
-        self.procs[name] = subprocess.Popen(
-            [sys.executable, "-m", "octolog", *argv], stdout=log, stderr=None if show_stderr else log, env=env,
-            start_new_session=True)
+        self.procs[name] = proc = subprocess.Popen(
+            [sys.executable, "-m", "octolog", *argv], stdout=log, stderr=subprocess.PIPE if show_stderr else log,
+            env=env, start_new_session=True)
+        if show_stderr:
+            relay = threading.Thread(target=self._relay, args=(proc.stderr,), daemon=True)
+            relay.start()
+            self.relays.append(relay)
+
+    def _relay(self, pipe: Any) -> None:
+        """Copy a stage's stderr to ours, remembering whether its last line is still open."""
+        out = sys.stderr.buffer
+        while chunk := pipe.read1(65536):
+            out.write(chunk)
+            out.flush()
+            self.line_open = not chunk.endswith(b"\n")
+        pipe.close()
+
+    def end_line(self) -> None:
+        """Once the stages are gone: end a relayed progress line, so an error line starts on its own."""
+        for relay in self.relays:
+            relay.join(timeout=5)
+        if self.line_open:
+            sys.stderr.write("\n")
+            sys.stderr.flush()
+            self.line_open = False
 
     def restart(self, name: str, code: int) -> bool:
         """Start a restartable stage again after a kill (not a stop request); False if it may not."""
@@ -140,6 +165,13 @@ class _Children:
                         raise StageKilled(name, -code, self.reason(name), log)
                     raise StageExited(name, code, self.reason(name), log)
             time.sleep(0.1)
+        for other, proc in self.procs.items():
+            rc = proc.returncode
+            if other != name and rc not in (None, 0) and errorfile.read(self.error_file(other)) is not None:
+                record = errorfile.read(self.error_file(other))
+                if record is not None and record.type != "KeyboardInterrupt":
+                    return other, rc
+        return name, code
 
     def error_file(self, name: str) -> Path:
         """Where stage `name` records its known error (shell/errorfile.py)."""
@@ -168,15 +200,39 @@ class _Children:
 
 
 def run_session(*, source: str, out: Path, config: str | None = None, overrides: list[str] | None = None,
-                rerun: str = "save", recording_id: str, quiet: bool = False) -> SessionSummary:
-    """Run the whole pipeline on `source` into `out` (config, logs, session.mcap, map, trajectory)."""
+                rerun: str = "save", recording_id: str, quiet: bool = False,
+                overwrite: bool = False) -> SessionSummary:
+    """Run the whole pipeline on `source` into `out` (config, logs, session.mcap, map, trajectory).
+
+    Until it succeeds, `out` holds an INCOMPLETE file; a failed run writes its error there.
+    """
     cfgs = _resolve_configs(source, config, _split_overrides(overrides or []))
     replay_cfg = cfgs["replay"]
     feed_tracker = replay_cfg.play == "tracker"  # a log player stands in for the tracker
     src = open_source(source, only_consumed=replay_cfg.only_consumed)  # fail fast, before any process
     cfgs["tracker"] = for_source(cfgs["tracker"], src)  # an unset rolling shutter: the source's camera
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "logs").mkdir(exist_ok=True)
+    prepare_out(out, overwrite=overwrite)
+    marker = out / INCOMPLETE
+    # written first, removed last: even a kill -9 of this process leaves the folder marked
+    started = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    marker.write_text(f"octolog run has not finished writing this session (started {started}, pid {os.getpid()}); "
+                      f"if no run is going on, it failed or was killed\n")
+    try:
+        summary = _run(source, out, src, cfgs, feed_tracker, rerun, recording_id, quiet)
+    except BaseException as exc:
+        what = str(exc) if isinstance(exc, OctologError) else \
+            ("interrupted" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}")
+        try:
+            marker.write_text(f"octolog run failed: {what}\n")
+        except OSError:
+            pass  # the marker from the start stays: "has not finished"
+        raise
+    marker.unlink()
+    return summary
+
+
+def _run(source: str, out: Path, src: Source, cfgs: dict[str, Any], feed_tracker: bool, rerun: str,
+         recording_id: str, quiet: bool) -> SessionSummary:
     if rerun == "save":
         rerun = f"save:{out / 'rerun'}"
     parse_spec(rerun)
@@ -228,6 +284,7 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
         children.wait_all()
     finally:
         children.stop_all()
+        children.end_line()
         stop_router.set()
         # let the router's session close before the interpreter exits: a daemon thread still inside
         # Zenoh at exit aborts the process
@@ -260,7 +317,7 @@ def _summarize(out: Path, source: str, src: Source, wall: float, recording_id: s
         if (out / "groundtruth.txt").exists():
             a = metrics.ate(traj, metrics.read_tum(out / "groundtruth.txt"))
             s.ate = {"rmse_m": a.rmse, "mean_m": a.mean, "max_m": a.max, "pairs": a.n_pairs}
-    s.files = {p.name: str(p) for p in sorted(out.glob("*")) if p.is_file()}
+    s.files = {p.name: str(p) for p in sorted(out.glob("*")) if p.is_file() and p.name != INCOMPLETE}
     s.files.update({f"rerun/{p.name}": str(p) for p in sorted((out / "rerun").glob("*.rrd"))})
     s.files["summary.json"] = str(out / "summary.json")
     (out / "summary.json").write_text(json.dumps(
@@ -290,7 +347,7 @@ STAGE_CHOICES = {("tracker", "mapper"): "camera", ("mapper",): "tracker"}
 
 def replay_session(session: Path, *, out: Path, stages: tuple[str, ...] = ("tracker", "mapper"),
                    overrides: list[str] | None = None, rerun: str = "save", recording_id: str,
-                   quiet: bool = False) -> SessionSummary:
+                   quiet: bool = False, overwrite: bool = False) -> SessionSummary:
     """Re-run stages of a recorded session from its log, with the session's own configuration.
 
     `stages` run fresh; the others are fed from the log. tracker+mapper: the frames the live tracker
@@ -301,6 +358,10 @@ def replay_session(session: Path, *, out: Path, stages: tuple[str, ...] = ("trac
         raise ConfigError(f"--stages {','.join(stages)}: want tracker,mapper or mapper (= --from tracker)")
     if not session.is_dir():
         raise InputError(f"{session}: not a session folder")
+    why = incomplete_reason(session)
+    if why is not None:
+        raise InputError(f"{session}: an incomplete session ({INCOMPLETE}: {why}); run it again, "
+                         f"or `octolog info {session}` for what its log holds")
     log, config = session / "session.mcap", session / "config.toml"
     missing = [p.name for p in (log, config) if not p.is_file()]
     if missing:
@@ -317,7 +378,7 @@ def replay_session(session: Path, *, out: Path, stages: tuple[str, ...] = ("trac
     if feed == "camera":
         fixed.append("replay.only_consumed=true")
     return run_session(source=f"mcap:{log}", out=out, config=str(config), overrides=fixed + list(overrides or []),
-                       rerun=rerun, recording_id=recording_id, quiet=quiet)
+                       rerun=rerun, recording_id=recording_id, quiet=quiet, overwrite=overwrite)
 
 
 def merge_rrd(session: Path) -> Path:
