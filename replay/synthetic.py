@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from octolog.kit.geometry import Intrinsics, RgbdFrame, matrix_to_pose
+from octolog.kit.opencv import baseline_simd
 from octolog.replay.synthetic_room import OBJECTS, ROOM, scene_faces, scene_triangles
 from octolog.replay.synthetic_textures import Textures, scene_textures
 from octolog.replay.synthetic_trajectory import camera_trajectory
@@ -225,10 +226,11 @@ class SyntheticScene:
         n = len(rows)
         pad = -n % 1024
         rows, cols = np.pad(rows, (0, pad)), np.pad(cols, (0, pad))
-        out = cv2.remap(
-            tx.atlas, cols.reshape(-1, 1024), rows.reshape(-1, 1024), cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_REPLICATE,
-        )
+        with baseline_simd():  # bilinear remap differs in the last bits between SIMD levels
+            out = cv2.remap(
+                tx.atlas, cols.reshape(-1, 1024), rows.reshape(-1, 1024), cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_REPLICATE,
+            )
         return out.reshape(-1, 3)[:n]
 
     def render_pose(self, world_from_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -13,9 +13,10 @@ ROOT = Path(__file__).resolve().parents[1]
 TUM_NAME = "rgbd_dataset_freiburg1_xyz_first300"
 
 
-def octolog(*args: str, timeout: float = 600, check: bool = True, **kw) -> subprocess.CompletedProcess:
-    """Run `python -m octolog ARGS` as a subprocess, as a user would."""
-    env = {**os.environ, "RERUN_DISABLE_ANALYTICS": "1"}
+def octolog(*args: str, timeout: float = 600, check: bool = True, env: dict[str, str] | None = None,
+            **kw) -> subprocess.CompletedProcess:
+    """Run `python -m octolog ARGS` as a subprocess, as a user would (`env`: added to the environment)."""
+    env = {**os.environ, "RERUN_DISABLE_ANALYTICS": "1", **(env or {})}
     proc = subprocess.run([sys.executable, "-m", "octolog", *args], capture_output=True, text=True,
                           timeout=timeout, env=env, cwd=ROOT, **kw)
     if check and proc.returncode != 0:

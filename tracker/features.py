@@ -15,6 +15,7 @@ import numpy as np
 
 from octolog.kit.errors import TrackingError
 from octolog.kit.geometry import Intrinsics, RgbdFrame
+from octolog.kit.opencv import baseline_simd
 
 DESCRIPTOR_BYTES = 32
 
@@ -93,7 +94,8 @@ class OrbExtractor:
         resp = np.array([k.response for k in kps], dtype=np.float64)
         keep = bucket_select(pts, resp, gray.shape[1], gray.shape[0], self.n_features, self.grid_cols, self.grid_rows)
         chosen = [kps[i] for i in keep]
-        chosen, desc = self._orb.compute(gray, chosen)
+        with baseline_simd():  # ORB's smoothing differs in the last bits between SIMD levels
+            chosen, desc = self._orb.compute(gray, chosen)
         if desc is None or not chosen:
             return _empty_extract()
         pts = cv2.KeyPoint_convert(chosen).astype(np.float64).reshape(-1, 2)

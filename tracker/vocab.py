@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from octolog.kit.errors import InputError
+from octolog.kit.opencv import baseline_simd
 
 DESCRIPTOR_BYTES = 32
 SCORING_L1 = 0  # DBoW2 ScoringType L1_NORM
@@ -382,7 +383,8 @@ def extract(files: Sequence[Path], *, n_features: int = 1000,
         img = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
         if img is None:
             raise InputError(f"{f}: not a readable image")
-        _, desc = orb.detectAndCompute(img, None)
+        with baseline_simd():  # the same descriptors on every CPU (octolog.kit.opencv)
+            _, desc = orb.detectAndCompute(img, None)
         out.append(np.zeros((0, DESCRIPTOR_BYTES), np.uint8) if desc is None else desc)
         if progress:
             progress(i + 1, len(files))

@@ -1,0 +1,63 @@
+"""Prints hashes of what the CPU's instruction set could change: rendered frames, ORB features, poses.
+
+Run as a script by tests/test_determinism.py under restricted instruction sets (OPENCV_CPU_DISABLE,
+NPY_DISABLE_CPU_FEATURES, OPENBLAS_CORETYPE) and compared with an unrestricted run. Not collected by
+pytest (no test_ prefix).
+
+usage: python tests/isa_probe.py SOURCE FRAMES   (SOURCE: synthetic:N or tum:PATH)
+"""
+
+from __future__ import annotations
+
+# isort: off
+import octolog  # noqa: F401  (before numpy: pins OpenBLAS's kernels, as in every octolog process)
+# isort: on
+import ctypes
+import hashlib
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from octolog.replay.sources import open_source
+from octolog.tracker.config import TrackerConfig, for_source
+from octolog.tracker.factory import make_odometry
+from octolog.tracker.features import OrbExtractor, grey_image
+
+
+def main(source: str, n_frames: int) -> None:
+    src = open_source(source)
+    cfg = for_source(TrackerConfig(background=False), src)
+    f = cfg.odometry_params().features
+    extractor = OrbExtractor(n_features=cfg.n_features, grid_cols=f.grid_cols, grid_rows=f.grid_rows,
+                             fast_threshold=f.fast_threshold, min_fast_threshold=f.min_fast_threshold,
+                             n_levels=f.n_levels, scale_factor=f.scale_factor)
+    odometry = make_odometry(cfg)
+    h = {name: hashlib.sha256() for name in ("frames", "features", "poses")}
+    for i, frame in enumerate(src.frames()):
+        if i >= n_frames:
+            break
+        h["frames"].update(frame.rgb.tobytes() + frame.depth.tobytes())
+        for a in extractor.extract(grey_image(frame)):
+            h["features"].update(np.ascontiguousarray(a).tobytes())
+        h["poses"].update(np.ascontiguousarray(odometry.track(frame).world_from_camera).tobytes())
+    odometry.finish()
+    _, poses = odometry.trajectory()
+    h["poses"].update(np.ascontiguousarray(poses).tobytes())
+    for name, digest in h.items():
+        print(name, digest.hexdigest())
+    print("openblas", openblas_core())
+
+
+def openblas_core() -> str:
+    """The kernel set numpy's OpenBLAS runs with (its own report; "?" if it has no such call)."""
+    for lib in sorted((Path(np.__file__).parent.parent / "numpy.libs").glob("libscipy_openblas*")):
+        get = getattr(ctypes.CDLL(str(lib)), "scipy_openblas_get_corename64_", None)
+        if get is not None:
+            get.restype = ctypes.c_char_p
+            return get().decode()
+    return "?"
+
+
+if __name__ == "__main__":
+    main(sys.argv[1], int(sys.argv[2]))

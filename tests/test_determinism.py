@@ -1,0 +1,108 @@
+"""Determinism across machines: the same bytes whatever instruction set the CPU offers.
+
+A robot's computer and the server that replays its session have different CPUs; OpenCV, numpy and
+OpenBLAS pick kernels at run time by SIMD level. These tests run the real code under restricted
+instruction sets (what those libraries do on an older CPU) and require the bytes of the unrestricted
+run, and they hold the outputs of `octolog run` against stored ("golden") hashes, so CI on a machine
+of another kind fails when the contract breaks there.
+
+When a golden hash test fails:
+- if the restricted and unrestricted runs of this machine also differ (test_*_restricted_* fail too),
+  a kernel on this CPU's SIMD level changes results: find it (tests/isa_probe.py hashes frames,
+  features and poses separately) and route it through octolog.kit.opencv.baseline_simd or an
+  equivalent, then re-measure;
+- if only the golden test fails, everywhere, the outputs changed on purpose (an algorithm or a
+  pinned dependency version): check the accuracy tests, then update GOLDEN with the hashes the
+  failure message prints, in the same commit as the change, saying why.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from helpers import ROOT, octolog, tum_first300
+
+_AVX512 = "AVX512_SKX,AVX512_COMMON,AVX512_KNL,AVX512_KNM,AVX512_CNL,AVX512_CLX,AVX512_ICL"
+_NPY_AVX512 = "X86_V4 AVX512_ICL AVX512_SPR"
+# What each library does on a CPU of that level (features a CPU lacks are ignored).
+LEVELS: dict[str, dict[str, str]] = {
+    "avx2": {"OPENCV_CPU_DISABLE": _AVX512, "NPY_DISABLE_CPU_FEATURES": _NPY_AVX512, "OPENBLAS_CORETYPE": "Haswell"},
+    "sse4.2": {"OPENCV_CPU_DISABLE": "AVX,FP16,AVX2,FMA3," + _AVX512,
+               "NPY_DISABLE_CPU_FEATURES": "X86_V3 " + _NPY_AVX512, "OPENBLAS_CORETYPE": "Nehalem"},
+}
+# Each library alone, and OpenCV down to its x86-64 baseline (SSE3; numpy's baseline is SSE4.2).
+ALONE: dict[str, dict[str, str]] = {
+    "opencv-sse3": {"OPENCV_CPU_DISABLE": "SSE4_1,SSE4_2,POPCNT,AVX,FP16,AVX2,FMA3," + _AVX512},
+    "numpy-sse4.2": {"NPY_DISABLE_CPU_FEATURES": "X86_V3 " + _NPY_AVX512},
+    "openblas-nehalem": {"OPENBLAS_CORETYPE": "Nehalem"},
+}
+
+# sha256 of the outputs of `octolog run --source SOURCE` with the default config, requirements.lock's
+# versions. Update only on purpose (see the module docstring).
+GOLDEN: dict[str, dict[str, str]] = {
+    "synthetic:40": {
+        "trajectory.txt": "27f84cf436398cee4f4e56b59f2942f1bd7072c7af4e1472449ff135ea325e01",
+        "map.bt": "dc9fccf212395f85c4f9a8b468d60df5a9266e5c78bd111c92bc2257bb50ff10",
+        "cloud.ply": "877d519ebb2e3798aae55831538f17f3f1218aee9886b47fcec56a08e0dd7969",
+    },
+    "tum-first300": {
+        "trajectory.txt": "b0748db2dc36754c310ac3b075e2cb56ef7e924269fd929f33a201de42585702",
+        "map.bt": "ba162a80303a806d11e1737e520d240fc5f629569d44b9e02eea689c4f6e473d",
+        "cloud.ply": "ea84afeccee4038f2442374b7c0312e0db66aaffafcb4efbcf16eae303e109c1",
+    },
+}
+
+
+def _probe(source: str, frames: int, env: dict[str, str]) -> str:
+    proc = subprocess.run([sys.executable, str(ROOT / "tests" / "isa_probe.py"), source, str(frames)],
+                          capture_output=True, text=True, timeout=600, cwd=ROOT,
+                          env={**os.environ, "PYTHONHASHSEED": "0", **env})
+    assert proc.returncode == 0, proc.stderr
+    return proc.stdout
+
+
+@pytest.mark.parametrize("restriction", [*LEVELS, *ALONE])
+def test_tracker_core_same_bytes_under_restricted_instruction_sets(restriction):
+    """Rendered synthetic frames, ORB features and poses: the restricted run gives the same bytes."""
+    env = {**LEVELS, **ALONE}[restriction]
+    source = "synthetic:24"
+    assert _probe(source, 24, env) == _probe(source, 24, {}), f"{restriction}: bytes differ from the default run"
+
+
+def test_orb_features_same_bytes_on_tum_under_opencv_baseline():
+    """TUM frames (real texture): ORB's descriptors were the part that differed before baseline_simd."""
+    source = f"tum:{tum_first300()}"
+    env = ALONE["opencv-sse3"]
+    assert _probe(source, 40, env) == _probe(source, 40, {})
+
+
+def _sha(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _session(source: str, name: str, tmp_path: Path, env: dict[str, str]) -> dict[str, str]:
+    out = tmp_path / name
+    octolog("run", "--source", source, "--out", str(out), "--quiet", "--rerun", "off", env=env)
+    return {f: _sha(out / f) for f in ("trajectory.txt", "map.bt", "cloud.ply")}
+
+
+def _source(key: str) -> str:
+    return f"tum:{tum_first300()}" if key == "tum-first300" else key
+
+
+@pytest.mark.parametrize("key", list(GOLDEN))
+@pytest.mark.parametrize("level", ["default", *LEVELS])
+def test_run_outputs_match_golden_hashes(key, level, tmp_path):
+    """`octolog run` outputs, unrestricted and at AVX2 and SSE4.2 level, equal the stored hashes."""
+    got = _session(_source(key), level, tmp_path, LEVELS.get(level, {}))
+    assert got == GOLDEN[key], (
+        f"{key} at {level} level: outputs differ from the stored golden hashes.\n"
+        f"got {got}\nwant {GOLDEN[key]}\n"
+        "If the restricted-instruction-set tests fail too, this CPU gives other bytes (a platform "
+        "difference: find the kernel); if not, the outputs changed on purpose: update GOLDEN in "
+        "tests/test_determinism.py with the hashes above, in the same commit, and say why.")
