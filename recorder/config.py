@@ -11,7 +11,7 @@ from octolog.kit.errors import ConfigError
 from octolog.kit.mcaplog import COMPRESSIONS
 from octolog.recorder.capture import Backend, CaptureProfile, DeviceDescription, DeviceOptions
 from octolog.recorder.realsense_camera import RealSenseBackend
-from octolog.recorder.record import Encoding, LiveSink, Recorder
+from octolog.recorder.record import Encoding, LiveSink, Recorder, WriterParams
 from octolog.recorder.software_d455 import D455_IMU, SoftwareDeviceBackend
 
 BACKENDS = ("realsense", "software")
@@ -121,6 +121,16 @@ class RecorderConfig:
         if self.software.frames < 0 or self.software.unplug_after < 0:
             raise ConfigError("recorder.software.frames and unplug_after: want >= 0")
 
+    def writer_params(self, *, block_when_full: bool = False) -> WriterParams:
+        """The writer's settings from this config, after the one check of every value."""
+        self.validate()
+        return WriterParams(
+            compression=self.compression, chunk_size_bytes=int(self.chunk_size_mb * 2**20),
+            encoding=Encoding(self.color_codec, self.jpeg_quality, self.depth_codec, self.png_level),
+            split_size_bytes=int(self.split_size_mb * 1e6), split_duration_ns=int(self.split_duration_s * 1e9),
+            queue_size=self.queue_frames, block_when_full=block_when_full, encode_threads=self.encode_threads,
+            min_free_bytes=int(self.min_free_mb * 1e6), frame_prefix=self.frame_prefix)
+
 
 # --- factories: config -> plain constructor arguments -------------------------------------------
 
@@ -154,10 +164,5 @@ def make_backend(cfg: RecorderConfig) -> Backend:
 def make_recorder(cfg: RecorderConfig, part: Callable[[int], Path], device: DeviceDescription, *,
                   sinks: Sequence[LiveSink] = (), block_when_full: bool = False) -> Recorder:
     """The writer side (recorder.record.Recorder) for a resolved device."""
-    return Recorder(
-        part, device, config_json=to_json(cfg), compression=cfg.compression,
-        chunk_size=int(cfg.chunk_size_mb * 2**20),
-        encoding=Encoding(cfg.color_codec, cfg.jpeg_quality, cfg.depth_codec, cfg.png_level),
-        split_size_bytes=int(cfg.split_size_mb * 1e6), split_duration_ns=int(cfg.split_duration_s * 1e9),
-        queue_size=cfg.queue_frames, block_when_full=block_when_full, encode_threads=cfg.encode_threads,
-        min_free_bytes=int(cfg.min_free_mb * 1e6), frame_prefix=cfg.frame_prefix, sinks=sinks)
+    return Recorder(part, device, cfg.writer_params(block_when_full=block_when_full), config_json=to_json(cfg),
+                    sinks=sinks)

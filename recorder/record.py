@@ -111,6 +111,22 @@ class Encoding:
     png_level: int = 1
 
 
+@dataclass(frozen=True)
+class WriterParams:
+    """The writer's settings, built once from a validated RecorderConfig (`RecorderConfig.writer_params`)."""
+
+    compression: str  # MCAP chunk compression: none | lz4 | zstd
+    chunk_size_bytes: int
+    encoding: Encoding
+    split_size_bytes: int  # 0: no size split
+    split_duration_ns: int  # 0: no time split
+    queue_size: int  # captures waiting for the writer
+    block_when_full: bool  # wait instead of dropping (a source that can wait)
+    encode_threads: int
+    min_free_bytes: int  # stop cleanly when the disk has less free
+    frame_prefix: str  # topic prefix of the frames (camera/...)
+
+
 def output_paths(out: Path, *, split: bool, overwrite: bool) -> Callable[[int], Path]:
     """The file name for part i; refuses to overwrite an existing recording unless asked."""
     out = Path(out)
@@ -184,25 +200,22 @@ class Recorder:
     it waits instead, so nothing is lost however slow the disk.
     """
 
-    def __init__(self, part: Callable[[int], Path], device: DeviceDescription, *, config_json: str,
-                 compression: str = "lz4", chunk_size: int = 2 << 20, encoding: Encoding = Encoding(),
-                 split_size_bytes: int = 0, split_duration_ns: int = 0, queue_size: int = 30,
-                 block_when_full: bool = False, encode_threads: int = 2, min_free_bytes: int = 0,
-                 frame_prefix: str = "camera", sinks: Sequence[LiveSink] = ()) -> None:
+    def __init__(self, part: Callable[[int], Path], device: DeviceDescription, params: WriterParams, *,
+                 config_json: str, sinks: Sequence[LiveSink] = ()) -> None:
         self._part = part
         self.device = device
         self._config_json = config_json
-        self._compression = compression
-        self._chunk_size = chunk_size
-        self._enc = encoding
-        self._split_size = split_size_bytes
-        self._split_ns = split_duration_ns
-        self._block = block_when_full
-        self._threads = encode_threads
-        self._min_free = min_free_bytes
+        self._compression = params.compression
+        self._chunk_size = params.chunk_size_bytes
+        self._enc = params.encoding
+        self._split_size = params.split_size_bytes
+        self._split_ns = params.split_duration_ns
+        self._block = params.block_when_full
+        self._threads = params.encode_threads
+        self._min_free = params.min_free_bytes
         self._sinks = list(sinks)
-        self._q: queue.Queue[Capture | None] = queue.Queue(maxsize=queue_size)
-        self._pool = ThreadPoolExecutor(max_workers=encode_threads, thread_name_prefix="recorder-encode")
+        self._q: queue.Queue[Capture | None] = queue.Queue(maxsize=params.queue_size)
+        self._pool = ThreadPoolExecutor(max_workers=params.encode_threads, thread_name_prefix="recorder-encode")
         self.stats = {s: StreamStats() for s in STREAMS}
         self.result = RecordResult(streams=self.stats)
         self.error: RecorderError | None = None
@@ -221,7 +234,7 @@ class Recorder:
         self._next_disk_check = 0.0
         self._checked_bytes = 0
         self._free_bytes = self._disk_free()
-        f = frame_prefix
+        f = params.frame_prefix
         self.frames = {"color": f"{f}_color_optical_frame", "depth": f"{f}_depth_optical_frame",
                        "gyro": f"{f}_gyro_optical_frame", "accel": f"{f}_accel_optical_frame", "link": f"{f}_link"}
         self._color_info = device.color
