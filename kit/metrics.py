@@ -201,6 +201,8 @@ def format_tum(stamps_ns: np.ndarray, poses: np.ndarray | Trajectory) -> str:
         pos, quats = poses.positions, poses.quats_xyzw
     else:
         arr = np.asarray(poses, dtype=float)
+        if arr.size == 0:  # nothing tracked: an empty trajectory, not an error
+            arr = np.zeros((0, 4, 4))
         if arr.ndim == 2 and arr.shape[1] == 7:
             pos, quats = arr[:, :3], arr[:, 3:]
         else:

@@ -8,6 +8,7 @@ calibration most evaluations use) unless given explicitly.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from decimal import Decimal, InvalidOperation
@@ -102,17 +103,29 @@ def associate(a: list[int], b: list[int], max_dt_ns: int = MAX_PAIR_DT_NS) -> li
     return pairs
 
 
-def readout_for(folder: Path) -> float:
-    name = folder.resolve().name
-    return next((v for key, v in TUM_READOUT_S.items() if key in name), 0.0)
+TUM_CAMERAS = tuple(TUM_INTRINSICS)  # freiburg1, freiburg2, freiburg3
 
 
-def intrinsics_for(folder: Path) -> Intrinsics:
-    name = folder.resolve().name
-    for key, intr in TUM_INTRINSICS.items():
-        if key in name:
-            return intr
-    return TUM_INTRINSICS["freiburg1"]
+def camera_for(folder: Path, camera: str = "") -> str:
+    """The TUM camera that took `folder`: `camera` when given, else the one its name says (as the
+    benchmark names its sequences, `rgbd_dataset_freiburg3_...`). Never a guess: a name that says
+    none (a renamed folder, another dataset in TUM layout) is an error naming the options."""
+    if camera:
+        if camera not in TUM_INTRINSICS:
+            raise InputError(f"camera {camera!r}: want one of {', '.join(TUM_CAMERAS)}")
+        return camera
+    name = Path(os.path.abspath(folder)).name  # the name the user gave (a symlink's, not its target's)
+    found = [key for key in TUM_CAMERAS if key in name]
+    if len(found) != 1:
+        raise InputError(f"{folder}: the folder name does not say which camera took it ({', '.join(TUM_CAMERAS)}); "
+                         "name it with --set replay.camera=freiburgN (octolog run/replay) or --camera freiburgN "
+                         "(octolog import)")
+    return found[0]
+
+
+def readout_for(camera: str) -> float:
+    """The colour camera's rolling-shutter readout time in s (0: not measured, no correction)."""
+    return TUM_READOUT_S.get(camera, 0.0)
 
 
 @dataclass(frozen=True)
@@ -123,6 +136,7 @@ class TumSequence:
     pairs: tuple[tuple[int, str, int, str], ...]  # (rgb_ns, rgb_file, depth_ns, depth_file)
     intrinsics: Intrinsics
     groundtruth: Path | None
+    camera: str  # freiburg1/2/3, or "" when the intrinsics were given instead
 
     def __len__(self) -> int:
         return len(self.pairs)
@@ -160,8 +174,9 @@ def read_png(path: Path, flags: int) -> np.ndarray:
     return img
 
 
-def open_tum(folder: str | Path, intrinsics: Intrinsics | None = None) -> TumSequence:
-    """Open a TUM RGB-D folder; raises InputError naming the file that is missing or malformed."""
+def open_tum(folder: str | Path, intrinsics: Intrinsics | None = None, *, camera: str = "") -> TumSequence:
+    """Open a TUM RGB-D folder taken by `camera` (default: the one its name says), or with `intrinsics`;
+    raises InputError naming the file that is missing or malformed, or the camera nobody named."""
     folder = Path(folder)
     if not folder.is_dir():
         raise InputError(f"{folder}: not a folder (want a TUM RGB-D sequence folder)")
@@ -170,10 +185,14 @@ def open_tum(folder: str | Path, intrinsics: Intrinsics | None = None) -> TumSeq
     pairs = associate([t for t, _ in rgb], [t for t, _ in depth])
     if not pairs:
         raise InputError(f"{folder}: no colour/depth pairs within 20 ms")
+    if intrinsics is None:
+        camera = camera_for(folder, camera)
+        intrinsics = TUM_INTRINSICS[camera]
     gt = folder / "groundtruth.txt"
     return TumSequence(
         folder=folder,
         pairs=tuple((rgb[i][0], rgb[i][1], depth[k][0], depth[k][1]) for i, k in pairs),
-        intrinsics=intrinsics or intrinsics_for(folder),
+        intrinsics=intrinsics,
         groundtruth=gt if gt.is_file() else None,
+        camera=camera,
     )

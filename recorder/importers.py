@@ -17,7 +17,7 @@ from octolog.recorder.tum_import import import_tum
 
 def import_source(source: str | Path, output: Path, *, overwrite: bool = False,
                   topic_map: dict[str, str] | None = None, compression: str = "zstd",
-                  depth_scale_m: float | None = None,
+                  depth_scale_m: float | None = None, camera: str = "",
                   progress: Callable[[int], None] | None = None) -> ImportResult:
     """Import a TUM folder or a ROS 1/ROS 2 bag (RealSense or other) into an MCAP in the recorder's layout."""
     source = Path(source)
@@ -25,7 +25,10 @@ def import_source(source: str | Path, output: Path, *, overwrite: bool = False,
     if kind == "tum":
         if topic_map:
             raise InputError(f"{source}: --map applies to bags, not to a TUM folder")
-        return import_tum(source, output, overwrite=overwrite, compression=compression, progress=progress)
+        return import_tum(source, output, overwrite=overwrite, compression=compression, camera=camera,
+                          progress=progress)
+    if camera:
+        raise InputError(f"{source}: --camera names a TUM folder's camera; a bag carries its own calibration")
     return import_bag(source, output, overwrite=overwrite, topic_map=topic_map, compression=compression,
                       depth_scale_m=depth_scale_m, progress=progress)
 

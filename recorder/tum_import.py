@@ -22,12 +22,12 @@ from octolog.schemas.topics import ACCEL, ALIGNED_DEPTH, ALIGNED_DEPTH_INFO, COL
 
 
 def import_tum(folder: Path, output: Path, *, overwrite: bool = False, compression: str = "zstd",
-               intrinsics: Intrinsics | None = None,
+               intrinsics: Intrinsics | None = None, camera: str = "",
                progress: Callable[[int], None] | None = None) -> ImportResult:
     """TUM RGB-D folder -> MCAP: every listed colour and depth image (registered depth, 1/5000 m),
     accelerometer.txt as Imu, groundtruth.txt as metadata; stamps exact from the decimal seconds."""
     folder = Path(folder)
-    seq = open_tum(folder, intrinsics)  # validates the folder; intrinsics from the sequence name unless given
+    seq = open_tum(folder, intrinsics, camera=camera)  # validates the folder; the camera's intrinsics unless given
     intr = seq.intrinsics
     rgb = sorted(read_list(folder / "rgb.txt"), key=lambda r: r[0])
     depth = sorted(read_list(folder / "depth.txt"), key=lambda r: r[0])
@@ -63,10 +63,10 @@ def import_tum(folder: Path, output: Path, *, overwrite: bool = False, compressi
             "depth_scale_source": "TUM RGB-D: 5000 depth units per metre",
             "depth_registered_to_color": "true",
             # the colour camera's rolling-shutter readout time (s), for the tracker; 0 = not known
-            "color_readout_s": repr(readout_for(folder)),
+            "color_readout_s": repr(readout_for(seq.camera)),
             **intrinsics_fields("color", intr),
             "intrinsics_source": ("given on import" if intrinsics is not None
-                                  else f"TUM RGB-D ROS default calibration for {folder.resolve().name}"),
+                                  else f"TUM RGB-D ROS default calibration of {seq.camera}"),
         })
         sink.metadata("source", {"kind": "tum", "path": str(folder.resolve()), "importer": "octolog import",
                                  "rgb_images": len(rgb), "depth_images": len(depth),

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from octolog.kit.errors import ConfigError
+from octolog.kit.tum import TUM_CAMERAS
 from octolog.schemas.codec import parse_wire_compression
 from octolog.schemas.topics import Topic
 
@@ -37,6 +38,9 @@ class ReplayConfig:
     # COLOUR[,png] with COLOUR jpeg[:QUALITY] (lossy) or png[:LEVEL]; depth is always lossless PNG
     wire_compression: str = ""
     wait_for: tuple[str, ...] = ("tracker",)
+    # the camera of a tum: source whose folder name does not say it (freiburg1, freiburg2, freiburg3);
+    # "": from the name, and an error when the name says none (never a silent default)
+    camera: str = ""
     wait_timeout_s: float = 60.0
 
     def validate(self) -> None:
@@ -44,6 +48,8 @@ class ReplayConfig:
         checked by sources.open_source: the shell sets `source` after loading, from --source)."""
         if self.rate < 0:
             raise ConfigError(f"replay.rate {self.rate}: want 0 (lockstep) or a positive factor")
+        if self.camera and self.camera not in TUM_CAMERAS:
+            raise ConfigError(f"replay.camera {self.camera!r}: want one of {', '.join(TUM_CAMERAS)} (or unset)")
         if self.window < 1:
             raise ConfigError(f"replay.window {self.window}: want >= 1")
         if self.play not in ("camera", "tracker"):

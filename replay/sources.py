@@ -38,11 +38,12 @@ class Source(Protocol):
 @dataclass
 class TumSource:
     path: Path
+    camera: str = ""  # freiburg1/2/3; "": the one the folder's name says (an error if it says none)
 
     def __post_init__(self) -> None:
-        self.seq = open_tum(self.path)
+        self.seq = open_tum(self.path, camera=self.camera)
         self.name = f"tum:{self.path}"
-        self.readout_s = readout_for(self.path)  # the colour camera's rolling shutter (0 = unknown)
+        self.readout_s = readout_for(self.seq.camera)  # the colour camera's rolling shutter (0 = unknown)
 
     def __len__(self) -> int:
         return len(self.seq)
@@ -181,11 +182,14 @@ class SyntheticSource:
         return self.scene.groundtruth_tum()
 
 
-def open_source(spec: str, *, only_consumed: bool = False) -> Source:
-    """Open `tum:PATH`, `mcap:PATH` or `synthetic[:N]`; errors name the problem in one line."""
+def open_source(spec: str, *, only_consumed: bool = False, camera: str = "") -> Source:
+    """Open `tum:PATH`, `mcap:PATH` or `synthetic[:N]`; errors name the problem in one line.
+    `camera` names a TUM folder's camera when its name does not (replay.camera)."""
     kind, _, arg = spec.partition(":")
+    if camera and kind != "tum":
+        raise ConfigError(f"replay.camera {camera!r}: only a tum: source takes a camera name (got {spec!r})")
     if kind == "tum" and arg:
-        return TumSource(Path(arg))
+        return TumSource(Path(arg), camera)
     if kind == "mcap" and arg:
         return McapSource(Path(arg), only_consumed)
     if only_consumed:

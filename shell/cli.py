@@ -160,7 +160,7 @@ def cmd_import(args: argparse.Namespace) -> int:
 
     res = import_source(args.source, Path(args.output), overwrite=args.overwrite,
                         topic_map=parse_topic_map(args.map), compression=args.compression,
-                        depth_scale_m=args.depth_scale)
+                        depth_scale_m=args.depth_scale, camera=args.camera)
     print(f"import: {res.kind} {res.source} → {res.output}: {res.total} messages")
     for topic, n in sorted(res.counts.items()):
         print(f"  /{topic.lstrip('/')}: {n}")
@@ -292,6 +292,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--map", action="append", default=[], metavar="SRC=DST", help="topic mapping (repeatable)")
     p.add_argument("--compression", choices=("none", "lz4", "zstd"), default="zstd")
     p.add_argument("--depth-scale", type=float, default=None, help="metres per depth unit, if the source lacks it")
+    p.add_argument("--camera", default="", metavar="NAME",
+                   help="a TUM folder's camera (freiburg1/2/3) when its name does not say it")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     p.set_defaults(func=cmd_import)
 

@@ -202,7 +202,7 @@ def test_missing_tum_folder_is_one_line(tmp_path):
 
 
 def test_unreadable_png_names_the_file(tmp_path):
-    folder = make_tum(tmp_path / "s", n=6)
+    folder = make_tum(tmp_path / "rgbd_dataset_freiburg1_s", n=6)
     victim = sorted((folder / "depth").iterdir())[3]
     victim.write_bytes(b"\x89PNG broken")
     proc = octolog("run", "--source", f"tum:{folder}", "--out", str(tmp_path / "o"), "--quiet", "--rerun", "off",
