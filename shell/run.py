@@ -120,8 +120,11 @@ class _Children:
         """Copy a stage's stderr to ours, remembering whether its last line is still open."""
         out = sys.stderr.buffer
         while chunk := pipe.read1(65536):
-            out.write(chunk)
-            out.flush()
+            try:
+                out.write(chunk)
+                out.flush()
+            except (OSError, ValueError):
+                pass  # our stderr is gone: keep draining, so the stage never blocks on a full pipe
             self.line_open = not chunk.endswith(b"\n")
         pipe.close()
 
@@ -209,7 +212,8 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     cfgs = _resolve_configs(source, config, _split_overrides(overrides or []))
     replay_cfg = cfgs["replay"]
     feed_tracker = replay_cfg.play == "tracker"  # a log player stands in for the tracker
-    src = open_source(source, only_consumed=replay_cfg.only_consumed)  # fail fast, before any process
+    # opened here to fail fast, before any process starts
+    src = open_source(source, only_consumed=replay_cfg.only_consumed, camera=replay_cfg.camera)
     cfgs["tracker"] = for_source(cfgs["tracker"], src)  # an unset rolling shutter: the source's camera
     prepare_out(out, overwrite=overwrite)
     marker = out / INCOMPLETE
