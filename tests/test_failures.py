@@ -85,7 +85,7 @@ def test_an_existing_session_is_replaced_only_with_overwrite_and_then_whole(tmp_
 def failed_run(tmp_path_factory) -> tuple[Path, Path, subprocess.CompletedProcess]:
     """A TUM run whose 21st depth image is truncated: it fails part-way, progress line showing."""
     tmp = tmp_path_factory.mktemp("failed")
-    folder = make_tum(tmp / "seq", n=30)
+    folder = make_tum(tmp / "rgbd_dataset_freiburg1_seq", n=30)  # the name says the camera
     victim = sorted((folder / "depth").iterdir())[20]
     victim.write_bytes(victim.read_bytes()[:40])
     out = tmp / "o"
