@@ -11,7 +11,7 @@ $(VENV)/.installed: pyproject.toml requirements.lock .ci/setup.sh
 	VENV=$(VENV) bash .ci/setup.sh
 
 demo: setup
-	$(VENV)/bin/octolog demo --out $(OUT)
+	$(VENV)/bin/octolog demo --out $(OUT) --overwrite  # a demo folder is disposable: re-running replaces it
 
 test: setup
 	OCTOLOG_DATA=$(OCTOLOG_DATA) $(VENV)/bin/python -m pytest -q
