@@ -8,7 +8,7 @@ on TUM fr1/xyz with `OPENCV_CPU_DISABLE`), but two are not: the smoothing inside
 trajectory, and bilinear `remap` (the synthetic scene's texture sampling). Those calls run inside
 `baseline_simd()`, which switches OpenCV to its baseline code path (SSE2/SSE3 on x86-64, which every
 x86-64 CPU runs the same way) for their duration only; detection, the costlier half of ORB, keeps
-the dispatched kernels. docs/architecture.md ("Determinism across machines") has the measurements.
+the dispatched kernels. docs/architecture.md ("Determinism", "Across machines") has the measurements.
 """
 
 from __future__ import annotations
