@@ -6,7 +6,10 @@ per-frame time is the wall time of `track()` (ORB-SLAM3 also works on its local-
 loop-closing threads: CPU time counts every thread). ORB-SLAM3 is not deterministic, so it runs
 `--orb-runs` times (default 3) and the table quotes the median ATE and every run's.
 
-    python bench/tracker.py [--source tum:PATH] [--vocabulary FILE] [--orb-runs 3]
+    python bench/tracker.py [--source tum:PATH] [--every 1,3] [--vocabulary FILE] [--orb-runs 3]
+
+`--every 1,3` (default) runs the sequence as recorded and then every 3rd frame only: the same
+camera moving three times faster (the fast-motion case), one table each.
 
 Without --vocabulary one is built with `octolog vocab build` from the sequence's rgb/ folder
 (k 10, L 6, seed 0) and cached in --cache (default /tmp/octolog-bench/vocab).
@@ -55,8 +58,8 @@ def _vm(key: str) -> float:
 # Worker: one backend, one run, in its own process.
 
 
-def worker(backend: str, source: str, vocabulary: str, result_path: Path) -> None:
-    src = open_source(source)
+def worker(backend: str, source: str, every: int, vocabulary: str, result_path: Path) -> None:
+    src = open_source(source, every=every)
     frames = src.frames()
     first = next(frames)
     cfg = for_source(TrackerConfig(backend=backend, vocabulary=vocabulary), src)
@@ -99,17 +102,17 @@ def worker(backend: str, source: str, vocabulary: str, result_path: Path) -> Non
         "backend": backend, "ms": ms, "states": states, "n_keyframes": n_keyframes, "orb_keyframes": orb_keyframes,
         "online_tum": metrics.format_tum(np.array(stamps), np.array(poses)), "final_tum": final_tum,
         "startup_s": startup_s, "wall_s": wall_s, "cpu_s": cpu_s, "rss_before_mb": rss_before,
-        "peak_rss_mb": _vm("VmHWM"), "worker_peak_rss_mb": kids1.ru_maxrss / 1024.0,
+        "peak_rss_mb": _vm("VmHWM"), "worker_peak_rss_mb": getattr(odom, "worker_peak_rss_mb", 0.0),
         "readout_ms": cfg.rolling_shutter_ms,
     }))
 
 
-def run_worker(backend: str, source: str, vocabulary: str) -> dict:
+def run_worker(backend: str, source: str, every: int, vocabulary: str) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         res = Path(tmp) / "result.json"
         # ORB-SLAM3 prints its progress on stdout: keep it out of the table
         proc = subprocess.run([sys.executable, __file__, "--worker", backend, "--source", source,
-                               "--vocabulary", vocabulary, "--result", str(res)],
+                               "--every", str(every), "--vocabulary", vocabulary, "--result", str(res)],
                               cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         if proc.returncode != 0:
             sys.exit(f"bench: {backend} worker failed:\n{proc.stderr}")
@@ -157,6 +160,7 @@ def cm(v: float) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--source", default=None, help="tum:PATH (default: TUM fr1/xyz first 300)")
+    ap.add_argument("--every", default="1,3", help="cases: play every N-th frame (default 1,3: as recorded, then 3x faster)")
     ap.add_argument("--vocabulary", default=None, metavar="FILE", help="ORB vocabulary (default: build and cache one)")
     ap.add_argument("--orb-runs", type=int, default=3, help="ORB-SLAM3 runs (default 3; it is not deterministic)")
     ap.add_argument("--cache", default="/tmp/octolog-bench/vocab", help="where a built vocabulary is kept")
@@ -164,18 +168,42 @@ def main() -> None:
     ap.add_argument("--result", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
-        worker(args.worker, args.source, args.vocabulary or "", Path(args.result))
+        worker(args.worker, args.source, int(args.every), args.vocabulary or "", Path(args.result))
         return
 
     source = args.source or default_source()
+    vocabulary, voc_note = ensure_vocabulary(source, args.vocabulary, Path(args.cache))
+    try:
+        cases = [int(x) for x in args.every.split(",")]
+    except ValueError:
+        sys.exit(f"bench: --every {args.every!r}: want comma-separated frame steps, e.g. 1,3")
+    try:
+        from importlib.metadata import version
+
+        orb_version = version("pyorbslam3")
+    except Exception:
+        orb_version = "?"
+    cpu = next((ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
+                if ln.startswith("model name")), platform.processor() or "?")
+    print(f"octolog tracker benchmark: {source}")
+    print(f"machine: {cpu}, {os.cpu_count()} cores, {platform.machine()}, Python {platform.python_version()}")
+    print(f"native: tracker.odometry in-process, Rerun off, 1 run (deterministic); ORB-SLAM3: pyorbslam3 {orb_version} "
+          f"RGB-D, {args.orb_runs} runs (not deterministic), keyframes published by pose distance "
+          "(the binding reports none), 'own' = ORB-SLAM3's keyframe count at shutdown")
+    print(voc_note)
+    for every in cases:
+        print()
+        bench_case(source, every, vocabulary, args.orb_runs)
+
+
+def bench_case(source: str, every: int, vocabulary: str, orb_runs: int) -> None:
     gt_text = open_source(source).groundtruth_tum()
     if not gt_text:
         sys.exit(f"bench: {source} has no ground truth")
     gt = metrics.parse_tum(gt_text)
-    vocabulary, voc_note = ensure_vocabulary(source, args.vocabulary, Path(args.cache))
     load0 = os.getloadavg()
-    native = run_worker("native", source, vocabulary)
-    orbs = [run_worker("orbslam3", source, vocabulary) for _ in range(args.orb_runs)]
+    native = run_worker("native", source, every, vocabulary)
+    orbs = [run_worker("orbslam3", source, every, vocabulary) for _ in range(orb_runs)]
     load1 = os.getloadavg()
 
     def ok(r: dict) -> int:
@@ -213,23 +241,10 @@ def main() -> None:
         ("RSS before tracking, MB (imports, vocabulary not yet loaded)", f"{native['rss_before_mb']:.0f}",
          f"{med('rss_before_mb'):.0f}"),
     ]
-    try:
-        from importlib.metadata import version
-
-        orb_version = version("pyorbslam3")
-    except Exception:
-        orb_version = "?"
-    cpu = next((ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
-                if ln.startswith("model name")), platform.processor() or "?")
-    print(f"octolog tracker benchmark: {source}")
-    print(f"machine: {cpu}, {os.cpu_count()} cores, {platform.machine()}, Python {platform.python_version()}; "
-          f"load average {load0[0]:.1f} before, {load1[0]:.1f} after (shared machine)")
-    print(f"native: tracker.odometry in-process, Rerun off, 1 run (deterministic); ORB-SLAM3: pyorbslam3 {orb_version} "
-          f"RGB-D, {args.orb_runs} runs (not deterministic), keyframes published by pose distance "
-          "(the binding reports none), 'own' = ORB-SLAM3's keyframe count at shutdown")
-    print(f"native rolling-shutter model: readout {native['readout_ms']:g} ms, from the source "
-          "(tracker.rolling_shutter_ms); ORB-SLAM3 has none")
-    print(voc_note)
+    nth = {2: "2nd", 3: "3rd"}.get(every, f"{every}th")
+    case = "as recorded" if every == 1 else f"every {nth} frame: {every}x the motion per frame (fast-motion case)"
+    print(f"## {case}: {n} frames; load average {load0[0]:.1f} before, {load1[0]:.1f} after (shared machine); "
+          f"native rolling-shutter readout {native['readout_ms']:g} ms")
     print()
     print("| | native | ORB-SLAM3 |")
     print("|---|---|---|")

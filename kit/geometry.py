@@ -8,7 +8,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 
 @dataclass(frozen=True)
@@ -50,6 +49,8 @@ class RgbdFrame:
 
 def pose_to_matrix(t_xyz: np.ndarray, q_xyzw: np.ndarray) -> np.ndarray:
     """4x4 homogeneous transform from translation and quaternion (x, y, z, w)."""
+    from scipy.spatial.transform import Rotation  # here: scipy.spatial costs 0.5 s and ~40 MB to import
+
     T = np.eye(4)
     T[:3, :3] = Rotation.from_quat(np.asarray(q_xyzw, dtype=float)).as_matrix()
     T[:3, 3] = t_xyz
@@ -58,6 +59,8 @@ def pose_to_matrix(t_xyz: np.ndarray, q_xyzw: np.ndarray) -> np.ndarray:
 
 def matrix_to_pose(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Translation and quaternion (x, y, z, w, with w >= 0) of a 4x4 transform."""
+    from scipy.spatial.transform import Rotation
+
     q = Rotation.from_matrix(T[:3, :3]).as_quat()
     if q[3] < 0:
         q = -q

@@ -25,6 +25,9 @@ class ReplayConfig:
     play: str = "camera"
     # MCAP source: only the frames the logged tracker consumed (a live tracker skips frames)
     only_consumed: bool = False
+    # play every N-th frame of the source only (3: the same camera moving 3x faster, at a third of
+    # the frame rate; the fast-motion development case)
+    every: int = 1
     loop: int = 1  # play the source this many times (sequence numbers keep counting)
     # sensor-time window, seconds from the first frame (-1: unbounded); combines with start/end frames
     start_s: float = -1.0
@@ -54,6 +57,8 @@ class ReplayConfig:
             raise ConfigError(f"replay.window {self.window}: want >= 1")
         if self.play not in ("camera", "tracker"):
             raise ConfigError(f"replay.play {self.play!r}: want camera or tracker")
+        if self.every < 1:
+            raise ConfigError(f"replay.every {self.every}: want >= 1")
         if self.loop < 1:
             raise ConfigError(f"replay.loop {self.loop}: want >= 1")
         for item in self.remap:

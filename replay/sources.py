@@ -1,10 +1,12 @@
 """Frame sources for replay: a TUM RGB-D folder, an octolog MCAP file, or the synthetic scene.
 
-A source spec is `tum:PATH`, `mcap:PATH` or `synthetic[:N_FRAMES]`.
+A source spec is `tum:PATH`, `mcap:PATH` or `synthetic[:N_FRAMES]`; `every=N` plays every N-th frame
+of it (the same camera moving N times faster: the fast-motion development case).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -182,9 +184,52 @@ class SyntheticSource:
         return self.scene.groundtruth_tum()
 
 
-def open_source(spec: str, *, only_consumed: bool = False, camera: str = "") -> Source:
+@dataclass
+class Subsampled:
+    """Every `every`-th frame of `inner`, numbered 0, 1, 2, ... with the source's stamps: the same
+    camera moving `every` times faster, at 1/`every` of the frame rate."""
+
+    inner: Source
+    every: int
+
+    def __post_init__(self) -> None:
+        self.name = f"{self.inner.name} (every {self.every})"
+        self.readout_s = self.inner.readout_s
+
+    def __len__(self) -> int:
+        return -(-len(self.inner) // self.every)
+
+    @property
+    def duration_ns(self) -> int:
+        return self.inner.duration_ns
+
+    def frames(self, start: int = 0, end: int | None = None) -> Iterator[RgbdFrame]:
+        stop = None if end is None else end * self.every
+        for i, frame in enumerate(self.inner.frames(start * self.every, stop)):
+            if i % self.every == 0:
+                yield dataclasses.replace(frame, seq=start + i // self.every)
+
+    def groundtruth_tum(self) -> str | None:
+        return self.inner.groundtruth_tum()
+
+
+def open_source(spec: str, *, only_consumed: bool = False, camera: str = "", every: int = 1) -> Source:
     """Open `tum:PATH`, `mcap:PATH` or `synthetic[:N]`; errors name the problem in one line.
-    `camera` names a TUM folder's camera when its name does not (replay.camera)."""
+    `camera` names a TUM folder's camera when its name does not (replay.camera); `every` > 1 plays
+    every `every`-th frame only (replay.every)."""
+    if every < 1:
+        raise ConfigError(f"replay.every {every}: want >= 1")
+    source = _open(spec, only_consumed, camera)
+    if every == 1:
+        return source
+    if isinstance(source, TumSource):  # skip the PNGs, not just the frames: nothing decoded for nothing
+        source.seq = dataclasses.replace(source.seq, pairs=source.seq.pairs[::every])
+        source.name = f"{source.name} (every {every})"
+        return source
+    return Subsampled(source, every)
+
+
+def _open(spec: str, only_consumed: bool, camera: str) -> Source:
     kind, _, arg = spec.partition(":")
     if camera and kind != "tum":
         raise ConfigError(f"replay.camera {camera!r}: only a tum: source takes a camera name (got {spec!r})")

@@ -213,7 +213,8 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     replay_cfg = cfgs["replay"]
     feed_tracker = replay_cfg.play == "tracker"  # a log player stands in for the tracker
     # opened here to fail fast, before any process starts
-    src = open_source(source, only_consumed=replay_cfg.only_consumed, camera=replay_cfg.camera)
+    src = open_source(source, only_consumed=replay_cfg.only_consumed, camera=replay_cfg.camera,
+                      every=replay_cfg.every)
     cfgs["tracker"] = for_source(cfgs["tracker"], src)  # an unset rolling shutter: the source's camera
     prepare_out(out, overwrite=overwrite)
     marker = out / INCOMPLETE

@@ -46,14 +46,14 @@ ALONE: dict[str, dict[str, str]] = {
 # versions. Update only on purpose (see the module docstring).
 GOLDEN: dict[str, dict[str, str]] = {
     "synthetic:40": {
-        "trajectory.txt": "27f84cf436398cee4f4e56b59f2942f1bd7072c7af4e1472449ff135ea325e01",
-        "map.bt": "dc9fccf212395f85c4f9a8b468d60df5a9266e5c78bd111c92bc2257bb50ff10",
-        "cloud.ply": "877d519ebb2e3798aae55831538f17f3f1218aee9886b47fcec56a08e0dd7969",
+        "trajectory.txt": "25f1a3d027a04c86a95a12fb9350d1f81d0cd6a3f03e35ef8b298247462460e4",
+        "map.bt": "e0489d764a5daecfbe859ae938815274d797804c593f8ab15817025530e5d688",
+        "cloud.ply": "874d7c84247dd60f90e37c3c2f4aac26a18667a174a1b2a54c4f73f9f221090c",
     },
     "tum-first300": {
-        "trajectory.txt": "b0748db2dc36754c310ac3b075e2cb56ef7e924269fd929f33a201de42585702",
-        "map.bt": "ba162a80303a806d11e1737e520d240fc5f629569d44b9e02eea689c4f6e473d",
-        "cloud.ply": "ea84afeccee4038f2442374b7c0312e0db66aaffafcb4efbcf16eae303e109c1",
+        "trajectory.txt": "a1a1524dfd41d4f2e28b60c7ec3dc31101ace2dbe7e4a703d4535a7cb2ad8fbe",
+        "map.bt": "96743113152e48871d043afaff63ca5cffedaf3da96b005f1ebf25f02f2dd246",
+        "cloud.ply": "a383675a2cbbf7ab6260f6045abc062736d36edeadc66a85c98c0f304e0c78ad",
     },
 }
 

@@ -64,10 +64,16 @@ class TrackingParams:
 class KeyframeParams:
     """When a tracked frame becomes a keyframe (any one of these)."""
 
-    translation_m: float = 0.06  # moved this far from the last keyframe
-    rotation_deg: float = 6.0  # turned this far from the last keyframe
+    # Pose change (a backstop: on fast motion a keyframe every 6 cm / 6 degrees was one every 3.5
+    # frames, with a local BA behind each; 12 cm / 12 degrees keeps ORB-SLAM3's density, see docs/results.md)
+    translation_m: float = 0.12  # moved this far from the last keyframe
+    rotation_deg: float = 12.0  # turned this far from the last keyframe
     # shares less than this fraction of the points the last keyframe shared with its next frame
     min_overlap: float = 0.3
+    # ORB-SLAM's rule for depth cameras: tracks fewer than this many map points nearer than
+    # depth.max_new_point_m while more than `close_untracked` such keypoints are not in the map
+    close_tracked: int = 100
+    close_untracked: int = 70
 
 
 @dataclass(frozen=True)
@@ -219,6 +225,8 @@ class TrackerConfig:
         _want(k.translation_m > 0.0, "keyframes.translation_m", k.translation_m, "want > 0")
         _want(k.rotation_deg > 0.0, "keyframes.rotation_deg", k.rotation_deg, "want > 0")
         _want(0.0 <= k.min_overlap <= 1.0, "keyframes.min_overlap", k.min_overlap, "want 0 to 1")
+        _want(k.close_tracked >= 0, "keyframes.close_tracked", k.close_tracked, "want >= 0 (0: off)")
+        _want(k.close_untracked >= 0, "keyframes.close_untracked", k.close_untracked, "want >= 0")
         _want(m.n_keyframes >= 1, "local_map.n_keyframes", m.n_keyframes, "want >= 1")
         _want(m.n_recent_keyframes >= 1, "local_map.n_recent_keyframes", m.n_recent_keyframes, "want >= 1")
         _want(m.cull_min_visible >= 1, "local_map.cull_min_visible", m.cull_min_visible, "want >= 1")

@@ -104,6 +104,7 @@ class RgbdOdometry:
         # A worker process, not a thread: gtsam holds the GIL while it optimises, which stalled the
         # tracking thread for tens of milliseconds at every keyframe.
         self._executor = Worker() if background else None
+        self.worker_peak_rss_mb = 0.0  # the back-end worker process's peak memory, known after `finish`
         self._pending: Worker | BackendResult | None = None
         self._loop_edges: list[tuple[int, int, np.ndarray]] = []
         self._last_loop_kf = -(10**9)
@@ -213,13 +214,15 @@ class RgbdOdometry:
             # are written out get the whole map's support. Over every keyframe (the first one fixed)
             # up to `global_ba_keyframes`; beyond, over the newest that many with the keyframes that
             # created their points held, so its time and memory stay bounded on long sessions
+            # (in the worker when there is one: its peak memory stays out of the tracking process)
             window_n = min(len(self._keyframes), self.params.global_ba_keyframes)
-            self._pending = run_backend(self._backend_job(
-                window_n=window_n, max_points=None, loop_closing=False,
-                iterations=self.params.bundle_adjustment.global_iterations))
+            job = self._backend_job(window_n=window_n, max_points=None, loop_closing=False,
+                                    iterations=self.params.bundle_adjustment.global_iterations)
+            self._pending = self._executor.submit(job) if self._executor else run_backend(job)
             self._sync_backend(np.eye(4))
         if self._executor is not None:
             self._executor.close()
+            self.worker_peak_rss_mb = self._executor.peak_rss_mb
             self._executor = None
         after = self.keyframe_poses()
         return {i: T for i, T in after.items() if not np.array_equal(T, before[i])}
@@ -470,6 +473,13 @@ class RgbdOdometry:
         if float(np.linalg.norm(rel[:3, 3])) > self.params.keyframes.translation_m \
                 or rotation_angle(rel[:3, :3]) > self._kf_rot:
             return True
+        kp = self.params.keyframes
+        if kp.close_tracked > 0:
+            z = tracked.feats.z
+            close = (z > 0.0) & (z <= self.params.depth.max_new_point_m)
+            n_tracked = int(close[tracked.kp_idx].sum())
+            if n_tracked < kp.close_tracked and int(close.sum()) - n_tracked > kp.close_untracked:
+                return True
         shared = int(np.isin(tracked.map_idx, ref.point_ids, assume_unique=True).sum())
         if ref.baseline_overlap < 0:
             ref.baseline_overlap = shared

@@ -9,6 +9,9 @@ sigma. Keypoints without depth give a monocular `GenericProjectionFactorCal3_S2`
 a Huber kernel at the chi-square 95% threshold, and sigma = scale_factor ** octave pixels.
 As in ORB-SLAM, the optimisation runs twice: after the first run the observations that fail the
 chi-square test are dropped, then it runs again without them.
+
+gtsam is imported where it is used: the tracking process only builds problems (BundleProblem) and
+leaves solving them to the back-end worker, so it does not carry gtsam's ~40 MB.
 """
 
 from __future__ import annotations
@@ -16,7 +19,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import gtsam
 import numpy as np
 
 from octolog.tracker.pose import CHI2_2DOF, CHI2_3DOF
@@ -52,11 +54,13 @@ class BundleResult:
     error_after: float
 
 
-def _pose3(T: np.ndarray) -> gtsam.Pose3:
+def _pose3(T: np.ndarray):
+    import gtsam
+
     return gtsam.Pose3(gtsam.Rot3(T[:3, :3]), gtsam.Point3(*T[:3, 3]))
 
 
-def _matrix(p: gtsam.Pose3) -> np.ndarray:
+def _matrix(p) -> np.ndarray:
     return np.asarray(p.matrix(), dtype=np.float64)
 
 
@@ -81,11 +85,15 @@ def observation_chi2(problem: BundleProblem, poses_wc: np.ndarray, points: np.nd
 
 def bundle_adjust(problem: BundleProblem, *, iterations: int = 5) -> BundleResult:
     """Local bundle adjustment; fixed keyframes anchor the gauge. Deterministic for equal input."""
+    import gtsam
+
     fx, fy, cx, cy = problem.K
     cal_s = gtsam.Cal3_S2Stereo(fx, fy, 0.0, cx, cy, problem.bf / fx)
     cal_m = gtsam.Cal3_S2(fx, fy, 0.0, cx, cy)
-    X = lambda i: gtsam.symbol("x", int(i))  # noqa: E731
-    L = lambda j: gtsam.symbol("l", int(j))  # noqa: E731
+    x_key = np.array([gtsam.symbol("x", 0)], dtype=np.uint64)[0]  # key of keyframe 0; keyframe i: + i
+    l_key = np.array([gtsam.symbol("l", 0)], dtype=np.uint64)[0]
+    X = (x_key + np.arange(len(problem.poses_wc), dtype=np.uint64)).tolist()
+    L = (l_key + np.arange(len(problem.points), dtype=np.uint64)).tolist()
     noise: dict[tuple[bool, float], object] = {}
     fixed_noise = gtsam.noiseModel.Isotropic.Sigma(6, FIXED_SIGMA)
 
@@ -97,32 +105,39 @@ def bundle_adjust(problem: BundleProblem, *, iterations: int = 5) -> BundleResul
             noise[key] = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(k), base)
         return noise[key]
 
+    factors: dict[int, object] = {}  # observation -> its factor, made once for both passes
+
+    def factor(m: int, i: int, j: int, u: float, v: float, z: float, s: float):
+        f = factors.get(m)
+        if f is None:
+            if z > 0:
+                f = gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(u, u - problem.bf / z, v), model(True, s),
+                                                X[i], L[j], cal_s)
+            else:
+                f = gtsam.GenericProjectionFactorCal3_S2(gtsam.Point2(u, v), model(False, s), X[i], L[j], cal_m)
+            factors[m] = f
+        return f
+
     def solve(active: np.ndarray, poses: np.ndarray,
               pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, float, float]:
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
-        used_kf = np.unique(problem.obs_kf[active])
-        used_pt = np.unique(problem.obs_pt[active])
+        used_kf = np.unique(problem.obs_kf[active]).tolist()
+        used_pt = np.unique(problem.obs_pt[active]).tolist()
         for i in used_kf:
-            values.insert(X(i), _pose3(poses[i]))
+            values.insert(X[i], _pose3(poses[i]))
             if problem.fixed[i]:
                 # held by a tight prior (its pose is not written back), not a NonlinearEquality: a
                 # constrained factor makes gtsam eliminate its whole clique by QR instead of Cholesky,
                 # which cost 4x the time and 2x the memory on a BA with 6 fixed keyframes
-                graph.add(gtsam.PriorFactorPose3(X(i), _pose3(poses[i]), fixed_noise))
-        for j in used_pt:
-            values.insert(L(j), gtsam.Point3(*pts[j]))
-        for m in np.flatnonzero(active):
-            i, j = problem.obs_kf[m], problem.obs_pt[m]
-            u, v = problem.obs_uv[m]
-            z = problem.obs_z[m]
-            s = float(problem.obs_sigma[m])
-            if z > 0:
-                graph.add(gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(u, u - problem.bf / z, v), model(True, s),
-                                                      X(i), L(j), cal_s))
-            else:
-                graph.add(gtsam.GenericProjectionFactorCal3_S2(gtsam.Point2(u, v), model(False, s), X(i), L(j),
-                                                               cal_m))
+                graph.add(gtsam.PriorFactorPose3(X[i], _pose3(poses[i]), fixed_noise))
+        for j, p in zip(used_pt, pts[used_pt].tolist()):
+            values.insert(L[j], gtsam.Point3(*p))
+        ms = np.flatnonzero(active)
+        for m, i, j, (u, v), z, s in zip(ms.tolist(), problem.obs_kf[ms].tolist(), problem.obs_pt[ms].tolist(),
+                                         problem.obs_uv[ms].tolist(), problem.obs_z[ms].tolist(),
+                                         problem.obs_sigma[ms].tolist()):
+            graph.add(factor(m, i, j, u, v, z, s))
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(iterations)
         params.setVerbosityLM("SILENT")
@@ -137,9 +152,9 @@ def bundle_adjust(problem: BundleProblem, *, iterations: int = 5) -> BundleResul
         pts = pts.copy()
         for i in used_kf:
             if not problem.fixed[i]:
-                poses[i] = _matrix(out.atPose3(X(i)))
+                poses[i] = _matrix(out.atPose3(X[i]))
         for j in used_pt:
-            pts[j] = out.atPoint3(L(j))
+            pts[j] = out.atPoint3(L[j])
         return poses, pts, opt.iterations(), before, after
 
     # Points need two observations to move anything; keyframes need observations to be solvable.
@@ -173,6 +188,8 @@ def optimize_pose_graph(
 
     Edge noise: 1 cm and 0.5 degree divided by sqrt(weight). Keyframe `fixed` does not move.
     """
+    import gtsam
+
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     for i, T in enumerate(poses_wc):

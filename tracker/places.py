@@ -76,19 +76,24 @@ def rigid_ransac(src: np.ndarray, dst: np.ndarray, *, threshold_m: float, iterat
     rng = np.random.default_rng(seed)
     tol = threshold_m * np.maximum(1.0, dst[:, 2]) ** 2
     samples = np.stack([rng.choice(n, 3, replace=False) for _ in range(iterations)])
-    for s in samples:
-        a, b = src[s], dst[s]
-        # a degenerate (near-collinear or repeated) sample, on either side, has no unique rotation
-        if min(np.linalg.norm(np.cross(a[1] - a[0], a[2] - a[0])),
-               np.linalg.norm(np.cross(b[1] - b[0], b[2] - b[0]))) < 1e-4:
-            continue
-        try:
-            R, t = umeyama_se3(a, b)
-        except InputError:
-            continue
-        inl = np.linalg.norm(src @ R.T + t - dst, axis=1) <= tol
-        if inl.sum() > best.sum():
-            best = inl
+    # every hypothesis at once: Umeyama on each 3-point sample, then its inliers among all matches
+    a, b = src[samples], dst[samples]  # (H, 3, 3)
+    # a degenerate (near-collinear or repeated) sample, on either side, has no unique rotation
+    area = np.minimum(np.linalg.norm(np.cross(a[:, 1] - a[:, 0], a[:, 2] - a[:, 0]), axis=1),
+                      np.linalg.norm(np.cross(b[:, 1] - b[:, 0], b[:, 2] - b[:, 0]), axis=1))
+    ma, mb = a.mean(axis=1), b.mean(axis=1)
+    cov = np.einsum("hki,hkj->hij", b - mb[:, None], a - ma[:, None]) / 3.0
+    u, d, vt = np.linalg.svd(cov)
+    valid = (area >= 1e-4) & (np.count_nonzero(d > np.finfo(d.dtype).eps, axis=1) >= 2)
+    flip = np.linalg.det(u) * np.linalg.det(vt) < 0.0
+    u[flip, :, 2] *= -1.0
+    R = u @ vt
+    t = mb - np.einsum("hij,hj->hi", R, ma)
+    err = np.einsum("nj,hij->hni", src, R) + t[:, None, :] - dst[None]
+    inl = np.einsum("hni,hni->hn", err, err) <= (tol * tol)[None]
+    counts = np.where(valid, inl.sum(axis=1), 0)
+    if counts.max() > 0:
+        best = inl[int(np.argmax(counts))]  # the first of the best, as a sequential search keeps it
     T = np.eye(4)
     if best.sum() >= 3:
         for _ in range(2):  # refit on the inliers, then re-select them

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -153,25 +153,30 @@ def parse(text: str, source: str = "<string>") -> Vocabulary:
     lines = text.split("\n")
     if lines and lines[-1] == "":
         lines.pop()  # a trailing newline (the official ORBvoc.txt has one) ends the last line
-    if not lines:
+    return _parse_lines(iter(lines), len(lines), source)
+
+
+def _parse_lines(lines: Iterator[str], n: int, source: str) -> Vocabulary:
+    """The `n` lines of a DBoW2 text vocabulary, read one at a time (a file's lines are never all held)."""
+    first = next(lines, None)
+    if first is None or n == 0:
         raise InputError(f"{source}: empty vocabulary file")
-    head = lines[0].split()
+    head = first.split()
     try:
         k, levels, scoring, weighting = (int(x) for x in head)
     except ValueError:
-        raise InputError(f"{source}: line 1 {lines[0][:40]!r}: want 'k L scoring weighting'") from None
+        raise InputError(f"{source}: line 1 {first[:40]!r}: want 'k L scoring weighting'") from None
     if not (0 < k <= 20 and 1 <= levels <= 10 and 0 <= scoring <= 5 and 0 <= weighting <= 3):
         raise InputError(f"{source}: line 1: k={k} L={levels} scoring={scoring} weighting={weighting} "
                          "out of DBoW2's range (k 1..20, L 1..10)")
-    n = len(lines)
     parents = np.full(n, -1, dtype=np.int64)
     is_leaf = np.zeros(n, dtype=bool)
     descs = np.zeros((n, DESCRIPTOR_BYTES), dtype=np.uint8)
     weights = np.zeros(n, dtype=np.float64)
-    for nid in range(1, n):
-        parts = lines[nid].split()
+    for nid, line in enumerate(lines, 1):
+        parts = line.split()
         try:
-            if len(parts) != DESCRIPTOR_BYTES + 3:
+            if len(parts) != DESCRIPTOR_BYTES + 3 or nid >= n:
                 raise ValueError
             p, leaf = int(parts[0]), int(parts[1])
             d = [int(x) for x in parts[2 : 2 + DESCRIPTOR_BYTES]]
@@ -193,14 +198,20 @@ def parse(text: str, source: str = "<string>") -> Vocabulary:
 
 
 def load(path: str | os.PathLike[str]) -> Vocabulary:
+    """Read a DBoW2 text vocabulary line by line: the official ORBvoc.txt is 145 MB of text, and
+    holding it whole (plus its split lines) would more than double the tracker's peak memory."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="ascii")
+        with open(path, "rb") as f:  # count the lines first: the arrays are made once, at their size
+            n = sum(chunk.count(b"\n") for chunk in iter(lambda: f.read(1 << 20), b""))
+            if f.seek(0, os.SEEK_END) and (f.seek(-1, os.SEEK_END), f.read(1))[1] != b"\n":
+                n += 1  # the last line has no newline
+        with open(path, encoding="ascii") as f:
+            return _parse_lines((line.rstrip("\n") for line in f), n, str(path))
     except FileNotFoundError:
         raise InputError(f"vocabulary {path}: no such file") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"vocabulary {path}: cannot read it ({exc})") from None
-    return parse(text, str(path))
 
 
 def check_header(path: str | os.PathLike[str]) -> None:

@@ -51,6 +51,7 @@ class Worker:
                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE, close_fds=True)
         self._writer: threading.Thread | None = None
         self._busy = False
+        self.peak_rss_mb = 0.0  # the child's VmHWM, read when it is closed (its own pages, not the fork's)
         # dropped without close(): end the child's input, so it exits
         weakref.finalize(self, self._proc.stdin.close)
 
@@ -76,11 +77,24 @@ class Worker:
 
     def close(self) -> None:
         if self._proc.poll() is None:
+            self.peak_rss_mb = _peak_rss_mb(self._proc.pid)
             self._proc.stdin.close()
             try:
                 self._proc.wait(timeout=30)
             except subprocess.TimeoutExpired:
                 self._proc.kill()
+
+
+def _peak_rss_mb(pid: int) -> float:
+    """VmHWM of a live process in MB (0 where /proc does not say). RUSAGE_CHILDREN cannot tell it:
+    a child's ru_maxrss counts the parent's pages it shared between fork and exec."""
+    try:
+        for line in open(f"/proc/{pid}/status"):
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return 0.0
 
 
 def _die_with(parent: int) -> None:
