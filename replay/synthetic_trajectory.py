@@ -11,20 +11,30 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+LOOP_S = 18.0  # one loop around the pillar
 
-def camera_trajectory(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Camera centres (N, 3) and world_from_camera rotations (N, 3, 3) at times t (s)."""
+
+def camera_trajectory(t: np.ndarray, *, periodic: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Camera centres (N, 3) and world_from_camera rotations (N, 3, 3) at times t (s).
+
+    `periodic`: the height and look-around periods (7, 7.3, 5.3, 4.1 s) rounded to whole fractions
+    of the loop (6, 9, 6, 4.5 s), so the path repeats exactly every LOOP_S: one loop's frames played
+    again and again are one smooth, endless session (bench/long_session.py)."""
     t = np.asarray(t, dtype=float)
-    w = 2.0 * math.pi / 18.0  # one loop in 18 s
+
+    def period(p: float) -> float:
+        return LOOP_S / max(1, round(LOOP_S / p)) if periodic else p
+
+    w = 2.0 * math.pi / LOOP_S
     th = w * t + math.radians(-100.0)
     ax, ay = 1.3, 0.9
     pos = np.stack(
-        [ax * np.cos(th), ay * np.sin(th), 1.35 + 0.15 * np.sin(2.0 * math.pi * t / 7.0)], axis=1
+        [ax * np.cos(th), ay * np.sin(th), 1.35 + 0.15 * np.sin(2.0 * math.pi * t / period(7.0))], axis=1
     )
     heading = np.arctan2(ay * np.cos(th), -ax * np.sin(th))
-    yaw = heading + math.radians(30.0) + math.radians(20.0) * np.sin(2.0 * math.pi * t / 7.3)
-    pitch = math.radians(-8.0) + math.radians(7.0) * np.sin(2.0 * math.pi * t / 5.3 + 1.0)
-    roll = math.radians(3.0) * np.sin(2.0 * math.pi * t / 4.1)
+    yaw = heading + math.radians(30.0) + math.radians(20.0) * np.sin(2.0 * math.pi * t / period(7.3))
+    pitch = math.radians(-8.0) + math.radians(7.0) * np.sin(2.0 * math.pi * t / period(5.3) + 1.0)
+    roll = math.radians(3.0) * np.sin(2.0 * math.pi * t / period(4.1))
     # body frame: x forward, y left, z up; a positive pitch raises the view.
     body = Rotation.from_euler("ZYX", np.stack([yaw, -pitch, roll], axis=1)).as_matrix()
     optical_in_body = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])

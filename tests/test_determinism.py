@@ -46,14 +46,14 @@ ALONE: dict[str, dict[str, str]] = {
 # versions. Update only on purpose (see the module docstring).
 GOLDEN: dict[str, dict[str, str]] = {
     "synthetic:40": {
-        "trajectory.txt": "25f1a3d027a04c86a95a12fb9350d1f81d0cd6a3f03e35ef8b298247462460e4",
-        "map.bt": "e0489d764a5daecfbe859ae938815274d797804c593f8ab15817025530e5d688",
-        "cloud.ply": "874d7c84247dd60f90e37c3c2f4aac26a18667a174a1b2a54c4f73f9f221090c",
+        "trajectory.txt": "a2ad07a8e0d90003d25efc70d08a703f9c16c6f821279157ac326c1f1aa6f663",
+        "map.bt": "2d395625a4e1c66dc74be1a47fb09793eafb97a02aa02c80cfca5122d9036631",
+        "cloud.ply": "891284185decf95f2e15158c81c33e1dfcc3c85ff35ab18afc37adeba8ba3b84",
     },
     "tum-first300": {
-        "trajectory.txt": "a1a1524dfd41d4f2e28b60c7ec3dc31101ace2dbe7e4a703d4535a7cb2ad8fbe",
-        "map.bt": "96743113152e48871d043afaff63ca5cffedaf3da96b005f1ebf25f02f2dd246",
-        "cloud.ply": "a383675a2cbbf7ab6260f6045abc062736d36edeadc66a85c98c0f304e0c78ad",
+        "trajectory.txt": "59747169ce63a3840687ccb717f38503e920f9b1ecd4f2e78298f85ca581d460",
+        "map.bt": "5d9e37bd67be1cc157431e6ea0815b3f72852113bb189e05bcfad6102416245a",
+        "cloud.ply": "1be9f90764e442e8c9ccd61dafc7c66d69844d91942598e8c2478625bb1650e8",
     },
 }
 

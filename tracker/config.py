@@ -13,7 +13,6 @@ import dataclasses
 from dataclasses import dataclass, field
 
 from octolog.kit.errors import ConfigError
-from octolog.schemas.codec import parse_wire_compression
 
 BACKENDS = ("native", "orbslam3")
 
@@ -65,9 +64,9 @@ class KeyframeParams:
     """When a tracked frame becomes a keyframe (any one of these)."""
 
     # Pose change (a backstop: on fast motion a keyframe every 6 cm / 6 degrees was one every 3.5
-    # frames, with a local BA behind each; 12 cm / 12 degrees keeps ORB-SLAM3's density, see docs/results.md)
-    translation_m: float = 0.12  # moved this far from the last keyframe
-    rotation_deg: float = 12.0  # turned this far from the last keyframe
+    # frames, with a local BA behind each; see docs/results.md for how 8 / 8 was chosen)
+    translation_m: float = 0.08  # moved this far from the last keyframe
+    rotation_deg: float = 8.0  # turned this far from the last keyframe
     # shares less than this fraction of the points the last keyframe shared with its next frame
     min_overlap: float = 0.3
     # ORB-SLAM's rule for depth cameras: tracks fewer than this many map points nearer than
@@ -200,6 +199,8 @@ class TrackerConfig:
             _want(0.0 <= self.rolling_shutter_ms <= 100.0, "rolling_shutter_ms", self.rolling_shutter_ms,
                   "want 0 to 100 (0 = global shutter)")
         try:
+            from octolog.schemas.codec import parse_wire_compression  # rosbags: not in the back-end worker
+
             parse_wire_compression(self.wire_compression)
         except ConfigError as exc:
             raise ConfigError(f"tracker.wire_compression: {exc}") from None
