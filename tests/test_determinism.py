@@ -51,9 +51,9 @@ GOLDEN: dict[str, dict[str, str]] = {
         "cloud.ply": "891284185decf95f2e15158c81c33e1dfcc3c85ff35ab18afc37adeba8ba3b84",
     },
     "tum-first300": {
-        "trajectory.txt": "59747169ce63a3840687ccb717f38503e920f9b1ecd4f2e78298f85ca581d460",
-        "map.bt": "5d9e37bd67be1cc157431e6ea0815b3f72852113bb189e05bcfad6102416245a",
-        "cloud.ply": "1be9f90764e442e8c9ccd61dafc7c66d69844d91942598e8c2478625bb1650e8",
+        "trajectory.txt": "565d7810b844435954ba4501878a91ce745c7f88fb0362cb4b7356f314ad0cb3",
+        "map.bt": "3eef35381abad2f3f9e63c7a0eb6bd8192ff62aeac27f27eea2ed1472c2241cc",
+        "cloud.ply": "6b3ba5ea456bc1f6daf9e7ce4fdf07630d411fee570e7bf166751a32289d0f10",
     },
 }
 

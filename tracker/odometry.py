@@ -468,22 +468,28 @@ class RgbdOdometry:
     # -- keyframes ------------------------------------------------------------------------------
 
     def _need_keyframe(self, pose: np.ndarray, tracked: _Tracked) -> bool:
-        ref = self._keyframes[-1]
+        """Whether this frame adds to the map. Measured against the reference keyframe, the local
+        keyframe that holds most of the frame's inliers (ORB-SLAM's), not the newest: a camera back
+        in a place the map already covers adds nothing, so a session that keeps revisiting a room
+        keeps a map (and a back end) the size of the room, not of the session."""
+        local = self._local_keyframes(pose, self.params.local_map.n_keyframes)
+        shared_by = [int(np.isin(tracked.map_idx, self._keyframes[i].point_ids, assume_unique=True).sum())
+                     for i in local]
+        best = int(np.argmax(shared_by))  # ties: the oldest
+        ref, shared = self._keyframes[int(local[best])], shared_by[best]
         rel = invert(ref.world_from_camera) @ pose
-        if float(np.linalg.norm(rel[:3, 3])) > self.params.keyframes.translation_m \
-                or rotation_angle(rel[:3, :3]) > self._kf_rot:
-            return True
         kp = self.params.keyframes
+        if float(np.linalg.norm(rel[:3, 3])) > kp.translation_m or rotation_angle(rel[:3, :3]) > self._kf_rot:
+            return True
         if kp.close_tracked > 0:
             z = tracked.feats.z
             close = (z > 0.0) & (z <= self.params.depth.max_new_point_m)
             n_tracked = int(close[tracked.kp_idx].sum())
             if n_tracked < kp.close_tracked and int(close.sum()) - n_tracked > kp.close_untracked:
                 return True
-        shared = int(np.isin(tracked.map_idx, ref.point_ids, assume_unique=True).sum())
         if ref.baseline_overlap < 0:
             ref.baseline_overlap = shared
-        return shared < self.params.keyframes.min_overlap * ref.baseline_overlap
+        return shared < kp.min_overlap * ref.baseline_overlap
 
     def _insert_keyframe(self, seq: int, pose: np.ndarray, feats: FrameFeatures, tracked: _Tracked) -> int:
         """Add a keyframe: fuse depth into its matched points, create points for the rest."""
