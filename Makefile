@@ -24,8 +24,13 @@ bench: setup
 bench-transport: setup
 	OCTOLOG_DATA=$(OCTOLOG_DATA) $(VENV)/bin/python bench/transport.py --wire
 
-# Native tracker vs the ORB-SLAM3 backend on TUM fr1/xyz first 300 (builds and caches a vocabulary
-# in /tmp/octolog-bench/vocab unless VOCABULARY=FILE is given).
+# Native tracker vs the ORB-SLAM3 backend on TUM fr1/xyz first 300, as recorded and every 3rd frame
+# (fast motion) (builds and caches a vocabulary in /tmp/octolog-bench/vocab unless VOCABULARY=FILE).
 .PHONY: bench-tracker
 bench-tracker: setup
 	OCTOLOG_DATA=$(OCTOLOG_DATA) $(VENV)/bin/python bench/tracker.py $(if $(VOCABULARY),--vocabulary $(VOCABULARY))
+
+# The tracker over a 10-minute session (the synthetic room looped at 30 fps; ~12 min on 2 cores).
+.PHONY: bench-long
+bench-long: setup
+	$(VENV)/bin/python bench/long_session.py --minutes 10

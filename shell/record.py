@@ -39,6 +39,8 @@ def add_parsers(sub: Any) -> None:
     g = p.add_argument_group("camera")
     g.add_argument("--backend", choices=("realsense", "software"),
                    help="realsense (default) or software: a simulated D455 (no camera needed)")
+    g.add_argument("--paced", action="store_true",
+                   help="software: push frames at the profile's rate in wall time, like a camera (default: on demand)")
     g.add_argument("--serial", help="camera serial number, when several are attached")
     g.add_argument("--color", metavar="WxH@FPS", help="colour profile (default 1280x720@30)")
     g.add_argument("--depth", metavar="WxH@FPS", help="depth profile (default 848x480@30)")
@@ -93,6 +95,8 @@ def overrides(args: argparse.Namespace) -> list[str]:
             out.append(f'{key}="{value}"' if isinstance(value, str) else f"{key}={value}")
     if args.no_imu:
         out.append("imu=false")
+    if args.paced:
+        out.append("software.paced=true")
     if args.depth_streams:
         out += [f"aligned_depth={str(args.depth_streams in ('aligned', 'both')).lower()}",
                 f"raw_depth={str(args.depth_streams in ('raw', 'both')).lower()}"]

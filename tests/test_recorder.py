@@ -450,9 +450,9 @@ def test_options_and_config_errors(tmp_path):
     with pytest.raises(ConfigError, match="--color '1280x720': want WIDTHxHEIGHT@FPS"):
         overrides(parser.parse_args(["record", "x.mcap", "--color", "1280x720"]))
     args = parser.parse_args(["record", "x.mcap", "--color", "640x480@15", "--depth-streams", "both", "--no-imu",
-                              "--emitter", "off"])
+                              "--emitter", "off", "--paced"])
     assert overrides(args) == ["color.width=640", "color.height=480", "color.fps=15", 'emitter="off"', "imu=false",
-                               "aligned_depth=true", "raw_depth=true"]
+                               "software.paced=true", "aligned_depth=true", "raw_depth=true"]
 
 
 # --- live ----------------------------------------------------------------------------------------
