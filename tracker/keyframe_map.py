@@ -6,11 +6,15 @@ of it and returns corrections that the front end applies.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from octolog.kit.geometry import invert
+from octolog.tracker.config import KeyframeParams
 from octolog.tracker.features import DESCRIPTOR_BYTES, FrameFeatures
+from octolog.tracker.pose import rotation_angle
 
 # Initial capacity of the point store (rows); it doubles whenever it fills up.
 INITIAL_CAPACITY = 4096
@@ -90,3 +94,22 @@ class Keyframe:
     # Points of this keyframe matched in the first frame tracked after it: the overlap baseline
     # that later frames are compared with to decide when the view has changed enough.
     baseline_overlap: int = -1
+
+
+def keyframe_wanted(ref: Keyframe, shared: int, pose: np.ndarray, z: np.ndarray, tracked_kp: np.ndarray,
+                    params: KeyframeParams, *, max_new_point_m: float) -> bool:
+    """Whether a tracked frame at `pose` becomes a keyframe, measured against its reference keyframe
+    `ref`, with which it shares `shared` inliers; `z` is the depth of each of its keypoints (0: none)
+    and `tracked_kp` the keypoints that are inliers. Sets `ref.baseline_overlap` the first time."""
+    rel = invert(ref.world_from_camera) @ pose
+    if float(np.linalg.norm(rel[:3, 3])) > params.translation_m \
+            or rotation_angle(rel[:3, :3]) > math.radians(params.rotation_deg):
+        return True
+    if params.close_tracked > 0:  # ORB-SLAM's rule for depth cameras: too few near points tracked
+        close = (z > 0.0) & (z <= max_new_point_m)
+        n_tracked = int(close[tracked_kp].sum())
+        if n_tracked < params.close_tracked and int(close.sum()) - n_tracked > params.close_untracked:
+            return True
+    if ref.baseline_overlap < 0:
+        ref.baseline_overlap = shared
+    return shared < params.min_overlap * ref.baseline_overlap

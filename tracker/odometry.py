@@ -15,7 +15,6 @@ and is deterministic: the same frames give byte-identical poses in any process.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import cv2
@@ -36,9 +35,9 @@ from octolog.tracker.features import (
     match_by_projection,
 )
 from octolog.tracker.interface import KeypointState, TrackingState, TrackResult
-from octolog.tracker.keyframe_map import Keyframe, MapPoints, depth_weight
+from octolog.tracker.keyframe_map import Keyframe, MapPoints, depth_weight, keyframe_wanted
 from octolog.tracker.places import PLACE_MAX_HAMMING, PLACE_RATIO, BowIndex, recognise
-from octolog.tracker.pose import optimize_pose, rotation_angle, so3_exp, so3_log, unroll_rolling_shutter
+from octolog.tracker.pose import optimize_pose, so3_exp, so3_log, unroll_rolling_shutter
 from octolog.tracker.vocab import Vocabulary
 from octolog.tracker.worker import Worker
 
@@ -96,7 +95,6 @@ class RgbdOdometry:
         self._extractor = OrbExtractor(n_features=params.n_features, grid_cols=f.grid_cols, grid_rows=f.grid_rows,
                                        fast_threshold=f.fast_threshold, min_fast_threshold=f.min_fast_threshold,
                                        n_levels=f.n_levels, scale_factor=f.scale_factor)
-        self._kf_rot = math.radians(params.keyframes.rotation_deg)
         self._bow = BowIndex(vocabulary) if vocabulary is not None else None
         # The back end (local BA, loop closing) for keyframe k starts when k is inserted and its
         # result is applied when keyframe k+1 is inserted (or at `finish`): a fixed point in the
@@ -476,20 +474,8 @@ class RgbdOdometry:
         shared_by = [int(np.isin(tracked.map_idx, self._keyframes[i].point_ids, assume_unique=True).sum())
                      for i in local]
         best = int(np.argmax(shared_by))  # ties: the oldest
-        ref, shared = self._keyframes[int(local[best])], shared_by[best]
-        rel = invert(ref.world_from_camera) @ pose
-        kp = self.params.keyframes
-        if float(np.linalg.norm(rel[:3, 3])) > kp.translation_m or rotation_angle(rel[:3, :3]) > self._kf_rot:
-            return True
-        if kp.close_tracked > 0:
-            z = tracked.feats.z
-            close = (z > 0.0) & (z <= self.params.depth.max_new_point_m)
-            n_tracked = int(close[tracked.kp_idx].sum())
-            if n_tracked < kp.close_tracked and int(close.sum()) - n_tracked > kp.close_untracked:
-                return True
-        if ref.baseline_overlap < 0:
-            ref.baseline_overlap = shared
-        return shared < kp.min_overlap * ref.baseline_overlap
+        return keyframe_wanted(self._keyframes[int(local[best])], shared_by[best], pose, tracked.feats.z,
+                               tracked.kp_idx, self.params.keyframes, max_new_point_m=self.params.depth.max_new_point_m)
 
     def _insert_keyframe(self, seq: int, pose: np.ndarray, feats: FrameFeatures, tracked: _Tracked) -> int:
         """Add a keyframe: fuse depth into its matched points, create points for the rest."""
