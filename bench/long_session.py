@@ -35,6 +35,8 @@ from octolog.tracker.factory import make_odometry
 
 FPS = 30
 
+from pipeline import pct  # noqa: E402  (bench/ is this script's folder)
+
 
 def _mb(pid: int | str, key: str) -> float:
     try:
@@ -68,10 +70,6 @@ def render_loop(folder: Path, n_loop: int) -> None:
         "start_ns": scene.config.start_ns}))
 
 
-def pct(xs: list[float], q: float) -> float:
-    return float(np.percentile(xs, q)) if xs else float("nan")
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--minutes", type=float, default=10.0, help="session length in sensor time (default 10)")
@@ -95,7 +93,7 @@ def main() -> None:
               f"({args.minutes:g} min at {FPS} fps)", flush=True)
         odom = make_odometry(cfg)
         worker = getattr(getattr(odom, "_executor", None), "_proc", None)
-        stamps, ms, kfs_at, rows = [], [], [], []
+        stamps, ms, rows = [], [], []
         cpu0 = resource.getrusage(resource.RUSAGE_SELF)
         for i in range(n):
             k = i % n_loop
@@ -113,7 +111,6 @@ def main() -> None:
                              _mb("self", "VmRSS"), _mb(worker.pid, "VmRSS") if worker else 0.0))
                 print("minute {} | {:.1f} / {:.1f} ms | {} keyframes | {} points | {:.0f} MB + worker {:.0f} MB"
                       .format(*rows[-1]), flush=True)
-            kfs_at.append(odom.n_keyframes)
         t_end = time.perf_counter()
         odom.finish()
         end_s = time.perf_counter() - t_end

@@ -41,10 +41,12 @@ class Source(Protocol):
 class TumSource:
     path: Path
     camera: str = ""  # freiburg1/2/3; "": the one the folder's name says (an error if it says none)
+    every: int = 1  # every N-th pair only: the PNGs in between are never read
 
     def __post_init__(self) -> None:
-        self.seq = open_tum(self.path, camera=self.camera)
-        self.name = f"tum:{self.path}"
+        seq = open_tum(self.path, camera=self.camera)
+        self.seq = seq if self.every == 1 else dataclasses.replace(seq, pairs=seq.pairs[:: self.every])
+        self.name = f"tum:{self.path}" + (f" (every {self.every})" if self.every > 1 else "")
         self.readout_s = readout_for(self.seq.camera)  # the colour camera's rolling shutter (0 = unknown)
 
     def __len__(self) -> int:
@@ -219,22 +221,17 @@ def open_source(spec: str, *, only_consumed: bool = False, camera: str = "", eve
     every `every`-th frame only (replay.every)."""
     if every < 1:
         raise ConfigError(f"replay.every {every}: want >= 1")
+    kind, _, arg = spec.partition(":")
+    if kind == "tum" and arg:
+        return TumSource(Path(arg), camera, every)
     source = _open(spec, only_consumed, camera)
-    if every == 1:
-        return source
-    if isinstance(source, TumSource):  # skip the PNGs, not just the frames: nothing decoded for nothing
-        source.seq = dataclasses.replace(source.seq, pairs=source.seq.pairs[::every])
-        source.name = f"{source.name} (every {every})"
-        return source
-    return Subsampled(source, every)
+    return source if every == 1 else Subsampled(source, every)
 
 
 def _open(spec: str, only_consumed: bool, camera: str) -> Source:
     kind, _, arg = spec.partition(":")
     if camera and kind != "tum":
         raise ConfigError(f"replay.camera {camera!r}: only a tum: source takes a camera name (got {spec!r})")
-    if kind == "tum" and arg:
-        return TumSource(Path(arg), camera)
     if kind == "mcap" and arg:
         return McapSource(Path(arg), only_consumed)
     if only_consumed:

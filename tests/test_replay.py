@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
@@ -16,6 +17,7 @@ class FakeSource:
     """Ten frames at 10 Hz."""
 
     name = "fake"
+    readout_s = 0.0
 
     def __init__(self, n: int = 10) -> None:
         self.n = n
@@ -51,6 +53,28 @@ def test_loop_keeps_sequence_and_time_moving_on():
     seqs, stamps = zip(*got)
     assert list(seqs) == list(range(30))
     assert all(b - a == 100_000_000 for a, b in zip(stamps, stamps[1:]))
+
+
+def test_every_nth_frame_keeps_the_stamps_and_numbers_frames_anew(tmp_path):
+    from octolog.replay.sources import Subsampled, open_source
+
+    sub = Subsampled(FakeSource(), 3)
+    assert len(sub) == 4
+    assert [(f.seq, f.stamp_ns) for f in sub.frames()] == [(i, 1_000_000_000 + 3 * i * 100_000_000) for i in range(4)]
+    assert [f.seq for f in sub.frames(1, 3)] == [1, 2]
+    # TUM: the pairs in between are never read (here: they do not even exist)
+    folder = tmp_path / "rgbd_dataset_freiburg1_every"
+    (folder / "rgb").mkdir(parents=True)
+    (folder / "depth").mkdir()
+    for name in ("rgb", "depth"):
+        (folder / f"{name}.txt").write_text("".join(f"{1 + i / 10:.6f} {name}/{i}.png\n" for i in range(7)))
+    for i in (0, 3, 6):
+        cv2.imwrite(str(folder / "rgb" / f"{i}.png"), np.full((4, 4, 3), i, np.uint8))
+        cv2.imwrite(str(folder / "depth" / f"{i}.png"), np.full((4, 4), 1000 + i, np.uint16))
+    frames = list(open_source(f"tum:{folder}", every=3).frames())
+    assert [(f.seq, int(f.depth[0, 0])) for f in frames] == [(0, 1000), (1, 1003), (2, 1006)]
+    with pytest.raises(ConfigError, match="replay.every 0: want >= 1"):
+        open_source("synthetic:4", every=0)
 
 
 def test_remap_topics():

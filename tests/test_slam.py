@@ -14,8 +14,9 @@ import numpy as np
 import pytest
 
 from octolog.kit import metrics
-from octolog.kit.geometry import invert
+from octolog.kit.geometry import RgbdFrame, invert
 from octolog.replay.synthetic import SyntheticScene
+from octolog.replay.synthetic_trajectory import LOOP_S, camera_trajectory
 from octolog.tracker.config import KeyframeParams, TrackerConfig
 from octolog.tracker.interface import TrackingState
 from octolog.tracker.odometry import RgbdOdometry
@@ -310,3 +311,27 @@ def test_back_end_worker_process_returns_results_and_errors() -> None:
         w.submit(object()).result()
     w.close()
     assert not child.is_running() or child.status() == psutil.STATUS_ZOMBIE
+
+
+def test_a_room_revisited_adds_no_keyframes() -> None:
+    """Keyframes are measured against the keyframe that holds the frame's points, not the newest:
+    lap after lap around the same room (the periodic path, 10 fps), the map stops growing."""
+    fps = 10
+    n = round(LOOP_S * fps)
+    scene = SyntheticScene(n_frames=n, fps=fps)
+    pos, rot = camera_trajectory(np.arange(n) / fps, periodic=True)
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[:, :3, :3], poses[:, :3, 3] = rot, pos
+    lap = [scene.render_pose(T) for T in poses]
+    odo = _odometry(background=True)
+    after_lap = []
+    for k in range(3):
+        for i, (rgb, depth) in enumerate(lap):
+            j = k * n + i
+            odo.track(RgbdFrame(j, scene.stamp_ns(0) + j * 1_000_000_000 // fps, rgb, depth, scene.depth_scale_m,
+                                scene.intrinsics))
+        after_lap.append(odo.n_keyframes)
+    odo.finish()
+    # the first lap maps the room, the second fills in what its drift left; the third adds nothing
+    assert after_lap[2] - after_lap[1] <= 2, after_lap
+    assert after_lap[1] - after_lap[0] < after_lap[0] // 2, after_lap

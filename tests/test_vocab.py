@@ -50,7 +50,7 @@ def reference_transform(voc: vocab.Vocabulary, d: np.ndarray) -> int:
     return node
 
 
-def test_text_round_trip_and_format():
+def test_text_round_trip_and_format(tmp_path):
     _, images = clustered(12, 20, 6, 10, seed=1)
     voc = vocab.train(images, k=4, levels=3, seed=7)
     text = voc.to_text()
@@ -70,6 +70,11 @@ def test_text_round_trip_and_format():
             assert fields[34] == "0"
     back = vocab.parse(text)
     assert back.to_text() == text
+    # read from a file line by line, with and without a newline after the last node (ORBvoc.txt has one)
+    for ending in ("", "\n"):
+        path = tmp_path / f"voc{len(ending)}.txt"
+        path.write_text(text + ending, encoding="ascii")
+        assert vocab.load(path).to_text() == text
     for a, b in [(back.parents, voc.parents), (back.is_leaf, voc.is_leaf), (back.descriptors, voc.descriptors)]:
         np.testing.assert_array_equal(a, b)
     np.testing.assert_allclose(back.weights, voc.weights, rtol=1e-5)

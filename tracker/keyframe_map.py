@@ -91,8 +91,8 @@ class Keyframe:
     obs_kp: np.ndarray  # keypoint index of each observation
     obs_pid: np.ndarray  # map point id of each observation
     covis: list[int] = field(default_factory=list)  # earlier keyframes it shares many points with
-    # Points of this keyframe matched in the first frame tracked after it: the overlap baseline
-    # that later frames are compared with to decide when the view has changed enough.
+    # Points of this keyframe matched in the first frame it was the reference keyframe of: the
+    # overlap baseline later frames are compared with to decide when the view has changed enough.
     baseline_overlap: int = -1
 
 

@@ -202,10 +202,11 @@ def load(path: str | os.PathLike[str]) -> Vocabulary:
     holding it whole (plus its split lines) would more than double the tracker's peak memory."""
     path = Path(path)
     try:
+        n, last = 0, b"\n"
         with open(path, "rb") as f:  # count the lines first: the arrays are made once, at their size
-            n = sum(chunk.count(b"\n") for chunk in iter(lambda: f.read(1 << 20), b""))
-            if f.seek(0, os.SEEK_END) and (f.seek(-1, os.SEEK_END), f.read(1))[1] != b"\n":
-                n += 1  # the last line has no newline
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                n, last = n + chunk.count(b"\n"), chunk[-1:]
+        n += last != b"\n"  # a last line without its newline
         with open(path, encoding="ascii") as f:
             return _parse_lines((line.rstrip("\n") for line in f), n, str(path))
     except FileNotFoundError:
