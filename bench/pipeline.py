@@ -1,21 +1,27 @@
-"""End-to-end pipeline benchmark on TUM fr1/xyz first 300 (or any source).
+"""End-to-end pipeline benchmark: `octolog run` as a user runs it, against the same cores in one process.
 
-Runs `octolog run` (replay, tracker, mapper, session logger as separate processes over Zenoh,
-Rerun off), then reads the session MCAP for per-stage figures, and runs the same tracker and mapper
-cores in one process with no transport as the reference. Prints one table.
+Runs `octolog run` with its default outputs (session log and Rerun recordings on) on TUM fr1/xyz
+first300 as recorded and with every 3rd frame (the fast-motion case), then reads the session log
+for per-stage figures, and runs the same tracker and mapper cores in one process (frames decoded
+as they are read, no transport, no logging) as the reference. Prints one table per case.
 
-    python bench/pipeline.py [--source tum:PATH] [--repeat 3]
+    python bench/pipeline.py [--source tum:PATH] [--every 1,3] [--repeat 3]
 
-Per-stage latency:
-- tracker: its own processing time per frame (TrackingStatus.processing_ms);
-- frame→pose: wall time from the logger receiving a frame to it receiving that frame's status
-  (transport + queueing + tracking);
-- mapper: processing time per keyframe (MapUpdate.processing_ms).
+Figures:
+- real-time factor: sequence seconds / wall seconds. "streaming" counts from the first frame on
+  the bus to the last frame's pose (what a live camera sees); "whole run" adds the start-up (process
+  imports, vocabulary) and the end of stream (final bundle adjustment, map files, summary);
+- tracker ms/frame: the tracking thread's time per frame (TrackingStatus.processing_ms);
+- frame->pose latency: wall time from the session logger receiving a frame to it receiving that
+  frame's status (transport + queueing + tracking);
+- mapper ms/keyframe: MapUpdate.processing_ms;
+- output size: session.mcap plus every .rrd, against the size of the source images it played.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import platform
 import statistics
@@ -42,91 +48,104 @@ def pct(values: list[float], q: float) -> float:
     return float(np.percentile(values, q)) if values else float("nan")
 
 
-def run_pipeline(source: str, out: Path) -> dict:
-    t0 = time.monotonic()
-    subprocess.run([sys.executable, "-m", "octolog", "run", "--source", source, "--out", str(out), "--quiet",
-                    "--rerun", "off"], check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
-    wall = time.monotonic() - t0
+def source_bytes(source: str, every: int) -> int:
+    """Bytes of the source's images that the run plays (a TUM folder's PNGs; else 0: unknown)."""
+    kind, _, path = source.partition(":")
+    if kind != "tum":
+        return 0
+    from octolog.kit.tum import open_tum
+
+    seq = open_tum(path)
+    return sum((seq.folder / rgb).stat().st_size + (seq.folder / depth).stat().st_size
+               for _, rgb, _, depth in seq.pairs[::every])
+
+
+def run_pipeline(source: str, every: int, out: Path) -> dict:
     from octolog.kit.mcaplog import read_messages
     from octolog.schemas import codec, topics
 
+    t0_ns = time.time_ns()
+    t0 = time.monotonic()
+    subprocess.run([sys.executable, "-m", "octolog", "run", "--source", source, "--out", str(out), "--quiet",
+                    "--set", f"replay.every={every}"], check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
+    wall = time.monotonic() - t0
+    end_ns = t0_ns + round(wall * 1e9)
     frame_rx: dict[int, int] = {}
     track_ms, latency_ms, map_ms = [], [], []
-    seqs = []
+    first_frame_ns = last_status_ns = 0
+    frame_topics = (topics.RGBD.name, topics.RGBD_COMPRESSED.name)
     for m in read_messages(out / "session.mcap"):
-        if m.topic == topics.RGBD.name:
+        if m.topic in frame_topics:
             seq = int.from_bytes(m.data[4:12], "little")  # CDR: 4-byte encapsulation, then uint64 seq
             frame_rx[seq] = m.log_time_ns
-            seqs.append(seq)
+            first_frame_ns = first_frame_ns or m.log_time_ns
         elif m.topic == topics.TRACKING_STATUS.name:
             st = codec.decode(m.data, topics.TRACKING_STATUS.msgtype)
             track_ms.append(st.processing_ms)
+            last_status_ns = m.log_time_ns
             if st.seq in frame_rx:
                 latency_ms.append((m.log_time_ns - frame_rx[st.seq]) / 1e6)
         elif m.topic == topics.MAP_UPDATE.name:
             map_ms.append(codec.decode(m.data, topics.MAP_UPDATE.msgtype).processing_ms)
-    import json
-
     summary = json.loads((out / "summary.json").read_text())
-    return {"wall": wall, "frames": summary["tracked_frames"], "duration": summary["duration_s"],
+    sizes = {"session.mcap": (out / "session.mcap").stat().st_size,
+             "rerun": sum(p.stat().st_size for p in (out / "rerun").glob("*.rrd"))}
+    return {"wall": wall, "stream": (last_status_ns - first_frame_ns) * 1e-9,
+            "startup": (first_frame_ns - t0_ns) * 1e-9, "end": (end_ns - last_status_ns) * 1e-9,
+            "frames": summary["tracked_frames"], "duration": summary["duration_s"],
             "ate_cm": (summary["ate"] or {}).get("rmse_m", float("nan")) * 100, "track_ms": track_ms,
-            "latency_ms": latency_ms, "map_ms": map_ms, "keyframes": len(map_ms)}
+            "latency_ms": latency_ms, "map_ms": map_ms, "keyframes": len(map_ms), "sizes": sizes}
 
 
-def run_in_process(source: str) -> dict:
-    """The reference: the same cores, one process, no transport, no logging."""
+def run_in_process(source: str, every: int) -> dict:
+    """The reference: the same cores in one process, frames decoded as read, no transport, no logging."""
     from octolog.mapper.config import MapperConfig
     from octolog.mapper.core import make_mapper
     from octolog.replay.sources import open_source
     from octolog.tracker.config import TrackerConfig, for_source
     from octolog.tracker.factory import make_odometry
 
-    src = open_source(source)
-    frames = list(src.frames())  # decode up front: the pipeline's replay decodes concurrently
+    src = open_source(source, every=every)
     odom, mapper = make_odometry(for_source(TrackerConfig(), src)), make_mapper(MapperConfig())
     track_ms, map_ms = [], []
     t0 = time.monotonic()
-    for f in frames:
+    n = 0
+    for f in src.frames():
         t = time.perf_counter()
         res = odom.track(f)
         track_ms.append((time.perf_counter() - t) * 1e3)
+        n += 1
         if res.is_keyframe:
             t = time.perf_counter()
             mapper.integrate(res.keyframe_id, res.world_from_camera, f)
             map_ms.append((time.perf_counter() - t) * 1e3)
+    stream = time.monotonic() - t0
+    moved = odom.finish()
+    if moved:
+        mapper.correct(moved)
     wall = time.monotonic() - t0
-    return {"wall": wall, "frames": len(frames), "duration": src.duration_ns * 1e-9, "track_ms": track_ms,
-            "map_ms": map_ms, "keyframes": len(map_ms)}
+    return {"stream": stream, "wall": wall, "frames": n, "duration": src.duration_ns * 1e-9,
+            "track_ms": track_ms, "map_ms": map_ms, "keyframes": len(map_ms)}
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--source", default=None)
-    ap.add_argument("--repeat", type=int, default=3, help="pipeline runs (medians over runs)")
-    args = ap.parse_args()
-    source = args.source or default_source()
-    runs = []
-    with tempfile.TemporaryDirectory() as tmp:
-        for i in range(args.repeat):
-            runs.append(run_pipeline(source, Path(tmp) / f"run{i}"))
-    ref = run_in_process(source)
-
+def table(source: str, every: int, runs: list[dict], ref: dict, src_bytes: int) -> list[tuple[str, str, str, str]]:
     def med(key: str) -> float:
         return statistics.median(r[key] for r in runs)
 
-    fps = [r["frames"] / r["wall"] for r in runs]
-    rtf = [r["duration"] / r["wall"] for r in runs]
+    rtf_stream = statistics.median(r["duration"] / r["stream"] for r in runs)
+    rtf_wall = statistics.median(r["duration"] / r["wall"] for r in runs)
+    ref_stream, ref_wall = ref["duration"] / ref["stream"], ref["duration"] / ref["wall"]
     track = [x for r in runs for x in r["track_ms"]]
     lat = [x for r in runs for x in r["latency_ms"]]
     mp = [x for r in runs for x in r["map_ms"]]
-    ref_fps = ref["frames"] / ref["wall"]
+    mcap_mb = statistics.median(r["sizes"]["session.mcap"] for r in runs) / 1e6
+    rrd_mb = statistics.median(r["sizes"]["rerun"] for r in runs) / 1e6
     rows = [
         ("frames", f"{runs[0]['frames']}", f"{ref['frames']}", ""),
-        ("wall time, s (median of runs)", f"{med('wall'):.1f}", f"{ref['wall']:.1f}", f"{med('wall') / ref['wall']:.2f}x"),
-        ("end-to-end frames/s", f"{statistics.median(fps):.1f}", f"{ref_fps:.1f}",
-         f"{statistics.median(fps) / ref_fps:.2f}x"),
-        ("real-time factor (sequence s / wall s)", f"{statistics.median(rtf):.2f}",
-         f"{ref['duration'] / ref['wall']:.2f}", ""),
+        ("real-time factor, streaming", f"{rtf_stream:.2f}", f"{ref_stream:.2f}", f"{rtf_stream / ref_stream:.2f}x"),
+        ("real-time factor, whole run", f"{rtf_wall:.2f}", f"{ref_wall:.2f}", f"{rtf_wall / ref_wall:.2f}x"),
+        ("wall s: start-up / streaming / end", f"{med('startup'):.1f} / {med('stream'):.1f} / {med('end'):.1f}",
+         f"- / {ref['stream']:.1f} / {ref['wall'] - ref['stream']:.1f}", ""),
         ("tracker ms/frame median / p90", f"{pct(track, 50):.1f} / {pct(track, 90):.1f}",
          f"{pct(ref['track_ms'], 50):.1f} / {pct(ref['track_ms'], 90):.1f}", ""),
         ("frame->pose latency ms median / p90", f"{pct(lat, 50):.1f} / {pct(lat, 90):.1f}", "-", ""),
@@ -134,15 +153,38 @@ def main() -> None:
          f"{pct(ref['map_ms'], 50):.1f} / {pct(ref['map_ms'], 90):.1f}", ""),
         ("keyframes", f"{runs[0]['keyframes']}", f"{ref['keyframes']}", ""),
         ("ATE RMSE, cm", f"{runs[0]['ate_cm']:.2f}", "-", ""),
+        ("output MB: session.mcap + .rrd", f"{mcap_mb:.0f} + {rrd_mb:.0f}", "-",
+         f"{(mcap_mb + rrd_mb) * 1e6 / src_bytes:.2f}x src" if src_bytes else ""),
     ]
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--source", default=None)
+    ap.add_argument("--every", default="1,3", help="cases: play every N-th frame (3: the fast-motion case)")
+    ap.add_argument("--repeat", type=int, default=3, help="pipeline runs per case (medians over runs)")
+    args = ap.parse_args()
+    source = args.source or default_source()
+    load = os.getloadavg()[0]
     print(f"octolog pipeline benchmark: {source}")
-    print(f"machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}; "
-          f"pipeline = 4 processes over Zenoh (peer, loopback), Rerun off, {args.repeat} runs; "
-          f"reference = same cores in one process, frames pre-decoded, no transport")
-    w = max(len(r[0]) for r in rows)
-    print(f"{'':<{w}}  {'pipeline':>14}  {'in-process':>14}  {'ratio':>7}")
-    for name, a, b, ratio in rows:
-        print(f"{name:<{w}}  {a:>14}  {b:>14}  {ratio:>7}")
+    print(f"machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
+          f"load average {load:.1f} before; pipeline = `octolog run` with its default outputs (session log, "
+          f"Rerun recordings), {args.repeat} runs; reference = the same cores in one process, no transport, "
+          f"no logging")
+    for every in (int(e) for e in args.every.split(",")):
+        runs = []
+        with tempfile.TemporaryDirectory() as tmp:
+            for i in range(args.repeat):
+                runs.append(run_pipeline(source, every, Path(tmp) / f"run{i}"))
+        ref = run_in_process(source, every)
+        rows = table(source, every, runs, ref, source_bytes(source, every))
+        label = "as recorded" if every == 1 else f"every {every}th frame ({every}x the motion per frame)"
+        print(f"\n{label}: load average {os.getloadavg()[0]:.1f} after")
+        w = max(len(r[0]) for r in rows)
+        print(f"{'':<{w}}  {'pipeline':>18}  {'in-process':>18}  {'ratio':>9}")
+        for name, a, b, ratio in rows:
+            print(f"{name:<{w}}  {a:>18}  {b:>18}  {ratio:>9}")
 
 
 if __name__ == "__main__":

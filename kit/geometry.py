@@ -47,6 +47,24 @@ class RgbdFrame:
         return self.depth.astype(np.float32) * np.float32(self.depth_scale_m)
 
 
+@dataclass(frozen=True)
+class EncodedRgbd:
+    """An RGB-D frame whose images are still encoded as the source stores them: PNG/JPEG files or
+    CompressedImage payloads, with their image_transport format strings ("rgb8; png compressed
+    bgr8", "16UC1; png compressed"). Published and logged as they are, decoded where pixels are
+    needed (the tracker), so nothing decodes and re-encodes on the way."""
+
+    seq: int
+    stamp_ns: int
+    color: bytes
+    color_format: str
+    depth: bytes
+    depth_format: str
+    depth_scale_m: float
+    intrinsics: Intrinsics
+    frame_id: str = "camera_color_optical_frame"
+
+
 def pose_to_matrix(t_xyz: np.ndarray, q_xyzw: np.ndarray) -> np.ndarray:
     """4x4 homogeneous transform from translation and quaternion (x, y, z, w)."""
     from scipy.spatial.transform import Rotation  # here: scipy.spatial costs 0.5 s and ~40 MB to import

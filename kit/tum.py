@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from octolog.kit.errors import InputError
-from octolog.kit.geometry import Intrinsics, RgbdFrame
+from octolog.kit.geometry import EncodedRgbd, Intrinsics, RgbdFrame
 
 T = TypeVar("T")
 
@@ -163,6 +163,51 @@ class TumSequence:
                 depth_scale_m=TUM_DEPTH_SCALE_M,
                 intrinsics=self.intrinsics,
             )
+
+
+    def encoded_frames(self, start: int = 0, end: int | None = None) -> Iterator[EncodedRgbd]:
+        """The pairs as their PNG files hold them, not decoded: each file's header is checked
+        (colour 8-bit RGB, depth 16-bit grey, sizes agreeing with the camera) and its end present,
+        so a missing, truncated or wrong image is still an error naming the file, here."""
+        for seq, (rgb_ns, rgb_file, _depth_ns, depth_file) in enumerate(self.pairs[start:end], start):
+            rgb, rgb_size = read_png_bytes(self.folder / rgb_file, 8, PNG_RGB, "an 8-bit RGB")
+            depth, depth_size = read_png_bytes(self.folder / depth_file, 16, PNG_GREY, "a 16-bit single-channel")
+            if rgb_size != depth_size:
+                raise InputError(f"{self.folder / depth_file}: size {depth_size[::-1]} differs from colour {rgb_size[::-1]}")
+            yield EncodedRgbd(seq, rgb_ns, rgb, PNG_COLOUR_FORMAT, depth, PNG_DEPTH_FORMAT, TUM_DEPTH_SCALE_M,
+                              self.intrinsics)
+
+
+# PNG colour types (IHDR) and the image_transport format strings of PNG colour and depth
+PNG_GREY, PNG_RGB = 0, 2
+PNG_COLOUR_FORMAT = "rgb8; png compressed bgr8"
+PNG_DEPTH_FORMAT = "16UC1; png compressed"
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"
+
+
+def png_header(data: bytes) -> tuple[int, int, int, int] | None:
+    """(width, height, bit depth, colour type) of a PNG's IHDR, or None if `data` is not a PNG."""
+    if len(data) < 33 or data[:8] != _PNG_SIGNATURE or data[12:16] != b"IHDR":
+        return None
+    width, height = int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    return width, height, data[24], data[25]
+
+
+def read_png_bytes(path: Path, bits: int, colour_type: int, want: str) -> tuple[bytes, tuple[int, int]]:
+    """A PNG file's bytes and (width, height), checked without decoding: header, kind and end marker."""
+    if not path.is_file():
+        raise InputError(f"{path}: image listed but missing")
+    data = path.read_bytes()
+    head = png_header(data)
+    if head is None:
+        raise InputError(f"{path}: unreadable image (corrupt or not a PNG)")
+    if not data.endswith(_PNG_END):
+        raise InputError(f"{path}: truncated PNG (no end marker)")
+    if head[2:] != (bits, colour_type):
+        raise InputError(f"{path}: want {want} PNG, got bit depth {head[2]}, colour type {head[3]} "
+                         "(--set replay.wire_compression=raw decodes and converts it)")
+    return data, head[:2]
 
 
 def read_png(path: Path, flags: int) -> np.ndarray:

@@ -37,9 +37,11 @@ class ReplayConfig:
     time_shift_s: float = 0.0
     # publish under other topic names: "camera/rgbd=cam2/rgbd" (namespaces: the --namespace flag)
     remap: tuple[str, ...] = ()
-    # compress frames on the wire (camera/rgbd/compressed): "" or "raw" (default), or
-    # COLOUR[,png] with COLOUR jpeg[:QUALITY] (lossy) or png[:LEVEL]; depth is always lossless PNG
-    wire_compression: str = ""
+    # frames on the wire: "source" (default): as the source encodes them (TUM PNGs, a log's
+    # compressed frames) on camera/rgbd/compressed, never decoded on the way, else raw on camera/rgbd;
+    # "" or "raw": decoded, raw; COLOUR[,png] with COLOUR jpeg[:QUALITY] (lossy) or png[:LEVEL]:
+    # re-encoded on camera/rgbd/compressed; depth is always lossless PNG
+    wire_compression: str = "source"
     wait_for: tuple[str, ...] = ("tracker",)
     # the camera of a tum: source whose folder name does not say it (freiburg1, freiburg2, freiburg3);
     # "": from the name, and an error when the name says none (never a silent default)

@@ -7,9 +7,9 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
-from octolog.kit.bus import Bus, BusConfig
+from octolog.kit.bus import Bus, BusConfig, Received
 from octolog.kit.errors import ConfigError, InputError
-from octolog.kit.geometry import RgbdFrame
+from octolog.kit.geometry import EncodedRgbd, RgbdFrame
 from octolog.kit.mcaplog import read_messages, summarize
 from octolog.kit.viz import Viz
 from octolog.replay.config import ReplayConfig, remapped
@@ -20,13 +20,57 @@ from octolog.schemas.topics import (
     KEYFRAME_COMPRESSED,
     KEYFRAME_END,
     KEYFRAME_POSES,
+    MAP_UPDATE,
     RGBD,
     RGBD_COMPRESSED,
     RGBD_END,
     TRACKING_STATUS,
 )
 
-Progress = Callable[[int, int, float], None]  # (frames done, total, seconds elapsed)
+
+@dataclass
+class Status:
+    """What the replay sees of the pipeline while it plays: its own rate and, from the tracker's
+    statuses and the mapper's updates on the bus, each stage's progress and queue."""
+
+    published: int = 0
+    total: int = 0
+    elapsed_s: float = 0.0
+    sensor_s: float = 0.0  # sensor time played so far
+    tracked: int = 0  # statuses received (skipped frames included)
+    skipped: int = 0  # frames the tracker skipped to stay real-time (live mode)
+    keyframes: int = 0
+    mapped: int = 0  # keyframes the mapper has integrated
+    tracker_ms: float = 0.0  # the tracker's time on its last frame
+    mapper_ms: float = 0.0  # the mapper's time on its last keyframe
+
+    def feed(self, r: Received) -> None:
+        if r.topic == TRACKING_STATUS:
+            st = r.decode()
+            self.tracked += 1
+            if st.state == _SKIPPED:
+                self.skipped += 1
+            else:
+                self.tracker_ms = float(st.processing_ms)
+            self.keyframes += bool(st.is_keyframe)
+        elif r.topic == MAP_UPDATE:
+            self.mapped += 1
+            self.mapper_ms = float(r.decode().processing_ms)
+
+    def line(self) -> str:
+        """One status line: frames, frames/s, real-time factor; per stage its queue (and skips)."""
+        fps = self.published / self.elapsed_s if self.elapsed_s > 0 else 0.0
+        rtf = self.sensor_s / self.elapsed_s if self.elapsed_s > 0 else 0.0
+        left = (self.total - self.published) / fps if fps > 0 else 0.0
+        return (f"{self.published}/{self.total} frames {fps:5.1f} fps  RTF {rtf:4.2f} | tracker "
+                f"{self.published - self.tracked} queued, {self.skipped} skipped, {self.tracker_ms:3.0f} ms | mapper "
+                f"{self.keyframes - self.mapped} queued, {self.mapped} kf, {self.mapper_ms:3.0f} ms | {left:4.0f} s left")
+
+
+Progress = Callable[[Status], None]
+
+
+_SKIPPED = codec.msgtype(TRACKING_STATUS.msgtype).SKIPPED
 
 
 @dataclass(frozen=True)
@@ -39,8 +83,8 @@ class ReplayResult:
 class Pacer:
     """Decides when the next frame may go: lockstep credit window or sensor-time rate."""
 
-    def __init__(self, bus: Bus, cfg: ReplayConfig) -> None:
-        self.bus, self.cfg = bus, cfg
+    def __init__(self, bus: Bus, cfg: ReplayConfig, status: Status) -> None:
+        self.bus, self.cfg, self.status = bus, cfg, status
         self.acked = 0
         self._t0_wall: float | None = None
         self._t0_stamp = 0
@@ -56,6 +100,8 @@ class Pacer:
             delay = due - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
+            while (r := self.bus.receive_nowait()) is not None:  # the status line's figures, if subscribed
+                self.status.feed(r)
 
     def finish(self, published: int) -> None:
         if self.cfg.rate == 0:
@@ -64,8 +110,9 @@ class Pacer:
 
     def _drain(self) -> None:
         r = self.bus.receive()
-        if r is not None and r.topic == TRACKING_STATUS:
-            self.acked += 1
+        if r is not None:
+            self.status.feed(r)
+            self.acked += r.topic == TRACKING_STATUS
 
 
 def run(cfg: ReplayConfig, bus_cfg: BusConfig, *, rerun: str = "off", recording_id: str = "octolog",
@@ -77,14 +124,15 @@ def run(cfg: ReplayConfig, bus_cfg: BusConfig, *, rerun: str = "off", recording_
         return publish(source, cfg, bus, viz, progress)
 
 
-def looped(source: Source, cfg: ReplayConfig) -> Iterator[RgbdFrame]:
-    """The source's frames `cfg.loop` times; later passes keep sequence numbers and time moving on."""
+def looped(source: Source, cfg: ReplayConfig, *, encoded: bool = False) -> Iterator[RgbdFrame | EncodedRgbd]:
+    """The source's frames `cfg.loop` times (still encoded with `encoded`); later passes keep sequence
+    numbers and time moving on."""
     end = None if cfg.end < 0 else cfg.end
     shift_seq, shift_ns = 0, round(cfg.time_shift_s * 1e9)
     t0: int | None = None
     for _ in range(cfg.loop):
         first = last = None
-        for frame in source.frames(cfg.start, end):
+        for frame in (source.encoded_frames if encoded else source.frames)(cfg.start, end):
             t0 = frame.stamp_ns if t0 is None else t0
             rel_s = (frame.stamp_ns - t0) * 1e-9
             if cfg.start_s >= 0 and rel_s < cfg.start_s:
@@ -105,27 +153,33 @@ def looped(source: Source, cfg: ReplayConfig) -> Iterator[RgbdFrame]:
 
 def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Progress | None) -> ReplayResult:
     wire = codec.parse_wire_compression(cfg.wire_compression)
-    frames_pub = bus.publisher(remapped(RGBD if wire is None else RGBD_COMPRESSED, cfg.remap))
+    # as the source has them: encoded images go out untouched (the tracker decodes them once)
+    passthrough = cfg.wire_compression == codec.SOURCE and source.encoded
+    compressed = passthrough or wire is not None
+    frames_pub = bus.publisher(remapped(RGBD_COMPRESSED if compressed else RGBD, cfg.remap))
     end_pub = bus.publisher(remapped(RGBD_END, cfg.remap))
-    bus.start([TRACKING_STATUS] if cfg.rate == 0 else [], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
-    pacer = Pacer(bus, cfg)
+    # lockstep needs the tracker's statuses; the status line shows them and the mapper's updates
+    watched = ([TRACKING_STATUS] if cfg.rate == 0 else []) + ([TRACKING_STATUS, MAP_UPDATE] if progress else [])
+    bus.start(list(dict.fromkeys(watched)), wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
     end = None if cfg.end < 0 else cfg.end
     total = max(0, min(len(source), end if end is not None else len(source)) - cfg.start) * cfg.loop
+    status = Status(total=total)
+    pacer = Pacer(bus, cfg, status)
     t0 = time.monotonic()
     first_stamp = last_stamp = None
-    for frame in looped(source, cfg):
+    viz.text("replay/events", f"replaying {source.name}: {total} frames")  # the images: the tracker logs them
+    for frame in looped(source, cfg, encoded=passthrough):
         pacer.wait(frames_pub.count, frame.stamp_ns)
-        frames_pub.put(codec.rgbd_msg(frame) if wire is None else codec.compressed_rgbd_msg(frame, wire))
+        if passthrough:
+            frames_pub.put(codec.encoded_rgbd_msg(frame))
+        else:
+            frames_pub.put(codec.rgbd_msg(frame) if wire is None else codec.compressed_rgbd_msg(frame, wire))
         first_stamp = frame.stamp_ns if first_stamp is None else first_stamp
         last_stamp = frame.stamp_ns
-        if viz.enabled:
-            viz.set_time(frame.stamp_ns, frame.seq)
-            if frames_pub.count == 1:
-                viz.camera("camera/rgbd", frame.intrinsics)
-            viz.rgb("camera/rgbd/color", frame.rgb)
-            viz.depth("camera/rgbd/depth", frame.depth, frame.depth_scale_m)
         if progress is not None:
-            progress(frames_pub.count, total, time.monotonic() - t0)
+            status.published, status.elapsed_s = frames_pub.count, time.monotonic() - t0
+            status.sensor_s = (last_stamp - first_stamp) * 1e-9
+            progress(status)
     pacer.finish(frames_pub.count)
     end_pub.put(codec.stream_end_msg(frames_pub.topic.name, frames_pub.count, last_stamp or 0))
     duration = ((last_stamp or 0) - (first_stamp or 0)) * 1e-9

@@ -8,13 +8,13 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol, TypeVar
 
 from octolog.kit.errors import ConfigError, InputError
-from octolog.kit.geometry import RgbdFrame
+from octolog.kit.geometry import EncodedRgbd, RgbdFrame
 from octolog.kit.mcaplog import read_messages, summarize
 from octolog.kit.tum import open_tum, readout_for
 from octolog.replay.standard import has_standard_frames, open_standard
@@ -22,10 +22,14 @@ from octolog.replay.synthetic import SyntheticScene
 from octolog.schemas import codec
 from octolog.schemas.topics import RGBD, RGBD_COMPRESSED, TRACKING_STATUS
 
+T = TypeVar("T")
+F = TypeVar("F", RgbdFrame, EncodedRgbd)
+
 
 class Source(Protocol):
     name: str
     readout_s: float  # the colour camera's rolling-shutter readout time in s (0: global shutter or unknown)
+    encoded: bool  # it stores its images encoded (PNG/JPEG) and encoded_frames gives them undecoded
 
     def __len__(self) -> int: ...
 
@@ -34,7 +38,14 @@ class Source(Protocol):
 
     def frames(self, start: int = 0, end: int | None = None) -> Iterator[RgbdFrame]: ...
 
+    def encoded_frames(self, start: int = 0, end: int | None = None) -> Iterator[EncodedRgbd]: ...
+
     def groundtruth_tum(self) -> str | None: ...
+
+
+def _not_encoded(source: Source) -> Iterator[EncodedRgbd]:
+    raise ConfigError(f"{source.name}: its frames are not stored encoded (replay.wire_compression=source "
+                      "sends them raw)")
 
 
 @dataclass
@@ -56,8 +67,13 @@ class TumSource:
     def duration_ns(self) -> int:
         return self.seq.duration_ns
 
+    encoded = True  # PNG files
+
     def frames(self, start: int = 0, end: int | None = None) -> Iterator[RgbdFrame]:
         return self.seq.frames(start, end)
+
+    def encoded_frames(self, start: int = 0, end: int | None = None) -> Iterator[EncodedRgbd]:
+        return self.seq.encoded_frames(start, end)
 
     def groundtruth_tum(self) -> str | None:
         return self.seq.groundtruth.read_text() if self.seq.groundtruth else None
@@ -126,10 +142,23 @@ class McapSource:
             return self._standard.duration_ns
         return self._span[1] - self._span[0]
 
+    @property
+    def encoded(self) -> bool:
+        """A session log whose frames travelled compressed: they replay as they were logged."""
+        return self._standard is None and self._topic is RGBD_COMPRESSED
+
     def frames(self, start: int = 0, end: int | None = None) -> Iterator[RgbdFrame]:
         if self._standard is not None:
             yield from self._standard.frames(start, end)
             return
+        yield from self._logged(start, end, codec.rgbd_from_msg)
+
+    def encoded_frames(self, start: int = 0, end: int | None = None) -> Iterator[EncodedRgbd]:
+        if not self.encoded:
+            yield from _not_encoded(self)
+        yield from self._logged(start, end, codec.encoded_rgbd_from_msg)
+
+    def _logged(self, start: int, end: int | None, convert: Callable[[Any], T]) -> Iterator[T]:
         i = 0
         topic = self._topic
         for n, m in enumerate(read_messages(self.path, [topic.name])):
@@ -138,7 +167,7 @@ class McapSource:
                 if self._consumed is not None and int(msg.seq) not in self._consumed:
                     continue
                 if start <= i and (end is None or i < end):
-                    yield codec.rgbd_from_msg(msg)
+                    yield convert(msg)
             except InputError as exc:
                 raise InputError(f"{self.path}: message {n} on /{topic.name}: {exc}") from None
             i += 1
@@ -166,6 +195,7 @@ def consumed_frames(path: Path) -> set[int]:
 class SyntheticSource:
     n_frames: int = 150
     readout_s = 0.0  # rendered, every row at once
+    encoded = False  # rendered pixels
 
     def __post_init__(self) -> None:
         self.scene = SyntheticScene(n_frames=self.n_frames)
@@ -182,6 +212,9 @@ class SyntheticSource:
         for i in range(start, self.n_frames if end is None else min(end, self.n_frames)):
             yield self.scene.render(i)
 
+    def encoded_frames(self, start: int = 0, end: int | None = None) -> Iterator[EncodedRgbd]:
+        return _not_encoded(self)
+
     def groundtruth_tum(self) -> str | None:
         return self.scene.groundtruth_tum()
 
@@ -197,6 +230,7 @@ class Subsampled:
     def __post_init__(self) -> None:
         self.name = f"{self.inner.name} (every {self.every})"
         self.readout_s = self.inner.readout_s
+        self.encoded = self.inner.encoded
 
     def __len__(self) -> int:
         return -(-len(self.inner) // self.every)
@@ -206,8 +240,14 @@ class Subsampled:
         return self.inner.duration_ns
 
     def frames(self, start: int = 0, end: int | None = None) -> Iterator[RgbdFrame]:
+        return self._every(self.inner.frames, start, end)
+
+    def encoded_frames(self, start: int = 0, end: int | None = None) -> Iterator[EncodedRgbd]:
+        return self._every(self.inner.encoded_frames, start, end)
+
+    def _every(self, frames: Callable[[int, int | None], Iterator[F]], start: int, end: int | None) -> Iterator[F]:
         stop = None if end is None else end * self.every
-        for i, frame in enumerate(self.inner.frames(start * self.every, stop)):
+        for i, frame in enumerate(frames(start * self.every, stop)):
             if i % self.every == 0:
                 yield dataclasses.replace(frame, seq=start + i // self.every)
 

@@ -15,7 +15,7 @@ import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from octolog.kit.errors import ConfigError, InputError
-from octolog.kit.geometry import Intrinsics, RgbdFrame, matrix_to_pose, pose_to_matrix
+from octolog.kit.geometry import EncodedRgbd, Intrinsics, RgbdFrame, matrix_to_pose, pose_to_matrix
 
 MSG_DIR = Path(__file__).with_name("msg")
 OWN_PACKAGE = "octolog_msgs"
@@ -181,9 +181,12 @@ def _rgbd_parts(msg: Any) -> tuple[np.ndarray, np.ndarray, Intrinsics]:
 
 
 def rgbd_from_msg(msg: Any) -> RgbdFrame:
+    """The decoded frame; a compressed one keeps its CompressedImage pair in `extra["wire"]`, so a
+    keyframe or a log can pass the images on as they came."""
     rgb, depth, intr = _rgbd_parts(msg)
+    extra = {"wire": (msg.color, msg.depth)} if hasattr(msg.color, "format") else {}
     return RgbdFrame(int(msg.seq), stamp_ns(msg.header), rgb, depth, float(msg.depth_scale_m), intr,
-                     msg.header.frame_id)
+                     msg.header.frame_id, extra)
 
 
 def keyframe_msg(kf_id: int, world_from_camera: np.ndarray, frame: RgbdFrame) -> Any:
@@ -357,10 +360,14 @@ class WireCompression:
 DEPTH_PNG_FORMAT = "16UC1; png compressed"
 
 
+SOURCE = "source"  # frames as the source encodes them; keyframes as the frames came
+
+
 def parse_wire_compression(spec: str) -> WireCompression | None:
-    """`""`/`"raw"`: no compression; else `COLOUR[,DEPTH]` with COLOUR `jpeg[:QUALITY]` or `png[:LEVEL]`
+    """`"source"`, `""`, `"raw"`: no re-encoding (the caller passes encoded images on as they are,
+    or sends raw ones); else `COLOUR[,DEPTH]` with COLOUR `jpeg[:QUALITY]` or `png[:LEVEL]`
     and DEPTH `png` (the default; depth is never compressed lossily)."""
-    if spec in ("", "raw"):
+    if spec in (SOURCE, "", "raw"):
         return None
     colour, _, depth = spec.partition(",")
     if depth not in ("", "png"):
@@ -413,6 +420,33 @@ def compressed_rgbd_msg(frame: RgbdFrame, wire: WireCompression) -> Any:
     colour, depth = _wire_images(frame, wire)
     return msgtype("octolog_msgs/msg/CompressedRgbdFrame")(
         seq=frame.seq, header=header(frame.stamp_ns, frame.frame_id), color=colour, depth=depth,
+        depth_scale_m=float(frame.depth_scale_m),
+        camera_info=camera_info_msg(frame.intrinsics, frame.stamp_ns, frame.frame_id))
+
+
+def encoded_rgbd_msg(frame: EncodedRgbd) -> Any:
+    """A CompressedRgbdFrame of images as the source encoded them (no decoding, no re-encoding)."""
+    return msgtype("octolog_msgs/msg/CompressedRgbdFrame")(
+        seq=frame.seq, header=header(frame.stamp_ns, frame.frame_id),
+        color=compressed_image_msg(frame.color, frame.color_format, frame.stamp_ns, frame.frame_id),
+        depth=compressed_image_msg(frame.depth, frame.depth_format, frame.stamp_ns, frame.frame_id),
+        depth_scale_m=float(frame.depth_scale_m),
+        camera_info=camera_info_msg(frame.intrinsics, frame.stamp_ns, frame.frame_id))
+
+
+def encoded_rgbd_from_msg(msg: Any) -> EncodedRgbd:
+    """The encoded images and calibration of a CompressedRgbdFrame, still encoded."""
+    return EncodedRgbd(int(msg.seq), stamp_ns(msg.header), bytes(msg.color.data), msg.color.format,
+                       bytes(msg.depth.data), msg.depth.format, float(msg.depth_scale_m),
+                       intrinsics_from(msg.camera_info), msg.header.frame_id)
+
+
+def forwarded_keyframe_msg(kf_id: int, world_from_camera: np.ndarray, frame: RgbdFrame) -> Any:
+    """A CompressedKeyframe with the images `frame` arrived with (`extra["wire"]`), not re-encoded."""
+    colour, depth = frame.extra["wire"]
+    return msgtype("octolog_msgs/msg/CompressedKeyframe")(
+        header=header(frame.stamp_ns, "world"), id=kf_id, frame_seq=frame.seq,
+        world_from_camera=pose_msg(world_from_camera), color=colour, depth=depth,
         depth_scale_m=float(frame.depth_scale_m),
         camera_info=camera_info_msg(frame.intrinsics, frame.stamp_ns, frame.frame_id))
 

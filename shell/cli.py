@@ -15,22 +15,26 @@ import os
 import signal
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from octolog.kit.config import load
 from octolog.kit.errors import ConfigError, DiskFull, OctologError
 from octolog.shell import errorfile, record
 from octolog.shell.args import add_bus_arguments, add_config_arguments, add_viz_arguments, bus_config, recording_id
 
+if TYPE_CHECKING:
+    from octolog.replay.node import Status
+
 _line_open = False  # a progress line is on stderr without its newline yet
 
 
-def _progress(done: int, total: int, elapsed: float) -> None:
+def _progress(status: Status) -> None:
+    """The replay's status line (replay.node.Status), redrawn every 10 frames on stderr."""
     global _line_open
+    done, total = status.published, status.total
     if done % 10 and done != total:
         return
-    rate = done / elapsed if elapsed > 0 else 0.0
-    left = (total - done) / rate if rate > 0 else 0.0
-    print(f"\r  {done}/{total} frames  {rate:5.1f} fps  {left:5.0f} s left", end="", file=sys.stderr, flush=True)
+    print(f"\r  {status.line():<118}", end="", file=sys.stderr, flush=True)  # padded: a shorter line overwrites
     _line_open = done != total
     if done == total:
         print(file=sys.stderr)

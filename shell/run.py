@@ -108,8 +108,11 @@ class _Children:
         errorfile.reserve(self.error_file(name))
         env = {**os.environ, "PYTHONHASHSEED": "0", "PYTHONUNBUFFERED": "1", errorfile.ENV: str(self.error_file(name))}
         self.argv[name] = (argv, show_stderr)
+        # OCTOLOG_PROFILE=STAGE[,STAGE]: run those stages under cProfile, into logs/STAGE.prof
+        profile = name in os.environ.get("OCTOLOG_PROFILE", "").split(",")
+        prof = ["-m", "cProfile", "-o", str(self.logs / f"{name}.prof")] if profile else []
         self.procs[name] = proc = subprocess.Popen(
-            [sys.executable, "-m", "octolog", *argv], stdout=log, stderr=subprocess.PIPE if show_stderr else log,
+            [sys.executable, *prof, "-m", "octolog", *argv], stdout=log, stderr=subprocess.PIPE if show_stderr else log,
             env=env, start_new_session=True)
         if show_stderr:
             relay = threading.Thread(target=self._relay, args=(proc.stderr,), daemon=True)

@@ -18,6 +18,7 @@ class FakeSource:
 
     name = "fake"
     readout_s = 0.0
+    encoded = False
 
     def __init__(self, n: int = 10) -> None:
         self.n = n

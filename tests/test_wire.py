@@ -12,9 +12,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import octolog
+from helpers import octolog, tum_first300
+from test_tum import make_tum
 
 from octolog.kit.errors import ConfigError, InputError
+from octolog.kit.mcaplog import read_messages
+from octolog.kit.tum import open_tum
 from octolog.replay.sources import SyntheticSource
 from octolog.schemas import codec, topics
 
@@ -114,3 +117,42 @@ def test_jpeg_is_deterministic_close_to_raw_and_its_log_replays(raw, tmp_path):
     # the session log holds the JPEG frames: replayed (raw on the wire), the tracker sees the same pixels
     octolog("run", "--source", f"mcap:{a / 'session.mcap'}", "--out", str(tmp_path / "r"), "--quiet", "--rerun", "off")
     assert (tmp_path / "r" / "trajectory.txt").read_bytes() == (a / "trajectory.txt").read_bytes()
+
+
+def test_tum_frames_travel_and_are_logged_as_their_png_files(tmp_path):
+    """The default (`source`) publishes a TUM folder's PNG files untouched: the session log holds
+    their bytes, keyframes carry them on to the mapper, and every output equals a raw run's."""
+    folder = tum_first300()
+    window = ("--set", "replay.end=40")
+
+    def run(name: str, *sets: str) -> Path:
+        out = tmp_path / name
+        octolog("run", "--source", f"tum:{folder}", "--out", str(out), "--quiet", "--rerun", "off", *window,
+                *[a for s in sets for a in ("--set", s)], timeout=600)
+        return out
+
+    source, raw = run("source"), run("raw", "replay.wire_compression=raw", "tracker.wire_compression=raw")
+    for name in ("trajectory.txt", "map.bt", "cloud.ply"):
+        assert (source / name).read_bytes() == (raw / name).read_bytes(), name
+    pngs = sorted((folder / "rgb").iterdir())[:2]
+    logged = [codec.decode(m.data, topics.RGBD_COMPRESSED.msgtype)
+              for m in read_messages(source / "session.mcap", [topics.RGBD_COMPRESSED.name])]
+    assert len(logged) == 40
+    assert [bytes(m.color.data) for m in logged[:2]] == [p.read_bytes() for p in pngs]
+    kfs = list(read_messages(source / "session.mcap", [topics.KEYFRAME_COMPRESSED.name]))
+    assert kfs and not list(read_messages(source / "session.mcap", [topics.KEYFRAME.name]))
+    assert (source / "session.mcap").stat().st_size < 0.5 * (raw / "session.mcap").stat().st_size
+    # the log replays its compressed frames as they are, to the same trajectory
+    again = tmp_path / "again"
+    octolog("replay", str(source), "--out", str(again), "--quiet", "--rerun", "off")
+    assert (again / "trajectory.txt").read_bytes() == (source / "trajectory.txt").read_bytes()
+
+
+def test_a_truncated_png_is_named_before_it_is_sent(tmp_path):
+    folder = make_tum(tmp_path / "rgbd_dataset_freiburg1_t", n=3)
+    victim = sorted((folder / "rgb").iterdir())[1]
+    victim.write_bytes(victim.read_bytes()[:-20])
+    frames = open_tum(folder).encoded_frames()
+    assert next(frames).color[:8] == b"\x89PNG\r\n\x1a\n"
+    with pytest.raises(InputError, match=f"{victim.name}: truncated PNG"):
+        next(frames)

@@ -148,9 +148,10 @@ class TrackerConfig:
     # stages that must be up before this one announces itself (e.g. "mapper" when run by hand)
     wait_for: tuple[str, ...] = ()
     wait_timeout_s: float = 60.0
-    # compress keyframes on the wire (tracker/keyframe/compressed): "" or "raw" (default), or
-    # COLOUR[,png] with COLOUR jpeg[:QUALITY] or png[:LEVEL] (see replay.wire_compression)
-    wire_compression: str = ""
+    # keyframes on the wire: "source" (default): with the images as the frame came (compressed frames
+    # give tracker/keyframe/compressed, not re-encoded; raw ones tracker/keyframe); "" or "raw": raw;
+    # COLOUR[,png] with COLOUR jpeg[:QUALITY] or png[:LEVEL]: re-encoded (see replay.wire_compression)
+    wire_compression: str = "source"
     # "native" (ours, deterministic) or "orbslam3" (pyorbslam3, an extra: for comparison)
     backend: str = "native"
     # native back end: local bundle adjustment over the newest `ba_window` keyframes, loop closing

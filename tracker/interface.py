@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -64,9 +64,14 @@ class Tracker(Protocol):
     @property
     def n_keyframes(self) -> int: ...
 
-    def track(self, frame: RgbdFrame) -> TrackResult:
-        """Estimate world_from_camera of `frame`; raises TrackingError for a frame that contradicts
-        its camera, never for bad image content."""
+    def prepare(self, frame: RgbdFrame) -> Any:
+        """The work on `frame` that needs nothing but its pixels (feature extraction), safe to run on
+        one other thread ahead of `track`; None when there is none. Results do not depend on it."""
+        ...
+
+    def track(self, frame: RgbdFrame, prepared: Any = None) -> TrackResult:
+        """Estimate world_from_camera of `frame` (with what `prepare(frame)` returned, if called);
+        raises TrackingError for a frame that contradicts its camera, never for bad image content."""
         ...
 
     def finish(self) -> dict[int, np.ndarray]:

@@ -3,15 +3,18 @@
 from __future__ import annotations
 
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from octolog.kit.bus import Bus, BusConfig, Received
 from octolog.kit.errors import InputError, TrackingError
+from octolog.kit.geometry import RgbdFrame
 from octolog.kit.metrics import write_tum
-from octolog.kit.viz import Viz
+from octolog.kit.viz import Viz, encode_jpeg
 from octolog.schemas import codec
 from octolog.schemas.topics import (
     KEYFRAME,
@@ -64,8 +67,7 @@ def run(cfg: TrackerConfig, bus_cfg: BusConfig, *, trajectory: Path | None = Non
 
 def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerResult:
     pub_pose, pub_status = bus.publisher(POSE), bus.publisher(TRACKING_STATUS)
-    wire = codec.parse_wire_compression(cfg.wire_compression)
-    pub_kf = bus.publisher(KEYFRAME if wire is None else KEYFRAME_COMPRESSED)
+    pub_kf = KeyframeOut(bus, cfg.wire_compression)
     pub_kf_end = bus.publisher(KEYFRAME_END)
     pub_poses = bus.publisher(KEYFRAME_POSES)
     # frames come raw or compressed, whichever the source publishes; decoding is the same call
@@ -74,7 +76,8 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
     bus.watch(["mapper"], required=False)  # a mapper may restart: keep its keyframes until it is done
     result = TrackerResult()
     expected: int | None = None
-    held: Received | None = None  # a non-frame message met while looking for newer frames
+    held: Received | None = None  # a message already taken off the bus, to handle next
+    decoded: dict[int, Future] = {}  # frames being decoded ahead, on the helper thread, by id(Received)
     while expected is None or result.frames < expected:
         r, held = (held, None) if held is not None else (bus.receive(), None)
         if r is None:
@@ -100,10 +103,19 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
                 result.frames += 1
                 r = newer
         t0 = time.perf_counter()
-        msg = r.decode()
+        ahead = decoded.pop(id(r), None)
+        if not cfg.live and held is None:
+            # decode the next frame and extract its features, if it is already here, while this one
+            # is tracked (OpenCV releases the GIL): the second core works for the tracking thread
+            held = bus.receive_nowait()
+            if held is not None and held.topic in (RGBD, RGBD_COMPRESSED):
+                decoded[id(held)] = _DECODER.submit(_decode, held, odometry, viz.enabled)
+        msg, frame_or_error, prepared = ahead.result() if ahead is not None else _decode(r)
         try:
-            frame = codec.rgbd_from_msg(msg)
-            res = odometry.track(frame)
+            if isinstance(frame_or_error, InputError):
+                raise frame_or_error
+            frame = frame_or_error
+            res = odometry.track(frame, prepared)
         except (InputError, TrackingError) as exc:
             # an undecodable frame, or one that contradicts its camera (size, depth type, changed
             # intrinsics), is consumed and reported LOST, never a crash
@@ -125,8 +137,7 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
         result.loops += res.loop is not None
         result.relocalisations += res.relocalised
         if res.is_keyframe:
-            pub_kf.put(codec.keyframe_msg(res.keyframe_id, res.world_from_camera, frame) if wire is None else
-                       codec.compressed_keyframe_msg(res.keyframe_id, res.world_from_camera, frame, wire))
+            pub_kf.put(res.keyframe_id, res.world_from_camera, frame)
             result.keyframes += 1
         pub_status.put(_status(frame.seq, frame.stamp_ns, res.state, res.is_keyframe, res.keyframe_id,
                                res.n_matches, res.n_inliers, ms))
@@ -138,9 +149,59 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
     if moved:
         pub_poses.put(codec.keyframe_poses_msg(odometry.keyframe_poses(), result.stamps_ns[-1]))
     pub_kf_end.put(codec.stream_end_msg(KEYFRAME_POSES.name, pub_poses.count))
-    pub_kf_end.put(codec.stream_end_msg(pub_kf.topic.name, pub_kf.count))
+    pub_kf_end.put(codec.stream_end_msg(pub_kf.topic_name, pub_kf.count))
     bus.linger("mapper")
     return result
+
+
+_DECODER = ThreadPoolExecutor(1, thread_name_prefix="decode")
+
+
+def _decode(r: Received, odometry: Tracker | None = None, viz: bool = False) -> tuple[Any, RgbdFrame | InputError, Any]:
+    """A frame message, its decoded frame (or the InputError that says why it cannot be one) and,
+    given the tracker, what `odometry.prepare` makes of it ahead of `track`; with `viz`, the frame's
+    colour as the JPEG the recording logs (`extra["jpeg"]`), unless it came as one."""
+    msg = r.decode()
+    try:
+        frame = codec.rgbd_from_msg(msg)
+    except InputError as exc:
+        return msg, exc, None
+    colour = frame.extra.get("wire", (None,))[0]
+    if viz and (colour is None or "jpeg" not in colour.format):
+        frame.extra["jpeg"] = encode_jpeg(frame.rgb)
+    return msg, frame, odometry.prepare(frame) if odometry is not None else None
+
+
+class KeyframeOut:
+    """Keyframes onto the bus, raw or compressed. `wire_compression` "source": with the images the
+    frame came with (compressed frames give compressed keyframes, not re-encoded; raw give raw);
+    else as codec.parse_wire_compression says. The topic is fixed by the first keyframe."""
+
+    def __init__(self, bus: Bus, wire_compression: str) -> None:
+        self.bus = bus
+        self.forward = wire_compression == codec.SOURCE
+        self.wire = codec.parse_wire_compression(wire_compression)
+        self.pub: Any = None
+
+    @property
+    def count(self) -> int:
+        return 0 if self.pub is None else self.pub.count
+
+    @property
+    def topic_name(self) -> str:
+        return (KEYFRAME if self.pub is None else self.pub.topic).name
+
+    def put(self, kf_id: int, world_from_camera: np.ndarray, frame: RgbdFrame) -> None:
+        forwarded = self.forward and "wire" in frame.extra
+        if self.pub is None:
+            self.pub = self.bus.publisher(KEYFRAME_COMPRESSED if forwarded or self.wire else KEYFRAME)
+        if forwarded and self.pub.topic is KEYFRAME_COMPRESSED:
+            self.pub.put(codec.forwarded_keyframe_msg(kf_id, world_from_camera, frame))
+        elif self.pub.topic is KEYFRAME_COMPRESSED:  # a raw frame among compressed ones: lossless
+            wire = self.wire or codec.WireCompression("png")
+            self.pub.put(codec.compressed_keyframe_msg(kf_id, world_from_camera, frame, wire))
+        else:
+            self.pub.put(codec.keyframe_msg(kf_id, world_from_camera, frame))
 
 
 def _status(seq: int, stamp: int, state: TrackingState, is_kf: bool, kf_id: int, n_matches: int, n_inliers: int,
@@ -159,7 +220,9 @@ def _log(viz: Viz, frame, res: TrackResult, result: TrackerResult, odometry: Tra
     if result.frames == 1:
         viz.camera("world/tracker/camera", frame.intrinsics)
     viz.pose("world/tracker/camera", res.world_from_camera)
-    viz.rgb("world/tracker/camera/image", frame.rgb)
+    colour, depth = frame.extra.get("wire", (None, None))
+    jpeg = colour.data if colour is not None and "jpeg" in colour.format else frame.extra.get("jpeg")
+    viz.rgb("world/tracker/camera/image", frame.rgb, jpeg)  # the one place the images are logged
     viz.scalar("tracker/inliers", float(res.n_inliers))
     keypoints = odometry.keypoints()
     if keypoints is not None:
@@ -172,6 +235,13 @@ def _log(viz: Viz, frame, res: TrackResult, result: TrackerResult, odometry: Tra
         viz.points3d("world/tracker/keyframes", np.array([res.world_from_camera[:3, 3]]), [0, 200, 255],
                      radius=0.02)
         viz.text("tracker/events", f"keyframe {res.keyframe_id} at frame {frame.seq}")
+        # the keyframe's depth at the keyframe's pose (per frame it would add 100 kB a frame and
+        # nothing a keyframe does not show); its own entity, so it stays where it was taken
+        if result.keyframes == 1:
+            viz.camera("world/tracker/keyframe", frame.intrinsics)
+        viz.pose("world/tracker/keyframe", res.world_from_camera)
+        png = depth.data if depth is not None and depth.format == codec.DEPTH_PNG_FORMAT else None
+        viz.depth("world/tracker/keyframe/depth", frame.depth, frame.depth_scale_m, png)
         local_map = odometry.local_map()
         if local_map is not None:
             viz.points3d("world/tracker/local_map", local_map, [255, 255, 255], radius=0.004)

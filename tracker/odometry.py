@@ -16,6 +16,8 @@ and is deterministic: the same frames give byte-identical poses in any process.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
+from typing import Any
 
 import cv2
 import numpy as np
@@ -85,16 +87,17 @@ class RgbdOdometry:
     With a `vocabulary`, loop and relocalisation candidates come from a bag-of-words index over it
     (the best `params.bow_candidates`), else every keyframe is a candidate. `background` runs the
     back end in a worker process (outputs are identical either way). One instance per camera
-    stream; not thread-safe.
+    stream; not thread-safe, but for `prepare`, which one other thread may call ahead of `track`.
     """
 
     def __init__(self, params: OdometryParams | None = None, *, vocabulary: Vocabulary | None = None,
                  background: bool = False) -> None:
         self.params = params = params if params is not None else TrackerConfig().odometry_params()
         f = params.features
-        self._extractor = OrbExtractor(n_features=params.n_features, grid_cols=f.grid_cols, grid_rows=f.grid_rows,
-                                       fast_threshold=f.fast_threshold, min_fast_threshold=f.min_fast_threshold,
-                                       n_levels=f.n_levels, scale_factor=f.scale_factor)
+        make = partial(OrbExtractor, n_features=params.n_features, grid_cols=f.grid_cols, grid_rows=f.grid_rows,
+                       fast_threshold=f.fast_threshold, min_fast_threshold=f.min_fast_threshold,
+                       n_levels=f.n_levels, scale_factor=f.scale_factor)
+        self._extractor, self._extractor_ahead = make(), make()  # the second for `prepare`'s thread
         self._bow = BowIndex(vocabulary) if vocabulary is not None else None
         # The back end (local BA, loop closing) for keyframe k starts when k is inserted and its
         # result is applied when keyframe k+1 is inserted (or at `finish`): a fixed point in the
@@ -146,10 +149,18 @@ class RgbdOdometry:
     def n_map_points(self) -> int:
         return self._map.size
 
-    def track(self, frame: RgbdFrame) -> TrackResult:
+    def prepare(self, frame: RgbdFrame) -> Any:
+        """The work on the frame alone (its ORB features), for `track(frame, prepared)`: pure."""
+        try:
+            return frame, self._extractor_ahead.extract(grey_image(frame))
+        except TrackingError:
+            return None  # `track` raises it, in its turn
+
+    def track(self, frame: RgbdFrame, prepared: Any = None) -> TrackResult:
         """Estimate world_from_camera of `frame`; never raises for bad image content."""
         gray = self._check_frame(frame)
-        feats = self._features(frame, gray)
+        extracted = prepared[1] if prepared is not None and prepared[0] is frame else self._extractor.extract(gray)
+        feats = self._features(frame, extracted)
         if not self._keyframes:
             return self._try_initialise(frame, feats)
 
@@ -208,11 +219,9 @@ class RgbdOdometry:
         before = self.keyframe_poses()
         self._sync_backend(np.eye(4))
         if self.params.global_ba_keyframes > 0 and self.params.local_ba and len(self._keyframes) >= 2:
-            # a last bundle adjustment, as ORB-SLAM runs after a loop: the trajectory and map that
-            # are written out get the whole map's support. Over every keyframe (the first one fixed)
-            # up to `global_ba_keyframes`; beyond, over the newest that many with the keyframes that
-            # created their points held, so its time and memory stay bounded on long sessions
-            # (in the worker when there is one: its peak memory stays out of the tracking process)
+            # a last bundle adjustment, as ORB-SLAM runs after a loop, so what is written out has the
+            # whole map's support: every keyframe (the first fixed) up to `global_ba_keyframes`, else
+            # the newest that many, bounded in time and memory (in the worker when there is one)
             window_n = min(len(self._keyframes), self.params.global_ba_keyframes)
             job = self._backend_job(window_n=window_n, max_points=None, loop_closing=False,
                                     iterations=self.params.bundle_adjustment.global_iterations)
@@ -243,9 +252,9 @@ class RgbdOdometry:
         return unroll_rolling_shutter(feats, self._last_pts[:, 1], self._intrinsics.height, self._undistort.K,
                                       self.params.readout_s, step)
 
-    def _features(self, frame: RgbdFrame, gray: np.ndarray) -> FrameFeatures:
+    def _features(self, frame: RgbdFrame, extracted: tuple[np.ndarray, np.ndarray, np.ndarray]) -> FrameFeatures:
         assert self._undistort is not None
-        pts, octave, desc = self._extractor.extract(gray)
+        pts, octave, desc = extracted
         d = self.params.depth
         z = lookup_depth(frame.depth, frame.depth_scale_m, pts, min_depth_m=d.min_m, max_depth_m=d.max_m,
                          max_spread=d.edge_spread)

@@ -23,6 +23,7 @@ import shutil
 import tempfile
 import weakref
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -191,7 +192,10 @@ class OrbSlam3Odometry:
         self._intrinsics, self._depth_scale = frame.intrinsics, frame.depth_scale_m
         self._finalizer = weakref.finalize(self, _release, self._slam, self._dir)
 
-    def track(self, frame: RgbdFrame) -> TrackResult:
+    def prepare(self, frame: RgbdFrame) -> None:
+        return None  # ORB-SLAM3 extracts inside its own Track call
+
+    def track(self, frame: RgbdFrame, prepared: Any = None) -> TrackResult:
         if self._slam is None:
             self.start(frame)
         elif frame.intrinsics != self._intrinsics or frame.depth_scale_m != self._depth_scale:
