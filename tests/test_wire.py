@@ -141,7 +141,8 @@ def test_tum_frames_travel_and_are_logged_as_their_png_files(tmp_path):
     assert [bytes(m.color.data) for m in logged[:2]] == [p.read_bytes() for p in pngs]
     kfs = list(read_messages(source / "session.mcap", [topics.KEYFRAME_COMPRESSED.name]))
     assert kfs and not list(read_messages(source / "session.mcap", [topics.KEYFRAME.name]))
-    assert (source / "session.mcap").stat().st_size < 0.5 * (raw / "session.mcap").stat().st_size
+    # raw frames lz4-compress about 3:1 in the log; the PNGs are smaller still
+    assert (source / "session.mcap").stat().st_size < 0.7 * (raw / "session.mcap").stat().st_size
     # the log replays its compressed frames as they are, to the same trajectory
     again = tmp_path / "again"
     octolog("replay", str(source), "--out", str(again), "--quiet", "--rerun", "off")
