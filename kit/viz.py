@@ -47,6 +47,34 @@ def _blob(data: Any) -> np.ndarray:
         np.asarray(data, dtype=np.uint8).reshape(-1)
 
 
+PIPELINE_STAGES = ("replay", "tracker", "mapper")
+
+
+def pipeline_blueprint() -> Any:
+    """The viewer's layout for a session: the map in 3D, the camera and the keyframe depth, the grid,
+    the tracker's and mapper's timings and the events; fixed, so every launch looks the same."""
+    import rerun.blueprint as rrb
+
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(origin="world", name="map, trajectory and camera"),
+            rrb.Vertical(
+                rrb.Spatial2DView(origin="world/tracker/camera", name="camera and keypoints"),
+                rrb.Spatial2DView(origin="world/tracker/keyframe", name="last keyframe's depth"),
+                rrb.Spatial2DView(origin="mapper/grid", name="occupancy grid"),
+            ),
+            rrb.Vertical(
+                rrb.TimeSeriesView(origin="tracker/ms", name="tracker ms per frame"),
+                rrb.TimeSeriesView(origin="tracker/inliers", name="tracker inliers"),
+                rrb.TimeSeriesView(origin="mapper/ms", name="mapper ms per keyframe"),
+                rrb.TextLogView(origin="/", contents=["tracker/events", "replay/events"], name="events"),
+            ),
+            column_shares=[3, 2, 2],
+        ),
+        collapse_panels=True,
+    )
+
+
 def parse_spec(spec: str) -> tuple[str, str]:
     """Split `off`, `save:DIR` or `connect[:URL]` into (kind, target)."""
     kind, _, target = spec.partition(":")
@@ -79,7 +107,11 @@ class Viz:
             self.rec.save(self.path)
         else:
             self.rec.connect_grpc(target or None)
-        self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        # `world` is the first camera's optical frame (x right, y down, z forward): declared as such,
+        # the viewer shows the room the way that camera saw it, not on its side
+        self.rec.log("world", rr.ViewCoordinates.RDF, static=True)
+        if stage in PIPELINE_STAGES:
+            self.rec.send_blueprint(pipeline_blueprint())  # the same layout whichever stage's file opens first
 
     @property
     def enabled(self) -> bool:

@@ -336,8 +336,8 @@ def _log_map(viz: Viz, mapper: Mapper, stamp: int, grid: Any = None) -> None:
     viz.points3d("world/mapper/cloud", pts, cols, radius=0.004)
     centres = mapper.octree.occupied_centres()
     if len(centres):
-        z = centres[:, 2]
-        t = (z - z.min()) / max(1e-9, float(np.ptp(z)))
+        up = -centres[:, 1]  # height: `world` is the first camera's optical frame, y points down
+        t = (up - up.min()) / max(1e-9, float(np.ptp(up)))
         colours = np.stack([255 * t, 80 + 100 * (1 - t), 255 * (1 - t)], axis=1).astype(np.uint8)
         viz.boxes("world/mapper/occupied", centres, mapper.resolution_m, colours)
     if grid is not None:
