@@ -128,7 +128,9 @@ def main() -> None:
         sampler.join()
         wall = time.monotonic() - t0
         if proc.returncode:
-            sys.exit(f"octolog run failed ({proc.returncode}): see {out}/logs")
+            kept = Path(tempfile.mkdtemp(prefix="octolog-longpipe-failed-"))
+            subprocess.run(["cp", "-r", str(out / "logs"), str(kept)], check=False)
+            sys.exit(f"octolog run failed ({proc.returncode}): its logs are kept in {kept}/logs")
         report(out, rows, wall, loops * n_loop)
         print(summary_text)
 

@@ -41,7 +41,10 @@ def run(bus_cfg: BusConfig, out: Path, *, compression: str = "zstd", metadata: d
         bus.subscribe(T.ALL)
         bus.announce()
         bus.watch(stages)
-        pending = {stage for stage, _ in ENDS.values() if stage in stages}
+        # the frames come from a replay, or from a recorder publishing a camera live
+        producer = "recorder" if "recorder" in stages else "replay"
+        ends = {t: (producer if stage == "replay" else stage, closes) for t, (stage, closes) in ENDS.items()}
+        pending = {stage for stage, _ in ends.values() if stage in stages}
         announced: dict[str, int] = {}
         while pending or any(result.counts.get(t, 0) < n for t, n in announced.items()):
             r = bus.receive()
@@ -52,8 +55,8 @@ def run(bus_cfg: BusConfig, out: Path, *, compression: str = "zstd", metadata: d
             now = time.time_ns()
             mcap.write(r.topic.name, r.topic.msgtype, r.payload, log_time_ns=now, publish_time_ns=now)
             result.counts[r.topic.name] = result.counts.get(r.topic.name, 0) + 1
-            if r.topic in ENDS:
-                stage, closes = ENDS[r.topic]
+            if r.topic in ends:
+                stage, closes = ends[r.topic]
                 end = r.decode()
                 topic = next((t for t in closes if t.name == end.topic), closes[0])
                 announced[topic.name] = int(end.count)
@@ -64,6 +67,6 @@ def run(bus_cfg: BusConfig, out: Path, *, compression: str = "zstd", metadata: d
                 pending.discard(stage)
                 frames = [announced[t.name] for t in ENDS[T.RGBD_END][1] if t.name in announced]
                 kfs = [t for t in (T.KEYFRAME, T.KEYFRAME_COMPRESSED) if t.name in announced]
-                if {"replay", "tracker"} <= set(stages) and frames and kfs:
+                if {producer, "tracker"} <= set(stages) and frames and kfs:
                     announced[T.TRACKING_STATUS.name] = frames[0]  # one per frame consumed
     return result

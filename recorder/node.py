@@ -14,9 +14,11 @@ from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
+import cv2
+
 from octolog.kit.bus import Bus
 from octolog.kit.errors import DeviceLost, RecorderError
-from octolog.kit.geometry import RgbdFrame
+from octolog.kit.geometry import EncodedRgbd, RgbdFrame
 from octolog.kit.viz import Viz
 from octolog.recorder.capture import Backend, Capture, DeviceDescription
 from octolog.recorder.config import RecorderConfig, capture_profile, make_backend, make_recorder
@@ -121,7 +123,7 @@ def open_sinks(stack: ExitStack, cfg: RecorderConfig, device: DeviceDescription,
     sinks: list[LiveSink] = []
     if bus_cfg is not None:
         bus = stack.enter_context(Bus(bus_cfg, "recorder"))
-        pub = BusPublisher(bus, device, f"{cfg.frame_prefix}_color_optical_frame")
+        pub = BusPublisher(bus, device, f"{cfg.frame_prefix}_color_optical_frame", compressed=cfg.color_codec == "jpeg")
         bus.watch(cfg.wait_for)
         bus.wait_for(cfg.wait_for, cfg.wait_timeout_s)
         sink = LiveSink("bus", pub, size=cfg.live_queue_frames, on_close=pub.end)
@@ -138,12 +140,14 @@ def open_sinks(stack: ExitStack, cfg: RecorderConfig, device: DeviceDescription,
 class BusPublisher:
     """Publishes each written message on its topic, and colour + aligned depth as `camera/rgbd`."""
 
-    def __init__(self, bus: Any, device: DeviceDescription, color_frame: str) -> None:
+    def __init__(self, bus: Any, device: DeviceDescription, color_frame: str, *, compressed: bool = False) -> None:
         self._bus = bus
         self._device = device
         self._frame = color_frame
         self._pubs: dict[str, Any] = {}
-        self._rgbd = bus.publisher(T.RGBD)
+        # compressed: the recorded JPEG colour as it was written, depth as lossless PNG (the recorded
+        # PNG when depth is recorded so), on camera/rgbd/compressed: a tenth of the raw frame
+        self._rgbd = bus.publisher(T.RGBD_COMPRESSED if compressed else T.RGBD)
         self._rgbd_end = bus.publisher(T.RGBD_END)
         bus.announce()
 
@@ -154,13 +158,25 @@ class BusPublisher:
             self._pubs[m.topic.name].put_raw(m.data)
         if cap.color is not None and cap.aligned_depth is not None:
             assert self._device.color is not None
-            frame = RgbdFrame(cap.color.frame_number, cap.color.stamp_ns, cap.color.array, cap.aligned_depth.array,
-                              self._device.depth_scale_m, self._device.color, self._frame)
-            self._rgbd.put(codec.rgbd_msg(frame))
+            c, d = cap.color, cap.aligned_depth
+            if self._rgbd.topic is T.RGBD:
+                self._rgbd.put(codec.rgbd_msg(RgbdFrame(c.frame_number, c.stamp_ns, c.array, d.array,
+                                                        self._device.depth_scale_m, self._device.color, self._frame)))
+                return
+            written = {m.topic: m for m in msgs}
+            colour = codec.decode(written[T.COLOR_JPEG].data, T.COLOR_JPEG.msgtype)
+            if T.ALIGNED_DEPTH_PNG in written:
+                depth = codec.decode(written[T.ALIGNED_DEPTH_PNG].data, T.ALIGNED_DEPTH_PNG.msgtype)
+                depth_png = bytes(depth.data)
+            else:
+                depth_png = cv2.imencode(".png", d.array, [cv2.IMWRITE_PNG_COMPRESSION, 1])[1].tobytes()
+            self._rgbd.put(codec.encoded_rgbd_msg(EncodedRgbd(
+                c.frame_number, c.stamp_ns, bytes(colour.data), colour.format, depth_png, codec.DEPTH_PNG_FORMAT,
+                self._device.depth_scale_m, self._device.color, self._frame)))
 
     def end(self) -> None:
         """Tell consumers how many RGB-D frames went out (the tracker's end-of-stream)."""
-        self._rgbd_end.put(codec.stream_end_msg(T.RGBD.name, self._rgbd.count))
+        self._rgbd_end.put(codec.stream_end_msg(self._rgbd.topic.name, self._rgbd.count))
 
 
 class VizLogger:

@@ -147,6 +147,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     summary = run.run_session(
         source=args.source, out=Path(args.out), config=args.config, overrides=args.set, rerun=args.rerun,
         recording_id=recording_id(args), quiet=args.quiet, overwrite=args.overwrite,
+        duration_s=getattr(args, "duration", 0.0),
     )
     print(run.format_summary(summary))
     return 0
@@ -249,8 +250,11 @@ def build_parser() -> argparse.ArgumentParser:
                        help="replace a session already in --out (its files are removed first)")
 
     p = sub.add_parser("run", help="whole pipeline as separate processes on one machine")
-    p.add_argument("--source", required=True, help="tum:PATH, mcap:PATH or synthetic[:N]")
+    p.add_argument("--source", required=True,
+                   help="tum:PATH, mcap:PATH, synthetic[:N], or live: d455 (a camera) or d455:software (simulated)")
     p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--duration", type=float, default=0.0,
+                   help="live sources: stop after this many seconds of camera time (0: until the stream ends)")
     session(p)
     p.set_defaults(func=cmd_run)
 

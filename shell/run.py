@@ -68,13 +68,31 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def _split_overrides(overrides: list[str]) -> dict[str, list[str]]:
+# Live sources: a D455 (pyrealsense2) or the simulated one (its software device, paced at the
+# profile's rate). The recorder stands where the replay stands: it records the camera in full
+# (OUT/recording.mcap) and publishes camera/rgbd; the tracker runs live (it skips frames when behind).
+LIVE_SOURCES = {"d455": "realsense", "d455:software": "software"}
+
+
+@dataclass
+class LiveSource:
+    """What the orchestrator knows of a live camera before it runs: no frames, no ground truth."""
+
+    name: str
+    readout_s: float = 0.0  # the D455's colour camera has a global shutter
+    duration_ns: int = 0  # known from the session log afterwards
+
+    def groundtruth_tum(self) -> str | None:
+        return None
+
+
+def _split_overrides(overrides: list[str], *, live: bool = False) -> dict[str, list[str]]:
     """`tracker.n_features=800` goes to the tracker as `n_features=800`."""
-    per: dict[str, list[str]] = {"replay": [], "tracker": [], "mapper": []}
+    per: dict[str, list[str]] = {"replay": [], "tracker": [], "mapper": [], **({"recorder": []} if live else {})}
     for item in overrides:
         section, dot, rest = item.partition(".")
         if not dot or section not in per:
-            raise ConfigError(f"--set {item!r}: want replay.KEY=V, tracker.KEY=V or mapper.KEY=V")
+            raise ConfigError(f"--set {item!r}: want {', '.join(f'{k}.KEY=V' for k in per)}")
         per[section].append(rest)
     return per
 
@@ -84,11 +102,20 @@ def _resolve_configs(source: str, config: str | None, per: dict[str, list[str]])
     replay = load(ReplayConfig, config, per["replay"], section="replay")
     consumers = ("tracker", "mapper", "log") if replay.play == "camera" else ("mapper", "log")
     replay = dataclasses.replace(replay, source=source, wait_for=consumers)
-    return {
+    cfgs = {
         "replay": replay,
         "tracker": load(TrackerConfig, config, per["tracker"], section="tracker"),
         "mapper": load(MapperConfig, config, per["mapper"], section="mapper"),
     }
+    if source in LIVE_SOURCES:
+        from octolog.recorder.config import RecorderConfig
+
+        rec = load(RecorderConfig, config, per["recorder"], section="recorder")
+        backend = LIVE_SOURCES[source]
+        software = dataclasses.replace(rec.software, paced=True) if backend == "software" else rec.software
+        # capture starts once every consumer listens: the session log misses no frame
+        cfgs["recorder"] = dataclasses.replace(rec, backend=backend, software=software, wait_for=consumers)
+    return cfgs
 
 
 class _Children:
@@ -207,17 +234,23 @@ class _Children:
 
 def run_session(*, source: str, out: Path, config: str | None = None, overrides: list[str] | None = None,
                 rerun: str = "save", recording_id: str, quiet: bool = False,
-                overwrite: bool = False) -> SessionSummary:
+                overwrite: bool = False, duration_s: float = 0.0) -> SessionSummary:
     """Run the whole pipeline on `source` into `out` (config, logs, session.mcap, map, trajectory).
 
     Until it succeeds, `out` holds an INCOMPLETE file; a failed run writes its error there.
     """
-    cfgs = _resolve_configs(source, config, _split_overrides(overrides or []))
+    live = source in LIVE_SOURCES
+    # a live camera: the tracker keeps up by skipping frames (each skip on record), unless told otherwise
+    cfgs = _resolve_configs(source, config, _split_overrides((["tracker.live=true"] if live else []) + (overrides or []),
+                                                             live=live))
     replay_cfg = cfgs["replay"]
     feed_tracker = replay_cfg.play == "tracker"  # a log player stands in for the tracker
+    if duration_s and not live:
+        raise ConfigError(f"--duration {duration_s}: only for a live source ({', '.join(LIVE_SOURCES)}); "
+                          "a file source takes --set replay.end_s=S")
     # opened here to fail fast, before any process starts
-    src = open_source(source, only_consumed=replay_cfg.only_consumed, camera=replay_cfg.camera,
-                      every=replay_cfg.every)
+    src = LiveSource(source) if live else open_source(source, only_consumed=replay_cfg.only_consumed,
+                                                      camera=replay_cfg.camera, every=replay_cfg.every)
     cfgs["tracker"] = for_source(cfgs["tracker"], src)  # an unset rolling shutter: the source's camera
     prepare_out(out, overwrite=overwrite)
     marker = out / INCOMPLETE
@@ -226,7 +259,7 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     marker.write_text(f"octolog run has not finished writing this session (started {started}, pid {os.getpid()}); "
                       f"if no run is going on, it failed or was killed\n")
     try:
-        summary = _run(source, out, src, cfgs, feed_tracker, rerun, recording_id, quiet)
+        summary = _run(source, out, src, cfgs, feed_tracker, rerun, recording_id, quiet, duration_s)
     except BaseException as exc:
         what = str(exc) if isinstance(exc, OctologError) else \
             ("interrupted" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}")
@@ -239,8 +272,8 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     return summary
 
 
-def _run(source: str, out: Path, src: Source, cfgs: dict[str, Any], feed_tracker: bool, rerun: str,
-         recording_id: str, quiet: bool) -> SessionSummary:
+def _run(source: str, out: Path, src: Source | LiveSource, cfgs: dict[str, Any], feed_tracker: bool, rerun: str,
+         recording_id: str, quiet: bool, duration_s: float = 0.0) -> SessionSummary:
     if rerun == "save":
         rerun = f"save:{out / 'rerun'}"
     parse_spec(rerun)
@@ -281,14 +314,19 @@ def _run(source: str, out: Path, src: Source, cfgs: dict[str, Any], feed_tracker
     children = _Children(out / "logs")
     t0 = time.monotonic()
     try:
-        producers = "tracker,mapper" if feed_tracker else "replay,tracker,mapper"
+        live = isinstance(src, LiveSource)
+        producers = "tracker,mapper" if feed_tracker else ("recorder" if live else "replay") + ",tracker,mapper"
         children.start("log", ["log", *bus, "--out", str(out / "session.mcap"), "--metadata", str(out / "metadata.json"),
                                "--compression", "lz4", "--stages", producers])
         children.start("mapper", ["map", *bus, *viz, *conf, "--out", str(out)])
         if not feed_tracker:
             children.start("tracker", ["track", *bus, *viz, *conf, "--trajectory", str(out / "trajectory.txt")])
-        children.start("replay", ["replay", *bus, *viz, *conf, *([] if not quiet else ["--quiet"])],
-                       show_stderr=not quiet)
+        quiet_flag = [] if not quiet else ["--quiet"]
+        if live:  # the camera in full to recording.mcap; its images reach Rerun through the tracker
+            children.start("recorder", ["record", str(out / "recording.mcap"), "--publish", *bus, "--rerun", "off",
+                                        *conf, "--duration", str(duration_s), *quiet_flag], show_stderr=not quiet)
+        else:
+            children.start("replay", ["replay", *bus, *viz, *conf, *quiet_flag], show_stderr=not quiet)
         children.wait_all()
     finally:
         children.stop_all()
@@ -315,7 +353,11 @@ def frame_counts(log: Path) -> dict[str, int]:
     return {"published": published, "consumed": consumed, "skipped": skipped}
 
 
-def _summarize(out: Path, source: str, src: Source, wall: float, recording_id: str) -> SessionSummary:
+def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, recording_id: str) -> SessionSummary:
+    if isinstance(src, LiveSource):  # how long the camera ran: the frames the session log holds
+        t = next((t for name, t in summarize(out / "session.mcap").topics.items() if name in (RGBD.name,
+                  RGBD_COMPRESSED.name)), None)
+        src.duration_ns = t.last_ns - t.first_ns if t is not None else 0
     s = SessionSummary(out=out, source=source, wall_s=wall, duration_s=src.duration_ns * 1e-9)
     s.map = json.loads((out / "map_stats.json").read_text())
     frames = frame_counts(out / "session.mcap")

@@ -465,15 +465,17 @@ def _port() -> int:
 
 
 def test_publishes_live_while_recording(tmp_path):
-    """Camera topics and camera/rgbd on Zenoh; what a slow consumer missed is counted as live drops."""
+    """Camera topics and camera/rgbd/compressed on Zenoh (the recorded JPEG colour as written, depth as
+    lossless PNG); what a slow consumer missed is counted as live drops."""
     from octolog.kit.bus import Bus, BusConfig
 
     ep = f"tcp/127.0.0.1:{_port()}"
     sub_cfg = BusConfig(listen=(ep,), multicast_scouting=False, namespace="rec")
     pub_cfg = BusConfig(connect=(ep,), multicast_scouting=False, namespace="rec")
     got: dict[str, list[bytes]] = {}
+    rgbd = T.RGBD_COMPRESSED
     with Bus(sub_cfg, "tracker", inbox_size=64) as sub:
-        sub.start([T.RGBD, T.RGBD_END, T.COLOR_JPEG, T.GYRO])
+        sub.start([T.RGBD, rgbd, T.RGBD_END, T.COLOR_JPEG, T.GYRO])
         cfg = dataclasses.replace(BASE, wait_for=("tracker",), wait_timeout_s=30.0)
         result: dict = {}
         t = threading.Thread(target=lambda: result.update(res=_run(tmp_path, cfg, frames=20, bus_cfg=pub_cfg)[1]))
@@ -485,13 +487,18 @@ def test_publishes_live_while_recording(tmp_path):
         t.join(60)
     res = result["res"]
     live = res.streams["color"].live_drops
-    assert len(got[T.RGBD.name]) + live == 20 == res.streams["color"].frames
-    assert int(codec.decode(got[T.RGBD_END.name][0], T.RGBD_END.msgtype).count) == len(got[T.RGBD.name])
-    frame = codec.rgbd_from_msg(codec.decode(got[T.RGBD.name][0], T.RGBD.msgtype))
+    assert T.RGBD.name not in got  # JPEG colour is recorded: frames go out compressed, never raw
+    assert len(got[rgbd.name]) + live == 20 == res.streams["color"].frames
+    end = codec.decode(got[T.RGBD_END.name][0], T.RGBD_END.msgtype)
+    assert end.topic == rgbd.name and int(end.count) == len(got[rgbd.name])
+    msg = codec.decode(got[rgbd.name][0], rgbd.msgtype)
+    frame = codec.rgbd_from_msg(msg)
     recorded = [m for m in read_messages(res.paths[0], [T.COLOR_JPEG.name])]
     assert frame.stamp_ns == recorded[0].log_time_ns and frame.depth.shape == (720, 1280)
     assert frame.depth_scale_m == pytest.approx(0.001) and frame.intrinsics.fx == pytest.approx(640.0)
     assert got[T.COLOR_JPEG.name][0] == recorded[0].data  # the same bytes as in the file
+    jpeg = codec.decode(recorded[0].data, T.COLOR_JPEG.msgtype)
+    assert bytes(msg.color.data) == bytes(jpeg.data)  # the frame carries the recorded JPEG, not a re-encoding
 
 
 def test_rerun_logs_what_is_recorded(tmp_path):

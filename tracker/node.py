@@ -31,6 +31,8 @@ from octolog.tracker.config import TrackerConfig
 from octolog.tracker.factory import make_odometry
 from octolog.tracker.interface import Tracker, TrackingState, TrackResult
 
+FRAME_PRODUCERS = ("replay", "recorder")
+
 
 def status_code(state: TrackingState) -> int:
     """The `TrackingStatus.state` code of a state: the message's constant of the same name."""
@@ -72,7 +74,7 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
     pub_poses = bus.publisher(KEYFRAME_POSES)
     # frames come raw or compressed, whichever the source publishes; decoding is the same call
     bus.start([RGBD, RGBD_COMPRESSED, RGBD_END], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
-    bus.watch(["replay"])
+    bus.watch(FRAME_PRODUCERS)  # whichever sends the frames: a replay, or a recorder publishing live
     bus.watch(["mapper"], required=False)  # a mapper may restart: keep its keyframes until it is done
     result = TrackerResult()
     expected: int | None = None
@@ -87,7 +89,8 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
         if r.topic == RGBD_END:
             expected = int(r.decode().count)
             bus.expect_count(RGBD, result.frames, expected)
-            bus.unwatch("replay")  # the source may now leave
+            for producer in FRAME_PRODUCERS:
+                bus.unwatch(producer)  # the source may now leave
             continue
         result.frames += 1
         if cfg.live:
