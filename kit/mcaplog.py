@@ -229,6 +229,23 @@ def _require_magic(f: BinaryIO, p: Path) -> None:
         raise McapError(f"{p}: not an MCAP file ({what}); nothing to read")
 
 
+def message_counts(path: str | Path) -> dict[str, int] | None:
+    """Messages per topic from a complete file's summary section (read from its end, not scanned);
+    None when the file has no statistics (truncated, or written without a summary)."""
+    from mcap.reader import make_reader
+
+    try:
+        with _open(path) as f:
+            summary = make_reader(f).get_summary()
+    except (RawMcapError, EOFError, ValueError, KeyError, OSError):
+        return None
+    if summary is None or summary.statistics is None:
+        return None
+    channels = summary.channels
+    return {channels[c].topic.lstrip("/"): n for c, n in summary.statistics.channel_message_counts.items()
+            if c in channels}
+
+
 def read_messages(path: str | Path, topics: Iterable[str] | None = None) -> Iterator[LoggedMessage]:
     """Messages in file order. A truncated or corrupt file raises McapError naming the problem."""
     wanted = None if topics is None else {t if t.startswith("/") else "/" + t for t in topics}
@@ -237,7 +254,9 @@ def read_messages(path: str | Path, topics: Iterable[str] | None = None) -> Iter
     with _open(p) as f:
         try:
             reader = NonSeekingReader(f)
-            for schema, channel, message in reader.iter_messages():
+            # the topics go to the reader: iterating every message and skipping here holds the whole
+            # file in memory until the end (mcap 1.6: +200 MB for a 191 MB log; 11 GB after 10 minutes)
+            for schema, channel, message in reader.iter_messages(topics=sorted(wanted) if wanted is not None else None):
                 if wanted is not None and channel.topic not in wanted:
                     continue
                 n += 1

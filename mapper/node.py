@@ -35,6 +35,12 @@ from octolog.schemas.topics import (
     OCTOMAP,
 )
 
+# Keyframes come in bursts (a new place: one every few frames) that the mapper, at ~0.1-0.5 s each,
+# works off later. A full inbox blocks Zenoh's receive thread (back-pressure), and a receive thread
+# blocked for longer than the link's lease (10 s) loses the link: the 10-minute synthetic session
+# did, after its first loop's 165 keyframes. Room for a long burst (~1.5 MB each, raw) avoids it.
+INBOX_KEYFRAMES = 256
+
 
 @dataclass
 class MapperResult:
@@ -85,7 +91,7 @@ def run(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: str = "o
     if cfg.robots:
         return run_fleet(cfg, bus_cfg, out_dir=out_dir, rerun=rerun, recording_id=recording_id)
     mapper = make_mapper(cfg)
-    with Bus(bus_cfg, "mapper") as bus, Viz(rerun, "mapper", recording_id) as viz:
+    with Bus(bus_cfg, "mapper", inbox_size=INBOX_KEYFRAMES) as bus, Viz(rerun, "mapper", recording_id) as viz:
         publisher = Publisher(bus, mapper, cfg.publish_every)
         result = consume(mapper, cfg, bus, viz, publisher, out_dir)
         finish(mapper, result, bus, viz, publisher, out_dir)
@@ -120,7 +126,7 @@ def run_fleet(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: st
     namespace. Keyframes are merged in the order mapper/fleet.py defines."""
     mapper = make_mapper(cfg)
     with contextlib.ExitStack() as stack:
-        bus = stack.enter_context(Bus(bus_cfg, "mapper"))
+        bus = stack.enter_context(Bus(bus_cfg, "mapper", inbox_size=INBOX_KEYFRAMES))
         robot_buses = [stack.enter_context(Bus(dataclasses.replace(bus_cfg, namespace=r), "mapper"))
                        for r in cfg.robots]
         viz = stack.enter_context(Viz(rerun, "mapper", recording_id))

@@ -27,7 +27,7 @@ from octolog.kit import metrics
 from octolog.kit.bus import Bus, BusConfig, wait_interruptibly
 from octolog.kit.config import load, to_dict, to_toml
 from octolog.kit.errors import ConfigError, InputError, OctologError, StageError, StageExited, StageKilled
-from octolog.kit.mcaplog import read_messages, summarize
+from octolog.kit.mcaplog import message_counts, read_messages, summarize
 from octolog.kit.viz import parse_spec
 from octolog.mapper.config import MapperConfig
 from octolog.replay.config import ReplayConfig
@@ -343,7 +343,11 @@ def frame_counts(log: Path) -> dict[str, int]:
     """What the session log says about frames: published, consumed by the tracker, skipped."""
     skipped_code = codec.msgtype(TRACKING_STATUS.msgtype).SKIPPED
     published = consumed = skipped = 0
-    for m in read_messages(log, [RGBD.name, RGBD_COMPRESSED.name, TRACKING_STATUS.name]):
+    counts = message_counts(log)  # the frames counted from the summary: not read (they are gigabytes)
+    frame_topics = [] if counts is not None else [RGBD.name, RGBD_COMPRESSED.name]
+    if counts is not None:
+        published = counts.get(RGBD.name, 0) + counts.get(RGBD_COMPRESSED.name, 0)
+    for m in read_messages(log, [*frame_topics, TRACKING_STATUS.name]):
         if m.topic in (RGBD.name, RGBD_COMPRESSED.name):
             published += 1
         elif codec.decode(m.data, TRACKING_STATUS.msgtype).state == skipped_code:
