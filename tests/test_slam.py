@@ -145,7 +145,7 @@ def loop_frames(room) -> list:
 def _features(frame):
     odo = RgbdOdometry()
     gray = odo._check_frame(frame)
-    return odo._features(frame, gray), odo._undistort.K
+    return odo._features(frame, odo._extractor.extract(gray)), odo._undistort.K
 
 
 def test_place_recognition_finds_the_revisited_place_and_only_it(room, loop_frames) -> None:
