@@ -27,6 +27,9 @@ class BusConfig:
     history: int = 32
     # the streams that `keeps_all` (keyframes) keep every sample up to this many MB per publisher
     keep_mb: int = 2048
+    # samples held behind a gap (waiting for a publisher's history to fill it), over every
+    # publisher, at most this many MB: past it the publisher holding most is refused and the stage ends
+    max_held_mb: int = 512
     # how long a vanished peer stage may stay away (a cut link) before it counts as dead
     peer_timeout_s: float = 30.0
 
@@ -34,5 +37,5 @@ class BusConfig:
         """Raise BusError naming the flag if a value cannot work (the CLI calls this once)."""
         if self.mode not in ("peer", "client", "router"):
             raise BusError(f"--mode {self.mode!r}: want peer, client or router")
-        if self.history < 0 or self.keep_mb < 0 or self.peer_timeout_s <= 0:
-            raise BusError("bus history and keep_mb must be >= 0 and peer_timeout_s > 0")
+        if self.history < 0 or self.keep_mb < 0 or self.peer_timeout_s <= 0 or self.max_held_mb <= 0:
+            raise BusError("bus history and keep_mb must be >= 0, peer_timeout_s and max_held_mb > 0")

@@ -71,6 +71,7 @@ def stamp_ns(hdr: Any) -> int:
 _ENCODINGS = {("uint8", 3): "rgb8", ("uint16", 1): "16UC1", ("uint8", 1): "mono8", ("float32", 1): "32FC1"}
 _DTYPES = {"rgb8": (np.uint8, 3), "bgr8": (np.uint8, 3), "16UC1": (np.uint16, 1), "mono16": (np.uint16, 1),
            "mono8": (np.uint8, 1), "8UC1": (np.uint8, 1), "32FC1": (np.float32, 1)}
+IMAGE_ENCODINGS = _DTYPES  # sensor_msgs/Image encodings taken: numpy dtype, channels
 
 
 def image_msg(array: np.ndarray, stamp: int, frame_id: str) -> Any:

@@ -16,12 +16,14 @@ def add_bus_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--namespace", default="", help="key prefix for every topic (e.g. robot1)")
     g.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config (TLS, access control, ...)")
     g.add_argument("--no-multicast", action="store_true", help="disable multicast scouting")
+    g.add_argument("--max-held-mb", type=int, default=BusConfig.max_held_mb, metavar="MB",
+                   help="samples held behind a gap in a publisher's stream, at most (default %(default)s)")
 
 
 def bus_config(args: argparse.Namespace) -> BusConfig:
     cfg = BusConfig(mode=args.mode, connect=tuple(args.connect), listen=tuple(args.listen),
                     namespace=args.namespace, zenoh_config=args.zenoh_config,
-                    multicast_scouting=not args.no_multicast)
+                    multicast_scouting=not args.no_multicast, max_held_mb=args.max_held_mb)
     cfg.validate()
     return cfg
 

@@ -147,7 +147,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     summary = run.run_session(
         source=args.source, out=Path(args.out), config=args.config, overrides=args.set, rerun=args.rerun,
         recording_id=recording_id(args), quiet=args.quiet, overwrite=args.overwrite,
-        duration_s=getattr(args, "duration", 0.0),
+        duration_s=getattr(args, "duration", 0.0), router=getattr(args, "router", None),
     )
     print(run.format_summary(summary))
     return 0
@@ -255,6 +255,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--duration", type=float, default=0.0,
                    help="live sources: stop after this many seconds of camera time (0: until the stream ends)")
+    p.add_argument("--router", metavar="ENDPOINT",
+                   help="the stages join this Zenoh router (e.g. tcp/127.0.0.1:7447) instead of one hosted on a "
+                        "free loopback port: to watch or probe the session's topics from another process")
     session(p)
     p.set_defaults(func=cmd_run)
 
@@ -354,6 +357,17 @@ def main(argv: list[str] | None = None) -> int:
     if getattr(args, "rerun", "") is None:
         args.rerun = "save" if getattr(args, "session", None) else "off"
     signal.signal(signal.SIGTERM, _terminate)
+    try:
+        return _run_command(args)
+    finally:
+        if "octolog.kit.bus.screening" in sys.modules:  # a command that took samples off a bus
+            from octolog.kit.bus import screening
+
+            errorfile.write_report(screening.totals())
+
+
+def _run_command(args: argparse.Namespace) -> int:
+    """Run the command; a known error prints one line and returns 1."""
     try:
         return int(args.func(args))
     except OctologError as exc:

@@ -17,6 +17,7 @@ from pathlib import Path
 from octolog.kit.errors import OctologError
 
 ENV = "OCTOLOG_ERROR_FILE"
+REPORT_ENV = "OCTOLOG_REPORT_FILE"  # where a stage reports what it dropped (see `write_report`)
 RESERVED_BYTES = 8192  # a record longer than this is cut (its message: to fit)
 
 
@@ -64,3 +65,23 @@ def read(path: Path) -> ErrorRecord | None:
     if not isinstance(data, dict):
         return None
     return ErrorRecord(str(data.get("type", "")), str(data.get("message", "")))
+
+
+def write_report(malformed: dict[str, int]) -> None:
+    """Record in `$OCTOLOG_REPORT_FILE` (if set) the malformed samples the stage dropped, per topic."""
+    path = os.environ.get(REPORT_ENV)
+    if not path:
+        return
+    try:
+        Path(path).write_text(json.dumps({"malformed": malformed}, sort_keys=True) + "\n")
+    except OSError:
+        pass  # best effort: each first drop per publisher is in the stage's log
+
+
+def read_malformed(path: Path) -> dict[str, int]:
+    """What a stage's report says it dropped (empty if it wrote none)."""
+    try:
+        data = json.loads(path.read_text())
+        return {str(k): int(v) for k, v in data["malformed"].items()}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return {}

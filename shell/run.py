@@ -60,6 +60,7 @@ class SessionSummary:
     map: dict = field(default_factory=dict)
     ate: dict | None = None
     files: dict[str, str] = field(default_factory=dict)
+    malformed: dict[str, dict[str, int]] = field(default_factory=dict)  # stage -> topic -> samples dropped
 
 
 def _free_port() -> int:
@@ -133,7 +134,8 @@ class _Children:
         """Start stage `name` as `python -m octolog ARGV`, its output in logs/NAME.log."""
         log = open(self.logs / f"{name}.log", "ab" if append else "wb")  # noqa: SIM115 - owned by the child
         errorfile.reserve(self.error_file(name))
-        env = {**os.environ, "PYTHONHASHSEED": "0", "PYTHONUNBUFFERED": "1", errorfile.ENV: str(self.error_file(name))}
+        env = {**os.environ, "PYTHONHASHSEED": "0", "PYTHONUNBUFFERED": "1", errorfile.ENV: str(self.error_file(name)),
+               errorfile.REPORT_ENV: str(self.logs / f"{name}.report.json")}
         self.argv[name] = (argv, show_stderr)
         # OCTOLOG_PROFILE=STAGE[,STAGE]: run those stages under cProfile, into logs/STAGE.prof
         profile = name in os.environ.get("OCTOLOG_PROFILE", "").split(",")
@@ -234,7 +236,7 @@ class _Children:
 
 def run_session(*, source: str, out: Path, config: str | None = None, overrides: list[str] | None = None,
                 rerun: str = "save", recording_id: str, quiet: bool = False,
-                overwrite: bool = False, duration_s: float = 0.0) -> SessionSummary:
+                overwrite: bool = False, duration_s: float = 0.0, router: str | None = None) -> SessionSummary:
     """Run the whole pipeline on `source` into `out` (config, logs, session.mcap, map, trajectory).
 
     Until it succeeds, `out` holds an INCOMPLETE file; a failed run writes its error there.
@@ -259,7 +261,7 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     marker.write_text(f"octolog run has not finished writing this session (started {started}, pid {os.getpid()}); "
                       f"if no run is going on, it failed or was killed\n")
     try:
-        summary = _run(source, out, src, cfgs, feed_tracker, rerun, recording_id, quiet, duration_s)
+        summary = _run(source, out, src, cfgs, feed_tracker, rerun, recording_id, quiet, duration_s, router)
     except BaseException as exc:
         what = str(exc) if isinstance(exc, OctologError) else \
             ("interrupted" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}")
@@ -273,7 +275,7 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
 
 
 def _run(source: str, out: Path, src: Source | LiveSource, cfgs: dict[str, Any], feed_tracker: bool, rerun: str,
-         recording_id: str, quiet: bool, duration_s: float = 0.0) -> SessionSummary:
+         recording_id: str, quiet: bool, duration_s: float = 0.0, router: str | None = None) -> SessionSummary:
     if rerun == "save":
         rerun = f"save:{out / 'rerun'}"
     parse_spec(rerun)
@@ -288,8 +290,7 @@ def _run(source: str, out: Path, src: Source | LiveSource, cfgs: dict[str, Any],
         metadata["groundtruth"] = {"tum": gt}
     (out / "metadata.json").write_text(json.dumps(metadata, indent=2, sort_keys=True))
 
-    port = _free_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
+    endpoint = router or f"tcp/127.0.0.1:{_free_port()}"
     bus = ["--mode", "peer", "--connect", endpoint, "--no-multicast"]
     viz = ["--rerun", rerun, "--recording-id", recording_id]
     conf = ["--config", str(config_path)]
@@ -297,7 +298,11 @@ def _run(source: str, out: Path, src: Source | LiveSource, cfgs: dict[str, Any],
     router_ready = threading.Event()
     router_error: list[BaseException] = []
 
-    def router() -> None:
+    def host_router() -> None:
+        if router is not None:  # the stages join the one given
+            router_ready.set()
+            stop_router.wait()
+            return
         try:
             with Bus(BusConfig(mode="router", listen=(endpoint,), multicast_scouting=False), "router"):
                 router_ready.set()
@@ -306,7 +311,7 @@ def _run(source: str, out: Path, src: Source | LiveSource, cfgs: dict[str, Any],
             router_error.append(exc)
             router_ready.set()
 
-    thread = threading.Thread(target=router, daemon=True)
+    thread = threading.Thread(target=host_router, daemon=True)
     thread.start()
     wait_interruptibly(router_ready)
     if router_error:
@@ -374,8 +379,12 @@ def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, re
     s.files = {p.name: str(p) for p in sorted(out.glob("*")) if p.is_file() and p.name != INCOMPLETE}
     s.files.update({f"rerun/{p.name}": str(p) for p in sorted((out / "rerun").glob("*.rrd"))})
     s.files["summary.json"] = str(out / "summary.json")
+    # samples the stages' buses dropped as malformed (not messages, or lying about their sizes)
+    s.malformed = {p.name.removesuffix(".report.json"): counts for p in sorted((out / "logs").glob("*.report.json"))
+                   if (counts := errorfile.read_malformed(p))}
     (out / "summary.json").write_text(json.dumps(
         {"source": source, "frames": frames, "tracked_frames": s.frames, "wall_s": round(wall, 3),
+         "malformed": s.malformed,
          "duration_s": s.duration_s, "ate": s.ate, "map": s.map, "files": sorted(s.files),
          "recording_id": recording_id, "versions": versions()},
         indent=2, sort_keys=True) + "\n")
@@ -392,6 +401,8 @@ def format_summary(s: SessionSummary) -> str:
     m = s.map
     lines.append(f"  map: {m.get('keyframes', 0)} keyframes, {m.get('occupied_voxels', 0)} occupied / "
                  f"{m.get('free_voxels', 0)} free voxels at {m.get('resolution_m', 0) * 100:.0f} cm, {m.get('cloud_points', 0)} cloud points")
+    for stage, counts in s.malformed.items():
+        lines.append(f"  {stage} dropped malformed samples: " + ", ".join(f"{n} on {t}" for t, n in counts.items()))
     lines.append("  files: " + ", ".join(sorted(s.files)))
     return "\n".join(lines)
 

@@ -38,11 +38,14 @@ class _Stream:
     """What a subscriber knows about one publisher of one key."""
 
     topic: Topic
+    source: bytes  # the publisher's id
     nxt: int = 0  # the next seq to deliver
     # arrived, waiting for a gap to fill or a dependency: seq -> (payload, dependencies)
     held: dict[int, tuple[bytes, tuple[wire.Dependency, ...]]] = field(default_factory=dict)
     started: bool = False  # something was delivered: a missing seq from now on is a loss
     wanted: int = 0  # another stream's sample depends on this one's samples before `wanted`
+    held_bytes: int = 0  # the payload bytes in `held`
+    refused: bool = False  # it went over the held bound: its samples are dropped from now on
 
     def gap(self) -> bool:
         return self.nxt < self.wanted or (bool(self.held) and self.nxt not in self.held)
@@ -52,9 +55,11 @@ class InOrderDelivery:
     """Takes one bus's subscriptions into its inbox, in order, repairing gaps from the histories."""
 
     def __init__(self, session: Session, cfg: BusConfig, stage: str, inbox: Inbox,
-                 on_loss: Callable[[str], None]) -> None:
+                 on_loss: Callable[[str], None], on_fatal: Callable[[str], None]) -> None:
         self._session, self._cfg, self._stage, self._inbox = session, cfg, stage, inbox
         self._on_loss = on_loss  # samples gone for good (older than the publisher's history)
+        self._on_fatal = on_fatal  # a publisher went over the held bound
+        self._held_bytes = 0  # payload bytes held behind gaps, over every stream (`max_held_mb`)
         # recovery (history > 0): per key, per publisher id, the delivery state
         self._streams: dict[str, dict[bytes, _Stream]] = {}
         self._recovered: dict[str, Topic] = {}  # key -> topic, for every subscribed key
@@ -94,6 +99,12 @@ class InOrderDelivery:
             if self._cfg.history:
                 self._request(key)  # a late joiner: what the publishers already sent
 
+    @property
+    def held_bytes(self) -> int:
+        """Payload bytes held behind gaps, over every stream."""
+        with self._state:
+            return self._held_bytes
+
     def catch_up(self) -> None:
         """Ask every history now (a lost peer is back: what it sent meanwhile may be missing)."""
         if self._recovered:
@@ -127,7 +138,7 @@ class InOrderDelivery:
     def _stream(self, key: str, source: bytes) -> _Stream:
         streams = self._streams[key]
         if source not in streams:
-            streams[source] = _Stream(self._recovered[key])
+            streams[source] = _Stream(self._recovered[key], source)
         return streams[source]
 
     def _offer(self, key: str, numbered: wire.Numbered, data: bytes, oldest: int | None) -> None:
@@ -141,13 +152,17 @@ class InOrderDelivery:
                 if st.started:
                     self._on_loss(f"{oldest - st.nxt} samples on {key}")
                 for s in [s for s in st.held if s < oldest]:
-                    del st.held[s]
+                    self._unhold(st, s)
                 st.nxt = oldest
-            if seq < st.nxt or seq in st.held:
-                return  # a duplicate (live and recovered, or recovered twice)
+            if st.refused or seq < st.nxt or seq in st.held:
+                return  # a duplicate (live and recovered, or recovered twice), or a refused publisher's
             gap_was_open = st.gap()
             st.held[seq] = (data, numbered.deps)
+            st.held_bytes += len(data)
+            self._held_bytes += len(data)
             self.recovered += oldest is not None
+            if self._held_bytes > self._cfg.max_held_mb << 20:
+                self._refuse(key)
             if st.gap() and not gap_was_open:
                 # a new gap before this one: ask for it now (an open one is asked every PROBE_S)
                 self._due.add(key)
@@ -175,11 +190,29 @@ class InOrderDelivery:
                                 self._due.add(dkey)
                                 self._state.notify_all()
                 if not waiting:
-                    del st.held[st.nxt]
+                    self._unhold(st, st.nxt)
                     st.nxt += 1
                     st.started = True
                     return st, data
         return None
+
+    def _unhold(self, st: _Stream, seq: int) -> None:
+        data, _ = st.held.pop(seq)
+        st.held_bytes -= len(data)
+        self._held_bytes -= len(data)
+
+    def _refuse(self, key: str) -> None:
+        """Over the held bound: the stream holding the most behind its gap is refused from now on,
+        its held samples freed, and the stage told (it ends with this one line)."""
+        worst_key, st = max(((k, st) for k, streams in self._streams.items() for st in streams.values()),
+                            key=lambda ks: ks[1].held_bytes)
+        n, mb = len(st.held), st.held_bytes / 2**20
+        for seq in list(st.held):
+            self._unhold(st, seq)
+        st.refused = True
+        self._on_fatal(f"{self._stage}: {wire.describe_publisher(st.source)} on {worst_key} left a gap at sample "
+                       f"{st.nxt} that its history never filled: the {n} later samples held ({mb:.1f} MB) reached "
+                       f"the bound (bus max_held_mb = {self._cfg.max_held_mb}); its samples are refused")
 
     def _flush(self) -> None:
         """Deliver whatever may go, in order; `_deliver` keeps two threads from interleaving."""
@@ -189,7 +222,7 @@ class InOrderDelivery:
                     ready = self._ready()
                 if ready is None:
                     return
-                self._inbox.put(Received(ready[0].topic, ready[1]))
+                self._inbox.put(Received(ready[0].topic, ready[1], source=ready[0].source))
 
     # --- asking the histories (the recovery thread) ------------------------------------------------
 

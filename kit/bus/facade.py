@@ -9,6 +9,7 @@ stage through membership; a peer that is back makes delivery catch up) and holds
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -16,6 +17,7 @@ from octolog.kit.bus.delivery import InOrderDelivery
 from octolog.kit.bus.inbox import Inbox, Received
 from octolog.kit.bus.membership import Membership
 from octolog.kit.bus.publishing import Publisher, Publishing
+from octolog.kit.bus.screening import Screening
 from octolog.kit.bus.session import Session
 from octolog.kit.busconfig import BusConfig
 from octolog.schemas import codec
@@ -33,10 +35,12 @@ class Bus:
         self.namespace = cfg.namespace
         self._session = Session(cfg)
         self._inbox = Inbox(inbox_size)
-        self._publishing = Publishing(self._session, cfg)
+        self._publishing = Publishing(self._session, cfg, stage)
         self._membership = Membership(self._session, cfg, stage, on_back=self._catch_up)
         self._delivery = InOrderDelivery(self._session, cfg, stage, self._inbox,
-                                         on_loss=self._membership.report_loss)
+                                         on_loss=self._membership.report_loss,
+                                         on_fatal=self._membership.report_fatal)
+        self._screening = Screening(stage, cfg.namespace)
 
     def _catch_up(self) -> None:
         self._delivery.catch_up()
@@ -64,6 +68,16 @@ class Bus:
         return self._session.zenoh
 
     @property
+    def malformed(self) -> dict[str, int]:
+        """Samples dropped as malformed, per topic name (see `octolog.kit.bus.screening`)."""
+        return dict(self._screening.dropped)
+
+    @property
+    def held_mb(self) -> float:
+        """MB of samples held behind gaps now (bounded by `BusConfig.max_held_mb`)."""
+        return self._delivery.held_bytes / 2**20
+
+    @property
     def recovered(self) -> int:
         """Samples that came from a history rather than live."""
         return self._delivery.recovered
@@ -80,15 +94,27 @@ class Bus:
         self._delivery.subscribe(topics)
 
     def receive(self, timeout_s: float = 0.25) -> Received | None:
-        """The next sample, or None after `timeout_s`; raises StageError if a watched peer died."""
-        item = self._inbox.get(timeout_s)
-        if item is None:
-            self.check_peers()
-        return item
+        """The next sample, decoded and checked (`Received.decode()` costs nothing), or None after
+        `timeout_s`; malformed samples are dropped on the way (`malformed`). Raises StageError if a
+        watched peer died or a publisher went over a bound."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            item = self._inbox.get(max(0.0, deadline - time.monotonic()))
+            if item is None:
+                self.check_peers()
+                return None
+            self._membership.check_fatal()
+            item = self._screening.admit(item)
+            if item is not None:
+                return item
 
     def receive_nowait(self) -> Received | None:
-        """The next sample if one is waiting, else None."""
-        return self._inbox.get_nowait()
+        """The next sample if one is waiting (decoded and checked), else None."""
+        while (item := self._inbox.get_nowait()) is not None:
+            item = self._screening.admit(item)
+            if item is not None:
+                return item
+        return None
 
     def serve(self, topic: Topic, latest: Callable[[], bytes | None]) -> None:
         """Answer `get` on this topic's key with `latest()` (CDR bytes), e.g. the current map."""

@@ -27,13 +27,15 @@ class Received:
     topic: Topic
     payload: bytes
     query: Any = None  # set for requests taken by `accept`: answer with `reply`
+    source: bytes = b""  # the publisher's id if it numbers its samples (wire.describe_publisher)
+    msg: Any = None  # the decoded message, once the bus has screened the sample
 
     def reply(self, msg: Any, topic: Topic) -> None:
         """Answer the request this is with `msg`, encoded as `topic`'s type."""
         self.query.reply(self.query.key_expr, codec.encode(msg, topic.msgtype))
 
     def decode(self) -> Any:
-        return codec.decode(self.payload, self.topic.msgtype)
+        return self.msg if self.msg is not None else codec.decode(self.payload, self.topic.msgtype)
 
 
 class Inbox:

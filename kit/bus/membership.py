@@ -38,6 +38,7 @@ class Membership:
         self._followed: set[str] = set()  # tracked like watched ones, but their absence is no error
         self._done: set[str] = set()  # followed stages that said they finished
         self._losses: list[str] = []  # samples gone for good (older than the publisher's history)
+        self._fatal: list[str] = []  # what a stage cannot go on with (a publisher over its bound)
         self.announced = False
 
     def _key(self, key: str) -> str:
@@ -127,12 +128,23 @@ class Membership:
         with self._changed:
             self._losses.append(what)
 
+    def report_fatal(self, message: str) -> None:
+        """Something the stage cannot go on with (`message`, one line): the next check raises."""
+        with self._changed:
+            self._fatal.append(message)
+
+    def check_fatal(self) -> None:
+        """Raise StageError if something fatal was reported (cheap: for every sample received)."""
+        if self._fatal:
+            raise StageError(self._fatal[0])
+
     def check(self) -> None:
         """Raise StageError if samples were lost for good or a watched peer is dead."""
         with self._changed:
             self._raise_if_lost()
 
     def _raise_if_lost(self) -> None:
+        self.check_fatal()
         if self._losses:
             raise StageError(f"{self._stage}: {self._losses[0]} were lost for good (the outage outlasted what "
                              f"the publisher keeps in its history)")

@@ -113,8 +113,8 @@ class Publishing:
     """Declares one bus's publishers; with history on, numbers them together and serves each one's
     history to subscribers that ask."""
 
-    def __init__(self, session: Session, cfg: BusConfig) -> None:
-        self._session, self._cfg = session, cfg
+    def __init__(self, session: Session, cfg: BusConfig, stage: str = "") -> None:
+        self._session, self._cfg, self._stage = session, cfg, stage
         self._numbering = Numbering()
 
     def publisher(self, topic: Topic) -> Publisher:
@@ -126,7 +126,8 @@ class Publishing:
             history = History(None, self._cfg.keep_mb << 20)
         else:
             history = History(self._cfg.history, HISTORY_MB << 20)
-        source = uuid.uuid4().bytes  # identifies this publisher (not the output: never written)
+        # identifies this publisher (not the output: never written); its stage's name, for messages
+        source = wire.publisher_id(self._stage, uuid.uuid4().bytes)
         hkey = wire.history_key(key, source)
         publisher = Publisher(pub, topic, history, source, wire.key_crc(key), self._numbering)
 

@@ -43,6 +43,20 @@ class Numbered:
     deps: tuple[Dependency, ...]
 
 
+def publisher_id(stage: str, unique: bytes) -> bytes:
+    """A publisher id: the first 8 bytes of its stage's name (for messages; anyone can claim any
+    name, access control says who may publish), then 8 unique bytes."""
+    return stage.encode()[:8].ljust(8, b"\0") + unique[:8]
+
+
+def describe_publisher(source: bytes) -> str:
+    """How messages name a publisher: `publisher replay/1a2b3c4d`, or an unnumbered one."""
+    if not source:
+        return "a publisher without octolog numbering"
+    name = "".join(c if c.isalnum() or c in "-_" else "?" for c in source[:8].rstrip(b"\0").decode("ascii", "replace"))
+    return f"publisher {name}/{source[8:12].hex()}"
+
+
 def key_crc(key: str) -> int:
     """How a dependency names the key its publisher sends on."""
     return zlib.crc32(key.encode())
