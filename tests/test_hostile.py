@@ -177,3 +177,44 @@ def test_a_run_under_a_stream_of_malformed_samples_gives_the_undisturbed_traject
     assert f"tracker dropped malformed samples: 1000 on {topics.RGBD.name}" in out
     log = Path(hit / "logs" / "tracker.log").read_text()
     assert log.count("dropped a malformed sample") == 1
+
+
+def test_a_run_ends_in_one_line_naming_a_publisher_whose_gap_never_fills(tmp_path):
+    """During `octolog run` on the synthetic room, a peer sends numbered samples on camera/rgbd/end
+    from seq 5 on and serves no history: the stages that take the topic hold them up to the bound
+    (512 MB), then the run ends with exit 1 and one line naming that publisher; the folder is
+    marked INCOMPLETE."""
+    from octolog.kit.bus import serve_router
+
+    endpoint = f"tcp/127.0.0.1:{_port()}"
+    stop, ready = threading.Event(), threading.Event()
+    router = threading.Thread(target=serve_router, args=((endpoint,),), kwargs={"stop": stop, "ready": ready.set},
+                              daemon=True)
+    router.start()
+    assert ready.wait(30)
+    out = tmp_path / "s"
+    source = wire.publisher_id("evil", bytes(range(16)))
+    payload = codec.encode(codec.stream_end_msg("x" * (1 << 20), 0), topics.RGBD_END.msgtype)
+    try:
+        proc = subprocess.Popen([sys.executable, "-m", "octolog", "run", "--source", "synthetic:150", "--out", str(out),
+                                 "--rerun", "off", "--quiet", "--router", endpoint], cwd=ROOT,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        with Bus(BusConfig(connect=(endpoint,), multicast_scouting=False), "intruder") as bus:
+            bus.watch(["tracker", "log"])
+            bus.wait_for(["tracker", "log"], timeout_s=120)
+            for seq in range(5, 5 + 600):  # 600 MB behind a gap, over the 512 MB bound
+                if proc.poll() is not None:
+                    break
+                bus.session.put(topics.RGBD_END.key(), payload, attachment=wire.numbered_attachment(seq, source, []),
+                                congestion_control=BLOCK)
+        _, err = proc.communicate(timeout=300)
+    finally:
+        stop.set()
+        router.join(timeout=30)
+    assert proc.returncode == 1, err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("octolog run: error:") and "publisher evil/00010203 on camera/rgbd/end" in last, err
+    assert "max_held_mb = 512" in last
+    held = float(last.split(" MB)")[0].rsplit("(", 1)[1])
+    assert 500 <= held <= 512  # what it held when it gave up: never more than the bound
+    assert (out / "INCOMPLETE").exists()

@@ -14,19 +14,22 @@ import socket
 import subprocess
 import sys
 import threading
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
+import zenoh
 from helpers import ROOT, octolog
 
 from octolog.kit.bus import Bus, BusConfig
 from octolog.kit.errors import BusError
 from octolog.schemas import codec
-from octolog.schemas.topics import RGBD, Topic
+from octolog.schemas.topics import MAP_UPDATE, RGBD, Topic
 
 EXAMPLES = ROOT / "docs" / "examples"
 N = 20
 FENCE = Topic("mapper/end", "octolog_msgs/msg/StreamEnd")  # allowed to viewers: marks the end of the data
+BLOCK = zenoh.CongestionControl.BLOCK  # every sample sent arrives, or is refused: none dropped for speed
 
 
 def _free_port() -> int:
@@ -44,7 +47,23 @@ def pki(tmp_path_factory) -> Path:
     # a second, unrelated authority issuing a certificate with an allowed name
     subprocess.run(["bash", str(EXAMPLES / "make-certs.sh"), str(tmp / "rogue")], check=True, capture_output=True,
                    env={**os.environ, "NODES": "robot1"})
+    _expired(tmp / "certs", "robot1-expired", "robot1")
     return tmp
+
+
+def _expired(certs: Path, name: str, cn: str) -> None:
+    """A certificate for CN `cn` from the real CA, valid for one day in 2020 (`openssl ca` sets dates)."""
+    (certs / "index.txt").write_text("")
+    (certs / "ca.cnf").write_text(f"""[ca]\ndefault_ca = ca_default\n[ca_default]\ndatabase = {certs}/index.txt
+new_certs_dir = {certs}\nserial = {certs}/ca.srl\ndefault_md = sha256\npolicy = any\n[any]\ncommonName = supplied\n""")
+    (certs / f"{name}.ext").write_text("basicConstraints=CA:FALSE\nkeyUsage=critical,digitalSignature\n"
+                                       "extendedKeyUsage=clientAuth\n")
+    run = lambda *a: subprocess.run(a, check=True, capture_output=True, cwd=certs)  # noqa: E731
+    run("openssl", "genpkey", "-algorithm", "EC", "-pkeyopt", "ec_paramgen_curve:P-256", "-out", f"{name}.key")
+    run("openssl", "req", "-new", "-key", f"{name}.key", "-subj", f"/CN={cn}", "-out", f"{name}.csr")
+    run("openssl", "ca", "-batch", "-config", "ca.cnf", "-cert", "ca.pem", "-keyfile", "ca.key", "-in", f"{name}.csr",
+        "-out", f"{name}.pem", "-notext", "-startdate", "20200101000000Z", "-enddate", "20200102000000Z",
+        "-extfile", f"{name}.ext")
 
 
 def _config(pki: Path, example: str, name: str, *, cert: str | None = None, ca: str = "certs",
@@ -141,32 +160,216 @@ def test_certified_nodes_join_and_access_control_limits_what_they_get(pki, route
     assert got_viewer.counts[FENCE.name] <= hellos + 1 and got_server.counts[FENCE.name] <= hellos + 1
 
 
-def test_a_client_without_a_certificate_is_refused(pki, router):
-    cfg = _config(pki, "zenoh-tls-client.json5", "nocert", extra='  connect: { timeout_ms: 3000 },')
+# --- refusals at the door: each client first connects to a router that does not ask for what it lacks ---
+
+def _router_config(pki: Path, name: str, *, mtls: bool = True, trust: str = "certs", tls: bool = True) -> str:
+    """The example router's config (or a plain one), asking for a client certificate or not, trusting
+    the CA in folder `trust`."""
+    if tls:
+        text = (EXAMPLES / "zenoh-tls-router.json5").read_text().replace('"certs/', f'"{pki}/certs/')
+        text = text.replace(f'"{pki}/certs/ca.pem"', f'"{pki}/{trust}/ca.pem"')
+        if not mtls:
+            text = text.replace("enable_mtls: true", "enable_mtls: false")
+    else:
+        text = '{ mode: "router" }'
+    path = pki / f"{name}.json5"
+    path.write_text(text)
+    return str(path)
+
+
+@contextmanager
+def _router(config: str, scheme: str = "tls"):
+    endpoint = f"{scheme}/localhost:{_free_port()}" if scheme == "tls" else f"tcp/127.0.0.1:{_free_port()}"
+    proc = subprocess.Popen([sys.executable, "-m", "octolog", "router", "--zenoh-config", config, "--listen", endpoint],
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        line = proc.stdout.readline()
+        assert "router: listening on" in line, line + proc.stdout.read()
+        yield endpoint
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
+
+
+def _connects(endpoint: str, config: str) -> bool:
+    try:
+        with _bus(endpoint, config, "replay"):
+            return True
+    except BusError as exc:
+        assert "cannot open Zenoh session" in str(exc)
+        return False
+
+
+QUICK = "  connect: { timeout_ms: 3000 },"
+
+
+def test_a_client_without_a_certificate_is_refused_by_the_router(pki, router):
+    """The client trusts the real CA and does not insist on mutual TLS: it connects to a router that
+    asks for no client certificate, and the real router refuses it (the refusal is the router's)."""
+    cfg = _config(pki, "zenoh-tls-client.json5", "nocert", extra=QUICK)
+    Path(cfg).write_text(Path(cfg).read_text().replace("enable_mtls: true", "enable_mtls: false"))
+    with _router(_router_config(pki, "router-no-mtls", mtls=False)) as lenient:
+        assert _connects(lenient, cfg)
+    assert not _connects(router, cfg)
+    # and as a user meets it: one line from the stage
     proc = octolog("track", "--mode", "client", "--connect", router, "--zenoh-config", cfg, "--no-multicast",
                    "--namespace", "robot1", check=False, timeout=120)
     assert proc.returncode == 1
     assert proc.stderr.count("\n") == 1 and "octolog track: error: cannot open Zenoh session (client)" in proc.stderr
 
 
-def test_a_certificate_from_another_authority_is_refused(pki, router):
-    """A robot1 certificate signed by another CA: the router refuses the handshake (and the client,
-    trusting only its own CA, refuses the router's certificate)."""
-    cfg = _config(pki, "zenoh-tls-client.json5", "rogue", cert="robot1", ca="rogue",
-                  extra='  connect: { timeout_ms: 3000 },')
-    with pytest.raises(BusError, match="cannot open Zenoh session"):
-        with _bus(router, cfg, "replay"):
-            pass
+def test_a_certificate_from_another_authority_is_refused_by_the_router(pki, router):
+    """A robot1 certificate signed by another CA, the client trusting the real CA (so it accepts the
+    router's certificate): a router that trusts the other CA lets it in, the real router refuses it."""
+    cfg = _config(pki, "zenoh-tls-client.json5", "rogue", cert="robot1", ca="rogue", extra=QUICK)
+    Path(cfg).write_text(Path(cfg).read_text().replace(f'"{pki}/rogue/ca.pem"', f'"{pki}/certs/ca.pem"'))
+    with _router(_router_config(pki, "router-trusts-rogue", trust="rogue")) as other:
+        assert _connects(other, cfg)
+    assert not _connects(router, cfg)
 
 
-def test_plain_tcp_is_not_accepted(pki, router):
-    """The router only speaks TLS: a plain tcp client to the same port never gets a session."""
-    port = router.rsplit(":", 1)[1]
+def test_an_expired_certificate_is_refused_by_the_router(pki, router):
+    """robot1's certificate from the real CA, valid in 2020 only: a router that checks no client
+    certificate lets the client in, the real router refuses it; the same client with a current
+    certificate is let in (nothing else about it is wrong)."""
+    cfg = _config(pki, "zenoh-tls-client.json5", "expired", cert="robot1-expired", extra=QUICK)
+    with _router(_router_config(pki, "router-no-mtls-2", mtls=False)) as lenient:
+        assert _connects(lenient, cfg)
+    assert not _connects(router, cfg)
+    assert _connects(router, _config(pki, "zenoh-tls-client.json5", "current", cert="robot1", extra=QUICK))
+
+
+def test_plain_tcp_is_refused_by_the_router(pki, router):
+    """A plain tcp client connects to a plain router; to the TLS router's port it never gets a session."""
     cfg = pki / "plain.json5"
     cfg.write_text("{ connect: { timeout_ms: 3000 } }")
-    with pytest.raises(BusError, match="cannot open Zenoh session"):
-        with _bus(f"tcp/127.0.0.1:{port}", str(cfg), "replay"):
-            pass
+    with _router(_router_config(pki, "router-plain", tls=False), scheme="tcp") as plain:
+        assert _connects(plain, str(cfg))
+    port = router.rsplit(":", 1)[1]
+    assert not _connects(f"tcp/127.0.0.1:{port}", str(cfg))
+
+
+# --- what certified nodes may do once in -------------------------------------------------------------
+
+def _hello(counter: Counter, bus: Bus, fence: Topic = FENCE) -> None:
+    """Until `counter` has seen a fence, its subscriptions may not have reached the router yet."""
+    pub = bus.publisher(fence)
+    while not counter.hello.wait(0.2):
+        pub.put(codec.stream_end_msg(RGBD.name, 0))
+
+
+def test_a_viewer_cannot_publish_anything(pki, router):
+    """The viewer puts camera frames and map updates; the server, subscribed to both, gets none of
+    them, though the viewer's map query sent after them on the same link reaches it and is answered.
+    robot1 sending the same gets them through (the positive control)."""
+    server_cfg = _config(pki, "zenoh-tls-client.json5", "server", cert="server")
+    viewer_cfg = _config(pki, "zenoh-tls-client.json5", "viewer", cert="viewer")
+    robot_cfg = _config(pki, "zenoh-tls-client.json5", "robot1", cert="robot1")
+    with _bus(router, server_cfg, "mapper") as server, _bus(router, viewer_cfg, "viewer") as viewer, \
+            _bus(router, robot_cfg, "replay") as robot:
+        got = Counter(server, [RGBD, MAP_UPDATE, FENCE])
+        asked = threading.Event()
+        server.session.declare_queryable("robot1/mapper/probe", lambda q: (asked.set(), q.reply(q.key_expr, b"ok")))
+        _hello(got, robot)
+        payload = codec.encode(codec.stream_end_msg("x", 1), FENCE.msgtype)
+        for _ in range(N):
+            viewer.session.put(RGBD.key("robot1"), payload, congestion_control=BLOCK)
+            viewer.session.put(MAP_UPDATE.key("robot1"), payload, congestion_control=BLOCK)
+        replies = [r for r in viewer.session.get("robot1/mapper/probe", timeout=30) if r.ok is not None]
+        assert asked.is_set() and len(replies) == 1  # after the puts, on the same link
+        assert RGBD.name not in got.counts and MAP_UPDATE.name not in got.counts
+        for _ in range(N):  # control: robot1 may
+            robot.session.put(RGBD.key("robot1"), payload, congestion_control=BLOCK)
+            robot.session.put(MAP_UPDATE.key("robot1"), payload, congestion_control=BLOCK)
+        robot.publisher(FENCE).put(codec.stream_end_msg(RGBD.name, N))
+        assert got.done.wait(60)
+    assert got.counts[RGBD.name] == N and got.counts[MAP_UPDATE.name] == N
+
+
+def test_a_robot_cannot_write_into_or_read_from_another_robots_namespace(pki, router):
+    """robot2 puts frames on robot1's camera key, then on its own: the server (allowed both) gets
+    robot2's own frames and none on robot1's key. robot1's frames reach the server but not robot2,
+    subscribed to them (its listening session): the server's next message to it arrives, they never do.
+    Every put is BLOCK: Zenoh may let a DROP sample overtake BLOCK ones, and the fences must not."""
+    server_cfg = _config(pki, "zenoh-tls-client.json5", "server", cert="server")
+    r1_cfg = _config(pki, "zenoh-tls-client.json5", "robot1", cert="robot1")
+    r2_cfg = _config(pki, "zenoh-tls-client.json5", "robot2", cert="robot2")
+    with _bus(router, server_cfg, "mapper") as server, _bus(router, r1_cfg, "replay") as robot1, \
+            _bus(router, r2_cfg, "replay") as robot2, _bus(router, r2_cfg, "mapper") as robot2_listener:
+        frame = codec.encode(codec.stream_end_msg("frame", 0), FENCE.msgtype)
+        got, got2 = Counter(server, [RGBD, FENCE]), _Keys(server, ["robot2/camera/rgbd", "robot2/fence"])
+        stolen = _Keys(robot2_listener, ["robot1/camera/rgbd", "robot2/server-fence"])
+        _hello(got, robot1)
+        while not (got2.wait(lambda: got2.seen("robot2/fence"), 0.2) and
+                   stolen.wait(lambda: stolen.seen("robot2/server-fence"), 0.2)):
+            robot2.session.put("robot2/fence", frame, congestion_control=BLOCK)
+            server.session.put("robot2/server-fence", frame, congestion_control=BLOCK)
+        # robot2 into robot1's namespace, then into its own, then its fence
+        for _ in range(N):
+            robot2.session.put("robot1/camera/rgbd", frame, congestion_control=BLOCK)
+        for _ in range(N):
+            robot2.session.put("robot2/camera/rgbd", frame, congestion_control=BLOCK)
+        before = got2.count("robot2/fence")
+        robot2.session.put("robot2/fence", frame, congestion_control=BLOCK)  # BLOCK: keeps its place in line
+        assert got2.wait(lambda: got2.count("robot2/fence") > before)
+        assert got2.count("robot2/camera/rgbd") == N and RGBD.name not in got.counts
+        # robot1's frames: to the server, not to robot2
+        for _ in range(N):
+            robot1.session.put("robot1/camera/rgbd", frame, congestion_control=BLOCK)
+        robot1.publisher(FENCE).put(codec.stream_end_msg(RGBD.name, N))
+        assert got.done.wait(60) and got.counts[RGBD.name] == N
+        before = stolen.count("robot2/server-fence")
+        server.session.put("robot2/server-fence", frame, congestion_control=BLOCK)  # after the server had all of robot1's frames
+        assert stolen.wait(lambda: stolen.count("robot2/server-fence") > before)
+        assert stolen.count("robot1/camera/rgbd") == 0
+
+
+def test_history_queries_outside_ones_rights_get_nothing(pki, router):
+    """robot1 serves a history on robot1/camera/rgbd/@history/...: the server's query is answered;
+    the viewer's and robot2's queries never reach it and get no reply."""
+    robot_cfg = _config(pki, "zenoh-tls-client.json5", "robot1", cert="robot1")
+    asks = {name: _config(pki, "zenoh-tls-client.json5", name, cert=name) for name in ("server", "viewer", "robot2")}
+    with _bus(router, robot_cfg, "replay") as robot:
+        queries: list[str] = []
+        robot.session.declare_queryable("robot1/camera/rgbd/@history/probe",
+                                        lambda q: (queries.append("q"), q.reply(q.key_expr, b"history")))
+        replies = {}
+        for name, cfg in asks.items():  # the server first: its answer shows the queryable is known
+            with _bus(router, cfg, "mapper") as asker:
+                replies[name] = [r for r in asker.session.get("robot1/camera/rgbd/@history/*", timeout=5)
+                                 if r.ok is not None]
+    assert len(replies["server"]) == 1 and replies["viewer"] == [] and replies["robot2"] == []
+    assert queries == ["q"]
+
+
+class _Keys:
+    """Counts raw samples per key expression (any payload), and signals each arrival."""
+
+    def __init__(self, bus: Bus, keys: list[str]) -> None:
+        import zenoh
+
+        self.counts: dict[str, int] = {}
+        self.changed = threading.Condition()
+        self.subscribers = []
+        for key in keys:
+            def on(sample, key=key) -> None:
+                with self.changed:
+                    self.counts[key] = self.counts.get(key, 0) + 1
+                    self.changed.notify_all()
+
+            self.subscribers.append(bus.session.declare_subscriber(key, zenoh.handlers.Callback(on)))
+
+    def count(self, key: str) -> int:
+        with self.changed:
+            return self.counts.get(key, 0)
+
+    def seen(self, key: str) -> bool:
+        return self.count(key) > 0
+
+    def wait(self, predicate, timeout_s: float = 60.0) -> bool:
+        with self.changed:
+            return self.changed.wait_for(predicate, timeout_s)
 
 
 @pytest.mark.parametrize("history_rule", [True, False], ids=["history-allowed", "history-denied"])

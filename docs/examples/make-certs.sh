@@ -7,14 +7,14 @@
 # and for each node NAME: NAME.pem + NAME.key. The common name (CN) of a node's certificate is its
 # NAME: the router's access-control rules match on it (`cert_common_names`). The router's
 # certificate is valid for the HOSTs given (names or IP addresses; default localhost 127.0.0.1).
-# Nodes: router, server (the mapper/log host), robot1, viewer. Run it again with other names by
+# Nodes: router, server (the mapper/log host), robot1, robot2, viewer. Run it again with other names by
 # setting NODES="robot2 robot3".
 set -euo pipefail
 dir=${1:?usage: make-certs.sh DIR [HOST ...]}
 shift
 hosts=("$@")
 [ ${#hosts[@]} -gt 0 ] || hosts=(localhost 127.0.0.1)
-nodes=${NODES:-server robot1 viewer}
+nodes=${NODES:-server robot1 robot2 viewer}
 days=${DAYS:-825}
 mkdir -p "$dir"
 cd "$dir"
