@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import errno
 import os
+import struct
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,9 +20,16 @@ from mcap.reader import NonSeekingReader
 from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
+from zstandard import ZstdError
 
 from octolog.kit.errors import McapError
 from octolog.schemas import codec
+
+# What the mcap reader and its decompressors raise on damaged bytes (found by tests/test_fuzz.py:
+# lz4 raises RuntimeError for a cut frame, a header shorter than the magic struct.error, zstandard
+# its own ZstdError): each one means "this file is damaged here", never a crash.
+_DAMAGE: tuple[type[BaseException], ...] = (RawMcapError, EOFError, ValueError, KeyError, IndexError, struct.error,
+                                            RuntimeError, OverflowError, ZstdError)
 
 COMPRESSIONS = ("none", "lz4", "zstd")
 
@@ -210,6 +218,23 @@ class McapWriter:
             raise McapError(f"{self.path}: write failed: {exc.strerror}") from None
 
 
+class _Clamped:
+    """A file whose reads never ask for more than what is left: the mcap reader reads a record's
+    declared length at once, and Python allocates a read's whole size first, so a forged length
+    (2 GB in a 5 kB file) would allocate that much before finding the file short (tests/test_fuzz.py)."""
+
+    def __init__(self, f: BinaryIO) -> None:
+        self._f = f
+        self._size = os.fstat(f.fileno()).st_size
+
+    def read(self, n: int = -1) -> bytes:
+        left = max(0, self._size - self._f.tell())
+        return self._f.read(left if n is None or n < 0 else min(n, left))
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._f, name)
+
+
 def _open(path: str | Path) -> BinaryIO:
     p = Path(path)
     try:
@@ -236,8 +261,8 @@ def message_counts(path: str | Path) -> dict[str, int] | None:
 
     try:
         with _open(path) as f:
-            summary = make_reader(f).get_summary()
-    except (RawMcapError, EOFError, ValueError, KeyError, OSError):
+            summary = make_reader(_Clamped(f)).get_summary()
+    except (*_DAMAGE, OSError):
         return None
     if summary is None or summary.statistics is None:
         return None
@@ -253,7 +278,7 @@ def read_messages(path: str | Path, topics: Iterable[str] | None = None) -> Iter
     n = 0
     with _open(p) as f:
         try:
-            reader = NonSeekingReader(f)
+            reader = NonSeekingReader(_Clamped(f))
             # the topics go to the reader: iterating every message and skipping here holds the whole
             # file in memory until the end (mcap 1.6: +200 MB for a 191 MB log; 11 GB after 10 minutes)
             for schema, channel, message in reader.iter_messages(topics=sorted(wanted) if wanted is not None else None):
@@ -262,7 +287,7 @@ def read_messages(path: str | Path, topics: Iterable[str] | None = None) -> Iter
                 n += 1
                 yield LoggedMessage(channel.topic.lstrip("/"), schema.name if schema else "",
                                     bytes(message.data), message.log_time, message.publish_time, message.sequence)
-        except (RawMcapError, EOFError, ValueError, KeyError) as exc:
+        except _DAMAGE as exc:
             raise McapError(f"{p}: truncated or corrupt MCAP after {n} messages ({type(exc).__name__}: {exc}); "
                             f"`octolog info {p}` shows what is readable") from None
 
@@ -308,7 +333,7 @@ def summarize(path: str | Path) -> McapSummary:
         schemas: dict[int, str] = {}
         seen_footer = False
         try:
-            for rec in StreamReader(f).records:
+            for rec in StreamReader(_Clamped(f)).records:
                 if isinstance(rec, Header):
                     out.profile = rec.profile
                 elif isinstance(rec, Schema):
@@ -327,7 +352,7 @@ def summarize(path: str | Path) -> McapSummary:
                     out.metadata[rec.name] = dict(rec.metadata)
                 elif isinstance(rec, Footer):
                     seen_footer = True
-        except (RawMcapError, EOFError, ValueError, KeyError) as exc:
+        except _DAMAGE as exc:
             out.complete = False
             out.problem = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
         if out.complete and not seen_footer:
@@ -393,7 +418,7 @@ def salvage(src: str | Path, dst: str | Path, *, compression: str | None = None,
 
         seen_footer = False
         try:
-            for rec in StreamReader(f, emit_chunks=True).records:
+            for rec in StreamReader(_Clamped(f), emit_chunks=True).records:
                 if isinstance(rec, Chunk):
                     if compression is None:
                         compression = {"": "none", "lz4": "lz4", "zstd": "zstd"}.get(rec.compression, "zstd")
@@ -406,7 +431,7 @@ def salvage(src: str | Path, dst: str | Path, *, compression: str | None = None,
                 else:
                     take(rec)
                 res.bytes_read = f.tell()
-        except (RawMcapError, EOFError, ValueError, KeyError, OSError) as exc:
+        except (*_DAMAGE, OSError) as exc:
             res.complete = False
             res.problem = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
         if res.complete and not seen_footer:

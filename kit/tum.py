@@ -46,20 +46,28 @@ TUM_READOUT_S = {"freiburg1": 0.020}
 
 
 def seconds_to_ns(text: str) -> int:
-    """Exact integer nanoseconds of a decimal seconds string (no float rounding)."""
-    return int((Decimal(text) * 1_000_000_000).to_integral_value())
+    """Exact integer nanoseconds of a decimal seconds string (no float rounding); ValueError for a
+    stamp that is not a finite number of seconds that fits in int64 nanoseconds (about 292 years)."""
+    value = Decimal(text)
+    if not value.is_finite() or abs(value) >= 9_223_372_036:
+        raise ValueError(f"stamp {text!r} out of range")
+    return int((value * 1_000_000_000).to_integral_value())
 
 
 def read_rows(path: Path, parse: Callable[[list[str]], T], want: str) -> list[T]:
     """Parse every non-comment line of a TUM text file; a bad line raises InputError naming it."""
     rows = []
-    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+    try:
+        text = path.read_text()
+    except UnicodeDecodeError as exc:  # found by tests/test_fuzz.py
+        raise InputError(f"{path}: not a text file (byte {exc.start} is not UTF-8)") from None
+    for lineno, line in enumerate(text.splitlines(), 1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
         try:
             rows.append(parse(line.split()))
-        except (InvalidOperation, ValueError, IndexError):
+        except (InvalidOperation, ValueError, IndexError, OverflowError):
             raise InputError(f"{path}:{lineno}: malformed line {line!r} (want '{want}')") from None
     return rows
 

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from octolog.kit.errors import InputError
-from octolog.schemas.codec import IMAGE_ENCODINGS
+from octolog.schemas.codec import IMAGE_ENCODINGS, pose_matrix
 
 MAX_SIDE = 16384  # pixels: no camera a stage takes has a wider or taller image
 _PNG = b"\x89PNG\r\n\x1a\n"
@@ -30,9 +30,15 @@ def check(msg: Any, typename: str) -> None:
     """Raise InputError naming what is wrong if `msg` (of `typename`) is not a sane message."""
     if typename in _FRAMES:
         _check_frame(msg)
+        if hasattr(msg, "world_from_camera"):  # a keyframe
+            pose_matrix(msg.world_from_camera)
     elif typename == "octolog_msgs/msg/KeyframePoses":
         if len(msg.ids) != len(msg.world_from_camera):
             raise InputError(f"keyframe_poses: {len(msg.ids)} ids but {len(msg.world_from_camera)} poses")
+        for pose in msg.world_from_camera:
+            pose_matrix(pose)
+    elif typename == "geometry_msgs/msg/PoseStamped":
+        pose_matrix(msg.pose)
     elif typename == "octolog_msgs/msg/TrackingStatus":
         if not math.isfinite(msg.processing_ms):
             raise InputError(f"tracking status: processing_ms {msg.processing_ms}")

@@ -146,7 +146,16 @@ def pose_msg(T: np.ndarray) -> Any:
 
 def pose_matrix(msg: Any) -> np.ndarray:
     p, o = msg.position, msg.orientation
-    return pose_to_matrix(np.array([p.x, p.y, p.z]), np.array([o.x, o.y, o.z, o.w]))
+    t, q = np.array([p.x, p.y, p.z]), np.array([o.x, o.y, o.z, o.w])
+    check_pose(t, q)
+    return pose_to_matrix(t, q)
+
+
+def check_pose(t: np.ndarray, q: np.ndarray) -> None:
+    """InputError unless the translation is finite and the quaternion finite and not zero."""
+    norm = float(np.linalg.norm(q))
+    if not (np.all(np.isfinite(t)) and np.isfinite(norm) and norm > 1e-9):
+        raise InputError(f"pose: translation {t.tolist()} / quaternion {q.tolist()} is not a rigid transform")
 
 
 def rgbd_msg(frame: RgbdFrame) -> Any:
