@@ -24,7 +24,6 @@ from octolog.kit.errors import StageError
 from octolog.kit.geometry import Intrinsics, RgbdFrame
 from octolog.schemas import codec, topics
 
-
 BLOCK = zenoh.CongestionControl.BLOCK  # the hostile peer's samples all arrive (the default drops them when busy)
 
 
