@@ -14,7 +14,7 @@ from octolog.kit.mcaplog import read_messages, summarize
 from octolog.kit.viz import Viz
 from octolog.replay.config import ReplayConfig, remapped
 from octolog.replay.sources import Source, open_source
-from octolog.schemas import codec
+from octolog.schemas import checks, codec
 from octolog.schemas.topics import (
     KEYFRAME,
     KEYFRAME_COMPRESSED,
@@ -170,8 +170,13 @@ def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Pro
     viz.text("replay/events", f"replaying {source.name}: {total} frames")  # the images: the tracker logs them
     for frame in looped(source, cfg, encoded=passthrough):
         pacer.wait(frames_pub.count, frame.stamp_ns)
-        if passthrough:
-            frames_pub.put(codec.encoded_rgbd_msg(frame))
+        if passthrough:  # as the source stored them: checked as every receiver will (a bad one would be dropped)
+            msg = codec.encoded_rgbd_msg(frame)
+            try:
+                checks.check(msg, frames_pub.topic.msgtype)
+            except InputError as exc:
+                raise InputError(f"{source.name}: frame {frame.seq}: {exc}") from None
+            frames_pub.put(msg)
         else:
             frames_pub.put(codec.rgbd_msg(frame) if wire is None else codec.compressed_rgbd_msg(frame, wire))
         first_stamp = frame.stamp_ns if first_stamp is None else first_stamp
@@ -203,7 +208,11 @@ def play_tracker_log(cfg: ReplayConfig, bus_cfg: BusConfig) -> ReplayResult:
         end_pub = bus.publisher(remapped(KEYFRAME_END, cfg.remap))
         bus.start([], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
         bus.watch(["mapper"], required=False)  # as the tracker: keyframes stay until the mapper is done
-        for m in read_messages(path, list(pubs)):
+        for i, m in enumerate(read_messages(path, list(pubs))):
+            try:
+                checks.checked(m.data, pubs[m.topic].topic.msgtype)  # as the mapper's bus will
+            except InputError as exc:
+                raise InputError(f"{path}: message {i} on /{m.topic}: {exc}") from None
             pubs[m.topic].put_raw(m.data)
         end_pub.put(codec.stream_end_msg(KEYFRAME_POSES.name, pubs[KEYFRAME_POSES.name].count))
         end_pub.put(codec.stream_end_msg(kf_topic.name, pubs[kf_topic.name].count))

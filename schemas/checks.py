@@ -1,29 +1,39 @@
 """Cheap structural checks of a decoded wire message, before a stage spends anything on it.
 
-CDR decoding (codec.decode) proves a payload has the type's shape; these checks prove its sizes are
-sane and agree with each other, without decoding an image: a raw image's byte count against its
-header, a compressed image's signature and the size its own header declares (a PNG or JPEG can claim
-a 10^9-pixel image in 30 bytes, and decoding it would allocate gigabytes), the calibration's size
-against both. A message that passes can still be refused later (an image that does not decode); it
-cannot make a stage allocate more than its declared size.
+CDR decoding (codec.decode) proves a payload has the type's shape; these checks prove it is a
+message a stage can afford to look at, without decoding an image: a raw image's byte count against
+its header, a compressed image's signature and the size its own header declares (imageheaders), the
+sides and pixel counts of images and calibration within what any RGB-D camera has, rigid poses.
+
+What is left to the stage on purpose: whether a frame agrees with its camera (image sizes against the
+calibration, depth type, a depth scale > 0). Such a frame is still a frame of its producer's stream:
+the tracker consumes it and reports it LOST (a lockstep replay waits for that status), where a
+sample dropped here was never a message at all. codec compares a compressed image's declared size
+with the calibration before decoding it, so no frame makes a stage allocate past its calibration.
 """
 
 from __future__ import annotations
 
 import math
-import struct
 from typing import Any
 
 import numpy as np
 
 from octolog.kit.errors import InputError
-from octolog.schemas.codec import IMAGE_ENCODINGS, pose_matrix
+from octolog.schemas.codec import IMAGE_ENCODINGS, decode, pose_matrix
+from octolog.schemas.imageheaders import declared_size
 
-MAX_SIDE = 16384  # pixels: no camera a stage takes has a wider or taller image
-_PNG = b"\x89PNG\r\n\x1a\n"
-_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+MAX_SIDE = 8192  # pixels: no RGB-D camera a stage takes has a wider or taller image
+MAX_PIXELS = 1 << 25  # 33.5 Mpx: 100 MB of RGB, the most one frame may make a stage allocate
 _FRAMES = ("octolog_msgs/msg/RgbdFrame", "octolog_msgs/msg/CompressedRgbdFrame",
            "octolog_msgs/msg/Keyframe", "octolog_msgs/msg/CompressedKeyframe")
+
+
+def checked(data: bytes | memoryview, typename: str) -> Any:
+    """The message `data` holds, decoded and checked; InputError naming the problem."""
+    msg = decode(data, typename)
+    check(msg, typename)
+    return msg
 
 
 def check(msg: Any, typename: str) -> None:
@@ -46,15 +56,24 @@ def check(msg: Any, typename: str) -> None:
 
 def _check_frame(msg: Any) -> None:
     info = msg.camera_info
-    w, h = int(info.width), int(info.height)
-    if not (0 < w <= MAX_SIDE and 0 < h <= MAX_SIDE):
-        raise InputError(f"camera_info: image size {w}x{h} (want 1..{MAX_SIDE} a side)")
-    if not (math.isfinite(msg.depth_scale_m) and msg.depth_scale_m > 0):
-        raise InputError(f"depth_scale_m must be > 0 metres per unit, got {msg.depth_scale_m}")
+    _check_size("camera_info", int(info.width), int(info.height), allow_empty=True)
     for name, image in (("colour", msg.color), ("depth", msg.depth)):
-        size = _compressed_size(image) if hasattr(image, "format") else _raw_size(image)
-        if size != (w, h):
-            raise InputError(f"{name} image is {size[0]}x{size[1]}, camera_info says {w}x{h}")
+        if hasattr(image, "format"):
+            size = declared_size(image.data)
+            if size is None:
+                raise InputError(f"{name} CompressedImage ({image.format!r}, {len(image.data)} bytes): "
+                                 f"not a PNG or JPEG image")
+        else:
+            size = _raw_size(image)
+        _check_size(f"{name} image", *size)
+
+
+def _check_size(what: str, w: int, h: int, *, allow_empty: bool = False) -> None:
+    """Sides and pixel count a stage may allocate for (a calibration may be empty: the stage says so)."""
+    if allow_empty and w == h == 0:
+        return
+    if not (0 < w <= MAX_SIDE and 0 < h <= MAX_SIDE and w * h <= MAX_PIXELS):
+        raise InputError(f"{what}: {w}x{h} pixels (want 1..{MAX_SIDE} a side, at most {MAX_PIXELS} pixels)")
 
 
 def _raw_size(image: Any) -> tuple[int, int]:
@@ -69,39 +88,3 @@ def _raw_size(image: Any) -> tuple[int, int]:
     return w, h
 
 
-def _compressed_size(image: Any) -> tuple[int, int]:
-    """The width and height a PNG or JPEG's own header declares (read from the header only)."""
-    data = bytes(image.data[:65536])  # the header, never the whole image
-    if data.startswith(_PNG) and len(data) >= 24 and data[12:16] == b"IHDR":
-        w, h = struct.unpack(">II", data[16:24])
-        return w, h
-    if data.startswith(b"\xff\xd8"):
-        size = _jpeg_size(data)
-        if size is not None:
-            return size
-    raise InputError(f"CompressedImage ({image.format!r}, {len(image.data)} bytes): not a PNG or JPEG image")
-
-
-def _jpeg_size(data: bytes) -> tuple[int, int] | None:
-    """Width and height from a JPEG's start-of-frame segment, walking the segments before it."""
-    i = 2
-    while i + 4 <= len(data):
-        if data[i] != 0xFF:
-            return None
-        marker = data[i + 1]
-        if marker == 0xFF:  # fill byte
-            i += 1
-            continue
-        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:  # no length field
-            i += 2
-            continue
-        length = struct.unpack(">H", data[i + 2:i + 4])[0]
-        if length < 2:
-            return None
-        if marker in _JPEG_SOF:
-            if i + 9 > len(data):
-                return None
-            h, w = struct.unpack(">HH", data[i + 5:i + 9])
-            return w, h
-        i += 2 + length
-    return None

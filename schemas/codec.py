@@ -16,6 +16,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from octolog.kit.errors import ConfigError, InputError
 from octolog.kit.geometry import EncodedRgbd, Intrinsics, RgbdFrame, matrix_to_pose, pose_to_matrix
+from octolog.schemas.imageheaders import declared_size
 
 MSG_DIR = Path(__file__).with_name("msg")
 OWN_PACKAGE = "octolog_msgs"
@@ -172,6 +173,11 @@ def rgbd_msg(frame: RgbdFrame) -> Any:
 def _rgbd_parts(msg: Any) -> tuple[np.ndarray, np.ndarray, Intrinsics]:
     """Pixels and calibration of an RgbdFrame or Keyframe, or of their Compressed* variants."""
     if hasattr(msg.color, "format"):  # sensor_msgs/CompressedImage: decode transparently
+        info = (int(msg.camera_info.width), int(msg.camera_info.height))
+        for name, image in (("colour", msg.color), ("depth", msg.depth)):
+            size = declared_size(image.data)
+            if size is not None and size != info:  # refused before decoding: no allocation past the calibration
+                raise InputError(f"image sizes disagree: {name} {size[0]}x{size[1]}, camera_info {info[0]}x{info[1]}")
         rgb, depth = wire_image_array(msg.color), wire_image_array(msg.depth)
         kinds = (msg.color.format, msg.depth.format)
     else:

@@ -1,7 +1,8 @@
 """Screening: a sample that is not a sane message is dropped at the bus, counted and shown once.
 
-Every data sample a stage takes is decoded (CDR, the topic's type) and checked (schemas.checks:
-sizes that agree, image headers that declare what the calibration says) before the stage sees it;
+Every data sample a stage takes is decoded (CDR, the topic's type) and checked (schemas.checks: byte
+counts that agree with headers, image headers within any camera's size, rigid poses) before the stage
+sees it;
 the decoded message rides along, so the stage does not decode twice. A buggy or hostile publisher
 cannot crash a stage this way, nor make it allocate what a forged header asks for: its samples are
 counted per topic, the first one per publisher is named on stderr, and the rest go silently.
@@ -20,7 +21,7 @@ import threading
 from octolog.kit.bus import wire
 from octolog.kit.bus.inbox import Received
 from octolog.kit.errors import InputError
-from octolog.schemas import checks, codec
+from octolog.schemas import checks
 
 _lock = threading.Lock()
 _totals: dict[str, int] = {}  # topic name -> malformed samples dropped, over this process's buses
@@ -45,8 +46,7 @@ class Screening:
         if item.query is not None:
             return item
         try:
-            msg = codec.decode(item.payload, item.topic.msgtype)
-            checks.check(msg, item.topic.msgtype)
+            msg = checks.checked(item.payload, item.topic.msgtype)
         except InputError as exc:
             self._drop(item, str(exc))
             return None
