@@ -96,6 +96,7 @@ class AteResult:
     alignment: np.ndarray  # (4,4): gt ~= alignment @ est
     errors: np.ndarray = field(repr=False)  # (n_pairs,) per-pair error, metres
     stamps_ns: np.ndarray = field(repr=False)  # (n_pairs,) estimate stamps of the pairs
+    scale: float = 1.0  # Sim(3) alignment (`ate(correct_scale=True)`): the estimate's lengths x scale
 
 
 @dataclass(frozen=True, eq=False)
@@ -282,6 +283,13 @@ def umeyama_se3(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
     Raises InputError if the points are degenerate (fewer than 3 or collinear).
     """
+    R, t, _ = umeyama(src, dst, with_scale=False)
+    return R, t
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray, *, with_scale: bool) -> tuple[np.ndarray, np.ndarray, float]:
+    """(R, t, c) minimising sum |dst_i - (c R src_i + t)|^2 (Umeyama 1991; c = 1 without scale), as
+    evo's `align(correct_scale=True)` computes it."""
     x = np.asarray(src, dtype=float)
     y = np.asarray(dst, dtype=float)
     if x.shape != y.shape or x.ndim != 2 or x.shape[1] != 3:
@@ -298,8 +306,9 @@ def umeyama_se3(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarra
     if np.linalg.det(u) * np.linalg.det(vt) < 0.0:
         s[2, 2] = -1.0
     R = u @ s @ vt
-    t = my - R @ mx
-    return R, t
+    c = float(np.trace(np.diag(d) @ s) / np.mean(np.sum(np.square(x - mx), axis=1))) if with_scale else 1.0
+    t = my - c * R @ mx
+    return R, t, c
 
 
 def _pairs(est: Trajectory, gt: Trajectory, max_dt_ns: int) -> tuple[Trajectory, Trajectory]:
@@ -321,15 +330,17 @@ def _rmse(e: np.ndarray) -> float:
 # Metrics
 
 
-def ate(est: Trajectory, gt: Trajectory, *, max_dt_ns: int = DEFAULT_MAX_DT_NS) -> AteResult:
-    """Translational ATE after SE(3) Umeyama alignment of the estimate onto the ground truth."""
+def ate(est: Trajectory, gt: Trajectory, *, max_dt_ns: int = DEFAULT_MAX_DT_NS, correct_scale: bool = False) -> AteResult:
+    """Translational ATE after SE(3) Umeyama alignment of the estimate onto the ground truth; with
+    `correct_scale`, Sim(3) (`scale`: what the estimate's lengths must be multiplied by)."""
     e, g = _pairs(est, gt, max_dt_ns)
-    R, t = umeyama_se3(e.positions, g.positions)
-    aligned = e.positions @ R.T + t
+    R, t, c = umeyama(e.positions, g.positions, with_scale=correct_scale)
+    aligned = c * e.positions @ R.T + t
     err = np.linalg.norm(g.positions - aligned, axis=1)
     T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, t
+    T[:3, :3], T[:3, 3] = c * R, t
     return AteResult(
+        scale=c,
         rmse=_rmse(err),
         mean=float(np.mean(err)),
         median=float(np.median(err)),

@@ -149,6 +149,7 @@ class BusPublisher:
         # PNG when depth is recorded so), on camera/rgbd/compressed: a tenth of the raw frame
         self._rgbd = bus.publisher(T.RGBD_COMPRESSED if compressed else T.RGBD)
         self._rgbd_end = bus.publisher(T.RGBD_END)
+        self._props = bus.publisher(T.CAMERA_PROPERTIES)
         bus.announce()
 
     def __call__(self, cap: Capture, msgs: list[Encoded]) -> None:
@@ -159,6 +160,8 @@ class BusPublisher:
         if cap.color is not None and cap.aligned_depth is not None:
             assert self._device.color is not None
             c, d = cap.color, cap.aligned_depth
+            if self._props.count == 0:  # before the first frame: the D455's colour camera has a global shutter
+                self._props.put(codec.camera_properties_msg(self._device.name, 0.0, c.stamp_ns))
             if self._rgbd.topic is T.RGBD:
                 self._rgbd.put(codec.rgbd_msg(RgbdFrame(c.frame_number, c.stamp_ns, c.array, d.array,
                                                         self._device.depth_scale_m, self._device.color, self._frame)))

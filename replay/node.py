@@ -16,6 +16,7 @@ from octolog.replay.config import ReplayConfig, remapped
 from octolog.replay.sources import Source, open_source
 from octolog.schemas import checks, codec
 from octolog.schemas.topics import (
+    CAMERA_PROPERTIES,
     KEYFRAME,
     KEYFRAME_COMPRESSED,
     KEYFRAME_END,
@@ -158,9 +159,12 @@ def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Pro
     compressed = passthrough or wire is not None
     frames_pub = bus.publisher(remapped(RGBD_COMPRESSED if compressed else RGBD, cfg.remap))
     end_pub = bus.publisher(remapped(RGBD_END, cfg.remap))
+    props_pub = bus.publisher(remapped(CAMERA_PROPERTIES, cfg.remap))
     # lockstep needs the tracker's statuses; the status line shows them and the mapper's updates
     watched = ([TRACKING_STATUS] if cfg.rate == 0 else []) + ([TRACKING_STATUS, MAP_UPDATE] if progress else [])
     bus.start(list(dict.fromkeys(watched)), wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
+    # before the first frame, which depends on it (wire numbering): a tracker anywhere knows the camera
+    props_pub.put(codec.camera_properties_msg(source.name, source.readout_s))
     end = None if cfg.end < 0 else cfg.end
     total = max(0, min(len(source), end if end is not None else len(source)) - cfg.start) * cfg.loop
     status = Status(total=total)

@@ -23,6 +23,7 @@ import numpy as np
 
 from octolog.kit.geometry import Intrinsics, RgbdFrame, matrix_to_pose
 from octolog.kit.opencv import baseline_simd
+from octolog.replay import depth_noise
 from octolog.replay.synthetic_room import OBJECTS, ROOM, scene_faces, scene_triangles
 from octolog.replay.synthetic_textures import Textures, scene_textures
 from octolog.replay.synthetic_trajectory import camera_trajectory
@@ -49,6 +50,7 @@ class SyntheticConfig:
     mip_levels: int = 4  # texture pyramid levels (1 = no mip-mapping)
     start_ns: int = EPOCH_NS  # stamp of frame 0
     nthreads: int = 0  # ray-casting threads, 0 = all
+    depth_noise: str = "none"  # none (exact, mm steps), kinect or d455: replay.depth_noise's models
 
     def __post_init__(self) -> None:
         """Checked once, where the parameters are built."""
@@ -56,6 +58,8 @@ class SyntheticConfig:
             raise ValueError(f"invalid synthetic scene parameters: {self}")
         if self.texel_m <= 0 or self.mip_levels < 1:
             raise ValueError(f"invalid synthetic scene texture parameters: {self}")
+        if self.depth_noise not in depth_noise.names():
+            raise ValueError(f"depth_noise {self.depth_noise!r}: want one of {', '.join(depth_noise.names())}")
 
 
 class SyntheticScene:
@@ -233,8 +237,10 @@ class SyntheticScene:
             )
         return out.reshape(-1, 3)[:n]
 
-    def render_pose(self, world_from_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Colour (H, W, 3) uint8 and depth (H, W) uint16 mm seen from an arbitrary pose."""
+    def render_pose(self, world_from_camera: np.ndarray,
+                    noise: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Colour (H, W, 3) uint8 and depth (H, W) uint16 mm seen from an arbitrary pose; with a
+        `noise` generator and a `depth_noise` sensor, the depth that sensor would read."""
         import open3d as o3d  # lazy: ~1.4 s to import, only rendering and geometry need it
 
         cfg, K = self.config, self.intrinsics
@@ -251,9 +257,8 @@ class SyntheticScene:
         prim = ans["primitive_ids"].numpy()
         bary = ans["primitive_uvs"].numpy()
 
-        ok = (z >= cfg.min_depth_m) & (z <= cfg.max_depth_m)  # False for misses (inf)
-        depth = np.zeros(len(z), dtype=np.uint16)
-        depth[ok] = np.rint(z[ok] * np.float32(1.0 / self.depth_scale_m)).astype(np.uint16)
+        exact = z if noise is not None and cfg.depth_noise != "none" else None
+        depth = self._depth_mm(z)
 
         hit = np.isfinite(z)
         all_hit = bool(hit.all())
@@ -288,11 +293,24 @@ class SyntheticScene:
         else:
             rgb = np.zeros((len(hit), 3), dtype=np.uint8)
             rgb[hit] = col
-        return rgb.reshape(K.height, K.width, 3), depth.reshape(K.height, K.width)
+        rgb = rgb.reshape(K.height, K.width, 3)
+        if exact is not None:
+            sensor = depth_noise.SENSORS[cfg.depth_noise]
+            depth = self._depth_mm(depth_noise.apply(exact.reshape(K.height, K.width), rgb, sensor, noise).ravel())
+        return rgb, depth.reshape(K.height, K.width)
+
+    def _depth_mm(self, z: np.ndarray) -> np.ndarray:
+        """uint16 depth in depth_scale_m units; 0 outside [min_depth_m, max_depth_m] and for misses."""
+        cfg = self.config
+        ok = (z >= cfg.min_depth_m) & (z <= cfg.max_depth_m)  # False for misses (inf) and zeros
+        depth = np.zeros(len(z), dtype=np.uint16)
+        depth[ok] = np.rint(z[ok] * np.float32(1.0 / self.depth_scale_m)).astype(np.uint16)
+        return depth
 
     def render(self, i: int) -> RgbdFrame:
         """The RGB-D frame i (seq = i) at its ground-truth pose."""
-        rgb, depth = self.render_pose(self.pose(i))
+        noise = np.random.default_rng([self.config.seed, int(i)]) if self.config.depth_noise != "none" else None
+        rgb, depth = self.render_pose(self.pose(i), noise)
         return RgbdFrame(
             seq=int(i),
             stamp_ns=self.stamp_ns(i),

@@ -49,6 +49,9 @@ def check(msg: Any, typename: str) -> None:
             pose_matrix(pose)
     elif typename == "geometry_msgs/msg/PoseStamped":
         pose_matrix(msg.pose)
+    elif typename == "octolog_msgs/msg/CameraProperties":
+        if not (math.isfinite(msg.readout_s) and 0.0 <= msg.readout_s <= 0.1):
+            raise InputError(f"camera properties: readout_s {msg.readout_s} (want 0..0.1 s)")
     elif typename == "octolog_msgs/msg/TrackingStatus":
         if not math.isfinite(msg.processing_ms):
             raise InputError(f"tracking status: processing_ms {msg.processing_ms}")

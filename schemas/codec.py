@@ -233,6 +233,11 @@ def stream_end_msg(topic: str, count: int, stamp: int = 0) -> Any:
     return msgtype("octolog_msgs/msg/StreamEnd")(header=header(stamp, ""), topic=topic, count=count)
 
 
+def camera_properties_msg(camera: str, readout_s: float, stamp: int = 0) -> Any:
+    return msgtype("octolog_msgs/msg/CameraProperties")(header=header(stamp, ""), camera=camera,
+                                                       readout_s=float(readout_s))
+
+
 def keyframe_poses_msg(poses: dict[int, np.ndarray], stamp: int = 0) -> Any:
     ids = sorted(poses)
     return msgtype("octolog_msgs/msg/KeyframePoses")(

@@ -45,6 +45,8 @@ RGBD = Topic("camera/rgbd", "octolog_msgs/msg/RgbdFrame")
 # (image_transport's naming); consumers take either, the end message names the one used.
 RGBD_COMPRESSED = Topic("camera/rgbd/compressed", "octolog_msgs/msg/CompressedRgbdFrame")
 RGBD_END = Topic("camera/rgbd/end", "octolog_msgs/msg/StreamEnd")
+# The camera's properties a tracker needs beyond CameraInfo (the rolling-shutter readout), once per stream
+CAMERA_PROPERTIES = Topic("camera/rgbd/properties", "octolog_msgs/msg/CameraProperties")
 POSE = Topic("tracker/pose", "geometry_msgs/msg/PoseStamped")
 TRACKING_STATUS = Topic("tracker/status", "octolog_msgs/msg/TrackingStatus")
 KEYFRAME = Topic("tracker/keyframe", "octolog_msgs/msg/Keyframe")
@@ -58,7 +60,7 @@ GRID = Topic("mapper/grid", "nav_msgs/msg/OccupancyGrid")
 MAP_END = Topic("mapper/end", "octolog_msgs/msg/StreamEnd")
 
 ALL = (RGBD, RGBD_END, POSE, TRACKING_STATUS, KEYFRAME, KEYFRAME_END, KEYFRAME_POSES, MAP_UPDATE, OCTOMAP,
-       OCCUPIED, GRID, MAP_END, RGBD_COMPRESSED, KEYFRAME_COMPRESSED)
+       OCCUPIED, GRID, MAP_END, RGBD_COMPRESSED, KEYFRAME_COMPRESSED, CAMERA_PROPERTIES)
 # The mapper's queryable: a late joiner `get`s the current map (octomap_msgs/Octomap, binary).
 MAP_QUERY = Topic("mapper/map", "octomap_msgs/msg/Octomap")
 # Ask the mapper to write its files now; the reply (JSON in a String) names them.

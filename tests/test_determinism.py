@@ -46,14 +46,14 @@ ALONE: dict[str, dict[str, str]] = {
 # versions. Update only on purpose (see the module docstring).
 GOLDEN: dict[str, dict[str, str]] = {
     "synthetic:40": {
-        "trajectory.txt": "a2ad07a8e0d90003d25efc70d08a703f9c16c6f821279157ac326c1f1aa6f663",
-        "map.bt": "2d395625a4e1c66dc74be1a47fb09793eafb97a02aa02c80cfca5122d9036631",
-        "cloud.ply": "891284185decf95f2e15158c81c33e1dfcc3c85ff35ab18afc37adeba8ba3b84",
+        "trajectory.txt": "c03e5a1babf9d384c74ff9186a29c1b9f840ac2e862d33c2d19372d7cdc2bc2d",
+        "map.bt": "3caa0a2e1efa5f4c504250046a19f7d9f02cc6693f8d4031626e158e961d7964",
+        "cloud.ply": "277b0e90bb65e3d5d14e2d5c1e9159362211e65a97f75ea3e6f54f1cddd47e3d",
     },
     "tum-first300": {
-        "trajectory.txt": "565d7810b844435954ba4501878a91ce745c7f88fb0362cb4b7356f314ad0cb3",
-        "map.bt": "3eef35381abad2f3f9e63c7a0eb6bd8192ff62aeac27f27eea2ed1472c2241cc",
-        "cloud.ply": "6b3ba5ea456bc1f6daf9e7ce4fdf07630d411fee570e7bf166751a32289d0f10",
+        "trajectory.txt": "bf8dc7eef39815775677fc36da66e706bd666e4931d421a7ed1646c5c8307e09",
+        "map.bt": "32ebc4f759cb288d23a64e588f2d9b8d377f88cd123243f9c64337adcf955e49",
+        "cloud.ply": "2bde9f730e431850f94441edfe079b4b208f260ffbd311c5904f07acad33fc04",
     },
 }
 

@@ -188,3 +188,59 @@ def test_run_starts_a_killed_mapper_again(single_host, tmp_path):
             run.wait(timeout=30)
     assert "killed by signal 9; starting it again" in (out / "logs" / "mapper.log").read_text()
     _same_result(out, single_host)
+
+
+def test_deployment_doc_robot_and_server_give_the_run_bytes(hosts, tmp_path):
+    """docs/deployment.md as written, with TLS: the server (router, mapper, log) on one host, robot1
+    (replay + `octolog track`, frames from TUM fr1 first300) on another. No rolling-shutter setting
+    anywhere: the readout comes with the frames (`camera/rgbd/properties`), so the trajectory and
+    map.bt are those of `octolog run` on this host."""
+    from helpers import tum_first300
+
+    if shutil.which("openssl") is None:
+        pytest.skip("openssl not installed")
+    source = f"tum:{tum_first300()}"
+    names, addr = hosts
+    robot_ip = addr["a"][0]  # how the robot reaches the server
+    examples = ROOT / "docs" / "examples"
+    subprocess.run(["bash", str(examples / "make-certs.sh"), str(tmp_path / "certs"), robot_ip, "127.0.0.1"],
+                   check=True, capture_output=True)
+
+    def config(example: str, node: str) -> str:
+        text = (examples / example).read_text().replace('"certs/', f'"{tmp_path}/certs/')
+        path = tmp_path / f"{node}.json5"
+        path.write_text(text.replace(f"{tmp_path}/certs/robot1.", f"{tmp_path}/certs/{node}."))
+        return str(path)
+
+    router_cfg, server_cfg = config("zenoh-tls-router.json5", "router"), config("zenoh-tls-client.json5", "server")
+    robot_cfg = config("zenoh-tls-client.json5", "robot1")
+    out = tmp_path / "deployed"
+    out.mkdir()
+    server = ["--mode", "client", "--connect", "tls/127.0.0.1:7447", "--zenoh-config", server_cfg,
+              "--namespace", "robot1"]
+    robot = ["--mode", "client", "--connect", f"tls/{robot_ip}:7447", "--zenoh-config", robot_cfg,
+             "--namespace", "robot1"]
+    procs = {"router": _start(names["d"], "router", "--zenoh-config", router_cfg, "--listen", "tls/0.0.0.0:7447",
+                              log=out / "router.log")}
+    try:
+        procs["mapper"] = _start(names["d"], "map", *server, "--out", str(out / "maps" / "robot1"), log=out / "map.log")
+        procs["log"] = _start(names["d"], "log", *server, "--out", str(out / "logs" / "robot1.mcap"),
+                              log=out / "log.log")
+        procs["tracker"] = _start(names["a"], "track", *robot, "--trajectory", str(out / "traj.txt"), "--set",
+                                  "wire_compression=jpeg:90", log=out / "tracker.log")
+        procs["replay"] = _start(names["a"], "replay", *robot, "--source", source, "--set",
+                                 'wait_for=["tracker", "mapper"]', "--quiet", log=out / "replay.log")
+        for stage in ("replay", "tracker", "mapper", "log"):
+            log = out / f"{'map' if stage == 'mapper' else stage}.log"
+            assert procs[stage].wait(timeout=600) == 0, log.read_text()
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                p.terminate()
+                p.wait(timeout=30)
+    single = tmp_path / "single"
+    octolog("run", "--source", source, "--out", str(single), "--quiet", "--rerun", "off")
+    assert "warning" not in (out / "tracker.log").read_text()
+    assert (out / "traj.txt").read_bytes() == (single / "trajectory.txt").read_bytes()
+    # map.bt: occupancy comes from depth (lossless PNG either way); the JPEG colour only tints the cloud
+    assert (out / "maps" / "robot1" / "map.bt").read_bytes() == (single / "map.bt").read_bytes()

@@ -339,6 +339,21 @@ def test_ate_agrees_with_evo(pair: tuple[Trajectory, Trajectory]) -> None:
     assert 0.01 < res.rmse < 0.03  # noise sigma 1 cm per axis -> ~1.7 cm
 
 
+def test_sim3_ate_and_scale_agree_with_evo(pair: tuple[Trajectory, Trajectory]) -> None:
+    """A trajectory 1.5 % too long: Sim(3) alignment gives the scale that undoes it, as evo does."""
+    est, gt = pair
+    longer = Trajectory(est.stamps_ns, est.positions * 1.015, est.quats_xyzw)
+    res = ate(longer, gt, correct_scale=True)
+    ref, e = evo_sync.associate_trajectories(to_evo(gt), to_evo(longer), max_diff=0.02)
+    _, _, scale = e.align(ref, correct_scale=True)
+    ape = evo_metrics.APE(PoseRelation.translation_part)
+    ape.process_data((ref, e))
+    assert_rel(res.scale, scale)
+    assert_rel(res.rmse, ape.get_all_statistics()["rmse"])
+    assert abs(res.scale * 1.015 - 1) < 0.005  # the noise moves it a little
+    assert ate(longer, gt).rmse > res.rmse  # SE(3) cannot take the length out
+
+
 @pytest.mark.parametrize(("delta", "all_pairs"), [(1, False), (1, True), (5, False), (5, True)])
 def test_rpe_agrees_with_evo(
     pair: tuple[Trajectory, Trajectory], delta: int, all_pairs: bool

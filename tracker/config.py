@@ -176,7 +176,8 @@ class TrackerConfig:
     bow_candidates: int = 10
     # native: the colour camera's rolling-shutter readout time, first row to last (ms); 0 = global
     # shutter (D455 colour, the synthetic scene). Unset (the default): `octolog run` and the
-    # benchmarks take it from the source (TUM freiburg1: 20 ms, see docs/architecture.md), else 0.
+    # benchmarks take it from the source (TUM freiburg1: 20 ms, see docs/architecture.md), a tracker
+    # on the bus from the stream's camera properties (camera/rgbd/properties), else 0.
     rolling_shutter_ms: float | None = None
     # native core, by stage (docs/cli.md lists every key)
     features: FeatureParams = field(default_factory=FeatureParams)

@@ -5,6 +5,8 @@ Apart from tracker.node so that benchmarks and tests build a tracker without the
 
 from __future__ import annotations
 
+import dataclasses
+
 from octolog.tracker.config import TrackerConfig
 from octolog.tracker.interface import Tracker
 from octolog.tracker.odometry import RgbdOdometry
@@ -21,3 +23,11 @@ def make_odometry(cfg: TrackerConfig) -> Tracker:
     params = cfg.odometry_params()
     vocabulary = load_vocabulary(cfg.vocabulary) if cfg.vocabulary else None
     return RgbdOdometry(params, vocabulary=vocabulary, background=cfg.background)
+
+
+def set_readout(odometry: Tracker, readout_s: float) -> None:
+    """Give a tracker the camera's rolling-shutter readout before its first frame (a backend
+    without a rolling-shutter model, ORB-SLAM3, has nothing to set)."""
+    params = getattr(odometry, "params", None)
+    if params is not None and hasattr(params, "readout_s"):
+        odometry.params = dataclasses.replace(params, readout_s=float(readout_s))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -17,6 +18,7 @@ from octolog.kit.metrics import write_tum
 from octolog.kit.viz import Viz, encode_jpeg
 from octolog.schemas import codec
 from octolog.schemas.topics import (
+    CAMERA_PROPERTIES,
     KEYFRAME,
     KEYFRAME_COMPRESSED,
     KEYFRAME_END,
@@ -28,7 +30,7 @@ from octolog.schemas.topics import (
     TRACKING_STATUS,
 )
 from octolog.tracker.config import TrackerConfig
-from octolog.tracker.factory import make_odometry
+from octolog.tracker.factory import make_odometry, set_readout
 from octolog.tracker.interface import Tracker, TrackingState, TrackResult
 
 FRAME_PRODUCERS = ("replay", "recorder")
@@ -73,7 +75,7 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
     pub_kf_end = bus.publisher(KEYFRAME_END)
     pub_poses = bus.publisher(KEYFRAME_POSES)
     # frames come raw or compressed, whichever the source publishes; decoding is the same call
-    bus.start([RGBD, RGBD_COMPRESSED, RGBD_END], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
+    bus.start([RGBD, RGBD_COMPRESSED, RGBD_END, CAMERA_PROPERTIES], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
     bus.watch(FRAME_PRODUCERS)  # whichever sends the frames: a replay, or a recorder publishing live
     bus.watch(["mapper"], required=False)  # a mapper may restart: keep its keyframes until it is done
     result = TrackerResult()
@@ -85,6 +87,9 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
         if r is None:
             if expected is not None:
                 bus.expect_count(RGBD, result.frames, expected)
+            continue
+        if r.topic == CAMERA_PROPERTIES:
+            use_camera(odometry, cfg, r.decode())
             continue
         if r.topic == RGBD_END:
             expected = int(r.decode().count)
@@ -155,6 +160,17 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
     pub_kf_end.put(codec.stream_end_msg(pub_kf.topic_name, pub_kf.count))
     bus.linger("mapper")
     return result
+
+
+def use_camera(odometry: Tracker, cfg: TrackerConfig, props: Any) -> None:
+    """The stream's camera properties: its readout unless the config sets one (then a warning if
+    they disagree), so a tracker on another machine tracks as `octolog run` does."""
+    if cfg.rolling_shutter_ms is None:
+        set_readout(odometry, props.readout_s)
+    elif abs(cfg.rolling_shutter_ms - props.readout_s * 1e3) > 1e-6:
+        print(f"tracker: warning: tracker.rolling_shutter_ms = {cfg.rolling_shutter_ms:g} but the camera "
+              f"({props.camera}) reads out in {props.readout_s * 1e3:g} ms; using {cfg.rolling_shutter_ms:g} "
+              f"(the local setting)", file=sys.stderr, flush=True)
 
 
 _DECODER = ThreadPoolExecutor(1, thread_name_prefix="decode")

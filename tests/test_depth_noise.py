@@ -1,0 +1,76 @@
+"""The synthetic depth sensors (replay/depth_noise.py) and the tracker's scale under them (issue 17).
+
+The noise models are checked against their own specification (sigma_z growing with z^2, disparity
+steps, invalid bands at discontinuities); the tracker is then run on the synthetic room with each
+model, along a slow and a fast path, and its Sim(3) scale must stay within 0.2 % of 1.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from octolog.replay import depth_noise
+from octolog.replay.synthetic import SyntheticScene
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+from depth_scale import track_scene  # noqa: E402  (bench/depth_scale.py: the same runs as the table)
+
+
+@pytest.mark.parametrize("name", ["kinect", "d455"])
+@pytest.mark.parametrize("z", [1.0, 2.5, 4.0])
+def test_depth_error_grows_with_the_square_of_distance_and_is_unbiased(name, z):
+    """On a flat wall at z: the spread is sigma_d z^2 / (f b) plus the disparity step's rounding,
+    within 15 %; the mean stays within a tenth of that spread of the truth (no bias of its own)."""
+    s = depth_noise.SENSORS[name]
+    exact = np.full((300, 300), z)
+    out = depth_noise.apply(exact, np.full((300, 300, 3), 128, np.uint8), s, np.random.default_rng(1))
+    got = out[out > 0]
+    fb = s.focal_px * s.baseline_m
+    d = fb / z
+    step_z = z * s.step_px / d  # one disparity step in depth
+    sigma = np.hypot(z * s.sigma_px / d, step_z / np.sqrt(12))
+    assert got.size > 0.98 * out.size  # a flat wall: only the random dropouts
+    assert abs(got.std() / sigma - 1) < 0.15, (got.std(), sigma)
+    assert abs(got.mean() - z) < 0.1 * sigma + 1e-4
+    levels = np.unique(np.round(fb / got / s.step_px, 6))
+    assert np.allclose(levels, np.round(levels))  # every reading is a whole number of disparity steps
+
+
+def test_a_depth_discontinuity_reads_zero_along_its_edge():
+    s = depth_noise.SENSORS["d455"]
+    exact = np.full((50, 50), 3.0)
+    exact[:, 25:] = 1.0  # a box in front of a wall
+    out = depth_noise.apply(exact, np.full((50, 50, 3), 128, np.uint8), s, np.random.default_rng(2))
+    assert (out[:, 24:26] == 0).all()
+    assert (out[:, :20] > 0).mean() > 0.98 and (out[:, 30:] > 0).mean() > 0.98
+
+
+def test_dark_surfaces_lose_depth_under_structured_light_only():
+    exact, dark = np.full((100, 100), 2.0), np.full((100, 100, 3), 5, np.uint8)
+    rng = np.random.default_rng(3)
+    assert (depth_noise.apply(exact, dark, depth_noise.SENSORS["kinect"], rng) == 0).mean() > 0.5
+    assert (depth_noise.apply(exact, dark, depth_noise.SENSORS["d455"], rng) == 0).mean() < 0.01
+
+
+def test_noisy_frames_are_deterministic_and_differ_from_exact_ones():
+    a = SyntheticScene(n_frames=3, width=160, height=120, depth_noise="d455").render(2)
+    b = SyntheticScene(n_frames=3, width=160, height=120, depth_noise="d455").render(2)
+    exact = SyntheticScene(n_frames=3, width=160, height=120).render(2)
+    assert np.array_equal(a.depth, b.depth) and np.array_equal(a.rgb, exact.rgb)
+    both = (a.depth > 0) & (exact.depth > 0)
+    assert 0 < np.mean(a.depth[both] != exact.depth[both])
+    with pytest.raises(ValueError, match="depth_noise"):
+        SyntheticScene(depth_noise="lidar")
+
+
+@pytest.mark.parametrize("every", [1, 3], ids=["slow", "fast"])
+@pytest.mark.parametrize("noise", ["kinect", "d455"])
+def test_the_tracker_has_no_scale_bias_under_sensor_noise(noise, every):
+    """Sim(3) scale within 0.2 % of 1 on the synthetic room (exact truth), slow and fast path."""
+    r = track_scene(noise, 240, every)
+    assert r["tracked"] == r["frames"]
+    assert abs(r["scale"] - 1) < 0.002, r
