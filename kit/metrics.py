@@ -330,7 +330,8 @@ def _rmse(e: np.ndarray) -> float:
 # Metrics
 
 
-def ate(est: Trajectory, gt: Trajectory, *, max_dt_ns: int = DEFAULT_MAX_DT_NS, correct_scale: bool = False) -> AteResult:
+def ate(est: Trajectory, gt: Trajectory, *, max_dt_ns: int = DEFAULT_MAX_DT_NS,
+        correct_scale: bool = False) -> AteResult:
     """Translational ATE after SE(3) Umeyama alignment of the estimate onto the ground truth; with
     `correct_scale`, Sim(3) (`scale`: what the estimate's lengths must be multiplied by)."""
     e, g = _pairs(est, gt, max_dt_ns)

@@ -120,14 +120,14 @@ def camera_for(folder: Path, camera: str = "") -> str:
     none (a renamed folder, another dataset in TUM layout) is an error naming the options."""
     if camera:
         if camera not in TUM_INTRINSICS:
-            raise InputError(f"camera {camera!r}: want one of {', '.join(TUM_CAMERAS)}")
+            raise InputError(f"camera {camera!r}: want one of {', '.join(TUM_CAMERAS)} or a calibration file (.toml)")
         return camera
     name = Path(os.path.abspath(folder)).name  # the name the user gave (a symlink's, not its target's)
     found = [key for key in TUM_CAMERAS if key in name]
     if len(found) != 1:
         raise InputError(f"{folder}: the folder name does not say which camera took it ({', '.join(TUM_CAMERAS)}); "
-                         "name it with --set replay.camera=freiburgN (octolog run/replay) or --camera freiburgN "
-                         "(octolog import)")
+                         "name it with --set replay.camera=freiburgN or a calibration file, "
+                         "--set replay.camera=CAMERA.toml (octolog run/replay), or --camera freiburgN (octolog import)")
     return found[0]
 
 
@@ -145,6 +145,7 @@ class TumSequence:
     intrinsics: Intrinsics
     groundtruth: Path | None
     camera: str  # freiburg1/2/3, or "" when the intrinsics were given instead
+    depth_scale_m: float = 1.0 / 5000.0  # TUM's; a calibration file may say otherwise
 
     def __len__(self) -> int:
         return len(self.pairs)
@@ -168,7 +169,7 @@ class TumSequence:
                 stamp_ns=rgb_ns,
                 rgb=cv2.cvtColor(rgb, cv2.COLOR_BGR2RGB),
                 depth=depth,
-                depth_scale_m=TUM_DEPTH_SCALE_M,
+                depth_scale_m=self.depth_scale_m,
                 intrinsics=self.intrinsics,
             )
 
@@ -182,8 +183,8 @@ class TumSequence:
             depth, depth_size = read_png_bytes(self.folder / depth_file, 16, PNG_GREY, "a 16-bit single-channel")
             if rgb_size != depth_size:
                 raise InputError(f"{self.folder / depth_file}: size {depth_size[::-1]} differs from colour {rgb_size[::-1]}")
-            yield EncodedRgbd(seq, rgb_ns, rgb, PNG_COLOUR_FORMAT, depth, PNG_DEPTH_FORMAT, TUM_DEPTH_SCALE_M,
-                              self.intrinsics)
+            yield EncodedRgbd(seq, rgb_ns, rgb, PNG_COLOUR_FORMAT, depth, PNG_DEPTH_FORMAT,
+                              self.depth_scale_m, self.intrinsics)
 
 
 # PNG colour types (IHDR) and the image_transport format strings of PNG colour and depth

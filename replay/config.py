@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from octolog.kit.calibration import is_calibration_file
 from octolog.kit.errors import ConfigError
 from octolog.kit.tum import TUM_CAMERAS
 from octolog.schemas.codec import parse_wire_compression
@@ -43,8 +44,10 @@ class ReplayConfig:
     # re-encoded on camera/rgbd/compressed; depth is always lossless PNG
     wire_compression: str = "source"
     wait_for: tuple[str, ...] = ("tracker",)
-    # the camera of a tum: source whose folder name does not say it (freiburg1, freiburg2, freiburg3);
-    # "": from the name, and an error when the name says none (never a silent default)
+    # the camera of a tum: source whose folder name does not say it (freiburg1, freiburg2, freiburg3),
+    # or a calibration file (kit/calibration.py: intrinsics, distortion, depth scale, readout) for a
+    # tum: folder or an mcap: recording without CameraInfo; "": from the name, and an error when the
+    # name says none (never a silent default)
     camera: str = ""
     wait_timeout_s: float = 60.0
 
@@ -53,8 +56,9 @@ class ReplayConfig:
         checked by sources.open_source: the shell sets `source` after loading, from --source)."""
         if self.rate < 0:
             raise ConfigError(f"replay.rate {self.rate}: want 0 (lockstep) or a positive factor")
-        if self.camera and self.camera not in TUM_CAMERAS:
-            raise ConfigError(f"replay.camera {self.camera!r}: want one of {', '.join(TUM_CAMERAS)} (or unset)")
+        if self.camera and self.camera not in TUM_CAMERAS and not is_calibration_file(self.camera):
+            raise ConfigError(f"replay.camera {self.camera!r}: want one of {', '.join(TUM_CAMERAS)}, a calibration "
+                              f"file (.toml), or unset")
         if self.window < 1:
             raise ConfigError(f"replay.window {self.window}: want >= 1")
         if self.play not in ("camera", "tracker"):

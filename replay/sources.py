@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
+from octolog.kit.calibration import is_calibration_file, load_calibration
 from octolog.kit.errors import ConfigError, InputError
 from octolog.kit.geometry import EncodedRgbd, RgbdFrame
 from octolog.kit.mcaplog import read_messages, summarize
@@ -55,10 +56,16 @@ class TumSource:
     every: int = 1  # every N-th pair only: the PNGs in between are never read
 
     def __post_init__(self) -> None:
-        seq = open_tum(self.path, camera=self.camera)
+        if is_calibration_file(self.camera):  # a camera the folder's name cannot say
+            cal = load_calibration(self.camera)
+            seq = open_tum(self.path, cal.intrinsics, camera=cal.name)
+            seq = dataclasses.replace(seq, depth_scale_m=cal.depth_scale_m or seq.depth_scale_m)
+            self.readout_s = cal.readout_s
+        else:
+            seq = open_tum(self.path, camera=self.camera)
+            self.readout_s = readout_for(seq.camera)  # the colour camera's rolling shutter (0 = unknown)
         self.seq = seq if self.every == 1 else dataclasses.replace(seq, pairs=seq.pairs[:: self.every])
         self.name = f"tum:{self.path}" + (f" (every {self.every})" if self.every > 1 else "")
-        self.readout_s = readout_for(self.seq.camera)  # the colour camera's rolling shutter (0 = unknown)
 
     def __len__(self) -> int:
         return len(self.seq)
@@ -88,9 +95,11 @@ class McapSource:
 
     path: Path
     only_consumed: bool = False
+    calibration: str = ""  # a calibration file for a recording without CameraInfo (replay.camera)
 
     def __post_init__(self) -> None:
         self.name = f"mcap:{self.path}"
+        self._calibration = load_calibration(self.calibration) if self.calibration else None
         summary = summarize(self.path)
         if not summary.complete:
             raise InputError(f"{self.path}: truncated or corrupt MCAP ({summary.problem}); "
@@ -106,7 +115,7 @@ class McapSource:
             if self.only_consumed:
                 raise InputError(f"{self.path}: a recording, not a session log: no record of consumed frames")
             # a recording or an import: colour and depth on their own topics, paired like TUM
-            self._standard = open_standard(self.path)
+            self._standard = open_standard(self.path, self._calibration)
             self._count = len(self._standard)
             self._metadata = summary.metadata
             return
@@ -127,6 +136,8 @@ class McapSource:
     def readout_s(self) -> float:
         """The colour camera's rolling-shutter readout: an import's calibration record says it, a
         session log's tracker config used it; else 0 (the D455's colour camera has a global shutter)."""
+        if self._calibration is not None:
+            return self._calibration.readout_s
         calib = self._metadata.get("calibration", {})
         try:
             if "color_readout_s" in calib:
@@ -270,10 +281,11 @@ def open_source(spec: str, *, only_consumed: bool = False, camera: str = "", eve
 
 def _open(spec: str, only_consumed: bool, camera: str) -> Source:
     kind, _, arg = spec.partition(":")
-    if camera and kind != "tum":
-        raise ConfigError(f"replay.camera {camera!r}: only a tum: source takes a camera name (got {spec!r})")
+    if camera and kind != "tum" and not (kind == "mcap" and is_calibration_file(camera)):
+        raise ConfigError(f"replay.camera {camera!r}: a tum: source takes a camera name or a calibration file, "
+                          f"an mcap: recording a calibration file (got {spec!r})")
     if kind == "mcap" and arg:
-        return McapSource(Path(arg), only_consumed)
+        return McapSource(Path(arg), only_consumed, camera)
     if only_consumed:
         raise ConfigError(f"source {spec!r}: only an MCAP session log knows which frames were consumed")
     if kind == "synthetic":

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from octolog.kit.calibration import Calibration
 from octolog.kit.errors import InputError
 from octolog.kit.geometry import Intrinsics, RgbdFrame
 from octolog.kit.mcaplog import read_messages, summarize
@@ -128,7 +129,7 @@ def _header_stamp(data: bytes) -> int:
     return sec * 1_000_000_000 + nsec
 
 
-def open_standard(path: str | Path) -> StandardSequence:
+def open_standard(path: str | Path, calibration: Calibration | None = None) -> StandardSequence:
     """Open a recorder-layout MCAP and pair its frames; InputError says what is missing."""
     path = Path(path)
     summary = summarize(path)
@@ -149,13 +150,14 @@ def open_standard(path: str | Path) -> StandardSequence:
         if topics[t.name].msgtype != t.msgtype:
             raise InputError(f"{path}: /{t.name} holds {topics[t.name].msgtype}, want {t.msgtype}")
     info_topic = next((t for t in (COLOR_INFO, ALIGNED_DEPTH_INFO) if t.name in topics), None)
-    if info_topic is None:
-        raise InputError(f"{path}: missing calibration: no /{COLOR_INFO.name} or /{ALIGNED_DEPTH_INFO.name}")
+    if info_topic is None and calibration is None:
+        raise InputError(f"{path}: missing calibration: no /{COLOR_INFO.name} or /{ALIGNED_DEPTH_INFO.name}; "
+                         f"give one with --set replay.camera=CAMERA.toml (docs/formats.md)")
 
     c_stamps: list[int] = []
     d_stamps: list[int] = []
-    info = None
-    for m in read_messages(path, [color.name, depth.name, info_topic.name]):
+    info = calibration.intrinsics if calibration is not None and info_topic is None else None
+    for m in read_messages(path, [color.name, depth.name] + ([info_topic.name] if info_topic else [])):
         try:
             if m.topic == color.name:
                 c_stamps.append(_header_stamp(m.data))
@@ -166,7 +168,8 @@ def open_standard(path: str | Path) -> StandardSequence:
         except InputError as exc:
             raise InputError(f"{path}: /{m.topic}: {exc}") from None
     if info is None:
-        raise InputError(f"{path}: missing calibration: /{info_topic.name} has no messages")
+        raise InputError(f"{path}: missing calibration: /{info_topic.name if info_topic else COLOR_INFO.name} "
+                         f"has no messages")
 
     # associate() wants sorted stamps; files written in time order are already sorted.
     c_order = sorted(range(len(c_stamps)), key=c_stamps.__getitem__)
@@ -178,7 +181,9 @@ def open_standard(path: str | Path) -> StandardSequence:
 
     calib = summary.metadata.get("calibration", {})
     scale_text = calib.get("depth_scale_m")
-    if scale_text is None:
+    if calibration is not None and calibration.depth_scale_m is not None:  # the file given wins
+        scale, source = calibration.depth_scale_m, f"calibration file ({calibration.name})"
+    elif scale_text is None:
         scale = DEFAULT_DEPTH_SCALE_M
         source = f"default {DEFAULT_DEPTH_SCALE_M} m per unit (ROS 16UC1 convention): no calibration depth_scale_m"
     else:
