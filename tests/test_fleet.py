@@ -121,7 +121,7 @@ def _reference(out: Path, start_poses: list[list[float]], *, source: str = f"syn
     from octolog.mapper.core import make_mapper
     from octolog.replay.sources import open_source
     from octolog.schemas import codec
-    from octolog.tracker.config import TrackerConfig
+    from octolog.tracker.config import TrackerConfig, for_source
     from octolog.tracker.factory import make_odometry
 
     src = open_source(source)
@@ -131,7 +131,7 @@ def _reference(out: Path, start_poses: list[list[float]], *, source: str = f"syn
     keyframes = []  # (stamp, robot index, robot keyframe id, frame)
     latest: list[dict[int, np.ndarray]] = []  # per robot: keyframe id -> the last pose sent for it
     for r, (start, end) in enumerate(windows):
-        odometry = make_odometry(TrackerConfig())
+        odometry = make_odometry(for_source(TrackerConfig(), src))  # the camera's readout, as the stream says
         poses: dict[int, np.ndarray] = {}
         for frame in src.frames(start, end):
             frame = dataclasses.replace(frame, stamp_ns=frame.stamp_ns + round(shifts[r] * 1e9))
