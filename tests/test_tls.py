@@ -291,7 +291,7 @@ def test_a_robot_cannot_write_into_or_read_from_another_robots_namespace(pki, ro
     """robot2 puts frames on robot1's camera key, then on its own: the server (allowed both) gets
     robot2's own frames and none on robot1's key. robot1's frames reach the server but not robot2,
     subscribed to them (its listening session): the server's next message to it arrives, they never do.
-    Every put is BLOCK: Zenoh may let a DROP sample overtake BLOCK ones, and the fences must not."""
+    Every put is BLOCK: Zenoh may let a DROP sample overtake BLOCK ones."""
     server_cfg = _config(pki, "zenoh-tls-client.json5", "server", cert="server")
     r1_cfg = _config(pki, "zenoh-tls-client.json5", "robot1", cert="robot1")
     r2_cfg = _config(pki, "zenoh-tls-client.json5", "robot2", cert="robot2")
@@ -310,10 +310,10 @@ def test_a_robot_cannot_write_into_or_read_from_another_robots_namespace(pki, ro
             robot2.session.put("robot1/camera/rgbd", frame, congestion_control=BLOCK)
         for _ in range(N):
             robot2.session.put("robot2/camera/rgbd", frame, congestion_control=BLOCK)
-        before = got2.count("robot2/fence")
-        robot2.session.put("robot2/fence", frame, congestion_control=BLOCK)  # BLOCK: keeps its place in line
-        assert got2.wait(lambda: got2.count("robot2/fence") > before)
-        assert got2.count("robot2/camera/rgbd") == N and RGBD.name not in got.counts
+        # on a link where the router has just refused samples, Zenoh 1.10 can deliver a later one
+        # first (a fence overtook robot2's own frames in CI): wait for all of them instead
+        assert got2.wait(lambda: got2.count("robot2/camera/rgbd") == N)
+        assert RGBD.name not in got.counts
         # robot1's frames: to the server, not to robot2
         for _ in range(N):
             robot1.session.put("robot1/camera/rgbd", frame, congestion_control=BLOCK)
