@@ -12,6 +12,8 @@ import struct
 import subprocess
 import sys
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -130,7 +132,8 @@ def test_a_gap_that_never_fills_ends_the_stage_naming_the_publisher_within_the_b
         assert r is not None and r.decode().topic == "honest"
         n = 3 * (bound_mb << 20) // len(payload)  # three times the bound
         for seq in range(5, 5 + n):
-            pub.session.put(key, payload, attachment=wire.numbered_attachment(seq, source, []), congestion_control=BLOCK)
+            pub.session.put(key, payload, attachment=wire.numbered_attachment(seq, source, []),
+                            congestion_control=BLOCK)
         with pytest.raises(StageError) as err:
             while True:
                 sub.receive(timeout_s=5)
@@ -140,34 +143,50 @@ def test_a_gap_that_never_fills_ends_the_stage_naming_the_publisher_within_the_b
     assert f"max_held_mb = {bound_mb}" in message
 
 
-def test_a_run_under_a_stream_of_malformed_samples_gives_the_undisturbed_trajectory(tmp_path):
+@pytest.fixture
+def router():
+    """A Zenoh router in this process for `octolog run --router`, so a test peer can join the run."""
+    from octolog.kit.bus import serve_router
+
+    endpoint = f"tcp/127.0.0.1:{_port()}"
+    stop, ready = threading.Event(), threading.Event()
+    thread = threading.Thread(target=serve_router, args=((endpoint,),), kwargs={"stop": stop, "ready": ready.set},
+                              daemon=True)
+    thread.start()
+    assert ready.wait(30)
+    yield endpoint
+    stop.set()
+    thread.join(timeout=30)
+
+
+def _run_on(endpoint: str, source: str, out: Path) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "octolog", "run", "--source", source, "--out", str(out),
+                             "--rerun", "off", "--quiet", "--router", endpoint], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+@contextmanager
+def _intruder(endpoint: str) -> Iterator[Bus]:
+    """A peer on the run's router, given once the tracker and the logger have subscribed (they get
+    every sample it sends from then on)."""
+    with Bus(BusConfig(connect=(endpoint,), multicast_scouting=False), "intruder") as bus:
+        bus.watch(["tracker", "log"])
+        bus.wait_for(["tracker", "log"], timeout_s=120)
+        yield bus
+
+
+def test_a_run_under_a_stream_of_malformed_samples_gives_the_undisturbed_trajectory(router, tmp_path):
     """1,000 malformed samples on camera/rgbd during `octolog run` on first300: the trajectory is
     byte-identical to an undisturbed run's, and summary.json counts the 1,000 for each stage that
     takes camera frames (tracker and session log)."""
-    from octolog.kit.bus import serve_router
-
     src = f"tum:{tum_first300()}"
-    endpoint = f"tcp/127.0.0.1:{_port()}"
-    stop, ready = threading.Event(), threading.Event()
-    router = threading.Thread(target=serve_router, args=((endpoint,),), kwargs={"stop": stop, "ready": ready.set},
-                              daemon=True)
-    router.start()
-    assert ready.wait(30)
-    try:
-        proc = subprocess.Popen([sys.executable, "-m", "octolog", "run", "--source", src, "--out", str(tmp_path / "hit"),
-                                 "--rerun", "off", "--quiet", "--router", endpoint], cwd=ROOT,
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        with Bus(BusConfig(connect=(endpoint,), multicast_scouting=False), "intruder") as bus:
-            bus.watch(["tracker", "log"])
-            bus.wait_for(["tracker", "log"], timeout_s=120)  # both subscribed: they get every sample
-            for data, att in malformed_samples(1000):  # BLOCK: a busy tracker slows the intruder, never drops
-                bus.session.put(topics.RGBD.key(), data, attachment=att, congestion_control=BLOCK)
-            # the session stays open until the run ends: closing it would drop what is still queued
-            out, err = proc.communicate(timeout=600)
-        assert proc.returncode == 0, err
-    finally:
-        stop.set()
-        router.join(timeout=30)
+    proc = _run_on(router, src, tmp_path / "hit")
+    with _intruder(router) as bus:
+        for data, att in malformed_samples(1000):  # BLOCK: a busy tracker slows the intruder, never drops
+            bus.session.put(topics.RGBD.key(), data, attachment=att, congestion_control=BLOCK)
+        # the session stays open until the run ends: closing it would drop what is still queued
+        out, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err
     octolog("run", "--source", src, "--out", str(tmp_path / "calm"), "--rerun", "off", "--quiet")
     hit, calm = tmp_path / "hit", tmp_path / "calm"
     assert (hit / "trajectory.txt").read_bytes() == (calm / "trajectory.txt").read_bytes()
@@ -179,40 +198,24 @@ def test_a_run_under_a_stream_of_malformed_samples_gives_the_undisturbed_traject
     assert log.count("dropped a malformed sample") == 1
 
 
-def test_a_run_ends_in_one_line_naming_a_publisher_whose_gap_never_fills(tmp_path):
+def test_a_run_ends_in_one_line_naming_a_publisher_whose_gap_never_fills(router, tmp_path):
     """During `octolog run` on the synthetic room, a peer sends numbered samples on camera/rgbd/end
     from seq 5 on and serves no history: the stages that take the topic hold them up to the bound
     (512 MB), then the run ends with exit 1 and one line naming that publisher; the folder is
     marked INCOMPLETE."""
-    from octolog.kit.bus import serve_router
-
-    endpoint = f"tcp/127.0.0.1:{_port()}"
-    stop, ready = threading.Event(), threading.Event()
-    router = threading.Thread(target=serve_router, args=((endpoint,),), kwargs={"stop": stop, "ready": ready.set},
-                              daemon=True)
-    router.start()
-    assert ready.wait(30)
     out = tmp_path / "s"
     source = wire.publisher_id("evil", bytes(range(16)))
     payload = codec.encode(codec.stream_end_msg("x" * (1 << 20), 0), topics.RGBD_END.msgtype)
-    try:
-        proc = subprocess.Popen([sys.executable, "-m", "octolog", "run", "--source", "synthetic:150", "--out", str(out),
-                                 "--rerun", "off", "--quiet", "--router", endpoint], cwd=ROOT,
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        with Bus(BusConfig(connect=(endpoint,), multicast_scouting=False), "intruder") as bus:
-            bus.watch(["tracker", "log"])
-            bus.wait_for(["tracker", "log"], timeout_s=120)
-            # up to 1.2 GB behind a gap, over the 512 MB bound, until the run ends. DROP, not BLOCK:
-            # once the stages are gone a BLOCK put can wait minutes for their links to close (seen
-            # in CI); a sample dropped on the way is one the next replaces
-            for seq in range(5, 5 + 1200):
-                if proc.poll() is not None:
-                    break
-                bus.session.put(topics.RGBD_END.key(), payload, attachment=wire.numbered_attachment(seq, source, []))
-            _, err = proc.communicate(timeout=300)  # the session open until then: nothing queued is dropped
-    finally:
-        stop.set()
-        router.join(timeout=30)
+    proc = _run_on(router, "synthetic:150", out)
+    with _intruder(router) as bus:
+        # up to 1.2 GB behind a gap, over the 512 MB bound, until the run ends. DROP, not BLOCK:
+        # once the stages are gone a BLOCK put can wait minutes for their links to close (seen
+        # in CI); a sample dropped on the way is one the next replaces
+        for seq in range(5, 5 + 1200):
+            if proc.poll() is not None:
+                break
+            bus.session.put(topics.RGBD_END.key(), payload, attachment=wire.numbered_attachment(seq, source, []))
+        _, err = proc.communicate(timeout=300)  # the session open until then: nothing queued is dropped
     assert proc.returncode == 1, err
     last = err.strip().splitlines()[-1]
     assert last.startswith("octolog run: error:") and "publisher evil/00010203 on camera/rgbd/end" in last, err
