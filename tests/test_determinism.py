@@ -46,14 +46,14 @@ ALONE: dict[str, dict[str, str]] = {
 # versions. Update only on purpose (see the module docstring).
 GOLDEN: dict[str, dict[str, str]] = {
     "synthetic:40": {
-        "trajectory.txt": "c03e5a1babf9d384c74ff9186a29c1b9f840ac2e862d33c2d19372d7cdc2bc2d",
+        "trajectory.txt": "6d6fbcafaeb5545864911491c855499ee0ffd199bdb7ff01baaf6bfa87c18d99",
         "map.bt": "3caa0a2e1efa5f4c504250046a19f7d9f02cc6693f8d4031626e158e961d7964",
-        "cloud.ply": "277b0e90bb65e3d5d14e2d5c1e9159362211e65a97f75ea3e6f54f1cddd47e3d",
+        "cloud.ply": "558cbd8d195892b5c73b6e6ef8adf7895ee03f6eb32873c2f8253ce92a43b671",
     },
     "tum-first300": {
-        "trajectory.txt": "bf8dc7eef39815775677fc36da66e706bd666e4931d421a7ed1646c5c8307e09",
+        "trajectory.txt": "d7e46b43133916aab091cb1cdddc0fb82f431e7f1391ddfb32ad7d3a0301cd40",
         "map.bt": "32ebc4f759cb288d23a64e588f2d9b8d377f88cd123243f9c64337adcf955e49",
-        "cloud.ply": "2bde9f730e431850f94441edfe079b4b208f260ffbd311c5904f07acad33fc04",
+        "cloud.ply": "4ab649024f5a7fd34f081b0220f9e9d4e5df04881acea6d1af0c8aadb343251b",
     },
 }
 

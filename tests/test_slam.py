@@ -17,10 +17,11 @@ from octolog.kit import metrics
 from octolog.kit.geometry import RgbdFrame, invert
 from octolog.replay.synthetic import SyntheticScene
 from octolog.replay.synthetic_trajectory import LOOP_S, camera_trajectory
+from octolog.tracker.bundle import BundleProblem, bundle_adjust
 from octolog.tracker.config import KeyframeParams, TrackerConfig
 from octolog.tracker.interface import TrackingState
 from octolog.tracker.odometry import RgbdOdometry
-from octolog.tracker.optimize import BundleProblem, bundle_adjust, optimize_pose_graph
+from octolog.tracker.optimize import optimize_pose_graph
 from octolog.tracker.places import BowIndex, rigid_ransac, verify, vote
 from octolog.tracker.pose import optimize_pose, so3_exp
 from octolog.tracker.vocab import train
@@ -91,7 +92,7 @@ def test_pose_graph_spreads_a_loop_error_over_the_chain() -> None:
     edges = [(i - 1, i, invert(est[i - 1]) @ est[i], 1.0) for i in range(1, n)]
     edges.append((0, n - 1, invert(truth[0]) @ truth[n - 1], 1.0))  # the verified loop
     out = optimize_pose_graph(np.stack(est), edges)
-    err = lambda P: np.sqrt(np.mean([np.sum((P[i][:3, 3] - truth[i][:3, 3]) ** 2) for i in range(n)]))  # noqa: E731
+    err = lambda P: np.sqrt(np.mean([np.sum((P[i][:3, 3] - truth[i][:3, 3]) ** 2) for i in range(n)]))
     assert err(out) < err(est) / 3, (err(est), err(out))
     np.testing.assert_array_equal(out[0], est[0])
 
