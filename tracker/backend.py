@@ -141,7 +141,7 @@ def build_job(points: MapPoints, keyframes: list[Keyframe], params: OdometryPara
         shared = np.bincount(mp.ref_kf[new.point_ids], minlength=n_kf)
         candidates = np.flatnonzero((np.arange(n_kf) <= new.id - lp.min_gap) & (shared < LOOP_MAX_SHARED_POINTS))
         if bow is not None and candidates.size:
-            candidates = np.sort(bow.query(new.feats.desc, top=params.bow_candidates, allowed=candidates)[0])
+            candidates = np.sort(bow.query(keyframe=new.id, top=params.bow_candidates, allowed=candidates)[0])
     return BackendJob(
         kf_id=new.id, poses_wc=np.stack([kf.world_from_camera for kf in kfs]), ba=ba, ba_kf=ba_kf,
         ba_point_ids=ba_pids, iterations=iterations, candidates=candidates,

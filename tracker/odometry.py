@@ -105,7 +105,7 @@ class RgbdOdometry:
         # A worker process, not a thread: gtsam holds the GIL while it optimises, which stalled the
         # tracking thread for tens of milliseconds at every keyframe.
         self._executor = Worker() if background else None
-        self.worker_peak_rss_mb = 0.0  # the back-end worker process's peak memory, known after `finish`
+        self.worker_peak_rss_mb = self.worker_file_rss_mb = 0.0  # the worker's peak and file-backed MB (`finish`)
         self._pending: Worker | BackendResult | None = None
         self._loop_edges: list[tuple[int, int, np.ndarray]] = []
         self._last_loop_kf = -(10**9)
@@ -229,7 +229,7 @@ class RgbdOdometry:
             self._sync_backend(np.eye(4))
         if self._executor is not None:
             self._executor.close()
-            self.worker_peak_rss_mb = self._executor.peak_rss_mb
+            self.worker_peak_rss_mb, self.worker_file_rss_mb = self._executor.peak_rss_mb, self._executor.file_rss_mb
             self._executor = None
         after = self.keyframe_poses()
         return {i: T for i, T in after.items() if not np.array_equal(T, before[i])}

@@ -171,6 +171,7 @@ class BowIndex:
         self._word_of_node[vocabulary.word_nodes] = np.arange(vocabulary.n_words)
         self._idf = vocabulary.weights[vocabulary.word_nodes]
         self._postings: dict[int, list[tuple[int, float]]] = {}
+        self._vectors: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # each keyframe's, made once
         self.size = 0
 
     def vector(self, desc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -184,14 +185,18 @@ class BowIndex:
         return w, (v / total if total > 0 else v)
 
     def add(self, keyframe: int, desc: np.ndarray) -> None:
-        for w, x in zip(*self.vector(desc), strict=True):
+        vec = self._vectors[keyframe] = self.vector(desc)
+        for w, x in zip(*vec, strict=True):
             self._postings.setdefault(int(w), []).append((keyframe, float(x)))
         self.size += 1
 
-    def query(self, desc: np.ndarray, *, top: int, allowed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Best `top` keyframes (ids, scores), best first, ties by id; only `allowed` ids if given."""
+    def query(self, desc: np.ndarray | None = None, *, top: int, allowed: np.ndarray | None = None,
+              keyframe: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Best `top` keyframes (ids, scores), best first, ties by id; only `allowed` ids if given.
+        The query is a descriptor set, or an added `keyframe` (its vector is not made again)."""
         scores: dict[int, float] = {}
-        for w, x in zip(*self.vector(desc), strict=True):
+        vec = self._vectors[keyframe] if keyframe is not None else self.vector(desc)
+        for w, x in zip(*vec, strict=True):
             for kf, y in self._postings.get(int(w), ()):
                 scores[kf] = scores.get(kf, 0.0) + min(x, y)
         ids = np.array(sorted(scores), dtype=np.int64)

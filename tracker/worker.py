@@ -52,6 +52,9 @@ class Worker:
         self._writer: threading.Thread | None = None
         self._busy = False
         self.peak_rss_mb = 0.0  # the child's VmHWM, read when it is closed (its own pages, not the fork's)
+        # of which file-backed (RssFile at close): the numpy/OpenCV libraries, the same page-cache pages
+        # the parent has mapped, so counted once on the machine however many processes map them
+        self.file_rss_mb = 0.0
         # dropped without close(): end the child's input, so it exits
         weakref.finalize(self, self._proc.stdin.close)
 
@@ -77,7 +80,8 @@ class Worker:
 
     def close(self) -> None:
         if self._proc.poll() is None:
-            self.peak_rss_mb = _peak_rss_mb(self._proc.pid)
+            self.peak_rss_mb = _status_mb(self._proc.pid, "VmHWM")
+            self.file_rss_mb = _status_mb(self._proc.pid, "RssFile")
             self._proc.stdin.close()
             try:
                 self._proc.wait(timeout=30)
@@ -85,12 +89,13 @@ class Worker:
                 self._proc.kill()
 
 
-def _peak_rss_mb(pid: int) -> float:
-    """VmHWM of a live process in MB (0 where /proc does not say). RUSAGE_CHILDREN cannot tell it:
-    a child's ru_maxrss counts the parent's pages it shared between fork and exec."""
+def _status_mb(pid: int, key: str) -> float:
+    """A memory figure of a live process (VmHWM: its peak) in MB, 0 where /proc does not say.
+    RUSAGE_CHILDREN cannot tell the peak: a child's ru_maxrss counts the parent's pages it shared
+    between fork and exec."""
     try:
         for line in open(f"/proc/{pid}/status"):
-            if line.startswith("VmHWM:"):
+            if line.startswith(key + ":"):
                 return int(line.split()[1]) / 1024.0
     except OSError:
         pass
