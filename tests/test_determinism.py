@@ -74,6 +74,20 @@ def test_tracker_core_same_bytes_under_restricted_instruction_sets(restriction):
     assert _probe(source, 24, env) == _probe(source, 24, {}), f"{restriction}: bytes differ from the default run"
 
 
+def test_an_octolog_process_pins_numpy_and_openblas_before_numpy_loads():
+    """numpy's AVX-512 kernels off (their log/pow/arccos round differently from AVX2's), OpenBLAS on
+    its Nehalem kernels with one thread; a feature the user disabled stays disabled."""
+    code = ("import octolog, numpy, os\n"
+            "from numpy._core._multiarray_umath import __cpu_features__ as f\n"
+            "print(f['X86_V4'], f['AVX512_ICL'], os.environ['OPENBLAS_CORETYPE'], os.environ['OPENBLAS_NUM_THREADS'])\n"
+            "print(os.environ['NPY_DISABLE_CPU_FEATURES'])")
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("NPY_", "OPENBLAS_", "OCTOLOG_"))}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120,
+                         env={**env, "NPY_DISABLE_CPU_FEATURES": "X86_V3"}, check=True).stdout.splitlines()
+    assert out[0] == "False False Nehalem 1", out
+    assert out[1].split() == ["X86_V3", "X86_V4", "AVX512_ICL", "AVX512_SPR"]
+
+
 def test_orb_features_same_bytes_on_tum_under_opencv_baseline():
     """TUM frames (real texture): ORB's descriptors were the part that differed before baseline_simd."""
     source = f"tum:{tum_first300()}"
