@@ -182,9 +182,8 @@ class RgbdOdometry:
             return TrackResult(frame.seq, frame.stamp_ns, predicted.copy(), TrackingState.LOST, False, -1, 0, 0)
         feats = tracked.feats
         pose = invert(tracked.camera_from_world)
-        kf_id = -1
+        kf_id, loop = -1, None
         corrected: dict[int, np.ndarray] = {}
-        loop = None
         # A frame without enough depth adds no map points, so it must not replace the reference.
         if int(feats.has_depth.sum()) >= self.params.tracking.min_init_points and self._need_keyframe(pose, tracked):
             moved_map = self._pending is not None
@@ -408,20 +407,21 @@ class RgbdOdometry:
         guess_cw = invert(predicted_wc)
         local = self._local_points(predicted_wc)
 
-        # Escalate only while the answer is weak: a tight window around the prediction, a wide one,
-        # then descriptor matching against the map around the last tracked pose (after LOST or a
-        # jolt the prediction is useless, and that is where tracking resumes). Best inlier count wins.
+        # Escalate only while the answer is weak: a tight window around the prediction, wide ones, then
+        # descriptor matching against the map around the last tracked pose (after LOST or a jolt the
+        # prediction is useless, and that is where tracking resumes). Best inlier count wins.
         best: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None  # T, inl, ki, mi
-        # The first window only searches for the points the previous frame matched: they are
-        # known to be visible and distinctive, and a third of the local map is enough for a seed
-        # pose at a third of the cost. The second pass below matches the whole local map.
+        # The windows search the points the previous frame matched (the seed) first: visible, distinctive,
+        # a third to a sixth of the local map, enough for a seed pose; fast motion outruns the tight window
+        # (then a wide one over the seed, then over all). The second pass below matches the whole local map.
         seed = self._last_inlier_ids if self._last_ok else np.zeros(0, np.int64)
         if seed.size < CONFIDENT_INLIER_FACTOR * self.params.tracking.min_inliers:
             seed = local
-        for attempt in range(3):
-            if attempt < 2:
-                radius = self.params.tracking.search_radius_px * (1.0 if attempt == 0 else WIDE_SEARCH_FACTOR)
-                ki, mi, _ = self._guided(feats, seed if attempt == 0 else local, guess_cw, radius)
+        plan = [(seed, 1.0), (seed, WIDE_SEARCH_FACTOR)] + ([(local, WIDE_SEARCH_FACTOR)] if seed is not local else [])
+        for attempt in range(len(plan) + 1):
+            if attempt < len(plan):
+                ids, factor = plan[attempt]
+                ki, mi, _ = self._guided(feats, ids, guess_cw, self.params.tracking.search_radius_px * factor)
             else:
                 assert self._last_tracked_pose is not None
                 around = self._local_points(self._last_tracked_pose)
@@ -547,9 +547,9 @@ class RgbdOdometry:
         """Start the back end for the newest keyframe (in the worker process when there is one)."""
         if not (self.params.local_ba or self.params.loop_closing):
             return
-        ba = self.params.bundle_adjustment
-        job = self._backend_job(window_n=self.params.ba_window, max_points=ba.max_points,
-                                loop_closing=self.params.loop_closing, iterations=ba.iterations)
+        p, ba = self.params, self.params.bundle_adjustment
+        job = self._backend_job(window_n=p.ba_window, max_points=ba.max_points, loop_closing=p.loop_closing,
+                                iterations=ba.iterations)
         self._pending = self._executor.submit(job) if self._executor else run_backend(job)
 
     def _backend_job(self, *, window_n: int, max_points: int | None, loop_closing: bool,
