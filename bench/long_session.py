@@ -92,7 +92,7 @@ def main() -> None:
         print(f"rendered one loop ({n_loop} frames) in {time.monotonic() - t0:.0f} s; playing {n} frames "
               f"({args.minutes:g} min at {FPS} fps)", flush=True)
         odom = make_odometry(cfg)
-        worker = getattr(getattr(odom, "_executor", None), "_proc", None)
+        worker = getattr(getattr(odom, "worker", None), "_proc", None)
         stamps, ms, rows = [], [], []
         cpu0 = resource.getrusage(resource.RUSAGE_SELF)
         for i in range(n):

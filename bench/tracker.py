@@ -68,6 +68,9 @@ def worker(backend: str, source: str, every: int, vocabulary: str, result_path: 
     t0 = time.perf_counter()
     if isinstance(odom, OrbSlam3Odometry):
         odom.start(first)  # ORB-SLAM3: settings + vocabulary load, reported apart from frame times
+    worker_startup_cpu = 0.0
+    if getattr(odom, "worker", None) is not None:  # native: the back-end worker's imports, as ORB-SLAM3's start
+        worker_startup_cpu = odom.worker.ready()
     startup_s = time.perf_counter() - t0
     cpu0 = resource.getrusage(resource.RUSAGE_SELF)
     kids0 = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -97,7 +100,7 @@ def worker(backend: str, source: str, every: int, vocabulary: str, result_path: 
     # the native back end's worker process counts too (finish() waited for it, so it is reaped)
     kids1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu_s = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime) \
-        + (kids1.ru_utime - kids0.ru_utime) + (kids1.ru_stime - kids0.ru_stime)
+        + (kids1.ru_utime - kids0.ru_utime) + (kids1.ru_stime - kids0.ru_stime) - worker_startup_cpu
     result_path.write_text(json.dumps({
         "backend": backend, "ms": ms, "states": states, "n_keyframes": n_keyframes, "orb_keyframes": orb_keyframes,
         "online_tum": metrics.format_tum(np.array(stamps), np.array(poses)), "final_tum": final_tum,
@@ -235,7 +238,8 @@ def bench_case(source: str, every: int, vocabulary: str, orb_runs: int) -> None:
         ("keyframes", f"{native['n_keyframes']}",
          f"{statistics.median(r['orb_keyframes'] or 0 for r in orbs):.0f} own; "
          f"{statistics.median(r['n_keyframes'] for r in orbs):.0f} published"),
-        ("startup, s (ORB-SLAM3: settings + vocabulary load)", f"{native['startup_s']:.2f}", f"{med('startup_s'):.2f}"),
+        ("startup, s (native: back-end worker ready; ORB-SLAM3: settings + vocabulary load; not in CPU time)",
+         f"{native['startup_s']:.2f}", f"{med('startup_s'):.2f}"),
         ("peak RSS, MB (process VmHWM; native: + its back-end worker process)",
          f"{native['peak_rss_mb']:.0f} + {native['worker_peak_rss_mb']:.0f}",
          f"{max(r['peak_rss_mb'] for r in orbs):.0f}"),

@@ -308,6 +308,7 @@ def test_back_end_worker_process_returns_results_and_errors() -> None:
 
     w = Worker()
     child = psutil.Process(w._proc.pid)
+    assert 0.0 < w.ready() < 30.0  # its start-up (imports) in CPU seconds, before any job
     with pytest.raises(AttributeError):  # not a job: the child's exception comes back here
         w.submit(object()).result()
     w.close()

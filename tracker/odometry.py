@@ -102,9 +102,9 @@ class RgbdOdometry:
         # The back end (local BA, loop closing) for keyframe k starts when k is inserted and its
         # result is applied when keyframe k+1 is inserted (or at `finish`): a fixed point in the
         # frame sequence, so running it in a worker process cannot change any output.
-        # A worker process, not a thread: gtsam holds the GIL while it optimises, which stalled the
-        # tracking thread for tens of milliseconds at every keyframe.
-        self._executor = Worker() if background else None
+        # A worker process (`worker`, None inline), not a thread: the back end holds the GIL most of a
+        # job, which stalled the tracking thread for tens of milliseconds at every keyframe.
+        self.worker = Worker() if background else None
         self.worker_peak_rss_mb = self.worker_file_rss_mb = 0.0  # the worker's peak and file-backed MB (`finish`)
         self._pending: Worker | BackendResult | None = None
         self._loop_edges: list[tuple[int, int, np.ndarray]] = []
@@ -224,12 +224,12 @@ class RgbdOdometry:
             window_n = min(len(self._keyframes), self.params.global_ba_keyframes)
             job = self._backend_job(window_n=window_n, max_points=None, loop_closing=False,
                                     iterations=self.params.bundle_adjustment.global_iterations)
-            self._pending = self._executor.submit(job) if self._executor else run_backend(job)
+            self._pending = self.worker.submit(job) if self.worker else run_backend(job)
             self._sync_backend(np.eye(4))
-        if self._executor is not None:
-            self._executor.close()
-            self.worker_peak_rss_mb, self.worker_file_rss_mb = self._executor.peak_rss_mb, self._executor.file_rss_mb
-            self._executor = None
+        if self.worker is not None:
+            self.worker.close()
+            self.worker_peak_rss_mb, self.worker_file_rss_mb = self.worker.peak_rss_mb, self.worker.file_rss_mb
+            self.worker = None
         after = self.keyframe_poses()
         return {i: T for i, T in after.items() if not np.array_equal(T, before[i])}
 
@@ -550,7 +550,7 @@ class RgbdOdometry:
         p, ba = self.params, self.params.bundle_adjustment
         job = self._backend_job(window_n=p.ba_window, max_points=ba.max_points, loop_closing=p.loop_closing,
                                 iterations=ba.iterations)
-        self._pending = self._executor.submit(job) if self._executor else run_backend(job)
+        self._pending = self.worker.submit(job) if self.worker else run_backend(job)
 
     def _backend_job(self, *, window_n: int, max_points: int | None, loop_closing: bool,
                      iterations: int) -> BackendJob:
