@@ -236,12 +236,15 @@ def with_loops(loop_frames):
     return _run(loop_frames, background=True)
 
 
-def test_loop_closing_halves_the_error_of_a_loop(room, loop_frames) -> None:
+@pytest.mark.parametrize("with_bow", [False, True], ids=["all-candidates", "bow-candidates"])
+def test_loop_closing_halves_the_error_of_a_loop(room, loop_frames, vocabulary, with_bow) -> None:
     # visual odometry alone (no local BA) accumulates drift over the loop; closing it must halve the ATE.
     # Keyframes every 6 cm / 6 deg (denser than the default): odometry then drifts ~3 cm over this
-    # loop, far above its ~0.5 cm noise floor, so the correction is what is measured
+    # loop, far above its ~0.5 cm noise floor, so the correction is what is measured. With a
+    # vocabulary, candidates are the best bag-of-words matches above ORB-SLAM's covisibility floor.
     dense = KeyframeParams(translation_m=0.06, rotation_deg=6.0, close_tracked=0)
-    odo, results = _run(loop_frames, local_ba=False, background=True, keyframes=dense)
+    odo, results = _run(loop_frames, local_ba=False, background=True, keyframes=dense,
+                        vocabulary=vocabulary if with_bow else None)
     # the start is found again: the old end of a loop is a keyframe of the loop's first 2 s (of 20)
     assert odo.loops and any(odo._keyframes[old].seq < 20 for _, old in odo.loops), odo.loops
     assert all(r.state in (TrackingState.INIT, TrackingState.OK) for r in results)
