@@ -12,6 +12,7 @@ import struct
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -206,15 +207,17 @@ def test_a_run_ends_in_one_line_naming_a_publisher_whose_gap_never_fills(router,
     out = tmp_path / "s"
     source = wire.publisher_id("evil", bytes(range(16)))
     payload = codec.encode(codec.stream_end_msg("x" * (1 << 20), 0), topics.RGBD_END.msgtype)
-    proc = _run_on(router, "synthetic:150", out)
+    # a source far longer than the test (2 minutes of camera, rendered as it plays): the run cannot
+    # end on its own before the bound is reached (with 5 s it did, in CI, once the tracker got faster)
+    proc = _run_on(router, "synthetic:3600", out)
     with _intruder(router) as bus:
-        # up to 1.2 GB behind a gap, over the 512 MB bound, until the run ends. DROP, not BLOCK:
-        # once the stages are gone a BLOCK put can wait minutes for their links to close (seen
-        # in CI); a sample dropped on the way is one the next replaces
-        for seq in range(5, 5 + 1200):
-            if proc.poll() is not None:
-                break
+        # samples behind a gap, until the run ends (at the 512 MB bound). DROP, not BLOCK: once the
+        # stages are gone a BLOCK put can wait minutes for their links to close (seen in CI); a
+        # sample dropped on the way is one the next replaces
+        seq, deadline = 5, time.monotonic() + 240
+        while proc.poll() is None and time.monotonic() < deadline:
             bus.session.put(topics.RGBD_END.key(), payload, attachment=wire.numbered_attachment(seq, source, []))
+            seq += 1
         _, err = proc.communicate(timeout=300)  # the session open until then: nothing queued is dropped
     assert proc.returncode == 1, err
     last = err.strip().splitlines()[-1]
