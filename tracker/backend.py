@@ -144,12 +144,11 @@ def build_job(points: MapPoints, keyframes: list[Keyframe], params: OdometryPara
             # ORB-SLAM's floor: a candidate must look at least as much like the new keyframe as the
             # least similar of the keyframes that share its points (else it is no better than any
             # view of this place; without covisible keyframes there is no floor)
-            ids, scores = bow.query(keyframe=new.id, top=n_kf)
+            ids, scores = bow.query(keyframe=new.id, top=n_kf)  # every keyframe sharing a word, best first
             score = dict(zip(ids.tolist(), scores.tolist()))
             floor = min((score.get(j, 0.0) for j in new.covis), default=0.0)
-            candidates = np.array([c for c in candidates.tolist() if score.get(c, 0.0) >= floor], np.int64)
-            if candidates.size:
-                candidates = np.sort(bow.query(keyframe=new.id, top=params.bow_candidates, allowed=candidates)[0])
+            keep = np.isin(ids, candidates) & (scores >= floor)
+            candidates = np.sort(ids[keep][: params.bow_candidates])
     return BackendJob(
         kf_id=new.id, poses_wc=np.stack([kf.world_from_camera for kf in kfs]), ba=ba, ba_kf=ba_kf,
         ba_point_ids=ba_pids, iterations=iterations, candidates=candidates,

@@ -194,8 +194,8 @@ class _Solve:
         _, self.fm_cam_starts = _segments(self.cam[self.fm], np.arange(self.free.size))
         self.fm_pts = np.unique(self.pt[self.fm])
         self.fm_pt_order, self.fm_pt_starts = _segments(self.pt[self.fm], self.fm_pts)
-        # the reduced system from dense camera-by-point matrices (two GEMMs) when they are small, as in
-        # a local BA, else summed over observation pairs (a final BA over hundreds of keyframes)
+        # the reduced system from a dense camera-by-point matrix (one product) when it is small, as in a
+        # local BA, else summed over observation pairs (a final BA over hundreds of keyframes)
         cell = self.cam[self.fm] * self.pts.size + self.pt[self.fm]
         self.dense = self.free.size * self.pts.size <= DENSE_MAX_CELLS and np.unique(cell).size == cell.size
         if not self.dense:
