@@ -32,6 +32,9 @@ class BusConfig:
     max_held_mb: int = 512
     # how long a vanished peer stage may stay away (a cut link) before it counts as dead
     peer_timeout_s: float = 30.0
+    # also publish every standard-typed topic the way ROS 2's rmw_zenoh does, in this ROS domain
+    # (octolog.kit.bus.ros2); -1: off
+    ros2_domain: int = -1
 
     def validate(self) -> None:
         """Raise BusError naming the flag if a value cannot work (the CLI calls this once)."""
@@ -39,3 +42,5 @@ class BusConfig:
             raise BusError(f"--mode {self.mode!r}: want peer, client or router")
         if self.history < 0 or self.keep_mb < 0 or self.peer_timeout_s <= 0 or self.max_held_mb <= 0:
             raise BusError("bus history and keep_mb must be >= 0, peer_timeout_s and max_held_mb > 0")
+        if not -1 <= self.ros2_domain <= 232:  # ROS 2 domain ids: 0-232 (rmw's bound)
+            raise BusError(f"--ros2-domain {self.ros2_domain}: want a ROS domain id 0-232 (or -1: off)")

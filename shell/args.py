@@ -18,12 +18,15 @@ def add_bus_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--no-multicast", action="store_true", help="disable multicast scouting")
     g.add_argument("--max-held-mb", type=int, default=BusConfig.max_held_mb, metavar="MB",
                    help="samples held behind a gap in a publisher's stream, at most (default %(default)s)")
+    g.add_argument("--ros2-domain", type=int, default=-1, metavar="ID",
+                   help="also publish standard-typed topics as ROS 2's rmw_zenoh does, in this domain (default off)")
 
 
 def bus_config(args: argparse.Namespace) -> BusConfig:
     cfg = BusConfig(mode=args.mode, connect=tuple(args.connect), listen=tuple(args.listen),
                     namespace=args.namespace, zenoh_config=args.zenoh_config,
-                    multicast_scouting=not args.no_multicast, max_held_mb=args.max_held_mb)
+                    multicast_scouting=not args.no_multicast, max_held_mb=args.max_held_mb,
+                    ros2_domain=args.ros2_domain)
     cfg.validate()
     return cfg
 

@@ -148,6 +148,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         source=args.source, out=Path(args.out), config=args.config, overrides=args.set, rerun=args.rerun,
         recording_id=recording_id(args), quiet=args.quiet, overwrite=args.overwrite,
         duration_s=getattr(args, "duration", 0.0), router=getattr(args, "router", None),
+        ros2_domain=args.ros2_domain,
     )
     print(run.format_summary(summary))
     return 0
@@ -248,6 +249,8 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--quiet", action="store_true", help="no progress line")
         p.add_argument("--overwrite", action="store_true",
                        help="replace a session already in --out (its files are removed first)")
+        p.add_argument("--ros2-domain", type=int, default=-1, metavar="ID",
+                       help="the stages also publish standard-typed topics as ROS 2's rmw_zenoh does (default off)")
 
     p = sub.add_parser("run", help="whole pipeline as separate processes on one machine")
     p.add_argument("--source", required=True,

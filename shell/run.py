@@ -236,7 +236,8 @@ class _Children:
 
 def run_session(*, source: str, out: Path, config: str | None = None, overrides: list[str] | None = None,
                 rerun: str = "save", recording_id: str, quiet: bool = False,
-                overwrite: bool = False, duration_s: float = 0.0, router: str | None = None) -> SessionSummary:
+                overwrite: bool = False, duration_s: float = 0.0, router: str | None = None,
+                ros2_domain: int = -1) -> SessionSummary:
     """Run the whole pipeline on `source` into `out` (config, logs, session.mcap, map, trajectory).
 
     Until it succeeds, `out` holds an INCOMPLETE file; a failed run writes its error there.
@@ -261,7 +262,8 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     marker.write_text(f"octolog run has not finished writing this session (started {started}, pid {os.getpid()}); "
                       f"if no run is going on, it failed or was killed\n")
     try:
-        summary = _run(source, out, src, cfgs, feed_tracker, rerun, recording_id, quiet, duration_s, router)
+        summary = _run(source, out, src, cfgs, feed_tracker, rerun, recording_id, quiet, duration_s, router,
+                       ros2_domain)
     except BaseException as exc:
         what = str(exc) if isinstance(exc, OctologError) else \
             ("interrupted" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}")
@@ -275,7 +277,8 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
 
 
 def _run(source: str, out: Path, src: Source | LiveSource, cfgs: dict[str, Any], feed_tracker: bool, rerun: str,
-         recording_id: str, quiet: bool, duration_s: float = 0.0, router: str | None = None) -> SessionSummary:
+         recording_id: str, quiet: bool, duration_s: float = 0.0, router: str | None = None,
+         ros2_domain: int = -1) -> SessionSummary:
     if rerun == "save":
         rerun = f"save:{out / 'rerun'}"
     parse_spec(rerun)
@@ -291,7 +294,7 @@ def _run(source: str, out: Path, src: Source | LiveSource, cfgs: dict[str, Any],
     (out / "metadata.json").write_text(json.dumps(metadata, indent=2, sort_keys=True))
 
     endpoint = router or f"tcp/127.0.0.1:{_free_port()}"
-    bus = ["--mode", "peer", "--connect", endpoint, "--no-multicast"]
+    bus = ["--mode", "peer", "--connect", endpoint, "--no-multicast", "--ros2-domain", str(ros2_domain)]
     viz = ["--rerun", rerun, "--recording-id", recording_id]
     conf = ["--config", str(config_path)]
     stop_router = threading.Event()

@@ -121,17 +121,37 @@ def test_numpy_bundle_adjustment_reaches_gtsams_optimum(seed: int) -> None:
     np.testing.assert_array_equal(ours.poses_wc[:2], problem.poses_wc[:2])  # fixed keyframes do not move
 
 
-def test_dense_and_pairwise_reduced_systems_agree(monkeypatch) -> None:
-    """A local BA forms the reduced camera system by one dense product, a large final BA by sums over
-    pairs of observations in chunks: the two must give the same answer."""
+def test_dense_and_sparse_reduced_systems_agree(monkeypatch) -> None:
+    """A local BA forms the reduced camera system by one dense product, a large final BA by a sparse
+    one: the two must give the same answer."""
     problem, _ = _problem(3, n_kf=8, n_pts=300)
     dense = bundle_adjust(problem, iterations=10)
     monkeypatch.setattr(bundle, "DENSE_MAX_CELLS", 0)
-    monkeypatch.setattr(bundle, "PAIR_CHUNK", 997)  # many chunks, boundaries inside camera pairs
-    pairs = bundle_adjust(problem, iterations=10)
-    np.testing.assert_allclose(pairs.poses_wc, dense.poses_wc, atol=1e-9)
-    np.testing.assert_allclose(pairs.points, dense.points, atol=1e-8)
-    np.testing.assert_array_equal(pairs.inliers, dense.inliers)
+    sparse = bundle_adjust(problem, iterations=10)
+    np.testing.assert_allclose(sparse.poses_wc, dense.poses_wc, atol=1e-9)
+    np.testing.assert_allclose(sparse.points, dense.points, atol=1e-8)
+    np.testing.assert_array_equal(sparse.inliers, dense.inliers)
+
+
+def test_a_keyframe_that_sees_a_point_twice_reaches_gtsams_optimum() -> None:
+    """Two keypoints of one keyframe matched to one map point: two observations of the same
+    (camera, point) cell, whose blocks the sparse reduced system must sum, as gtsam's two factors do."""
+    problem, _ = _problem(5)
+    rng = np.random.default_rng(5)
+    free = np.flatnonzero(~problem.fixed[problem.obs_kf])
+    dup = np.sort(rng.choice(free, 60, replace=False))
+    cat = lambda a: np.concatenate([a, a[dup]])  # noqa: E731
+    problem = BundleProblem(
+        poses_wc=problem.poses_wc, fixed=problem.fixed, points=problem.points, obs_kf=cat(problem.obs_kf),
+        obs_pt=cat(problem.obs_pt), obs_uv=cat(problem.obs_uv) + np.r_[np.zeros_like(problem.obs_uv),
+                                                                         rng.normal(0, 0.7, (dup.size, 2))],
+        obs_z=cat(problem.obs_z), obs_sigma=cat(problem.obs_sigma), K=problem.K, bf=problem.bf)
+    ours = bundle_adjust(problem, iterations=20)
+    ref_poses, ref_pts = _gtsam_reference(problem, iterations=20)
+    for i in range(len(ref_poses)):
+        assert np.linalg.norm(ours.poses_wc[i][:3, 3] - ref_poses[i][:3, 3]) < 1e-5, i
+        assert np.abs(ours.poses_wc[i][:3, :3] - ref_poses[i][:3, :3]).max() < 1e-5, i
+    assert np.median(np.linalg.norm(ours.points - ref_pts, axis=1)) < 1e-5
 
 
 def test_a_point_behind_a_camera_is_an_outlier_not_a_crash() -> None:

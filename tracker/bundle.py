@@ -21,6 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse
 
 from octolog.tracker.pose import CHI2_2DOF, CHI2_3DOF, so3_exp
 
@@ -34,8 +35,6 @@ RELATIVE_DECREASE = 1e-5
 BEHIND_CHI2 = 1e6
 # the reduced system is built from dense camera x point matrices up to this many (camera, point) cells
 DENSE_MAX_CELLS = 40_000
-# the reduced system is summed this many observation pairs at a time (about 9 MB of temporaries)
-PAIR_CHUNK = 16_384
 
 
 @dataclass(frozen=True)
@@ -195,26 +194,26 @@ class _Solve:
         self.fm_pts = np.unique(self.pt[self.fm])
         self.fm_pt_order, self.fm_pt_starts = _segments(self.pt[self.fm], self.fm_pts)
         # the reduced system from a dense camera-by-point matrix (one product) when it is small, as in a
-        # local BA, else summed over observation pairs (a final BA over hundreds of keyframes)
+        # local BA, else from a sparse one (a final BA over hundreds of keyframes)
         cell = self.cam[self.fm] * self.pts.size + self.pt[self.fm]
         self.dense = self.free.size * self.pts.size <= DENSE_MAX_CELLS and np.unique(cell).size == cell.size
         if not self.dense:
-            self._pairs()
+            self._sparse()
 
-    def _pairs(self) -> None:
-        """Every ordered pair of free-camera observations of one point: the reduced system's camera
-        blocks. Sorted by camera pair, so their sums run in a fixed order."""
-        nf = self.free.size
-        rows = self.fm_pt_order  # free observations (as positions in `fm`) grouped by point
-        counts = np.diff(np.r_[self.fm_pt_starts, rows.size])
-        size = np.repeat(counts, counts)  # size of each row's group
-        first = np.repeat(self.fm_pt_starts, counts)  # start of each row's group
-        a = np.repeat(np.arange(rows.size), size)
-        b = np.repeat(first, size) + np.arange(a.size) - np.repeat(np.cumsum(size) - size, size)
-        cam = self.cam[self.fm]
-        key = cam[rows[a]] * nf + cam[rows[b]]
-        o = np.argsort(key, kind="stable")
-        self.r1, self.r2, self.key = rows[a][o], rows[b][o], key[o]
+    def _sparse(self) -> None:
+        """The layout of G (6 rows per free camera, 3 columns per point) as a CSR matrix, so that
+        the reduced system's G G^T is one sparse product. Entries are sorted by (row, column); the
+        entries of a camera that sees a point twice are summed, in observation order."""
+        fm, ncols = self.fm, 3 * self.pts.size
+        rows = (6 * self.cam[fm])[:, None, None] + np.arange(6)[None, :, None]
+        cols = (3 * self.pt[fm])[:, None, None] + np.arange(3)[None, None, :]
+        key = (rows * ncols + cols).reshape(-1)  # G's entries in (observation, row, column) order
+        self.csr_order = np.argsort(key, kind="stable")
+        key = key[self.csr_order]
+        self.csr_starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+        key = key[self.csr_starts]
+        self.csr_indices = (key % ncols).astype(np.int32)
+        self.csr_indptr = np.searchsorted(key // ncols, np.arange(6 * self.free.size + 1)).astype(np.int32)
 
     def residuals(self, poses: np.ndarray, X: np.ndarray) -> tuple:
         """(cost, what `normal_equations` needs) at poses, X."""
@@ -277,17 +276,13 @@ class _Solve:
             Gd[self.cam[fm], :, self.pt[fm], :] = G
             Gd = Gd.reshape(6 * nf, 3 * self.pts.size)
             S = -(Gd @ Gd.T)
-            blocks = S.reshape(nf, 6, nf, 6)
-            for c in range(nf):
-                blocks[c, :, c, :] += U[c] + lam * np.eye(6)
-        else:
-            S = np.zeros((nf * nf, 6, 6))
-            for s in range(0, self.key.size, PAIR_CHUNK):
-                m1, m2, key = self.r1[s:s + PAIR_CHUNK], self.r2[s:s + PAIR_CHUNK], self.key[s:s + PAIR_CHUNK]
-                starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
-                S[key[starts]] -= np.add.reduceat(_nt(G[m1], G[m2]), starts, axis=0)
-            S[np.arange(nf) * (nf + 1)] += U + lam * np.eye(6)
-            S = S.reshape(nf, nf, 6, 6).transpose(0, 2, 1, 3).reshape(6 * nf, 6 * nf)
+        else:  # scipy's sparse product: sequential sums in the CSR order, no threads
+            data = np.add.reduceat(G.reshape(-1)[self.csr_order], self.csr_starts)
+            Gs = scipy.sparse.csr_matrix((data, self.csr_indices, self.csr_indptr), shape=(6 * nf, 3 * self.pts.size))
+            S = -(Gs @ Gs.T).toarray()
+        blocks = S.reshape(nf, 6, nf, 6)
+        for c in range(nf):
+            blocks[c, :, c, :] += U[c] + lam * np.eye(6)
         dc = np.linalg.solve(S, b.reshape(-1)).reshape(nf, 6)
         # back-substitution: dX = V^-1 (-gp - sum W^T dc)
         Wtd = _tv(W, dc[self.cam[fm]])

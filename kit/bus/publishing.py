@@ -20,6 +20,7 @@ from collections import deque
 from typing import Any
 
 from octolog.kit.bus import wire
+from octolog.kit.bus.ros2 import Ros2Mirror, Ros2Node, is_ros_type
 from octolog.kit.bus.session import Session
 from octolog.kit.busconfig import BusConfig
 from octolog.schemas import codec
@@ -76,8 +77,9 @@ class Publisher:
     keeps it."""
 
     def __init__(self, pub: Any, topic: Topic, history: History | None = None, source: bytes = b"",
-                 key_crc: int = 0, numbering: Numbering | None = None) -> None:
+                 key_crc: int = 0, numbering: Numbering | None = None, ros2: Ros2Mirror | None = None) -> None:
         self._pub = pub
+        self._ros2 = ros2  # the same samples on rmw_zenoh's key (`BusConfig.ros2_domain`)
         self.topic = topic
         self.count = 0  # samples sent (with history: the seq of the next one)
         self._history, self._source, self._crc, self._numbering = history, source, key_crc, numbering
@@ -93,8 +95,10 @@ class Publisher:
         if self._history is None:
             self._pub.put(data)
             self.count += 1
-            return
-        self._pub.put(data, attachment=self._number(data))
+        else:
+            self._pub.put(data, attachment=self._number(data))
+        if self._ros2 is not None:
+            self._ros2.put(data)
 
     def _number(self, data: bytes) -> bytes:
         """Give the sample its seq and dependencies and keep it (before it is sent: a subscriber
@@ -116,12 +120,22 @@ class Publishing:
     def __init__(self, session: Session, cfg: BusConfig, stage: str = "") -> None:
         self._session, self._cfg, self._stage = session, cfg, stage
         self._numbering = Numbering()
+        self._ros2_node: Ros2Node | None = None
+
+    def _ros2(self, topic: Topic) -> Ros2Mirror | None:
+        """The rmw_zenoh mirror of a publisher of `topic`, when ROS 2 is asked for and the type is ROS's."""
+        if self._cfg.ros2_domain < 0 or not is_ros_type(topic.msgtype):
+            return None
+        if self._ros2_node is None:
+            self._ros2_node = Ros2Node(self._session, self._cfg.ros2_domain, self._stage)
+        return self._ros2_node.mirror(topic.ros_name(self._cfg.namespace), topic.msgtype, uuid.uuid4().bytes)
 
     def publisher(self, topic: Topic) -> Publisher:
         key = topic.key(self._cfg.namespace)
         pub = self._session.declare_publisher(key)
+        ros2 = self._ros2(topic)
         if not self._cfg.history:
-            return Publisher(pub, topic)
+            return Publisher(pub, topic, ros2=ros2)
         if keeps_all(topic):
             history = History(None, self._cfg.keep_mb << 20)
         else:
@@ -129,7 +143,7 @@ class Publishing:
         # identifies this publisher (not the output: never written); its stage's name, for messages
         source = wire.publisher_id(self._stage, uuid.uuid4().bytes)
         hkey = wire.history_key(key, source)
-        publisher = Publisher(pub, topic, history, source, wire.key_crc(key), self._numbering)
+        publisher = Publisher(pub, topic, history, source, wire.key_crc(key), self._numbering, ros2)
 
         def on_query(query: Any) -> None:
             # samples F.. (before U) of this publisher, or F.. if the query names no publisher
