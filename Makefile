@@ -34,3 +34,10 @@ bench-tracker: setup
 .PHONY: bench-long
 bench-long: setup
 	$(VENV)/bin/python bench/long_session.py --minutes 10
+
+# Screenshots of the Rerun viewer on the demo and on TUM first300 into docs/img (Xvfb + software Vulkan).
+.PHONY: screenshots
+screenshots: setup
+	command -v Xvfb >/dev/null && command -v import >/dev/null && command -v xdotool >/dev/null || \
+		{ apt-get update -qq && apt-get install -y -qq xvfb mesa-vulkan-drivers imagemagick xdotool >/dev/null; }
+	OCTOLOG_DATA=$(OCTOLOG_DATA) $(VENV)/bin/python bench/screenshots.py

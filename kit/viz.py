@@ -50,14 +50,17 @@ def _blob(data: Any) -> np.ndarray:
 PIPELINE_STAGES = ("replay", "tracker", "mapper")
 
 
-def pipeline_blueprint() -> Any:
+def pipeline_blueprint(*, follow_latest: bool = False) -> Any:
     """The viewer's layout for a session: the map in 3D, the camera and the keyframe depth, the grid,
-    the tracker's and mapper's timings and the events; fixed, so every launch looks the same."""
+    the tracker's and mapper's timings and the events; fixed, so every launch looks the same.
+    `follow_latest`: the time panel follows the latest data (a finished session: the whole map)."""
     import rerun.blueprint as rrb
 
+    time_panel = [rrb.TimePanel(play_state="following")] if follow_latest else []
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Spatial3DView(origin="world", name="map, trajectory and camera"),
+            # rooted at the map frame (z up), which the mapper places `world` in: the room stands upright
+            rrb.Spatial3DView(origin="/", contents="/world/**", name="map, trajectory and camera"),
             rrb.Vertical(
                 rrb.Spatial2DView(origin="world/tracker/camera", name="camera and keypoints"),
                 rrb.Spatial2DView(origin="world/tracker/keyframe", name="last keyframe's depth"),
@@ -71,6 +74,7 @@ def pipeline_blueprint() -> Any:
             ),
             column_shares=[3, 2, 2],
         ),
+        *time_panel,
         collapse_panels=True,
     )
 
@@ -107,9 +111,9 @@ class Viz:
             self.rec.save(self.path)
         else:
             self.rec.connect_grpc(target or None)
-        # `world` is the first camera's optical frame (x right, y down, z forward): declared as such,
-        # the viewer shows the room the way that camera saw it, not on its side
-        self.rec.log("world", rr.ViewCoordinates.RDF, static=True)
+        # the root is the map frame (REP 103: x forward, y left, z up); `world` (the tracker's: its
+        # first camera's optical frame) sits in it by the transform the mapper logs (`map_frame`)
+        self.rec.log("/", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         if stage in PIPELINE_STAGES:
             self.rec.send_blueprint(pipeline_blueprint())  # the same layout whichever stage's file opens first
 
@@ -163,6 +167,14 @@ class Viz:
         rr = self._rr
         self.rec.log(path, rr.Pinhole(image_from_camera=intr.matrix, resolution=[intr.width, intr.height],
                                       camera_xyz=rr.ViewCoordinates.RDF), static=static)
+
+    def map_frame(self, map_from_world: np.ndarray) -> None:
+        """Place `world` in the z-up root: the map frame the grid lies in (gravity-aligned when the
+        source has an accelerometer, else from a level first camera)."""
+        if self.rec is None:
+            return
+        T = np.asarray(map_from_world, dtype=np.float64)
+        self.rec.log("world", self._rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]), static=True)
 
     def pose(self, path: str, world_from_camera: np.ndarray) -> None:
         if self.rec is None:

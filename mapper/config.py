@@ -9,6 +9,7 @@ import numpy as np
 
 from octolog.kit.errors import ConfigError
 from octolog.mapper.fleet import start_pose_matrix
+from octolog.mapper.grid import DEFAULT_UP
 from octolog.mapper.params import BACKENDS, CloudParams, GridParams, MapperParams, OccupancyParams
 from octolog.mapper.sensor_model import PROBABILITIES, SensorModel
 
@@ -50,7 +51,8 @@ class MapperConfig:
     # 2D occupancy grid: the band of heights projected, in a level frame whose +z is `grid_up`
     # (world = first camera frame; (0, -1, 0) is up for a camera held level at start), with
     # z = 0 at the floor if `grid_camera_height_m` gives the first camera's height, else at the camera
-    grid_up: tuple[float, ...] = (0.0, -1.0, 0.0)
+    # (empty: `octolog run` takes it from the source's accelerometer, else (0, -1, 0), a level camera)
+    grid_up: tuple[float, ...] = ()
     grid_camera_height_m: float = 0.0
     grid_z_min_m: float = -1.0
     grid_z_max_m: float = 0.3
@@ -69,8 +71,8 @@ class MapperConfig:
         for key in ("resolution_m", "voxel_m", "max_range_m", "max_extent_m", "grid_resolution_m"):
             if not getattr(self, key) > 0:
                 raise ConfigError(f"mapper.{key} {getattr(self, key)}: want > 0")
-        if len(self.grid_up) != 3 or not any(self.grid_up):
-            raise ConfigError(f"mapper.grid_up {self.grid_up}: want a non-zero 3-vector")
+        if self.grid_up and (len(self.grid_up) != 3 or not any(self.grid_up)):
+            raise ConfigError(f"mapper.grid_up {self.grid_up}: want a non-zero 3-vector (or [] for the source's IMU)")
         if not self.grid_z_min_m < self.grid_z_max_m:
             raise ConfigError(f"mapper.grid_z_min_m {self.grid_z_min_m} must be below grid_z_max_m {self.grid_z_max_m}")
         if self.backend not in BACKENDS:
@@ -112,7 +114,7 @@ class MapperConfig:
                               sor_first=self.sor_first),
             occupancy=OccupancyParams(backend=self.backend, resolution_m=self.resolution_m, colour=self.colour,
                                       sensor=self.sensor_model()),
-            grid=GridParams(up=self.grid_up, camera_height_m=self.grid_camera_height_m, z_min_m=self.grid_z_min_m,
+            grid=GridParams(up=self.grid_up or DEFAULT_UP, camera_height_m=self.grid_camera_height_m, z_min_m=self.grid_z_min_m,
                             z_max_m=self.grid_z_max_m, resolution_m=self.grid_resolution_m),
             max_extent_m=self.max_extent_m,
         )

@@ -141,13 +141,17 @@ def make_mapper(cfg: MapperConfig) -> Mapper:
     return Mapper(cfg.params())
 
 
+def map_from_world(params: GridParams) -> np.ndarray:
+    """The map frame (z up, see mapper.grid) the grid lies in, from the world frame."""
+    return map_from_world_for_up(np.array(params.up, dtype=float), height_m=params.camera_height_m)
+
+
 def project_grid(octree: OccupancyMap, params: GridParams) -> OccupancyGrid2D | None:
     """The 2D occupancy grid of `octree`: a height band in a level frame (see mapper.grid), or None
     while no known voxel lies in the band."""
     try:
-        return project_octree(octree, map_from_world=map_from_world_for_up(np.array(params.up, dtype=float),
-                                                                            height_m=params.camera_height_m),
-                              z_min_m=params.z_min_m, z_max_m=params.z_max_m, resolution_m=params.resolution_m)
+        return project_octree(octree, map_from_world=map_from_world(params), z_min_m=params.z_min_m,
+                              z_max_m=params.z_max_m, resolution_m=params.resolution_m)
     except MapError:
         return None
 

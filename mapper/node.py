@@ -17,7 +17,7 @@ from octolog.kit.errors import InputError, MapError
 from octolog.kit.metrics import write_tum
 from octolog.kit.viz import Viz
 from octolog.mapper.config import MapperConfig
-from octolog.mapper.core import Mapper, bt_payload, make_mapper
+from octolog.mapper.core import Mapper, bt_payload, make_mapper, map_from_world
 from octolog.mapper.fleet import CorrectionItem, FleetMerge, KeyframeItem
 from octolog.mapper.grid import OccupancyGrid2D, occupancy_grid_msg
 from octolog.schemas import codec
@@ -92,6 +92,7 @@ def run(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: str = "o
         return run_fleet(cfg, bus_cfg, out_dir=out_dir, rerun=rerun, recording_id=recording_id)
     mapper = make_mapper(cfg)
     with Bus(bus_cfg, "mapper", inbox_size=INBOX_KEYFRAMES) as bus, Viz(rerun, "mapper", recording_id) as viz:
+        viz.map_frame(map_from_world(mapper.params.grid))
         publisher = Publisher(bus, mapper, cfg.publish_every)
         result = consume(mapper, cfg, bus, viz, publisher, out_dir)
         finish(mapper, result, bus, viz, publisher, out_dir)
@@ -130,6 +131,7 @@ def run_fleet(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: st
         robot_buses = [stack.enter_context(Bus(dataclasses.replace(bus_cfg, namespace=r), "mapper"))
                        for r in cfg.robots]
         viz = stack.enter_context(Viz(rerun, "mapper", recording_id))
+        viz.map_frame(map_from_world(mapper.params.grid))
         publisher = Publisher(bus, mapper, cfg.publish_every)
         result, trajectories = consume_fleet(mapper, cfg, bus, robot_buses, viz, publisher, out_dir)
         per_robot = write_trajectories(mapper, cfg.robots, trajectories, out_dir)
@@ -342,7 +344,10 @@ def _log_map(viz: Viz, mapper: Mapper, stamp: int, grid: Any = None) -> None:
     viz.points3d("world/mapper/cloud", pts, cols, radius=0.004)
     centres = mapper.octree.occupied_centres()
     if len(centres):
-        up = -centres[:, 1]  # height: `world` is the first camera's optical frame, y points down
+        # height along the grid's up (gravity when the source has an accelerometer; else the first
+        # camera's -y): `world` is that camera's optical frame
+        up_dir = np.asarray(mapper.params.grid.up, dtype=np.float64)
+        up = centres @ (up_dir / np.linalg.norm(up_dir))
         t = (up - up.min()) / max(1e-9, float(np.ptp(up)))
         colours = np.stack([255 * t, 80 + 100 * (1 - t), 255 * (1 - t)], axis=1).astype(np.uint8)
         viz.boxes("world/mapper/occupied", centres, mapper.resolution_m, colours)

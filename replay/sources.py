@@ -13,11 +13,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
+import numpy as np
+
 from octolog.kit.calibration import is_calibration_file, load_calibration
 from octolog.kit.errors import ConfigError, InputError
 from octolog.kit.geometry import EncodedRgbd, RgbdFrame
 from octolog.kit.mcaplog import read_messages, summarize
 from octolog.kit.tum import open_tum, readout_for
+from octolog.replay import gravity
 from octolog.replay.standard import has_standard_frames, open_standard
 from octolog.replay.synthetic import SyntheticScene
 from octolog.schemas import codec
@@ -42,6 +45,11 @@ class Source(Protocol):
     def encoded_frames(self, start: int = 0, end: int | None = None) -> Iterator[EncodedRgbd]: ...
 
     def groundtruth_tum(self) -> str | None: ...
+
+    def gravity_up(self) -> np.ndarray | None:
+        """Up (unit vector) in the first frame's optical frame from the source's accelerometer;
+        None without one (octolog.replay.gravity)."""
+        ...
 
 
 def _not_encoded(source: Source) -> Iterator[EncodedRgbd]:
@@ -84,6 +92,9 @@ class TumSource:
 
     def groundtruth_tum(self) -> str | None:
         return self.seq.groundtruth.read_text() if self.seq.groundtruth else None
+
+    def gravity_up(self) -> np.ndarray | None:
+        return gravity.tum_up(self.path, self.seq.pairs[0][0])
 
 
 @dataclass
@@ -188,6 +199,10 @@ class McapSource:
     def groundtruth_tum(self) -> str | None:
         return self._metadata.get("groundtruth", {}).get("tum")
 
+    def gravity_up(self) -> np.ndarray | None:
+        """The up vector the session that wrote this log found (its metadata), if any."""
+        return gravity.up_from_metadata(self._metadata, str(self.path))
+
 
 def consumed_frames(path: Path) -> set[int]:
     """Sequence numbers of the frames a logged tracker processed (every status but SKIPPED)."""
@@ -205,12 +220,16 @@ def consumed_frames(path: Path) -> set[int]:
 @dataclass
 class SyntheticSource:
     n_frames: int = 150
+    start_tilt_deg: float = 0.0  # `synthetic:N:tilt=DEG`: the camera starts looking down DEG more
     readout_s = 0.0  # rendered, every row at once
     encoded = False  # rendered pixels
 
     def __post_init__(self) -> None:
-        self.scene = SyntheticScene(n_frames=self.n_frames)
-        self.name = f"synthetic:{self.n_frames}"
+        self.scene = SyntheticScene(n_frames=self.n_frames, start_tilt_deg=self.start_tilt_deg)
+        self.name = f"synthetic:{self.n_frames}" + (f":tilt={self.start_tilt_deg:g}" if self.start_tilt_deg else "")
+
+    def gravity_up(self) -> np.ndarray | None:
+        return self.scene.gravity_up()
 
     def __len__(self) -> int:
         return self.n_frames
@@ -265,6 +284,9 @@ class Subsampled:
     def groundtruth_tum(self) -> str | None:
         return self.inner.groundtruth_tum()
 
+    def gravity_up(self) -> np.ndarray | None:
+        return self.inner.gravity_up()  # the same first frame
+
 
 def open_source(spec: str, *, only_consumed: bool = False, camera: str = "", every: int = 1) -> Source:
     """Open `tum:PATH`, `mcap:PATH` or `synthetic[:N]`; errors name the problem in one line.
@@ -289,11 +311,15 @@ def _open(spec: str, only_consumed: bool, camera: str) -> Source:
     if only_consumed:
         raise ConfigError(f"source {spec!r}: only an MCAP session log knows which frames were consumed")
     if kind == "synthetic":
+        count, *options = arg.split(":") if arg else [""]
         try:
-            n = int(arg) if arg else 150
+            n = int(count) if count else 150
+            tilt = float(options[0].removeprefix("tilt=")) if options else 0.0
         except ValueError:
-            raise ConfigError(f"source {spec!r}: synthetic:N wants a frame count") from None
+            raise ConfigError(f"source {spec!r}: want synthetic[:N[:tilt=DEG]]") from None
         if n < 2:
             raise ConfigError(f"source {spec!r}: want at least 2 frames")
-        return SyntheticSource(n)
+        if len(options) > 1 or (options and not options[0].startswith("tilt=")) or not -80.0 <= tilt <= 80.0:
+            raise ConfigError(f"source {spec!r}: want synthetic[:N[:tilt=DEG]] with -80 <= DEG <= 80")
+        return SyntheticSource(n, tilt)
     raise ConfigError(f"source {spec!r}: want tum:PATH, mcap:PATH or synthetic[:N]")

@@ -65,6 +65,9 @@ class StandardSequence:
     def groundtruth_tum(self) -> str | None:
         return self.metadata.get("groundtruth", {}).get("tum")
 
+    def gravity_up(self) -> None:
+        return None  # the D455's accelerometer topic is not read yet
+
     def frames(self, start: int = 0, end: int | None = None) -> Iterator[RgbdFrame]:
         """Frames start..end in pair order; reads the file once, holding only images not yet paired."""
         todo = list(enumerate(self.pairs[start:end], start))

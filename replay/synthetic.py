@@ -26,6 +26,7 @@ from octolog.kit.opencv import baseline_simd
 from octolog.replay import depth_noise
 from octolog.replay.synthetic_room import OBJECTS, ROOM, scene_faces, scene_triangles
 from octolog.replay.synthetic_textures import Textures, scene_textures
+from octolog.replay.gravity import simulated_up
 from octolog.replay.synthetic_trajectory import camera_trajectory
 
 EPOCH_NS = 1_700_000_000 * 1_000_000_000
@@ -51,6 +52,7 @@ class SyntheticConfig:
     start_ns: int = EPOCH_NS  # stamp of frame 0
     nthreads: int = 0  # ray-casting threads, 0 = all
     depth_noise: str = "none"  # none (exact, mm steps), kinect or d455: replay.depth_noise's models
+    start_tilt_deg: float = 0.0  # the camera starts looking down this much more, level again after 1 s
 
     def __post_init__(self) -> None:
         """Checked once, where the parameters are built."""
@@ -115,12 +117,18 @@ class SyntheticScene:
     @cached_property
     def _poses(self) -> np.ndarray:
         t = np.arange(self.config.n_frames, dtype=float) / self.config.fps
-        pos, rot = camera_trajectory(t)
+        pos, rot = camera_trajectory(t, start_tilt_deg=self.config.start_tilt_deg)
         T = np.tile(np.eye(4), (len(t), 1, 1))
         T[:, :3, :3] = rot
         T[:, :3, 3] = pos
         T.setflags(write=False)
         return T
+
+    def gravity_up(self) -> np.ndarray:
+        """Up in frame 0's optical frame, from a simulated accelerometer on the camera."""
+        def rotation_at(t: float) -> np.ndarray:
+            return camera_trajectory(np.array([t]), start_tilt_deg=self.config.start_tilt_deg)[1][0]
+        return simulated_up(rotation_at, 0.0, self.config.seed)
 
     def pose(self, i: int) -> np.ndarray:
         """Ground-truth world_from_camera 4x4 of frame i (optical camera convention)."""

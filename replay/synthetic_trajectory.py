@@ -12,9 +12,11 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 LOOP_S = 18.0  # one loop around the pillar
+TILT_S = 1.0  # a tilted start (`start_tilt_deg`) levels out over this long
 
 
-def camera_trajectory(t: np.ndarray, *, periodic: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def camera_trajectory(t: np.ndarray, *, periodic: bool = False,
+                      start_tilt_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Camera centres (N, 3) and world_from_camera rotations (N, 3, 3) at times t (s).
 
     `periodic`: the height and look-around periods (7, 7.3, 5.3, 4.1 s) rounded to whole fractions
@@ -34,6 +36,8 @@ def camera_trajectory(t: np.ndarray, *, periodic: bool = False) -> tuple[np.ndar
     heading = np.arctan2(ay * np.cos(th), -ax * np.sin(th))
     yaw = heading + math.radians(30.0) + math.radians(20.0) * np.sin(2.0 * math.pi * t / period(7.3))
     pitch = math.radians(-8.0) + math.radians(7.0) * np.sin(2.0 * math.pi * t / period(5.3) + 1.0)
+    if start_tilt_deg:  # looking down by this much at t <= 0, level with the usual path from TILT_S on
+        pitch = pitch - math.radians(start_tilt_deg) * 0.5 * (1.0 + np.cos(math.pi * np.clip(t / TILT_S, 0.0, 1.0)))
     roll = math.radians(3.0) * np.sin(2.0 * math.pi * t / period(4.1))
     # body frame: x forward, y left, z up; a positive pitch raises the view.
     body = Rotation.from_euler("ZYX", np.stack([yaw, -pitch, roll], axis=1)).as_matrix()

@@ -47,6 +47,9 @@ RESTARTABLE = ("mapper",)
 MAX_RESTARTS = 3
 
 
+NOT_ALIGNED = "not gravity-aligned: no accelerometer, the first camera is assumed level (set mapper.grid_up)"
+
+
 @dataclass
 class SessionSummary:
     """What `octolog run` reports: frames, times, ATE, map statistics and the files written."""
@@ -61,6 +64,7 @@ class SessionSummary:
     ate: dict | None = None
     files: dict[str, str] = field(default_factory=dict)
     malformed: dict[str, dict[str, int]] = field(default_factory=dict)  # stage -> topic -> samples dropped
+    map_frame: str = NOT_ALIGNED  # whether the map frame's z is up, and where that came from
 
 
 def _free_port() -> int:
@@ -85,6 +89,21 @@ class LiveSource:
 
     def groundtruth_tum(self) -> str | None:
         return None
+
+    def gravity_up(self) -> None:
+        return None  # the live D455's accelerometer is not read for gravity yet
+
+
+def _map_frame(cfg: MapperConfig, src: Source | LiveSource) -> tuple[MapperConfig, dict[str, str] | None]:
+    """The mapper's config with `grid_up` from the source's accelerometer when the user left it
+    unset (octolog.replay.gravity), and what to record of it in the session's metadata."""
+    if cfg.grid_up:
+        return cfg, {"note": "up given by mapper.grid_up"}
+    up = src.gravity_up()
+    if up is None:
+        return cfg, None
+    up_t = tuple(float(v) for v in up)
+    return dataclasses.replace(cfg, grid_up=up_t), {"up": json.dumps(up_t), "note": "gravity-aligned (accelerometer)"}
 
 
 def _split_overrides(overrides: list[str], *, live: bool = False) -> dict[str, list[str]]:
@@ -255,6 +274,7 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     src = LiveSource(source) if live else open_source(source, only_consumed=replay_cfg.only_consumed,
                                                       camera=replay_cfg.camera, every=replay_cfg.every)
     cfgs["tracker"] = for_source(cfgs["tracker"], src)  # an unset rolling shutter: the source's camera
+    cfgs["mapper"], gravity = _map_frame(cfgs["mapper"], src)
     prepare_out(out, overwrite=overwrite)
     marker = out / INCOMPLETE
     # written first, removed last: even a kill -9 of this process leaves the folder marked
@@ -263,7 +283,7 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
                       f"if no run is going on, it failed or was killed\n")
     try:
         summary = _run(source, out, src, cfgs, feed_tracker, rerun, recording_id, quiet, duration_s, router,
-                       ros2_domain)
+                       ros2_domain, gravity)
     except BaseException as exc:
         what = str(exc) if isinstance(exc, OctologError) else \
             ("interrupted" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}")
@@ -278,7 +298,7 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
 
 def _run(source: str, out: Path, src: Source | LiveSource, cfgs: dict[str, Any], feed_tracker: bool, rerun: str,
          recording_id: str, quiet: bool, duration_s: float = 0.0, router: str | None = None,
-         ros2_domain: int = -1) -> SessionSummary:
+         ros2_domain: int = -1, gravity: dict[str, str] | None = None) -> SessionSummary:
     if rerun == "save":
         rerun = f"save:{out / 'rerun'}"
     parse_spec(rerun)
@@ -291,6 +311,8 @@ def _run(source: str, out: Path, src: Source | LiveSource, cfgs: dict[str, Any],
                 "config": {k: json.dumps(to_dict(v), sort_keys=True) for k, v in cfgs.items()}}
     if gt:
         metadata["groundtruth"] = {"tum": gt}
+    if gravity:
+        metadata["gravity"] = gravity
     (out / "metadata.json").write_text(json.dumps(metadata, indent=2, sort_keys=True))
 
     endpoint = router or f"tcp/127.0.0.1:{_free_port()}"
@@ -371,6 +393,8 @@ def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, re
                   RGBD_COMPRESSED.name)), None)
         src.duration_ns = t.last_ns - t.first_ns if t is not None else 0
     s = SessionSummary(out=out, source=source, wall_s=wall, duration_s=src.duration_ns * 1e-9)
+    if (out / "metadata.json").exists():
+        s.map_frame = json.loads((out / "metadata.json").read_text()).get("gravity", {}).get("note", NOT_ALIGNED)
     s.map = json.loads((out / "map_stats.json").read_text())
     frames = frame_counts(out / "session.mcap")
     if (out / "trajectory.txt").exists():  # absent when the tracker was fed from a log
@@ -387,7 +411,7 @@ def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, re
                    if (counts := errorfile.read_malformed(p))}
     (out / "summary.json").write_text(json.dumps(
         {"source": source, "frames": frames, "tracked_frames": s.frames, "wall_s": round(wall, 3),
-         "malformed": s.malformed,
+         "malformed": s.malformed, "map_frame": s.map_frame,
          "duration_s": s.duration_s, "ate": s.ate, "map": s.map, "files": sorted(s.files),
          "recording_id": recording_id, "versions": versions()},
         indent=2, sort_keys=True) + "\n")
@@ -404,6 +428,7 @@ def format_summary(s: SessionSummary) -> str:
     m = s.map
     lines.append(f"  map: {m.get('keyframes', 0)} keyframes, {m.get('occupied_voxels', 0)} occupied / "
                  f"{m.get('free_voxels', 0)} free voxels at {m.get('resolution_m', 0) * 100:.0f} cm, {m.get('cloud_points', 0)} cloud points")
+    lines.append(f"  map frame: {s.map_frame}")
     for stage, counts in s.malformed.items():
         lines.append(f"  {stage} dropped malformed samples: " + ", ".join(f"{n} on {t}" for t, n in counts.items()))
     lines.append("  files: " + ", ".join(sorted(s.files)))

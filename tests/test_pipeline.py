@@ -108,6 +108,38 @@ def test_rrd_files_load_in_rerun(runs):
     assert "3 files verified without error" in proc.stderr + proc.stdout
 
 
+def _rrd_print(path: Path) -> str:
+    proc = subprocess.run([rerun_cli(), "rrd", "print", "-vvv", str(path)], capture_output=True, text=True,
+                          timeout=300, check=True, env={**os.environ, "RERUN_DISABLE_ANALYTICS": "1"})
+    return proc.stdout
+
+
+def test_recordings_stand_the_room_upright_with_one_blueprint(runs):
+    """What the viewer gets: every stage's recording carries the blueprint whose 3D view is rooted
+    at `/`; `/` is the map frame, declared right-handed z up; the mapper places `world` (the first
+    camera's optical frame) in it by the transform of the grid's map frame (up from the simulated
+    IMU); `world` itself declares no view coordinates (the old RDF made a view rooted there lie on
+    its side)."""
+    import tomllib
+
+    from octolog.mapper.grid import map_from_world_for_up
+
+    a = runs[0]
+    printed = {p.stem: _rrd_print(p) for p in (a / "rerun").glob("*.rrd")}
+    for stage, text in printed.items():
+        view = next(line for line in text.splitlines() if "[map, trajectory and camera]" in line)
+        assert "[3D]" in view and view.rstrip(" │").endswith("[/]"), stage
+        assert "/world@ViewCoordinates" not in text, stage
+    mapper = printed["mapper"]
+    assert "- / - data columns: [/@ViewCoordinates:xyz]" in mapper
+    assert "[[3, 5, 1]]" in mapper  # Right, Forward, Up: RIGHT_HAND_Z_UP
+    chunk = mapper.split("- /world - data columns: [/world@Transform3D:mat3x3 /world@Transform3D:translation]")[1]
+    row = next(line for line in chunk.splitlines() if "row_" in line)
+    first_column = [float(v) for v in row.split("[[")[1].split(",")[:3]]  # mat3x3 is column-major
+    up = tomllib.loads((a / "config.toml").read_text())["mapper"]["grid_up"]
+    np.testing.assert_allclose(first_column, map_from_world_for_up(np.array(up))[:3, 0], atol=1e-6)
+
+
 def test_eval_and_info_commands(runs):
     a = runs[0]
     out = octolog("eval", str(a / "trajectory.txt"), str(a / "groundtruth.txt")).stdout

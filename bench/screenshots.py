@@ -1,0 +1,90 @@
+"""Screenshots of the Rerun viewer on a session, as a user sees it: docs/img/*.png.
+
+Runs `octolog demo` and `octolog run` on TUM fr1/xyz first300 (Rerun on, the defaults), opens each
+session's recordings in the real viewer on a virtual display (Xvfb, Mesa's software Vulkan) and
+captures the screen once the viewer has caught up with the end of the data.
+
+    make screenshots        # installs xvfb, mesa-vulkan-drivers, imagemagick, xdotool (apt) first
+    python bench/screenshots.py [--out docs/img] [--tum PATH] [--wait 60]
+
+The viewer opens the recordings with the pipeline's own blueprint (octolog.kit.viz), its time panel
+set to follow the latest data, so each shot shows the whole map.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from octolog.kit.viz import APPLICATION_ID, pipeline_blueprint
+
+ROOT = Path(__file__).resolve().parents[1]
+DISPLAY = ":93"
+SIZE = "1600x1000"
+
+
+def _need(tool: str) -> str:
+    path = shutil.which(tool)
+    if path is None:
+        sys.exit(f"screenshots: {tool} not found (make screenshots installs it)")
+    return path
+
+
+def _session(args: list[str], out: Path) -> Path:
+    subprocess.run([sys.executable, "-m", "octolog", *args, "--out", str(out), "--quiet", "--overwrite"],
+                   check=True, cwd=ROOT)
+    return out
+
+
+def _shot(session: Path, png: Path, wait_s: float) -> None:
+    """Open the session's recordings in the viewer on the virtual display and capture it."""
+    blueprint = session / "following.rbl"
+    pipeline_blueprint(follow_latest=True).save(APPLICATION_ID, str(blueprint))  # the latest data: the whole map
+    env = {**os.environ, "DISPLAY": DISPLAY, "RERUN_DISABLE_ANALYTICS": "1"}
+    viewer = subprocess.Popen([str(Path(sys.executable).parent / "rerun"), *map(str, sorted((session / "rerun").glob("*.rrd"))),
+                               str(blueprint)], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        time.sleep(wait_s)  # software rendering: the viewer needs this long to load and draw the map
+        subprocess.run([_need("xdotool"), "mousemove", "1599", "999"], env=env, check=True)  # no hover tooltip
+        time.sleep(2)
+        png.parent.mkdir(parents=True, exist_ok=True)
+        subprocess.run([_need("import"), "-window", "root", str(png)], env=env, check=True)
+    finally:
+        viewer.terminate()
+        viewer.wait(timeout=30)
+    print(f"screenshots: {png}")
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--out", default=str(ROOT / "docs" / "img"), help="folder for the PNGs (default docs/img)")
+    p.add_argument("--tum", default=os.path.join(os.environ.get("OCTOLOG_DATA", str(ROOT.parent / "shared" / "data")),
+                                                 "tum", "rgbd_dataset_freiburg1_xyz_first300"),
+                   help="TUM folder for the second shot (default: the shared first300)")
+    p.add_argument("--wait", type=float, default=60.0, help="seconds the viewer gets before each capture")
+    args = p.parse_args()
+    # a compositing X server captures black: Xvfb without the Composite extension
+    xvfb = subprocess.Popen([_need("Xvfb"), DISPLAY, "-screen", "0", f"{SIZE}x24", "-extension", "Composite"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            demo = _session(["demo"], Path(tmp) / "demo")
+            _shot(demo, Path(args.out) / "viewer-demo.png", args.wait)
+            if Path(args.tum).is_dir():
+                tum = _session(["run", "--source", f"tum:{args.tum}"], Path(tmp) / "tum")
+                _shot(tum, Path(args.out) / "viewer-tum-first300.png", args.wait)
+            else:
+                print(f"screenshots: {args.tum} not found, no TUM shot")
+    finally:
+        xvfb.terminate()
+        xvfb.wait(timeout=30)
+
+
+if __name__ == "__main__":
+    main()

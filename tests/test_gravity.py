@@ -1,0 +1,151 @@
+"""Gravity from the accelerometer (octolog.replay.gravity): a gravity-aligned map frame on TUM's
+Kinect accelerometer and on the synthetic room's simulated IMU, and a 2D grid that does not depend
+on how the camera was held at the start."""
+
+from __future__ import annotations
+
+import json
+import math
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+from helpers import octolog, tum_first300
+from scipy.spatial.transform import Rotation
+
+from octolog.kit import metrics
+from octolog.kit.errors import ConfigError, InputError
+from octolog.mapper.grid import grid_from_msg, map_from_world_for_up
+from octolog.replay import gravity
+from octolog.replay.sources import open_source
+from octolog.replay.synthetic_trajectory import camera_trajectory
+
+
+def _deg(a: np.ndarray, b: np.ndarray) -> float:
+    return math.degrees(math.acos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1.0, 1.0)))
+
+
+def _true_up(world_from_camera: np.ndarray) -> np.ndarray:
+    """World +z (up in a z-up world: TUM's motion capture, the synthetic room) in the camera's frame."""
+    return world_from_camera[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+
+
+def _z_tilt(session: Path, map_from_world: np.ndarray) -> float:
+    """Degrees between the ground truth's z (up) and the session's map-frame z, through the SE(3)
+    alignment (Umeyama on positions, as ATE uses) of the map-frame trajectory onto the ground truth."""
+    est, gt = metrics.read_tum(session / "trajectory.txt"), metrics.read_tum(session / "groundtruth.txt")
+    R, t = map_from_world[:3, :3], map_from_world[:3, 3]
+    rot = R @ Rotation.from_quat(est.quats_xyzw).as_matrix()
+    in_map = metrics.Trajectory(est.stamps_ns, est.positions @ R.T + t, Rotation.from_matrix(rot).as_quat())
+    return math.degrees(math.acos(np.clip(metrics.ate(in_map, gt).alignment[2, 2], -1.0, 1.0)))
+
+
+def test_tum_accelerometer_axes_map_to_the_optical_frame(tmp_path: Path) -> None:
+    """A Kinect lying still, camera looking 30 degrees down: the file's (ax, ay, az) in m/s² become
+    up in the optical frame as (-ax, -ay, az); samples beyond 0.1 s of the frame are not used."""
+    up = np.array([0.0, -math.cos(math.radians(30)), -math.sin(math.radians(30))])  # optical: y down, z forward
+    a = gravity.KINECT_TO_OPTICAL.T @ up * gravity.G
+    lines = ["# accelerometer data", "# timestamp ax ay az"]
+    lines += [f"{100.0 + t:.4f} {a[0]:.6f} {a[1]:.6f} {a[2]:.6f}" for t in np.arange(-0.1, 0.1, 0.002)]
+    lines += ["100.5000 9.8 0.0 0.0"]  # far from the frame: ignored
+    (tmp_path / "accelerometer.txt").write_text("\n".join(lines) + "\n")
+    got = gravity.tum_up(tmp_path, 100_000_000_000)
+    assert _deg(got, up) < 0.01
+    assert gravity.tum_up(tmp_path, 200_000_000_000) is None  # no sample near that frame
+    assert gravity.tum_up(tmp_path / "nowhere", 100_000_000_000) is None
+
+
+def test_accelerometer_in_g_not_m_s2_is_an_error(tmp_path: Path) -> None:
+    (tmp_path / "accelerometer.txt").write_text("100.0 0.0 1.0 0.0\n100.01 0.0 1.0 0.0\n")
+    with pytest.raises(InputError, match=r"accelerometer.txt: the accelerometer's mean near the first frame is 1.00"):
+        gravity.tum_up(tmp_path, 100_000_000_000)
+    (tmp_path / "accelerometer.txt").write_text("100.0 0.0 x 0.0\n")
+    with pytest.raises(InputError, match=r"accelerometer.txt:1: want 'timestamp ax ay az'"):
+        gravity.tum_up(tmp_path, 100_000_000_000)
+
+
+@pytest.mark.parametrize("tilt", [0.0, 30.0, -20.0])
+def test_the_simulated_imu_finds_up_within_half_a_degree(tilt: float) -> None:
+    src = open_source(f"synthetic:10:tilt={tilt:g}" if tilt else "synthetic:10")
+    truth = _true_up(src.scene.pose(0))
+    assert _deg(src.gravity_up(), truth) < 0.5
+    if tilt:  # the tilt is in the path: frame 0 looks that much further down than the level start
+        level = _true_up(open_source("synthetic:10").scene.pose(0))
+        assert abs(_deg(truth, level) - abs(tilt)) < 0.01
+
+
+def test_a_tilted_start_levels_out_after_one_second() -> None:
+    t = np.array([0.0, 0.5, 1.0, 2.0])
+    _, level = camera_trajectory(t)
+    _, tilted = camera_trajectory(t, start_tilt_deg=30.0)
+    assert _deg(level[0][:, 2], tilted[0][:, 2]) == pytest.approx(30.0, abs=1e-6)
+    np.testing.assert_array_equal(level[2:], tilted[2:])
+
+
+@pytest.mark.parametrize("spec", ["synthetic:10:tilt=x", "synthetic:10:roll=3", "synthetic:10:tilt=95"])
+def test_bad_synthetic_options_are_refused(spec: str) -> None:
+    with pytest.raises(ConfigError, match="synthetic"):
+        open_source(spec)
+
+
+def test_tum_first300_map_frame_is_gravity_aligned(tmp_path: Path) -> None:
+    """On fr1/xyz (a camera looking down at a desk) the run takes up from accelerometer.txt, and
+    the map frame's z is near the ground truth's up, where the tracker's own world (the first
+    camera's optical frame) is 123 degrees off. Not as close as the issue asks (2 degrees): the
+    hand-held camera is moving at the first frame, and the 0.2 s of samples around it put up 3.7
+    degrees from the motion capture's; the SE(3) alignment of the map-frame trajectory onto the
+    ground truth tilts z by 2.0 degrees (whole first300). docs/results.md has the figures."""
+    out = tmp_path / "s"
+    octolog("run", "--source", f"tum:{tum_first300()}", "--out", str(out), "--quiet", "--rerun", "off",
+            "--set", "replay.end=150")
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["map_frame"] == "gravity-aligned (accelerometer)"
+    up = np.array(tomllib.loads((out / "config.toml").read_text())["mapper"]["grid_up"])
+    gt = metrics.read_tum(out / "groundtruth.txt")
+    est = metrics.read_tum(out / "trajectory.txt")
+    first = int(np.argmin(np.abs(gt.stamps_ns - est.stamps_ns[0])))
+    R0 = Rotation.from_quat(gt.quats_xyzw[first]).as_matrix()
+    assert _deg(up, R0.T @ np.array([0.0, 0.0, 1.0])) < 5.0
+
+    assert _z_tilt(out, map_from_world_for_up(up)) < 5.0
+    assert _z_tilt(out, np.eye(4)) > 90.0  # the optical frame: y down, not up
+
+
+def _grid_cells(session: Path) -> dict[tuple[int, int], int]:
+    """Known cells of the session's last grid, keyed by their integer position in the map frame."""
+    from octolog.kit.mcaplog import read_messages
+    from octolog.schemas import codec
+    from octolog.schemas.topics import GRID
+
+    msgs = [m.data for m in read_messages(session / "session.mcap", [GRID.name])]
+    grid = grid_from_msg(codec.decode(msgs[-1], GRID.msgtype))
+    res = grid.resolution_m
+    c0, r0 = round(grid.origin_xy[0] / res), round(grid.origin_xy[1] / res)
+    rows, cols = np.nonzero(grid.data >= 0)
+    return {(c0 + c, r0 + r): int(grid.data[r, c]) for r, c in zip(rows.tolist(), cols.tolist())}
+
+
+def test_the_grid_does_not_depend_on_how_the_camera_was_held_at_the_start(tmp_path: Path) -> None:
+    """The synthetic room, the same path twice: once from a (nearly) level start, once starting 30
+    degrees further down and levelling out over one second. With up from the simulated IMU, the two
+    grids agree on 99.6 % of the cells both know (the tilted start sees some more floor at first:
+    coverage differs, placement does not). The control: the tilted session's mapper re-run under the
+    old assumption (up = the first camera's -y) agrees on about 40 %."""
+    level, tilted, assumed = tmp_path / "level", tmp_path / "tilted", tmp_path / "assumed"
+    octolog("run", "--source", "synthetic:90", "--out", str(level), "--quiet", "--rerun", "off")
+    octolog("run", "--source", "synthetic:90:tilt=30", "--out", str(tilted), "--quiet", "--rerun", "off")
+    octolog("replay", str(tilted), "--from", "tracker", "--set", "mapper.grid_up=[0.0,-1.0,0.0]", "--out",
+            str(assumed), "--quiet", "--rerun", "off")
+
+    def agreement(a: dict, b: dict) -> float:
+        both = set(a) & set(b)
+        assert len(both) > 0.6 * max(len(a), len(b))
+        return sum(a[k] == b[k] for k in both) / len(both)
+
+    ref = _grid_cells(level)
+    assert agreement(ref, _grid_cells(tilted)) >= 0.98
+    assert agreement(ref, _grid_cells(assumed)) < 0.8
+    # and the tilted session's map frame is upright: 0.6 degrees from the room's z (measured)
+    up = np.array(tomllib.loads((tilted / "config.toml").read_text())["mapper"]["grid_up"])
+    assert _z_tilt(tilted, map_from_world_for_up(up)) <= 2.0
