@@ -7,8 +7,8 @@ captures the screen once the viewer has caught up with the end of the data.
     make screenshots        # installs xvfb, mesa-vulkan-drivers, imagemagick, xdotool (apt) first
     python bench/screenshots.py [--out docs/img] [--tum PATH] [--wait 60]
 
-The viewer opens the recordings with the pipeline's own blueprint (octolog.kit.viz), its time panel
-set to follow the latest data, so each shot shows the whole map.
+The viewer opens the recordings with the blueprint they carry (octolog.kit.viz); the script presses
+the time panel's "follow latest data" button so that each shot shows the whole map.
 """
 
 from __future__ import annotations
@@ -22,10 +22,12 @@ import tempfile
 import time
 from pathlib import Path
 
-from octolog.kit.viz import APPLICATION_ID, pipeline_blueprint
 
 ROOT = Path(__file__).resolve().parents[1]
 DISPLAY = ":93"
+LOAD_S = 20.0
+FOLLOW_BUTTON = ("54", "985")  # in the viewer's time panel (rerun-sdk 0.41, 1600x1000)
+IDLE_POINTER = ("1100", "18")  # an empty spot of its top bar
 SIZE = "1600x1000"
 
 
@@ -44,15 +46,18 @@ def _session(args: list[str], out: Path) -> Path:
 
 def _shot(session: Path, png: Path, wait_s: float) -> None:
     """Open the session's recordings in the viewer on the virtual display and capture it."""
-    blueprint = session / "following.rbl"
-    pipeline_blueprint(follow_latest=True).save(APPLICATION_ID, str(blueprint))  # the latest data: the whole map
     env = {**os.environ, "DISPLAY": DISPLAY, "RERUN_DISABLE_ANALYTICS": "1"}
-    viewer = subprocess.Popen([str(Path(sys.executable).parent / "rerun"), *map(str, sorted((session / "rerun").glob("*.rrd"))),
-                               str(blueprint)], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    rerun = str(Path(sys.executable).parent / "rerun")
+    viewer = subprocess.Popen([rerun, *map(str, sorted((session / "rerun").glob("*.rrd")))], env=env,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        time.sleep(wait_s)  # software rendering: the viewer needs this long to load and draw the map
-        subprocess.run([_need("xdotool"), "mousemove", "1599", "999"], env=env, check=True)  # no hover tooltip
-        time.sleep(2)
+        time.sleep(LOAD_S)  # the viewer reads the recordings and starts playing them
+        # the time panel's "follow latest data" button (bottom left of a 1600x1000 window): the whole
+        # map at once, where playing it in real time on a software rasteriser takes minutes
+        xdotool = _need("xdotool")
+        subprocess.run([xdotool, "mousemove", *FOLLOW_BUTTON, "click", "1"], env=env, check=True)
+        subprocess.run([xdotool, "mousemove", *IDLE_POINTER], env=env, check=True)  # no hover tooltip
+        time.sleep(wait_s)  # software rendering: the viewer needs this long to draw the whole map
         png.parent.mkdir(parents=True, exist_ok=True)
         subprocess.run([_need("import"), "-window", "root", str(png)], env=env, check=True)
     finally:

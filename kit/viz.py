@@ -50,13 +50,11 @@ def _blob(data: Any) -> np.ndarray:
 PIPELINE_STAGES = ("replay", "tracker", "mapper")
 
 
-def pipeline_blueprint(*, follow_latest: bool = False) -> Any:
+def pipeline_blueprint() -> Any:
     """The viewer's layout for a session: the map in 3D, the camera and the keyframe depth, the grid,
-    the tracker's and mapper's timings and the events; fixed, so every launch looks the same.
-    `follow_latest`: the time panel follows the latest data (a finished session: the whole map)."""
+    the tracker's and mapper's timings and the events; fixed, so every launch looks the same."""
     import rerun.blueprint as rrb
 
-    time_panel = [rrb.TimePanel(play_state="following")] if follow_latest else []
     return rrb.Blueprint(
         rrb.Horizontal(
             # rooted at the map frame (z up), which the mapper places `world` in: the room stands upright
@@ -74,7 +72,6 @@ def pipeline_blueprint(*, follow_latest: bool = False) -> Any:
             ),
             column_shares=[3, 2, 2],
         ),
-        *time_panel,
         collapse_panels=True,
     )
 

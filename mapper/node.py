@@ -33,6 +33,7 @@ from octolog.schemas.topics import (
     MAP_UPDATE,
     OCCUPIED,
     OCTOMAP,
+    TF_STATIC,
 )
 
 # Keyframes come in bursts (a new place: one every few frames) that the mapper, at ~0.1-0.5 s each,
@@ -92,7 +93,7 @@ def run(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: str = "o
         return run_fleet(cfg, bus_cfg, out_dir=out_dir, rerun=rerun, recording_id=recording_id)
     mapper = make_mapper(cfg)
     with Bus(bus_cfg, "mapper", inbox_size=INBOX_KEYFRAMES) as bus, Viz(rerun, "mapper", recording_id) as viz:
-        viz.map_frame(map_from_world(mapper.params.grid))
+        announce_map_frame(mapper, bus, viz)
         publisher = Publisher(bus, mapper, cfg.publish_every)
         result = consume(mapper, cfg, bus, viz, publisher, out_dir)
         finish(mapper, result, bus, viz, publisher, out_dir)
@@ -131,12 +132,20 @@ def run_fleet(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: st
         robot_buses = [stack.enter_context(Bus(dataclasses.replace(bus_cfg, namespace=r), "mapper"))
                        for r in cfg.robots]
         viz = stack.enter_context(Viz(rerun, "mapper", recording_id))
-        viz.map_frame(map_from_world(mapper.params.grid))
+        announce_map_frame(mapper, bus, viz)
         publisher = Publisher(bus, mapper, cfg.publish_every)
         result, trajectories = consume_fleet(mapper, cfg, bus, robot_buses, viz, publisher, out_dir)
         per_robot = write_trajectories(mapper, cfg.robots, trajectories, out_dir)
         finish(mapper, result, bus, viz, publisher, out_dir, {"robots": per_robot})
     return result
+
+
+def announce_map_frame(mapper: Mapper, bus: Bus, viz: Viz) -> None:
+    """`map` -> `world` on /tf_static (once; the bus's history serves late joiners) and in Rerun:
+    the z-up frame the grid lies in (docs/formats.md, "Frames")."""
+    T = map_from_world(mapper.params.grid)
+    bus.publisher(TF_STATIC).put(codec.tf_msg([("map", "world", T)], 0))
+    viz.map_frame(T)
 
 
 def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list[Bus], viz: Viz,

@@ -228,7 +228,7 @@ class RealSenseBagPlan(BagPlan):
                 raise InputError(f"{self.path}: {c.topic}: no camera_info for stream {stream} (missing calibration)")
         tfs = self._tf_static()
         if tfs and first is not None:
-            sink.put(TF_STATIC.name, TF_STATIC.msgtype, codec.tf_static_msg(tfs, first), first)
+            sink.put(TF_STATIC.name, TF_STATIC.msgtype, codec.tf_msg(tfs, first), first)
 
     @staticmethod
     def _info_msg(intr: Intrinsics, model: str, stamp: int, frame_id: str) -> Any:

@@ -516,7 +516,7 @@ class Recorder:
             self._file_first_ns = stamp_ns
             self._file_messages = {}
             self.result.paths.append(path)
-            tf = codec.tf_static_msg(self._transforms(), stamp_ns)
+            tf = codec.tf_msg(self._transforms(), stamp_ns)
             w.write(T.TF_STATIC.name, T.TF_STATIC.msgtype, codec.encode(tf, T.TF_STATIC.msgtype),
                     log_time_ns=stamp_ns, publish_time_ns=stamp_ns)
             self._file_messages[T.TF_STATIC.name] = 1

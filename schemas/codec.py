@@ -346,8 +346,8 @@ def imu_msg(stamp: int, frame_id: str, *, angular_velocity: tuple[float, float, 
     )
 
 
-def tf_static_msg(transforms: list[tuple[str, str, np.ndarray]], stamp: int) -> Any:
-    """tf2_msgs/TFMessage of (parent, child, parent_from_child 4x4) static transforms."""
+def tf_msg(transforms: list[tuple[str, str, np.ndarray]], stamp: int) -> Any:
+    """tf2_msgs/TFMessage (for /tf or /tf_static) of (parent, child, parent_from_child 4x4) transforms."""
     Vector3 = msgtype("geometry_msgs/msg/Vector3")
     Quaternion = msgtype("geometry_msgs/msg/Quaternion")
     out = []

@@ -59,8 +59,12 @@ OCCUPIED = Topic("mapper/occupied", "sensor_msgs/msg/PointCloud2")
 GRID = Topic("mapper/grid", "nav_msgs/msg/OccupancyGrid")
 MAP_END = Topic("mapper/end", "octolog_msgs/msg/StreamEnd")
 
+# The frames (docs/formats.md "Frames"): the tracker's camera in `world` on every frame; the
+# mapper's `map` -> `world` once (REP 105's map frame: z up)
+TF = Topic("tf", "tf2_msgs/msg/TFMessage")
+
 ALL = (RGBD, RGBD_END, POSE, TRACKING_STATUS, KEYFRAME, KEYFRAME_END, KEYFRAME_POSES, MAP_UPDATE, OCTOMAP,
-       OCCUPIED, GRID, MAP_END, RGBD_COMPRESSED, KEYFRAME_COMPRESSED, CAMERA_PROPERTIES)
+       OCCUPIED, GRID, MAP_END, RGBD_COMPRESSED, KEYFRAME_COMPRESSED, CAMERA_PROPERTIES, TF, TF_STATIC)
 # The mapper's queryable: a late joiner `get`s the current map (octomap_msgs/Octomap, binary).
 MAP_QUERY = Topic("mapper/map", "octomap_msgs/msg/Octomap")
 # Ask the mapper to write its files now; the reply (JSON in a String) names them.

@@ -70,12 +70,12 @@ def test_a_domain_out_of_range_is_refused() -> None:
 
 def test_a_ros2_subscriber_sees_a_runs_pose_and_grid(router, tmp_path) -> None:  # noqa: F811
     """`octolog run --ros2-domain 0` on the synthetic room: a plain Zenoh subscriber on the keys a
-    ROS 2 node with rmw_zenoh would use for /tracker/pose and /mapper/grid gets every pose and the
+    ROS 2 node with rmw_zenoh would use for /tracker/pose, /tf and /mapper/grid gets every pose and the
     grids, readable with rosbags' stock Jazzy types and numbered as rmw_zenoh numbers; the ROS graph
     lists the stages' nodes and publishers. Topics of octolog's own types stay off the ROS keys."""
     jazzy = get_typestore(Stores.ROS2_JAZZY)
     pose_key = "0/tracker/pose/geometry_msgs::msg::dds_::PoseStamped_/" + PUBLISHED["geometry_msgs/msg/PoseStamped"]
-    got: dict[str, list[tuple[bytes, bytes]]] = {"pose": [], "grid": [], "other": []}
+    got: dict[str, list[tuple[bytes, bytes]]] = {"pose": [], "grid": [], "tf": [], "other": []}
     tokens: set[str] = set()
     lock = threading.Lock()
 
@@ -92,6 +92,7 @@ def test_a_ros2_subscriber_sees_a_runs_pose_and_grid(router, tmp_path) -> None: 
     with zenoh.open(conf) as z:
         subs = [z.declare_subscriber(pose_key, keep("pose")),
                 z.declare_subscriber("0/mapper/grid/nav_msgs::msg::dds_::OccupancyGrid_/*", keep("grid")),
+                z.declare_subscriber("0/tf/tf2_msgs::msg::dds_::TFMessage_/*", keep("tf")),
                 z.declare_subscriber("0/camera/rgbd/**", keep("other")),
                 z.liveliness().declare_subscriber("@ros2_lv/0/**", lambda s: tokens.add(str(s.key_expr)))]
         out = tmp_path / "s"
@@ -114,6 +115,9 @@ def test_a_ros2_subscriber_sees_a_runs_pose_and_grid(router, tmp_path) -> None: 
     grid = jazzy.deserialize_cdr(got["grid"][-1][0], "nav_msgs/msg/OccupancyGrid")
     assert grid.info.width * grid.info.height == len(grid.data) > 0
     assert got["other"] == []  # octolog_msgs/RgbdFrame: no ROS 2 key
+    assert len(got["tf"]) == 40  # the camera in `world`, every frame
+    tf = jazzy.deserialize_cdr(got["tf"][0][0], "tf2_msgs/msg/TFMessage").transforms[0]
+    assert (tf.header.frame_id, tf.child_frame_id) == ("world", "camera_color_optical_frame")
     nodes = {t.rsplit("/", 1)[1] for t in tokens if "/NN/" in t}
     assert {"octolog_tracker", "octolog_mapper"} <= nodes
     assert any(t.endswith(f"/MP/%/%/octolog_tracker/%tracker%pose/{pose_key.split('/', 3)[3]}/::,10:,:,:,,")

@@ -27,6 +27,7 @@ from octolog.schemas.topics import (
     RGBD,
     RGBD_COMPRESSED,
     RGBD_END,
+    TF,
     TRACKING_STATUS,
 )
 from octolog.tracker.config import TrackerConfig
@@ -70,7 +71,7 @@ def run(cfg: TrackerConfig, bus_cfg: BusConfig, *, trajectory: Path | None = Non
 
 
 def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerResult:
-    pub_pose, pub_status = bus.publisher(POSE), bus.publisher(TRACKING_STATUS)
+    pub_pose, pub_status, pub_tf = bus.publisher(POSE), bus.publisher(TRACKING_STATUS), bus.publisher(TF)
     pub_kf = KeyframeOut(bus, cfg.wire_compression)
     pub_kf_end = bus.publisher(KEYFRAME_END)
     pub_poses = bus.publisher(KEYFRAME_POSES)
@@ -140,6 +141,7 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
         result.tracked += res.state == TrackingState.OK
         result.lost += res.state == TrackingState.LOST
         pub_pose.put(codec.pose_stamped_msg(res.world_from_camera, frame.stamp_ns))
+        pub_tf.put(codec.tf_msg([("world", frame.frame_id, res.world_from_camera)], frame.stamp_ns))
         if res.corrected:  # a loop closed: the mapper moves those keyframes
             pub_poses.put(codec.keyframe_poses_msg(res.corrected, frame.stamp_ns))
         result.loops += res.loop is not None
