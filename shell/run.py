@@ -30,6 +30,7 @@ from octolog.kit.errors import ConfigError, InputError, OctologError, StageError
 from octolog.kit.mcaplog import message_counts, read_messages, summarize
 from octolog.kit.viz import parse_spec
 from octolog.mapper.config import MapperConfig
+from octolog.replay import gravity
 from octolog.replay.config import ReplayConfig
 from octolog.replay.sources import Source, open_source
 from octolog.schemas import codec
@@ -102,8 +103,12 @@ def _map_frame(cfg: MapperConfig, src: Source | LiveSource) -> tuple[MapperConfi
     up = src.gravity_up()
     if up is None:
         return cfg, None
+    levelled = False
+    if not isinstance(src, LiveSource):  # a file: its first frame is at hand
+        up, levelled = gravity.level_on_plane(up, next(iter(src.frames(0, 1))))
     up_t = tuple(float(v) for v in up)
-    return dataclasses.replace(cfg, grid_up=up_t), {"up": json.dumps(up_t), "note": "gravity-aligned (accelerometer)"}
+    note = "gravity-aligned (accelerometer" + (", levelled on a horizontal plane of frame 0)" if levelled else ")")
+    return dataclasses.replace(cfg, grid_up=up_t), {"up": json.dumps(up_t), "note": note}
 
 
 def _split_overrides(overrides: list[str], *, live: bool = False) -> dict[str, list[str]]:
