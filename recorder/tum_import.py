@@ -18,14 +18,20 @@ from octolog.kit.geometry import Intrinsics
 from octolog.kit.tum import TUM_DEPTH_SCALE_M, open_tum, read_list, read_png, read_rows, readout_for, seconds_to_ns
 from octolog.recorder.import_output import ACCEL_FRAME, COLOR_FRAME, ImportResult, intrinsics_fields, open_output
 from octolog.schemas import codec
-from octolog.schemas.topics import ACCEL, ALIGNED_DEPTH, ALIGNED_DEPTH_INFO, COLOR, COLOR_INFO
+from octolog.schemas.topics import ACCEL, ALIGNED_DEPTH, ALIGNED_DEPTH_INFO, COLOR, COLOR_INFO, TF_STATIC
+
+# The Kinect's accelerometer axes in the colour camera's optical frame (x left, y up, z forward:
+# measured against fr1/xyz's ground truth, octolog.replay.gravity): colour_from_accel, a half turn
+# about the optical axis
+COLOR_FROM_KINECT_ACCEL = np.diag([-1.0, -1.0, 1.0, 1.0])
 
 
 def import_tum(folder: Path, output: Path, *, overwrite: bool = False, compression: str = "zstd",
                intrinsics: Intrinsics | None = None, camera: str = "",
                progress: Callable[[int], None] | None = None) -> ImportResult:
     """TUM RGB-D folder -> MCAP: every listed colour and depth image (registered depth, 1/5000 m),
-    accelerometer.txt as Imu, groundtruth.txt as metadata; stamps exact from the decimal seconds."""
+    accelerometer.txt as Imu (the Kinect's own axes, placed by a /tf_static), groundtruth.txt as
+    metadata; stamps exact from the decimal seconds."""
     folder = Path(folder)
     seq = open_tum(folder, intrinsics, camera=camera)  # validates the folder; the camera's intrinsics unless given
     intr = seq.intrinsics
@@ -37,6 +43,10 @@ def import_tum(folder: Path, output: Path, *, overwrite: bool = False, compressi
                     + [(t, 2, i) for i, (t, _) in enumerate(accel)], key=lambda e: (e[0], e[1]))
     result = ImportResult(folder, Path(output), "tum", depth_scale_m=TUM_DEPTH_SCALE_M, depth_registered=True)
     with open_output(output, overwrite=overwrite, compression=compression, progress=progress) as sink:
+        if accel:  # where the samples' axes lie, as realsense-ros says it for its IMU
+            first = events[0][0]
+            sink.put(TF_STATIC.name, TF_STATIC.msgtype,
+                     codec.tf_msg([(COLOR_FRAME, ACCEL_FRAME, COLOR_FROM_KINECT_ACCEL)], first), first)
         for stamp, what, i in events:
             if what == 0:
                 img = read_png(folder / rgb[i][1], cv2.IMREAD_COLOR)

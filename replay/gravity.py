@@ -35,7 +35,8 @@ G = 9.80665
 WINDOW_S = 0.1  # samples this close to the first frame are averaged
 # a mean this far from g is no rest reading (the camera was accelerating, or the units are wrong)
 MAX_G_ERROR = 0.25
-# TUM's Kinect accelerometer axes in the colour camera's optical frame (see the module docstring)
+# TUM's Kinect accelerometer axes in the colour camera's optical frame (see the module docstring;
+# `octolog import` writes it into the MCAP as a /tf_static)
 KINECT_TO_OPTICAL = np.diag([-1.0, -1.0, 1.0])
 # the simulated IMU: 200 Hz, white noise and a per-axis bias of a consumer MEMS accelerometer
 SIM_RATE_HZ = 200.0
@@ -172,3 +173,56 @@ def _refine_plane(P: np.ndarray, inliers: np.ndarray, up: np.ndarray,
             or count < PLANE_MIN_SHARE * len(P)):
         return None
     return normal, count
+
+
+def recorded_up(path: Path, first_stamp_ns: int, color_frame: str) -> np.ndarray | None:
+    """Up at a recording's first colour frame from its `camera/accel/sample` (sensor_msgs/Imu, the
+    realsense-ros topic `octolog record` writes), rotated into the colour camera's optical frame by
+    the file's `/tf_static` (None without accelerometer samples near that frame). Without a
+    transform from the accelerometer's frame to the colour frame, the two are taken as aligned:
+    RealSense IMU optical frames share the cameras' axes."""
+    from octolog.kit.mcaplog import read_messages
+    from octolog.schemas import codec
+    from octolog.schemas.topics import ACCEL, TF_STATIC
+
+    samples, accel_frame, parent_from_child = [], "", {}
+    for m in read_messages(path, [ACCEL.name, TF_STATIC.name]):
+        msg = codec.decode(m.data, TF_STATIC.msgtype if m.topic == TF_STATIC.name else ACCEL.msgtype)
+        if m.topic == TF_STATIC.name:
+            for tf in msg.transforms:
+                q = tf.transform.rotation
+                parent_from_child[tf.child_frame_id] = (tf.header.frame_id, _quat_matrix(q.x, q.y, q.z, q.w))
+            continue
+        t = codec.stamp_ns(msg.header)
+        if abs(t - first_stamp_ns) <= WINDOW_S * 1e9:
+            a = msg.linear_acceleration
+            samples.append((a.x, a.y, a.z))
+            accel_frame = msg.header.frame_id
+        elif t > first_stamp_ns + WINDOW_S * 1e9:
+            break
+    rotation = _rotation_between(parent_from_child, color_frame, accel_frame)
+    return up_from_samples(np.array(samples, dtype=np.float64).reshape(-1, 3), rotation, str(path))
+
+
+def _quat_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_quat([x, y, z, w]).as_matrix()
+
+
+def _rotation_between(parent_from_child: dict[str, tuple[str, np.ndarray]], target: str, source: str) -> np.ndarray:
+    """target_from_source rotation through a static tree (child -> (parent, parent_from_child));
+    identity when either frame is not in it."""
+    def to_root(frame: str) -> tuple[str, np.ndarray]:
+        R = np.eye(3)
+        for _ in range(16):  # a tree, not a cycle
+            if frame not in parent_from_child:
+                break
+            parent, P = parent_from_child[frame]
+            R, frame = P @ R, parent
+        return frame, R
+    root_t, root_from_target = to_root(target)
+    root_s, root_from_source = to_root(source)
+    if not target or not source or root_t != root_s:
+        return np.eye(3)
+    return root_from_target.T @ root_from_source

@@ -200,7 +200,10 @@ class McapSource:
         return self._metadata.get("groundtruth", {}).get("tum")
 
     def gravity_up(self) -> np.ndarray | None:
-        """The up vector the session that wrote this log found (its metadata), if any."""
+        """A recording's accelerometer at its first frame; the up vector the session that wrote a
+        session log found (its metadata), if any."""
+        if self._standard is not None:
+            return self._standard.gravity_up()
         return gravity.up_from_metadata(self._metadata, str(self.path))
 
 

@@ -65,8 +65,14 @@ class StandardSequence:
     def groundtruth_tum(self) -> str | None:
         return self.metadata.get("groundtruth", {}).get("tum")
 
-    def gravity_up(self) -> None:
-        return None  # the D455's accelerometer topic is not read yet
+    def gravity_up(self) -> np.ndarray | None:
+        """Up at the first frame from the recording's accelerometer (octolog.replay.gravity)."""
+        from octolog.replay.gravity import recorded_up
+
+        if not self.pairs:
+            return None
+        frame = next(iter(self.frames(0, 1)))
+        return recorded_up(self.path, self.color_stamps[self.pairs[0][0]], frame.frame_id)
 
     def frames(self, start: int = 0, end: int | None = None) -> Iterator[RgbdFrame]:
         """Frames start..end in pair order; reads the file once, holding only images not yet paired."""

@@ -94,6 +94,16 @@ def test_levelling_on_a_plane_takes_the_floor_not_a_wall() -> None:
     assert not levelled and up is off
 
 
+def test_a_recordings_accelerometer_gives_up(tmp_path: Path) -> None:
+    """`octolog record` writes the D455's accelerometer (camera/accel/sample) and where it sits
+    (/tf_static); replaying the recording takes up from it, in the colour camera's frame. The
+    simulated D455 is held level: up is image-up, (0, -1, 0), within its samples' wobble."""
+    out = tmp_path / "r.mcap"
+    octolog("record", str(out), "--backend", "software", "--duration", "1", "--quiet")
+    up = open_source(f"mcap:{out}").gravity_up()
+    assert _deg(up, np.array([0.0, -1.0, 0.0])) < 2.0
+
+
 def test_a_tilted_start_levels_out_after_one_second() -> None:
     t = np.array([0.0, 0.5, 1.0, 2.0])
     _, level = camera_trajectory(t)

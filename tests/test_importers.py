@@ -58,7 +58,7 @@ def test_tum_round_trip_is_byte_identical(tmp_path):
     out = tmp_path / "tum.mcap"
     result = import_tum(folder, out, intrinsics=SMALL)
     assert result.counts == {topics.COLOR.name: 5, topics.COLOR_INFO.name: 5, topics.ALIGNED_DEPTH.name: 5,
-                             topics.ALIGNED_DEPTH_INFO.name: 5, topics.ACCEL.name: 2}
+                             topics.ALIGNED_DEPTH_INFO.name: 5, topics.ACCEL.name: 2, topics.TF_STATIC.name: 1}
     assert result.depth_scale_m == TUM_DEPTH_SCALE_M and result.depth_registered is True
     want = list(open_tum(folder, SMALL).frames())
     assert_same_frames(list(read_standard_frames(out)), want)
@@ -72,7 +72,13 @@ def test_tum_round_trip_is_byte_identical(tmp_path):
     # Log time is the exact sensor stamp; the IMU holds acceleration only.
     for m in read_messages(out):
         msg = codec.decode(m.data, m.msgtype)
-        assert m.log_time_ns == codec.stamp_ns(msg.header)
+        assert m.log_time_ns == codec.stamp_ns(msg.transforms[0].header if m.topic == topics.TF_STATIC.name
+                                               else msg.header)
+    # where the Kinect accelerometer's axes lie: a half turn about the colour camera's optical axis
+    (tf,) = [codec.decode(m.data, topics.TF_STATIC.msgtype) for m in read_messages(out, [topics.TF_STATIC.name])]
+    t = tf.transforms[0]
+    assert (t.header.frame_id, t.child_frame_id) == ("camera_color_optical_frame", "camera_accel_optical_frame")
+    assert abs(abs(t.transform.rotation.z) - 1.0) < 1e-12
     imu = [codec.decode(m.data, topics.ACCEL.msgtype) for m in read_messages(out, [topics.ACCEL.name])]
     assert codec.stamp_ns(imu[0].header) == 100_001_000_000
     assert imu[0].linear_acceleration.y == -9.8 and imu[0].linear_acceleration_covariance[0] == 0
@@ -405,7 +411,7 @@ def _rerun_converts(path: Path, tmp_path: Path) -> None:
 def test_imported_tum_opens_in_rosbags_and_rerun(tmp_path):
     out = tmp_path / "tum.mcap"
     import_tum(tiny_tum(tmp_path), out, intrinsics=SMALL)
-    _rosbags_reads(out, 22)
+    _rosbags_reads(out, 23)  # 20 images and infos, 2 IMU samples, 1 /tf_static
     _rerun_converts(out, tmp_path)
 
 

@@ -217,6 +217,9 @@ def test_imported_tum_replays_to_the_same_trajectory(tum_run, tmp_path):
     octolog("run", "--source", f"mcap:{tmp_path / 'fr1.mcap'}", "--out", str(tmp_path / "o"), "--quiet", "--rerun", "off")
     for name in ("trajectory.txt", "map.bt"):
         assert (tmp_path / "o" / name).read_bytes() == (tum_run[0] / name).read_bytes(), name
+    # the accelerometer travels with it (its axes as a /tf_static): the same up, the same grid
+    for name in ("map.pgm", "map.yaml"):
+        assert (tmp_path / "o" / name).read_bytes() == (tum_run[0] / name).read_bytes(), name
 
 
 # --- failures ----------------------------------------------------------------------------------
