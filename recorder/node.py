@@ -151,6 +151,7 @@ class BusPublisher:
         self._rgbd_end = bus.publisher(T.RGBD_END)
         self._props = bus.publisher(T.CAMERA_PROPERTIES)
         bus.announce()
+        bus.watch(["tracker"], required=False)  # see `end`
 
     def __call__(self, cap: Capture, msgs: list[Encoded]) -> None:
         for m in msgs:
@@ -178,8 +179,11 @@ class BusPublisher:
                 self._device.depth_scale_m, self._device.color, self._frame)))
 
     def end(self) -> None:
-        """Tell consumers how many RGB-D frames went out (the tracker's end-of-stream)."""
+        """Tell consumers how many RGB-D frames went out (the tracker's end-of-stream), then stay
+        until the tracker has taken them: a live tracker may be far behind, and a producer gone
+        before its consumer reached the end would be taken for a dead one."""
         self._rgbd_end.put(codec.stream_end_msg(self._rgbd.topic.name, self._rgbd.count))
+        self._bus.linger("tracker")
 
 
 class VizLogger:

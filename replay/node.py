@@ -163,6 +163,7 @@ def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Pro
     # lockstep needs the tracker's statuses; the status line shows them and the mapper's updates
     watched = ([TRACKING_STATUS] if cfg.rate == 0 else []) + ([TRACKING_STATUS, MAP_UPDATE] if progress else [])
     bus.start(list(dict.fromkeys(watched)), wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
+    bus.watch(["tracker"], required=False)  # see the end
     # before the first frame, which depends on it (wire numbering): a tracker anywhere knows the camera
     props_pub.put(codec.camera_properties_msg(source.name, source.readout_s))
     end = None if cfg.end < 0 else cfg.end
@@ -191,8 +192,12 @@ def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Pro
             progress(status)
     pacer.finish(frames_pub.count)
     end_pub.put(codec.stream_end_msg(frames_pub.topic.name, frames_pub.count, last_stamp or 0))
+    wall_s = time.monotonic() - t0
+    # stay (histories and all) until the tracker has taken every frame: a tracker far behind would
+    # otherwise see its source gone before the end and, after peer_timeout_s, take it for dead
+    bus.linger("tracker")
     duration = ((last_stamp or 0) - (first_stamp or 0)) * 1e-9
-    return ReplayResult(frames_pub.count, time.monotonic() - t0, duration)
+    return ReplayResult(frames_pub.count, wall_s, duration)
 
 
 def play_tracker_log(cfg: ReplayConfig, bus_cfg: BusConfig) -> ReplayResult:

@@ -292,7 +292,7 @@ class Subsampled:
 
 
 def open_source(spec: str, *, only_consumed: bool = False, camera: str = "", every: int = 1) -> Source:
-    """Open `tum:PATH`, `mcap:PATH` or `synthetic[:N]`; errors name the problem in one line.
+    """Open `tum:PATH`, `mcap:PATH` or `synthetic[:N[:tilt=DEG]]`; errors name the problem in one line.
     `camera` names a TUM folder's camera when its name does not (replay.camera); `every` > 1 plays
     every `every`-th frame only (replay.every)."""
     if every < 1:
@@ -325,4 +325,4 @@ def _open(spec: str, only_consumed: bool, camera: str) -> Source:
         if len(options) > 1 or (options and not options[0].startswith("tilt=")) or not -80.0 <= tilt <= 80.0:
             raise ConfigError(f"source {spec!r}: want synthetic[:N[:tilt=DEG]] with -80 <= DEG <= 80")
         return SyntheticSource(n, tilt)
-    raise ConfigError(f"source {spec!r}: want tum:PATH, mcap:PATH or synthetic[:N]")
+    raise ConfigError(f"source {spec!r}: want tum:PATH, mcap:PATH or synthetic[:N[:tilt=DEG]]")

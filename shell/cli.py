@@ -254,7 +254,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("run", help="whole pipeline as separate processes on one machine")
     p.add_argument("--source", required=True,
-                   help="tum:PATH, mcap:PATH, synthetic[:N], or live: d455 (a camera) or d455:software (simulated)")
+                   help="tum:PATH, mcap:PATH, synthetic[:N[:tilt=DEG]], or live: d455 (a camera) or d455:software (simulated)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--duration", type=float, default=0.0,
                    help="live sources: stop after this many seconds of camera time (0: until the stream ends)")
@@ -272,7 +272,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = stage("replay", "publish a source's frames on the bus, or re-run stages of a recorded SESSION")
     p.add_argument("session", nargs="?", help="a session folder (made by octolog run): re-run stages from its log")
-    p.add_argument("--source", help="tum:PATH, mcap:PATH or synthetic[:N]")
+    p.add_argument("--source", help="tum:PATH, mcap:PATH or synthetic[:N[:tilt=DEG]]")
     p.add_argument("--stages", default="tracker,mapper", help="SESSION: stages to run fresh (tracker,mapper or mapper)")
     p.add_argument("--from", dest="from_stage", metavar="STAGE",
                    help="SESSION: feed the logged output of STAGE (tracker) to fresh downstream stages")

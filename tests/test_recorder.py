@@ -484,7 +484,7 @@ def test_publishes_live_while_recording(tmp_path):
             r = sub.receive(30.0)
             assert r is not None, "no end message"
             got.setdefault(r.topic.name, []).append(r.payload)
-        t.join(60)
+    t.join(60)  # the recorder stays until its tracker (this subscriber) is done: leaving `with` says so
     res = result["res"]
     live = res.streams["color"].live_drops
     assert T.RGBD.name not in got  # JPEG colour is recorded: frames go out compressed, never raw
