@@ -45,8 +45,9 @@ SIM_BIAS_MS2 = 0.04
 
 
 def up_from_samples(samples: np.ndarray, to_optical: np.ndarray, where: str) -> np.ndarray | None:
-    """The mean of (N, 3) accelerometer samples as a unit up vector in the optical frame; None
-    when there are none or their mean is not about g (not a rest reading)."""
+    """The mean of (N, 3) accelerometer samples as a unit up vector in the optical frame (rotated
+    by `to_optical`); None when there are none. InputError when their mean is not about g (wrong
+    units, or no rest reading)."""
     if samples.shape[0] == 0:
         return None
     mean = samples.mean(axis=0)

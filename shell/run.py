@@ -279,7 +279,7 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     src = LiveSource(source) if live else open_source(source, only_consumed=replay_cfg.only_consumed,
                                                       camera=replay_cfg.camera, every=replay_cfg.every)
     cfgs["tracker"] = for_source(cfgs["tracker"], src)  # an unset rolling shutter: the source's camera
-    cfgs["mapper"], gravity = _map_frame(cfgs["mapper"], src)
+    cfgs["mapper"], map_frame = _map_frame(cfgs["mapper"], src)
     prepare_out(out, overwrite=overwrite)
     marker = out / INCOMPLETE
     # written first, removed last: even a kill -9 of this process leaves the folder marked
@@ -288,7 +288,7 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
                       f"if no run is going on, it failed or was killed\n")
     try:
         summary = _run(source, out, src, cfgs, feed_tracker, rerun, recording_id, quiet, duration_s, router,
-                       ros2_domain, gravity)
+                       ros2_domain, map_frame)
     except BaseException as exc:
         what = str(exc) if isinstance(exc, OctologError) else \
             ("interrupted" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}")
@@ -303,7 +303,7 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
 
 def _run(source: str, out: Path, src: Source | LiveSource, cfgs: dict[str, Any], feed_tracker: bool, rerun: str,
          recording_id: str, quiet: bool, duration_s: float = 0.0, router: str | None = None,
-         ros2_domain: int = -1, gravity: dict[str, str] | None = None) -> SessionSummary:
+         ros2_domain: int = -1, map_frame: dict[str, str] | None = None) -> SessionSummary:
     if rerun == "save":
         rerun = f"save:{out / 'rerun'}"
     parse_spec(rerun)
@@ -316,8 +316,8 @@ def _run(source: str, out: Path, src: Source | LiveSource, cfgs: dict[str, Any],
                 "config": {k: json.dumps(to_dict(v), sort_keys=True) for k, v in cfgs.items()}}
     if gt:
         metadata["groundtruth"] = {"tum": gt}
-    if gravity:
-        metadata["gravity"] = gravity
+    if map_frame:  # where up came from (see _map_frame)
+        metadata["gravity"] = map_frame
     (out / "metadata.json").write_text(json.dumps(metadata, indent=2, sort_keys=True))
 
     endpoint = router or f"tcp/127.0.0.1:{_free_port()}"

@@ -93,8 +93,8 @@ def parse_attachment(data: bytes) -> tuple[int, int, bytes]:
 class Ros2Node:
     """A stage as a node in the ROS graph of one domain: its token, and one mirror per publisher."""
 
-    def __init__(self, session: object, domain: int, stage: str, namespace: str = "") -> None:
-        self._session, self.domain, self._namespace = session, domain, namespace
+    def __init__(self, session: object, domain: int, stage: str) -> None:
+        self._session, self.domain = session, domain
         self.name = f"octolog_{stage or 'node'}"
         self._zid = str(session.zenoh.info.zid())
         self._entities = 0
