@@ -29,7 +29,7 @@ import numpy as np
 from long_session import FPS, loop_poses  # noqa: E402  (bench/ is this script's folder)
 from pipeline import pct  # noqa: E402
 
-from octolog.kit.mcaplog import McapWriter, read_messages
+from octolog.kit.mcaplog import McapWriter, read_wire
 from octolog.kit.metrics import format_tum
 from octolog.replay.synthetic_trajectory import LOOP_S
 from octolog.schemas import codec, topics
@@ -140,7 +140,7 @@ def report(out: Path, rows: list[dict], wall: float, n: int) -> None:
     track: dict[int, list[float]] = {}
     mapper: dict[int, list[float]] = {}
     t_first = None
-    for m in read_messages(out / "session.mcap", [topics.TRACKING_STATUS.name, topics.MAP_UPDATE.name]):
+    for m in read_wire(out / "session.mcap", [topics.TRACKING_STATUS.name, topics.MAP_UPDATE.name]):
         msg = codec.decode(m.data, topics.BY_NAME[m.topic].msgtype)
         stamp = codec.stamp_ns(msg.header)
         t_first = stamp if t_first is None else t_first

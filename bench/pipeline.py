@@ -61,7 +61,7 @@ def source_bytes(source: str, every: int) -> int:
 
 
 def run_pipeline(source: str, every: int, out: Path) -> dict:
-    from octolog.kit.mcaplog import read_messages
+    from octolog.kit.mcaplog import read_wire
     from octolog.schemas import codec, topics
 
     t0_ns = time.time_ns()
@@ -74,7 +74,7 @@ def run_pipeline(source: str, every: int, out: Path) -> dict:
     track_ms, latency_ms, map_ms = [], [], []
     first_frame_ns = last_status_ns = 0
     frame_topics = (topics.RGBD.name, topics.RGBD_COMPRESSED.name)
-    for m in read_messages(out / "session.mcap"):
+    for m in read_wire(out / "session.mcap"):
         if m.topic in frame_topics:
             seq = int.from_bytes(m.data[4:12], "little")  # CDR: 4-byte encapsulation, then uint64 seq
             frame_rx[seq] = m.log_time_ns

@@ -10,7 +10,7 @@ import errno
 import os
 import struct
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -22,8 +22,9 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 from zstandard import ZstdError
 
-from octolog.kit.errors import McapError
-from octolog.schemas import codec
+from octolog.kit.errors import InputError, McapError
+from octolog.schemas import codec, logview
+from octolog.schemas.topics import BY_NAME
 
 # What the mcap reader and its decompressors raise on damaged bytes (found by tests/test_fuzz.py:
 # lz4 raises RuntimeError for a cut frame, a header shorter than the magic struct.error, zstandard
@@ -292,6 +293,42 @@ def read_messages(path: str | Path, topics: Iterable[str] | None = None) -> Iter
                             f"`octolog info {p}` shows what is readable") from None
 
 
+def read_wire(path: str | Path, topics: Iterable[str] | None = None) -> Iterator[LoggedMessage]:
+    """A session log's messages as the bus carried them (wire topics and types, in file order).
+
+    The log stores each octolog_msgs message as standard-typed parts followed by a DiagnosticArray
+    on the wire topic (octolog.schemas.logview); here they are joined back into the exact wire
+    bytes, stamped with the DiagnosticArray's log time. The parts themselves are not yielded. A log
+    written before the standard view (wire types stored as they are) reads the same.
+    """
+    names = None if topics is None else [t.lstrip("/") for t in topics]
+    want = None
+    if names is not None:
+        want = set(names)
+        for name in names:
+            if name in BY_NAME:
+                want.update(logview.part_topics(BY_NAME[name].msgtype))
+    all_parts = {p.topic for parts in logview.PARTS.values() for p in parts}
+    pending: dict[str, bytes] = {}
+    for m in read_messages(path, want):
+        if m.topic in all_parts and m.msgtype != logview.DIAGNOSTICS:
+            pending[m.topic] = m.data
+            if names is not None and m.topic in names:
+                yield m
+            continue
+        if m.msgtype == logview.DIAGNOSTICS:
+            wire = logview.wire_type(codec.decode(m.data, logview.DIAGNOSTICS))
+            if wire is not None:
+                parts = {t: pending.pop(t) for t in logview.part_topics(wire) if t in pending}
+                try:
+                    data = logview.join(wire, m.data, parts)
+                except InputError as exc:
+                    raise InputError(f"{path}: /{m.topic} message {m.sequence}: {exc}") from None
+                m = LoggedMessage(m.topic, wire, data, m.log_time_ns, m.publish_time_ns, m.sequence)
+        if names is None or m.topic in names:
+            yield m
+
+
 @dataclass
 class TopicSummary:
     msgtype: str
@@ -318,6 +355,18 @@ class McapSummary:
     complete: bool = True
     problem: str = ""
     size_bytes: int = 0
+
+    @property
+    def wire_topics(self) -> dict[str, TopicSummary]:
+        """The topics as the bus carried them: a DiagnosticArray standing for an octolog type on its
+        wire topic (octolog.schemas.logview) is listed with the wire type; the parts stay listed."""
+        out = {}
+        for name, ts in self.topics.items():
+            wire = BY_NAME.get(name)
+            if ts.msgtype == logview.DIAGNOSTICS and wire is not None and logview.is_split(wire.msgtype):
+                ts = replace(ts, msgtype=wire.msgtype)
+            out[name] = ts
+        return out
 
 
 def summarize(path: str | Path) -> McapSummary:

@@ -17,9 +17,10 @@ from octolog.kit.errors import InputError, MapError
 from octolog.kit.metrics import write_tum
 from octolog.kit.viz import Viz
 from octolog.mapper.config import MapperConfig
-from octolog.mapper.core import Mapper, bt_payload, make_mapper, map_from_world
+from octolog.mapper.core import Mapper, bt_payload, make_mapper
 from octolog.mapper.fleet import CorrectionItem, FleetMerge, KeyframeItem
 from octolog.mapper.grid import OccupancyGrid2D, occupancy_grid_msg
+from octolog.mapper.mapframe import MapFrame
 from octolog.schemas import codec
 from octolog.schemas.topics import (
     GRID,
@@ -33,7 +34,6 @@ from octolog.schemas.topics import (
     MAP_UPDATE,
     OCCUPIED,
     OCTOMAP,
-    TF_STATIC,
 )
 
 # Keyframes come in bursts (a new place: one every few frames) that the mapper, at ~0.1-0.5 s each,
@@ -67,6 +67,7 @@ class Publisher:
         self.grid: OccupancyGrid2D | None = None
         self.latest: bytes | None = None  # immutable bytes: swapped atomically, read by the queryable
         self.stats: dict = {}
+        self.frame: MapFrame | None = None  # decides the grid's up before the first grid
         bus.serve(MAP_QUERY, lambda: self.latest)
 
     def maybe(self, n_integrated: int, stamp: int) -> None:
@@ -80,6 +81,8 @@ class Publisher:
         msg = codec.octomap_msg(bt_payload(octree.bt_bytes()), self.mapper.resolution_m, stamp)
         self.latest = self.pub_octomap.put(msg)
         self.pub_occupied.put(codec.point_cloud_msg(octree.occupied_centres(), stamp))
+        if self.frame is not None:
+            self.frame.resolve()
         self.grid = self.mapper.project_grid()
         if self.grid is not None:
             self.pub_grid.put(occupancy_grid_msg(self.grid, stamp))
@@ -93,10 +96,12 @@ def run(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: str = "o
         return run_fleet(cfg, bus_cfg, out_dir=out_dir, rerun=rerun, recording_id=recording_id)
     mapper = make_mapper(cfg)
     with Bus(bus_cfg, "mapper", inbox_size=INBOX_KEYFRAMES) as bus, Viz(rerun, "mapper", recording_id) as viz:
-        announce_map_frame(mapper, bus, viz)
         publisher = Publisher(bus, mapper, cfg.publish_every)
+        publisher.frame = MapFrame(mapper, bus, viz, from_imu=not cfg.grid_up)
         result = consume(mapper, cfg, bus, viz, publisher, out_dir)
-        finish(mapper, result, bus, viz, publisher, out_dir)
+        publisher.frame.resolve()  # before the last snapshot, if none came before it
+        found = publisher.frame.found
+        finish(mapper, result, bus, viz, publisher, out_dir, {"map_frame": found} if found else None)
     return result
 
 
@@ -132,20 +137,12 @@ def run_fleet(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: st
         robot_buses = [stack.enter_context(Bus(dataclasses.replace(bus_cfg, namespace=r), "mapper"))
                        for r in cfg.robots]
         viz = stack.enter_context(Viz(rerun, "mapper", recording_id))
-        announce_map_frame(mapper, bus, viz)
+        MapFrame(mapper, bus, viz, from_imu=False)
         publisher = Publisher(bus, mapper, cfg.publish_every)
         result, trajectories = consume_fleet(mapper, cfg, bus, robot_buses, viz, publisher, out_dir)
         per_robot = write_trajectories(mapper, cfg.robots, trajectories, out_dir)
         finish(mapper, result, bus, viz, publisher, out_dir, {"robots": per_robot})
     return result
-
-
-def announce_map_frame(mapper: Mapper, bus: Bus, viz: Viz) -> None:
-    """`map` -> `world` on /tf_static (once; the bus's history serves late joiners) and in Rerun:
-    the z-up frame the grid lies in (docs/formats.md, "Frames")."""
-    T = map_from_world(mapper.params.grid)
-    bus.publisher(TF_STATIC).put(codec.tf_msg([("map", "world", T)], 0))
-    viz.map_frame(T)
 
 
 def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list[Bus], viz: Viz,
@@ -323,6 +320,8 @@ def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: Pu
         stamp = codec.stamp_ns(msg.header)
         try:
             kf_id, pose, frame = codec.keyframe_from_msg(msg)
+            if publisher.frame is not None:
+                publisher.frame.first_keyframe(frame.stamp_ns, frame.frame_id)
             n = mapper.integrate(kf_id, pose, frame)
             result.keyframes += 1
         except (InputError, MapError) as exc:

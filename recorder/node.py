@@ -23,7 +23,16 @@ from octolog.kit.viz import Viz
 from octolog.recorder.capture import Backend, Capture, DeviceDescription
 from octolog.recorder.config import RecorderConfig, capture_profile, make_backend, make_recorder
 from octolog.recorder.frame_converter import FrameConverter
-from octolog.recorder.record import Encoded, LiveSink, Recorder, RecordResult, Status, output_paths
+from octolog.recorder.record import (
+    Encoded,
+    LiveSink,
+    Recorder,
+    RecordResult,
+    Status,
+    camera_transforms,
+    frame_names,
+    output_paths,
+)
 from octolog.schemas import codec
 from octolog.schemas import topics as T
 
@@ -123,7 +132,7 @@ def open_sinks(stack: ExitStack, cfg: RecorderConfig, device: DeviceDescription,
     sinks: list[LiveSink] = []
     if bus_cfg is not None:
         bus = stack.enter_context(Bus(bus_cfg, "recorder"))
-        pub = BusPublisher(bus, device, f"{cfg.frame_prefix}_color_optical_frame", compressed=cfg.color_codec == "jpeg")
+        pub = BusPublisher(bus, device, frame_names(cfg.frame_prefix), compressed=cfg.color_codec == "jpeg")
         bus.watch(cfg.wait_for)
         bus.wait_for(cfg.wait_for, cfg.wait_timeout_s)
         sink = LiveSink("bus", pub, size=cfg.live_queue_frames, on_close=pub.end)
@@ -140,10 +149,14 @@ def open_sinks(stack: ExitStack, cfg: RecorderConfig, device: DeviceDescription,
 class BusPublisher:
     """Publishes each written message on its topic, and colour + aligned depth as `camera/rgbd`."""
 
-    def __init__(self, bus: Any, device: DeviceDescription, color_frame: str, *, compressed: bool = False) -> None:
+    def __init__(self, bus: Any, device: DeviceDescription, frames: dict[str, str], *, compressed: bool = False) -> None:
         self._bus = bus
         self._device = device
-        self._frame = color_frame
+        self._frames = frames
+        self._frame = frames["color"]
+        # the camera's static tree (camera_link, optical frames, IMU), as the recording has it: the
+        # session log's TF tree, and what the mapper rotates the accelerometer's up with
+        self._tf_static = bus.publisher(T.TF_STATIC)
         self._pubs: dict[str, Any] = {}
         # compressed: the recorded JPEG colour as it was written, depth as lossless PNG (the recorded
         # PNG when depth is recorded so), on camera/rgbd/compressed: a tenth of the raw frame
@@ -154,6 +167,8 @@ class BusPublisher:
         bus.watch(["tracker"], required=False)  # see `end`
 
     def __call__(self, cap: Capture, msgs: list[Encoded]) -> None:
+        if self._tf_static.count == 0:
+            self._tf_static.put(codec.tf_msg(camera_transforms(self._device, self._frames), cap.stamp_ns))
         for m in msgs:
             if m.topic.name not in self._pubs:
                 self._pubs[m.topic.name] = self._bus.publisher(m.topic)

@@ -43,6 +43,23 @@ DISK_CHECK_S = 0.5  # free-space checks at most this often (and after every chun
 LINK_FROM_OPTICAL = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0, 0, 0, 1.0]])
 
 
+def frame_names(prefix: str) -> dict[str, str]:
+    """The camera's TF frames, realsense-ros style (`camera_link`, `camera_color_optical_frame`, ...)."""
+    return {"color": f"{prefix}_color_optical_frame", "depth": f"{prefix}_depth_optical_frame",
+            "gyro": f"{prefix}_gyro_optical_frame", "accel": f"{prefix}_accel_optical_frame", "link": f"{prefix}_link"}
+
+
+def camera_transforms(device: DeviceDescription, frames: dict[str, str]) -> list[tuple[str, str, np.ndarray]]:
+    """(parent, child, parent_from_child) of the camera's static tree: link -> depth -> colour, IMU."""
+    f = frames
+    out = [(f["link"], f["depth"], LINK_FROM_OPTICAL), (f["depth"], f["color"], invert(device.color_from_depth))]
+    for s in ("gyro", "accel"):
+        m = getattr(device, f"depth_from_{s}")
+        if m is not None and getattr(device, f"{s}_fps"):
+            out.append((f["depth"], f[s], m))
+    return out
+
+
 @dataclass(frozen=True)
 class Encoded:
     """One message as written: its topic, CDR bytes and sensor time."""
@@ -234,9 +251,7 @@ class Recorder:
         self._next_disk_check = 0.0
         self._checked_bytes = 0
         self._free_bytes = self._disk_free()
-        f = params.frame_prefix
-        self.frames = {"color": f"{f}_color_optical_frame", "depth": f"{f}_depth_optical_frame",
-                       "gyro": f"{f}_gyro_optical_frame", "accel": f"{f}_accel_optical_frame", "link": f"{f}_link"}
+        self.frames = frame_names(params.frame_prefix)
         self._color_info = device.color
         self._depth_info = device.depth
         self._thread = threading.Thread(target=self._write_loop, name="recorder-writer", daemon=True)
@@ -526,13 +541,7 @@ class Recorder:
             raise self._write_failure(exc) from None
 
     def _transforms(self) -> list[tuple[str, str, np.ndarray]]:
-        d, f = self.device, self.frames
-        out = [(f["link"], f["depth"], LINK_FROM_OPTICAL), (f["depth"], f["color"], invert(d.color_from_depth))]
-        for s in ("gyro", "accel"):
-            m = getattr(d, f"depth_from_{s}")
-            if m is not None and getattr(d, f"{s}_fps"):
-                out.append((f["depth"], f[s], m))
-        return out
+        return camera_transforms(self.device, self.frames)
 
     def _close_file(self) -> RecorderError | None:
         w = self._writer

@@ -30,11 +30,8 @@ import numpy as np
 
 from octolog.kit.errors import InputError
 from octolog.kit.geometry import RgbdFrame
+from octolog.kit.gravity import WINDOW_S, G, quat_matrix, rotation_between, up_from_samples
 
-G = 9.80665
-WINDOW_S = 0.1  # samples this close to the first frame are averaged
-# a mean this far from g is no rest reading (the camera was accelerating, or the units are wrong)
-MAX_G_ERROR = 0.25
 # TUM's Kinect accelerometer axes in the colour camera's optical frame (see the module docstring;
 # `octolog import` writes it into the MCAP as a /tf_static)
 KINECT_TO_OPTICAL = np.diag([-1.0, -1.0, 1.0])
@@ -42,21 +39,6 @@ KINECT_TO_OPTICAL = np.diag([-1.0, -1.0, 1.0])
 SIM_RATE_HZ = 200.0
 SIM_NOISE_MS2 = 0.02
 SIM_BIAS_MS2 = 0.04
-
-
-def up_from_samples(samples: np.ndarray, to_optical: np.ndarray, where: str) -> np.ndarray | None:
-    """The mean of (N, 3) accelerometer samples as a unit up vector in the optical frame (rotated
-    by `to_optical`); None when there are none. InputError when their mean is not about g (wrong
-    units, or no rest reading)."""
-    if samples.shape[0] == 0:
-        return None
-    mean = samples.mean(axis=0)
-    norm = float(np.linalg.norm(mean))
-    if not np.isfinite(norm) or abs(norm - G) > MAX_G_ERROR * G:
-        raise InputError(f"{where}: the accelerometer's mean near the first frame is {norm:.2f} m/s², "
-                         f"not about g ({G:.2f}): wrong units, or the camera was not near rest; "
-                         f"set mapper.grid_up to say which way is up")
-    return to_optical @ (mean / norm)
 
 
 def tum_up(folder: Path, stamp_ns: int) -> np.ndarray | None:
@@ -192,7 +174,7 @@ def recorded_up(path: Path, first_stamp_ns: int, color_frame: str) -> np.ndarray
         if m.topic == TF_STATIC.name:
             for tf in msg.transforms:
                 q = tf.transform.rotation
-                parent_from_child[tf.child_frame_id] = (tf.header.frame_id, _quat_matrix(q.x, q.y, q.z, q.w))
+                parent_from_child[tf.child_frame_id] = (tf.header.frame_id, quat_matrix(q.x, q.y, q.z, q.w))
             continue
         t = codec.stamp_ns(msg.header)
         if abs(t - first_stamp_ns) <= WINDOW_S * 1e9:
@@ -201,29 +183,5 @@ def recorded_up(path: Path, first_stamp_ns: int, color_frame: str) -> np.ndarray
             accel_frame = msg.header.frame_id
         elif t > first_stamp_ns + WINDOW_S * 1e9:
             break
-    rotation = _rotation_between(parent_from_child, color_frame, accel_frame)
+    rotation = rotation_between(parent_from_child, color_frame, accel_frame)
     return up_from_samples(np.array(samples, dtype=np.float64).reshape(-1, 3), rotation, str(path))
-
-
-def _quat_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_quat([x, y, z, w]).as_matrix()
-
-
-def _rotation_between(parent_from_child: dict[str, tuple[str, np.ndarray]], target: str, source: str) -> np.ndarray:
-    """target_from_source rotation through a static tree (child -> (parent, parent_from_child));
-    identity when either frame is not in it."""
-    def to_root(frame: str) -> tuple[str, np.ndarray]:
-        R = np.eye(3)
-        for _ in range(16):  # a tree, not a cycle
-            if frame not in parent_from_child:
-                break
-            parent, P = parent_from_child[frame]
-            R, frame = P @ R, parent
-        return frame, R
-    root_t, root_from_target = to_root(target)
-    root_s, root_from_source = to_root(source)
-    if not target or not source or root_t != root_s:
-        return np.eye(3)
-    return root_from_target.T @ root_from_source

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from octolog.kit.bus import Bus, BusConfig, Received
 from octolog.kit.errors import ConfigError, InputError
 from octolog.kit.geometry import EncodedRgbd, RgbdFrame
-from octolog.kit.mcaplog import read_messages, summarize
+from octolog.kit.mcaplog import read_wire, summarize
 from octolog.kit.viz import Viz
 from octolog.replay.config import ReplayConfig, remapped
 from octolog.replay.sources import Source, open_source
@@ -217,7 +217,7 @@ def play_tracker_log(cfg: ReplayConfig, bus_cfg: BusConfig) -> ReplayResult:
         end_pub = bus.publisher(remapped(KEYFRAME_END, cfg.remap))
         bus.start([], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
         bus.watch(["mapper"], required=False)  # as the tracker: keyframes stay until the mapper is done
-        for i, m in enumerate(read_messages(path, list(pubs))):
+        for i, m in enumerate(read_wire(path, list(pubs))):
             try:
                 checks.checked(m.data, pubs[m.topic].topic.msgtype)  # as the mapper's bus will
             except InputError as exc:

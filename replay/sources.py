@@ -18,7 +18,7 @@ import numpy as np
 from octolog.kit.calibration import is_calibration_file, load_calibration
 from octolog.kit.errors import ConfigError, InputError
 from octolog.kit.geometry import EncodedRgbd, RgbdFrame
-from octolog.kit.mcaplog import read_messages, summarize
+from octolog.kit.mcaplog import read_wire, summarize
 from octolog.kit.tum import open_tum, readout_for
 from octolog.replay import gravity
 from octolog.replay.standard import has_standard_frames, open_standard
@@ -116,8 +116,9 @@ class McapSource:
             raise InputError(f"{self.path}: truncated or corrupt MCAP ({summary.problem}); "
                              f"`octolog info {self.path}` shows what is readable")
         # a session log holds the frames raw or compressed (replay.wire_compression)
-        self._topic = RGBD_COMPRESSED if RGBD_COMPRESSED.name in summary.topics else RGBD
-        ts = summary.topics.get(self._topic.name)
+        wire = summary.wire_topics
+        self._topic = RGBD_COMPRESSED if RGBD_COMPRESSED.name in wire else RGBD
+        ts = wire.get(self._topic.name)
         self._standard = None
         if ts is None:
             if not has_standard_frames(summary.topics):
@@ -183,7 +184,7 @@ class McapSource:
     def _logged(self, start: int, end: int | None, convert: Callable[[Any], T]) -> Iterator[T]:
         i = 0
         topic = self._topic
-        for n, m in enumerate(read_messages(self.path, [topic.name])):
+        for n, m in enumerate(read_wire(self.path, [topic.name])):
             try:
                 msg = codec.decode(m.data, topic.msgtype)
                 if self._consumed is not None and int(msg.seq) not in self._consumed:
@@ -211,7 +212,7 @@ def consumed_frames(path: Path) -> set[int]:
     """Sequence numbers of the frames a logged tracker processed (every status but SKIPPED)."""
     skipped = codec.msgtype(TRACKING_STATUS.msgtype).SKIPPED
     seqs = set()
-    for m in read_messages(path, [TRACKING_STATUS.name]):
+    for m in read_wire(path, [TRACKING_STATUS.name]):
         st = codec.decode(m.data, TRACKING_STATUS.msgtype)
         if st.state != skipped:
             seqs.add(int(st.seq))

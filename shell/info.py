@@ -44,13 +44,15 @@ def describe_mcap(path: Path) -> str:
         t1 = max(t.last_ns for t in s.topics.values())
         lines.append(f"  span {(t1 - t0) * 1e-9:.2f} s, {sum(t.count for t in s.topics.values())} messages")
     width = max((len(n) for n in s.topics), default=0)
+    wire = s.wire_topics
     for name in sorted(s.topics):
         t = s.topics[name]
+        kind = t.msgtype if wire[name].msgtype == t.msgtype else f"{t.msgtype} (wire: {wire[name].msgtype})"
         span = (t.last_ns - t.first_ns) * 1e-9
         rate = (t.count - 1) / span if span > 0 else 0.0
         n_gaps, longest = t.gaps()
         gaps = f"  {n_gaps} gaps (longest {longest * 1e-6:.0f} ms)" if n_gaps else ""
-        lines.append(f"  /{name:<{width}}  {t.count:6d} msgs  {span:7.2f} s  {rate:6.1f} Hz  {t.msgtype}{gaps}")
+        lines.append(f"  /{name:<{width}}  {t.count:6d} msgs  {span:7.2f} s  {rate:6.1f} Hz  {kind}{gaps}")
     calib = s.metadata.get("calibration", {})
     if "depth_scale_m" in calib:
         lines.append(f"  calibration: depth scale {calib['depth_scale_m']} m/unit"

@@ -18,6 +18,7 @@ import subprocess
 import sys
 import threading
 import time
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -27,7 +28,7 @@ from octolog.kit import metrics
 from octolog.kit.bus import Bus, BusConfig, wait_interruptibly
 from octolog.kit.config import load, to_dict, to_toml
 from octolog.kit.errors import ConfigError, InputError, OctologError, StageError, StageExited, StageKilled
-from octolog.kit.mcaplog import message_counts, read_messages, summarize
+from octolog.kit.mcaplog import message_counts, read_wire, summarize
 from octolog.kit.viz import parse_spec
 from octolog.mapper.config import MapperConfig
 from octolog.replay import gravity
@@ -374,6 +375,19 @@ def _run(source: str, out: Path, src: Source | LiveSource, cfgs: dict[str, Any],
     return _summarize(out, source, src, wall, recording_id)
 
 
+def _keep_live_up(out: Path, found: dict) -> None:
+    """The up the mapper found from a live camera's IMU, into the session's config.toml and
+    metadata.json: a replay of the session (whose log gives the mapper no IMU stream) then draws the
+    same grid."""
+    config = tomllib.loads((out / "config.toml").read_text())
+    config.setdefault("mapper", {})["grid_up"] = [float(v) for v in found["up"]]
+    (out / "config.toml").write_text(to_toml(config))
+    meta_path = out / "metadata.json"
+    metadata = json.loads(meta_path.read_text()) if meta_path.exists() else {}
+    metadata["gravity"] = {"up": json.dumps([float(v) for v in found["up"]]), "note": str(found["note"])}
+    meta_path.write_text(json.dumps(metadata, indent=2, sort_keys=True))
+
+
 def frame_counts(log: Path) -> dict[str, int]:
     """What the session log says about frames: published, consumed by the tracker, skipped."""
     skipped_code = codec.msgtype(TRACKING_STATUS.msgtype).SKIPPED
@@ -382,7 +396,7 @@ def frame_counts(log: Path) -> dict[str, int]:
     frame_topics = [] if counts is not None else [RGBD.name, RGBD_COMPRESSED.name]
     if counts is not None:
         published = counts.get(RGBD.name, 0) + counts.get(RGBD_COMPRESSED.name, 0)
-    for m in read_messages(log, [*frame_topics, TRACKING_STATUS.name]):
+    for m in read_wire(log, [*frame_topics, TRACKING_STATUS.name]):
         if m.topic in (RGBD.name, RGBD_COMPRESSED.name):
             published += 1
         elif codec.decode(m.data, TRACKING_STATUS.msgtype).state == skipped_code:
@@ -398,9 +412,11 @@ def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, re
                   RGBD_COMPRESSED.name)), None)
         src.duration_ns = t.last_ns - t.first_ns if t is not None else 0
     s = SessionSummary(out=out, source=source, wall_s=wall, duration_s=src.duration_ns * 1e-9)
+    s.map = json.loads((out / "map_stats.json").read_text())
+    if "map_frame" in s.map:  # a live camera: the mapper found up from its accelerometer
+        _keep_live_up(out, s.map["map_frame"])
     if (out / "metadata.json").exists():
         s.map_frame = json.loads((out / "metadata.json").read_text()).get("gravity", {}).get("note", NOT_ALIGNED)
-    s.map = json.loads((out / "map_stats.json").read_text())
     frames = frame_counts(out / "session.mcap")
     if (out / "trajectory.txt").exists():  # absent when the tracker was fed from a log
         traj = metrics.read_tum(out / "trajectory.txt")

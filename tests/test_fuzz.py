@@ -160,7 +160,7 @@ def _forged_length() -> bytes:
 @example(_forged_length())  # found: MemoryError, the reader allocating a forged record length
 def test_mcap_readers_and_recover(data):
     """summarize, message_counts, read_messages and `recover` on a damaged session log."""
-    from octolog.kit.mcaplog import message_counts, read_messages, summarize
+    from octolog.kit.mcaplog import message_counts, read_messages, read_wire, summarize
     from octolog.recorder.recover import recover
 
     d = _scratch()
@@ -168,7 +168,8 @@ def test_mcap_readers_and_recover(data):
         src = d / "in.mcap"
         src.write_bytes(data)
         for read in (summarize, message_counts, lambda p: list(read_messages(p)),
-                     lambda p: list(read_messages(p, [topics.RGBD.name]))):
+                     lambda p: list(read_messages(p, [topics.RGBD.name])), lambda p: list(read_wire(p)),
+                     lambda p: list(read_wire(p, [topics.RGBD.name]))):
             try:
                 read(src)
             except OctologError:

@@ -4,10 +4,14 @@ through tracker and mapper with `octolog run --source d455:software`, and its ex
 from __future__ import annotations
 
 import json
+import tomllib
 
+import numpy as np
 from helpers import octolog
 
+from octolog.kit import metrics
 from octolog.kit.mcaplog import summarize
+from octolog.replay.gravity import recorded_up
 
 VGA = ("--set", "recorder.color.width=640", "--set", "recorder.color.height=480",
        "--set", "recorder.depth.width=640", "--set", "recorder.depth.height=480")
@@ -29,9 +33,19 @@ def test_a_live_session_counts_its_skips_and_its_log_replays_to_the_same_bytes(t
     assert recording.complete and {"camera/color/image_raw/compressed", "camera/gyro/sample"} <= set(recording.topics)
     log = summarize(live / "session.mcap")
     assert log.topics["camera/rgbd/compressed"].count == frames["published"]
+    # the map frame from the camera's accelerometer on the bus (the mapper's LiveUp), as the
+    # file-based reading finds it at the first keyframe (within a degree: a live bus may drop IMU
+    # samples the file keeps, and the software device's accelerometer is noisy)
+    summary = json.loads((live / "summary.json").read_text())
+    assert summary["map_frame"] == "gravity-aligned (the live camera's accelerometer)"
+    up = np.array(tomllib.loads((live / "config.toml").read_text())["mapper"]["grid_up"])
+    first = metrics.read_tum(live / "trajectory.txt").stamps_ns[0]
+    from_file = recorded_up(live / "recording.mcap", int(first), "camera_color_optical_frame")
+    assert np.degrees(np.arccos(np.clip(up @ from_file, -1, 1))) < 1.0
+    assert log.topics["tf_static"].count == 2  # the camera's tree (camera_link ...) and map -> world
     again = tmp_path / "again"
     octolog("replay", str(live), "--out", str(again), "--quiet", "--rerun", "off", timeout=300)
-    for name in ("trajectory.txt", "map.bt"):
+    for name in ("trajectory.txt", "map.bt", "map.pgm", "map.yaml"):
         assert (again / name).read_bytes() == (live / name).read_bytes(), name
     replayed = json.loads((again / "summary.json").read_text())["frames"]
     assert replayed == {"published": frames["consumed"], "consumed": frames["consumed"], "skipped": 0}

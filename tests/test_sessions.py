@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from helpers import octolog, rerun_cli
 
-from octolog.kit.mcaplog import read_messages
+from octolog.kit.mcaplog import read_wire
 
 
 @pytest.fixture(scope="module")
@@ -26,7 +26,7 @@ def live(tmp_path_factory) -> Path:
 
 
 def _payloads(log: Path, topic: str) -> list[bytes]:
-    return [m.data for m in read_messages(log, [topic])]
+    return [m.data for m in read_wire(log, [topic])]
 
 
 def test_live_tracker_skipped_frames_on_record(live):

@@ -16,7 +16,7 @@ from helpers import octolog, tum_first300
 from test_tum import make_tum
 
 from octolog.kit.errors import ConfigError, InputError
-from octolog.kit.mcaplog import read_messages
+from octolog.kit.mcaplog import read_messages, read_wire
 from octolog.kit.tum import open_tum
 from octolog.replay.sources import SyntheticSource
 from octolog.schemas import codec, topics
@@ -136,11 +136,15 @@ def test_tum_frames_travel_and_are_logged_as_their_png_files(tmp_path):
         assert (source / name).read_bytes() == (raw / name).read_bytes(), name
     pngs = sorted((folder / "rgb").iterdir())[:2]
     logged = [codec.decode(m.data, topics.RGBD_COMPRESSED.msgtype)
-              for m in read_messages(source / "session.mcap", [topics.RGBD_COMPRESSED.name])]
+              for m in read_wire(source / "session.mcap", [topics.RGBD_COMPRESSED.name])]
     assert len(logged) == 40
     assert [bytes(m.color.data) for m in logged[:2]] == [p.read_bytes() for p in pngs]
-    kfs = list(read_messages(source / "session.mcap", [topics.KEYFRAME_COMPRESSED.name]))
-    assert kfs and not list(read_messages(source / "session.mcap", [topics.KEYFRAME.name]))
+    # stored as standard CompressedImages on the recorder's topic names, the PNG bytes untouched
+    stored = [codec.decode(m.data, topics.COLOR_JPEG.msgtype)
+              for m in read_messages(source / "session.mcap", [topics.COLOR_JPEG.name])]
+    assert [bytes(m.data) for m in stored[:2]] == [p.read_bytes() for p in pngs] and stored[0].format == "png"
+    kfs = list(read_wire(source / "session.mcap", [topics.KEYFRAME_COMPRESSED.name]))
+    assert kfs and not list(read_wire(source / "session.mcap", [topics.KEYFRAME.name]))
     # raw frames lz4-compress about 3:1 in the log; the PNGs are smaller still
     assert (source / "session.mcap").stat().st_size < 0.7 * (raw / "session.mcap").stat().st_size
     # the log replays its compressed frames as they are, to the same trajectory

@@ -20,6 +20,7 @@ from octolog.kit.bus.publishing import Publisher, Publishing
 from octolog.kit.bus.screening import Screening
 from octolog.kit.bus.session import Session
 from octolog.kit.busconfig import BusConfig
+from octolog.kit.errors import InputError
 from octolog.schemas import codec
 from octolog.schemas.topics import Topic
 
@@ -115,6 +116,20 @@ class Bus:
             if item is not None:
                 return item
         return None
+
+    def listen(self, topic: Topic, on_msg: Callable[[Any], None]) -> None:
+        """Call `on_msg(message)` on Zenoh's receive thread for each sample of `topic`, outside the
+        inbox and its ordering: for a small side stream a stage only glances at (an IMU at 200 Hz
+        must not queue up between keyframes). Samples that do not decode are ignored."""
+
+        def on_sample(payload: bytes, _attachment: bytes | None) -> None:
+            try:
+                msg = codec.decode(payload, topic.msgtype)
+            except InputError:
+                return
+            on_msg(msg)
+
+        self._session.subscribe(topic.key(self.namespace), on_sample)
 
     def serve(self, topic: Topic, latest: Callable[[], bytes | None]) -> None:
         """Answer `get` on this topic's key with `latest()` (CDR bytes), e.g. the current map."""

@@ -21,6 +21,7 @@ from typing import Any
 
 import zenoh
 
+from octolog.kit.bus.diagnose import diagnosis
 from octolog.kit.busconfig import BusConfig
 from octolog.kit.errors import BusError
 
@@ -78,7 +79,9 @@ class Session:
         try:
             self._zenoh = zenoh.open(zc)
         except Exception as exc:
-            raise BusError(f"cannot open Zenoh session ({self.cfg.mode}): {one_line(exc)}") from None
+            why = diagnosis(zc) if self.cfg.mode == "client" else ""
+            raise BusError(f"cannot open Zenoh session ({self.cfg.mode}): {one_line(exc)}"
+                           + (f"; {why}" if why else "")) from None
 
     @property
     def is_open(self) -> bool:
