@@ -12,22 +12,27 @@ exactly how much went missing.
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from octolog.kit.bus import Bus, BusConfig
+from octolog.kit.config import to_toml
 from octolog.kit.errors import StageError
 from octolog.kit.mcaplog import McapWriter
-from octolog.schemas import logview
+from octolog.kit.metrics import write_tum
+from octolog.schemas import codec, logview
 from octolog.schemas import topics as T
 
 # end message -> (producing stage, the data topics it may close: the one its `topic` field names,
 # raw or compressed, else the first)
 ENDS = {
     T.RGBD_END: ("replay", (T.RGBD, T.RGBD_COMPRESSED)),
-    # the tracker ends its keyframe_poses first, then its keyframes
-    T.KEYFRAME_END: ("tracker", (T.KEYFRAME, T.KEYFRAME_COMPRESSED, T.KEYFRAME_POSES)),
+    # the tracker ends its trajectory and keyframe_poses first, then its keyframes
+    T.KEYFRAME_END: ("tracker", (T.KEYFRAME, T.KEYFRAME_COMPRESSED, T.KEYFRAME_POSES, T.TRAJECTORY)),
     T.MAP_END: ("mapper", (T.MAP_UPDATE,)),
 }
 
@@ -48,15 +53,28 @@ def _standard(topic: T.Topic, payload: bytes, checked: set[str]) -> list[tuple[s
 class LogResult:
     counts: dict[str, int] = field(default_factory=dict)
     path: str = ""
+    files: list[str] = field(default_factory=list)
 
 
 def run(bus_cfg: BusConfig, out: Path, *, compression: str = "zstd", metadata: dict[str, dict[str, str]] | None = None,
-        stages: tuple[str, ...] = ("replay", "tracker", "mapper")) -> LogResult:
+        stages: tuple[str, ...] = ("replay", "tracker", "mapper"), frames: bool = True) -> LogResult:
+    """Log until every producer in `stages` has ended. `out`: an MCAP file, or (no `.mcap` suffix) a
+    session folder: `session.mcap`, then `config.toml` from the stages' configs on the bus and the
+    tracker's `trajectory.txt`, so the folder replays with `octolog replay` wherever it was written.
+    Without `frames` the camera frames are not subscribed: on a machine across a link from the
+    camera, they then stay on the camera's side (Zenoh routes only what someone subscribes to)."""
+    folder = None if out.suffix == ".mcap" else out
+    if folder is not None:
+        folder.mkdir(parents=True, exist_ok=True)
+        out = folder / "session.mcap"
     result = LogResult(path=str(out))
+    configs: dict[str, dict] = {}
+    trajectory = None
+    metadata = dict(metadata or {})
     with Bus(bus_cfg, "log", inbox_size=16) as bus, McapWriter(out, compression=compression) as mcap:
-        for name, data in (metadata or {}).items():
+        for name, data in metadata.items():
             mcap.add_metadata(name, data)
-        bus.subscribe(T.ALL)
+        bus.subscribe([t for t in T.ALL if frames or t not in T.FRAMES])
         bus.announce()
         bus.watch(stages)
         # the frames come from a replay, or from a recorder publishing a camera live
@@ -64,6 +82,7 @@ def run(bus_cfg: BusConfig, out: Path, *, compression: str = "zstd", metadata: d
         ends = {t: (producer if stage == "replay" else stage, closes) for t, (stage, closes) in ENDS.items()}
         pending = {stage for stage, _ in ends.values() if stage in stages}
         announced: dict[str, int] = {}
+        frame_total: int | None = None
         checked: set[str] = set()
         while pending or any(result.counts.get(t, 0) < n for t, n in announced.items()):
             r = bus.receive()
@@ -75,18 +94,40 @@ def run(bus_cfg: BusConfig, out: Path, *, compression: str = "zstd", metadata: d
             for name, msgtype, data in _standard(r.topic, bytes(r.payload), checked):
                 mcap.write(name, msgtype, data, log_time_ns=now, publish_time_ns=now)
             result.counts[r.topic.name] = result.counts.get(r.topic.name, 0) + 1
+            if r.topic in T.CONFIGS.values():
+                item = json.loads(r.decode().data)
+                configs[str(item["stage"])] = item["config"]
+            elif r.topic is T.TRAJECTORY:
+                trajectory = r.decode()
             if r.topic in ends:
                 stage, closes = ends[r.topic]
                 end = r.decode()
                 topic = next((t for t in closes if t.name == end.topic), closes[0])
-                announced[topic.name] = int(end.count)
-                bus.expect_count(topic, result.counts.get(topic.name, 0), announced[topic.name])
-                if topic is T.KEYFRAME_POSES:
+                if topic in T.FRAMES:
+                    frame_total = int(end.count)
+                if frames or topic not in T.FRAMES:
+                    announced[topic.name] = int(end.count)
+                    bus.expect_count(topic, result.counts.get(topic.name, 0), announced[topic.name])
+                if topic in (T.KEYFRAME_POSES, T.TRAJECTORY):
                     continue  # the tracker's keyframe end follows
                 bus.unwatch(stage)
                 pending.discard(stage)
-                frames = [announced[t.name] for t in ENDS[T.RGBD_END][1] if t.name in announced]
                 kfs = [t for t in (T.KEYFRAME, T.KEYFRAME_COMPRESSED) if t.name in announced]
-                if {producer, "tracker"} <= set(stages) and frames and kfs:
-                    announced[T.TRACKING_STATUS.name] = frames[0]  # one per frame consumed
+                if {producer, "tracker"} <= set(stages) and frame_total is not None and kfs:
+                    announced[T.TRACKING_STATUS.name] = frame_total  # one per frame consumed
+        if configs and "config" not in metadata:
+            mcap.add_metadata("config", {k: json.dumps(v, sort_keys=True) for k, v in sorted(configs.items())})
+    if folder is not None:
+        _leave_session(folder, configs, trajectory, result)
     return result
+
+
+def _leave_session(folder: Path, configs: dict[str, dict], trajectory: object, result: LogResult) -> None:
+    """What `octolog replay FOLDER` needs beside the log, and the trajectory."""
+    if configs:
+        (folder / "config.toml").write_text(to_toml(configs))
+        result.files.append("config.toml")
+    if trajectory is not None:
+        stamps, rows = codec.path_rows(trajectory)
+        write_tum(folder / "trajectory.txt", np.asarray(stamps, dtype=np.int64), rows)
+        result.files.append("trajectory.txt")

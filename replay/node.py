@@ -8,6 +8,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 from octolog.kit.bus import Bus, BusConfig, Received
+from octolog.kit.config import to_dict
 from octolog.kit.errors import ConfigError, InputError
 from octolog.kit.geometry import EncodedRgbd, RgbdFrame
 from octolog.kit.mcaplog import read_wire, summarize
@@ -17,6 +18,7 @@ from octolog.replay.sources import Source, open_source
 from octolog.schemas import checks, codec
 from octolog.schemas.topics import (
     CAMERA_PROPERTIES,
+    CONFIGS,
     KEYFRAME,
     KEYFRAME_COMPRESSED,
     KEYFRAME_END,
@@ -164,6 +166,7 @@ def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Pro
     watched = ([TRACKING_STATUS] if cfg.rate == 0 else []) + ([TRACKING_STATUS, MAP_UPDATE] if progress else [])
     bus.start(list(dict.fromkeys(watched)), wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
     bus.watch(["tracker"], required=False)  # see the end
+    bus.publisher(CONFIGS["replay"]).put(codec.config_msg("replay", to_dict(cfg)))
     # before the first frame, which depends on it (wire numbering): a tracker anywhere knows the camera
     props_pub.put(codec.camera_properties_msg(source.name, source.readout_s))
     end = None if cfg.end < 0 else cfg.end

@@ -24,7 +24,7 @@ from octolog.replay import gravity
 from octolog.replay.standard import has_standard_frames, open_standard
 from octolog.replay.synthetic import SyntheticScene
 from octolog.schemas import codec
-from octolog.schemas.topics import RGBD, RGBD_COMPRESSED, TRACKING_STATUS
+from octolog.schemas.topics import KEYFRAME, KEYFRAME_COMPRESSED, RGBD, RGBD_COMPRESSED, TRACKING_STATUS
 
 T = TypeVar("T")
 F = TypeVar("F", RgbdFrame, EncodedRgbd)
@@ -107,6 +107,7 @@ class McapSource:
     path: Path
     only_consumed: bool = False
     calibration: str = ""  # a calibration file for a recording without CameraInfo (replay.camera)
+    keyframes_only: bool = False  # a log fed to a mapper alone (replay.play = tracker): frames optional
 
     def __post_init__(self) -> None:
         self.name = f"mcap:{self.path}"
@@ -120,7 +121,18 @@ class McapSource:
         self._topic = RGBD_COMPRESSED if RGBD_COMPRESSED.name in wire else RGBD
         ts = wire.get(self._topic.name)
         self._standard = None
+        if ts is None and self.keyframes_only:
+            # a log kept where the camera was not (`octolog log --no-frames`): its keyframes suffice
+            kfs = wire.get(KEYFRAME.name) or wire.get(KEYFRAME_COMPRESSED.name)
+            if kfs is None:
+                raise InputError(f"{self.path}: no /{KEYFRAME.name} topic: nothing to feed a mapper with")
+            self._count, self._metadata, self._span = 0, summary.metadata, (kfs.first_ns, kfs.last_ns)
+            self._consumed = None
+            return
         if ts is None:
+            if not has_standard_frames(summary.topics) and (KEYFRAME.name in wire or KEYFRAME_COMPRESSED.name in wire):
+                raise InputError(f"{self.path}: a log without camera frames (`octolog log --no-frames`): "
+                                 f"its keyframes replay into the mapper (`octolog replay SESSION --stages mapper`)")
             if not has_standard_frames(summary.topics):
                 raise InputError(f"{self.path}: neither /{RGBD.name} nor colour + aligned depth topics "
                                  f"(topics: {', '.join(sorted(summary.topics)) or 'none'})")
@@ -292,7 +304,8 @@ class Subsampled:
         return self.inner.gravity_up()  # the same first frame
 
 
-def open_source(spec: str, *, only_consumed: bool = False, camera: str = "", every: int = 1) -> Source:
+def open_source(spec: str, *, only_consumed: bool = False, camera: str = "", every: int = 1,
+                keyframes_only: bool = False) -> Source:
     """Open `tum:PATH`, `mcap:PATH` or `synthetic[:N[:tilt=DEG]]`; errors name the problem in one line.
     `camera` names a TUM folder's camera when its name does not (replay.camera); `every` > 1 plays
     every `every`-th frame only (replay.every)."""
@@ -301,6 +314,9 @@ def open_source(spec: str, *, only_consumed: bool = False, camera: str = "", eve
     kind, _, arg = spec.partition(":")
     if kind == "tum" and arg:
         return TumSource(Path(arg), camera, every)
+    kind, _, arg = spec.partition(":")
+    if keyframes_only and kind == "mcap" and arg:
+        return McapSource(Path(arg), keyframes_only=True)
     source = _open(spec, only_consumed, camera)
     return source if every == 1 else Subsampled(source, every)
 

@@ -5,6 +5,7 @@ Our own types are `.msg` files beside this module; a schema change is a new type
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -227,6 +228,25 @@ def keyframe_from_msg(msg: Any) -> tuple[int, np.ndarray, RgbdFrame]:
 
 def pose_stamped_msg(T: np.ndarray, stamp: int, frame_id: str = "world") -> Any:
     return msgtype("geometry_msgs/msg/PoseStamped")(header=header(stamp, frame_id), pose=pose_msg(T))
+
+
+def path_msg(stamps_ns: list[int], poses: list[np.ndarray], frame_id: str = "world") -> Any:
+    """nav_msgs/Path: one PoseStamped per stamp; the header takes the last stamp."""
+    PoseStamped = msgtype("geometry_msgs/msg/PoseStamped")
+    return msgtype("nav_msgs/msg/Path")(
+        header=header(int(stamps_ns[-1]) if len(stamps_ns) else 0, frame_id),
+        poses=[PoseStamped(header=header(int(s), frame_id), pose=pose_msg(T)) for s, T in zip(stamps_ns, poses, strict=True)])
+
+
+def path_rows(msg: Any) -> tuple[list[int], np.ndarray]:
+    """Stamps and (N, 7) rows 'tx ty tz qx qy qz qw' of a nav_msgs/Path (the TUM file's columns)."""
+    rows = [(p.pose.position.x, p.pose.position.y, p.pose.position.z, p.pose.orientation.x, p.pose.orientation.y,
+             p.pose.orientation.z, p.pose.orientation.w) for p in msg.poses]
+    return [stamp_ns(p.header) for p in msg.poses], np.array(rows, dtype=np.float64).reshape(-1, 7)
+
+
+def config_msg(stage: str, config: dict) -> Any:
+    return msgtype("std_msgs/msg/String")(data=json.dumps({"stage": stage, "config": config}, sort_keys=True))
 
 
 def stream_end_msg(topic: str, count: int, stamp: int = 0) -> Any:

@@ -63,8 +63,18 @@ MAP_END = Topic("mapper/end", "octolog_msgs/msg/StreamEnd")
 # mapper's `map` -> `world` once (REP 105's map frame: z up)
 TF = Topic("tf", "tf2_msgs/msg/TFMessage")
 
+# The tracker's trajectory at the end: every tracked frame at its final pose (what its trajectory
+# file holds), so a machine that only logs has it too. Announced on tracker/keyframe/end.
+TRAJECTORY = Topic("tracker/trajectory", "nav_msgs/msg/Path")
+# Each stage's resolved configuration (JSON in a String), once when it starts: a log written on
+# another machine holds the settings a replay of it needs.
+CONFIGS = {stage: Topic(f"{stage}/config", "std_msgs/msg/String") for stage in ("replay", "tracker", "mapper")}
+
 ALL = (RGBD, RGBD_END, POSE, TRACKING_STATUS, KEYFRAME, KEYFRAME_END, KEYFRAME_POSES, MAP_UPDATE, OCTOMAP,
-       OCCUPIED, GRID, MAP_END, RGBD_COMPRESSED, KEYFRAME_COMPRESSED, CAMERA_PROPERTIES, TF, TF_STATIC)
+       OCCUPIED, GRID, MAP_END, RGBD_COMPRESSED, KEYFRAME_COMPRESSED, CAMERA_PROPERTIES, TF, TF_STATIC, TRAJECTORY,
+       *CONFIGS.values())
+# The camera frames: what stays on a robot when the log runs elsewhere (`octolog log --no-frames`)
+FRAMES = (RGBD, RGBD_COMPRESSED)
 # The mapper's queryable: a late joiner `get`s the current map (octomap_msgs/Octomap, binary).
 MAP_QUERY = Topic("mapper/map", "octomap_msgs/msg/Octomap")
 # Ask the mapper to write its files now; the reply (JSON in a String) names them.

@@ -135,8 +135,9 @@ def cmd_log(args: argparse.Namespace) -> int:
 
     metadata = json.loads(Path(args.metadata).read_text()) if args.metadata else None
     res = buslog.run(bus_config(args), Path(args.out), compression=args.compression, metadata=metadata,
-                     stages=tuple(args.stages.split(",")))
-    print(f"log: {sum(res.counts.values())} messages → {res.path}")
+                     stages=tuple(args.stages.split(",")), frames=args.frames)
+    also = f" (+ {', '.join(res.files)})" if res.files else ""
+    print(f"log: {sum(res.counts.values())} messages → {res.path}{also}")
     return 0
 
 
@@ -221,7 +222,7 @@ def cmd_router(args: argparse.Namespace) -> int:
     from octolog.kit.bus import serve_router
 
     listen = tuple(args.listen) or ("tcp/0.0.0.0:7447",)
-    serve_router(listen, zenoh_config=args.zenoh_config,
+    serve_router(listen, connect=tuple(args.connect), zenoh_config=args.zenoh_config,
                  ready=lambda: print(f"router: listening on {', '.join(listen)} (Ctrl-C to stop)", flush=True))
     return 0
 
@@ -291,7 +292,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("log", help="record every pipeline topic on the bus into an MCAP file")
     add_bus_arguments(p)
-    p.add_argument("--out", required=True, help="MCAP file to write")
+    p.add_argument("--out", required=True,
+                   help="an MCAP file (.mcap), or a session folder: session.mcap, config.toml from the stages' "
+                        "configs on the bus, trajectory.txt; `octolog replay FOLDER --from tracker` re-runs its mapper")
+    p.add_argument("--frames", action=argparse.BooleanOptionalAction, default=True,
+                   help="log the camera frames (default); --no-frames on a machine across a link from the camera "
+                        "keeps them on the camera's side")
     p.add_argument("--compression", choices=("none", "lz4", "zstd"), default="lz4",
                    help="chunk compression (default lz4: 3x zstd's write speed, see docs/results.md)")
     p.add_argument("--metadata", metavar="JSON", help="file of {name: {key: value}} metadata records")
@@ -345,6 +351,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("router", help="host a Zenoh router (no zenohd needed)")
     p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT")
+    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                   help="another router to join (a robot's own router joining the server's)")
     p.add_argument("--zenoh-config", metavar="FILE")
     p.set_defaults(func=cmd_router)
     return parser

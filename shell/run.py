@@ -278,7 +278,8 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
                           "a file source takes --set replay.end_s=S")
     # opened here to fail fast, before any process starts
     src = LiveSource(source) if live else open_source(source, only_consumed=replay_cfg.only_consumed,
-                                                      camera=replay_cfg.camera, every=replay_cfg.every)
+                                                      camera=replay_cfg.camera, every=replay_cfg.every,
+                                                      keyframes_only=feed_tracker)
     cfgs["tracker"] = for_source(cfgs["tracker"], src)  # an unset rolling shutter: the source's camera
     cfgs["mapper"], map_frame = _map_frame(cfgs["mapper"], src)
     prepare_out(out, overwrite=overwrite)

@@ -21,6 +21,8 @@ from pathlib import Path
 import pytest
 from helpers import ROOT, octolog
 
+from octolog.kit.mcaplog import summarize
+
 FRAMES = 40
 HOSTS = ("a", "b", "c")  # replay, tracker, mapper; "d" is the router
 
@@ -190,49 +192,69 @@ def test_run_starts_a_killed_mapper_again(single_host, tmp_path):
     _same_result(out, single_host)
 
 
+def _link_bytes(ns: str, dev: str) -> int:
+    """Bytes received on `dev` (the router's end of a host's link) so far."""
+    proc = subprocess.run(["ip", "netns", "exec", ns, "cat", f"/sys/class/net/{dev}/statistics/rx_bytes"],
+                          capture_output=True, text=True, check=True)
+    return int(proc.stdout)
+
+
 def test_deployment_doc_robot_and_server_give_the_run_bytes(hosts, tmp_path):
     """docs/deployment.md as written, with TLS: the server (router, mapper, log) on one host, robot1
-    (replay + `octolog track`, frames from TUM fr1 first300) on another. No rolling-shutter setting
-    anywhere: the readout comes with the frames (`camera/rgbd/properties`), so the trajectory and
-    map.bt are those of `octolog run` on this host."""
+    (its own router, replay + `octolog track`, frames from TUM fr1 first300) on another. No
+    rolling-shutter setting anywhere: the readout comes with the frames (`camera/rgbd/properties`),
+    so the trajectory and map.bt are those of `octolog run` on this host. The camera frames stay on
+    the robot (the server logs `--no-frames`); the server's log folder replays to the same map and
+    holds the robot's trajectory."""
     from helpers import tum_first300
 
     if shutil.which("openssl") is None:
         pytest.skip("openssl not installed")
-    source = f"tum:{tum_first300()}"
+    folder = tum_first300()
+    source = f"tum:{folder}"
     names, addr = hosts
-    robot_ip = addr["a"][0]  # how the robot reaches the server
+    robot_ip, link = addr["a"]  # how the robot reaches the server; the server's end of that link
     examples = ROOT / "docs" / "examples"
     subprocess.run(["bash", str(examples / "make-certs.sh"), str(tmp_path / "certs"), robot_ip, "127.0.0.1"],
                    check=True, capture_output=True)
 
     def config(example: str, node: str) -> str:
         text = (examples / example).read_text().replace('"certs/', f'"{tmp_path}/certs/')
+        # two namespaces of one machine share /dev/shm: Zenoh would pass large payloads through shared
+        # memory and the link would carry only their descriptors. Off, the link carries what a real one would.
+        text = text.replace("transport: {", "transport: { shared_memory: { enabled: false },", 1)
         path = tmp_path / f"{node}.json5"
         path.write_text(text.replace(f"{tmp_path}/certs/robot1.", f"{tmp_path}/certs/{node}."))
         return str(path)
 
     router_cfg, server_cfg = config("zenoh-tls-router.json5", "router"), config("zenoh-tls-client.json5", "server")
-    robot_cfg = config("zenoh-tls-client.json5", "robot1")
+    robot_router_cfg = config("zenoh-tls-robot-router.json5", "robot1")
+    local_cfg = tmp_path / "local.json5"
+    local_cfg.write_text("{ transport: { shared_memory: { enabled: false } } }")
     out = tmp_path / "deployed"
     out.mkdir()
     server = ["--mode", "client", "--connect", "tls/127.0.0.1:7447", "--zenoh-config", server_cfg,
               "--namespace", "robot1"]
-    robot = ["--mode", "client", "--connect", f"tls/{robot_ip}:7447", "--zenoh-config", robot_cfg,
+    robot = ["--mode", "client", "--connect", "tcp/127.0.0.1:7447", "--zenoh-config", str(local_cfg), "--no-multicast",
              "--namespace", "robot1"]
     procs = {"router": _start(names["d"], "router", "--zenoh-config", router_cfg, "--listen", "tls/0.0.0.0:7447",
-                              log=out / "router.log")}
+                              log=out / "router.log"),
+             "robot-router": _start(names["a"], "router", "--zenoh-config", robot_router_cfg, "--listen",
+                                    "tcp/127.0.0.1:7447", "--connect", f"tls/{robot_ip}:7447",
+                                    log=out / "robot-router.log")}
     try:
         procs["mapper"] = _start(names["d"], "map", *server, "--out", str(out / "maps" / "robot1"), log=out / "map.log")
-        procs["log"] = _start(names["d"], "log", *server, "--out", str(out / "logs" / "robot1.mcap"),
+        procs["log"] = _start(names["d"], "log", *server, "--no-frames", "--out", str(out / "logs" / "robot1"),
                               log=out / "log.log")
         procs["tracker"] = _start(names["a"], "track", *robot, "--trajectory", str(out / "traj.txt"), "--set",
                                   "wire_compression=jpeg:90", log=out / "tracker.log")
+        before = _link_bytes(names["d"], link)
         procs["replay"] = _start(names["a"], "replay", *robot, "--source", source, "--set",
                                  'wait_for=["tracker", "mapper"]', "--quiet", log=out / "replay.log")
         for stage in ("replay", "tracker", "mapper", "log"):
             log = out / f"{'map' if stage == 'mapper' else stage}.log"
             assert procs[stage].wait(timeout=600) == 0, log.read_text()
+        crossed = _link_bytes(names["d"], link) - before
     finally:
         for p in procs.values():
             if p.poll() is None:
@@ -244,3 +266,17 @@ def test_deployment_doc_robot_and_server_give_the_run_bytes(hosts, tmp_path):
     assert (out / "traj.txt").read_bytes() == (single / "trajectory.txt").read_bytes()
     # map.bt: occupancy comes from depth (lossless PNG either way); the JPEG colour only tints the cloud
     assert (out / "maps" / "robot1" / "map.bt").read_bytes() == (single / "map.bt").read_bytes()
+    # the frames (the PNG files, sent as they are) stayed on the robot: what crossed is keyframes
+    # (one in ten frames, JPEG colour), poses and the protocol
+    pngs = sum(p.stat().st_size for d in ("rgb", "depth") for p in (folder / d).iterdir())
+    print(f"robot -> server: {crossed / 1e6:.1f} MB for {pngs / 1e6:.1f} MB of frames")
+    assert crossed < 0.25 * pngs, (crossed, pngs)
+    # the server's log folder: the robot's trajectory, and a session that replays to the same map
+    served = out / "logs" / "robot1"
+    assert (served / "trajectory.txt").read_bytes() == (out / "traj.txt").read_bytes()
+    assert "camera/rgbd/compressed" not in summarize(served / "session.mcap").topics
+    whole = octolog("replay", str(served), "--out", str(tmp_path / "whole"), "--quiet", check=False)
+    assert whole.returncode == 1 and "a log without camera frames" in whole.stderr and "--stages mapper" in whole.stderr
+    again = tmp_path / "again"
+    octolog("replay", str(served), "--from", "tracker", "--out", str(again), "--quiet", "--rerun", "off")
+    assert (again / "map.bt").read_bytes() == (out / "maps" / "robot1" / "map.bt").read_bytes()

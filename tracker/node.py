@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from octolog.kit.bus import Bus, BusConfig, Received
+from octolog.kit.config import to_dict
 from octolog.kit.errors import InputError, TrackingError
 from octolog.kit.geometry import RgbdFrame
 from octolog.kit.metrics import write_tum
@@ -19,6 +20,7 @@ from octolog.kit.viz import Viz, encode_jpeg
 from octolog.schemas import codec
 from octolog.schemas.topics import (
     CAMERA_PROPERTIES,
+    CONFIGS,
     KEYFRAME,
     KEYFRAME_COMPRESSED,
     KEYFRAME_END,
@@ -29,6 +31,7 @@ from octolog.schemas.topics import (
     RGBD_END,
     TF,
     TRACKING_STATUS,
+    TRAJECTORY,
 )
 from octolog.tracker.config import TrackerConfig
 from octolog.tracker.factory import make_odometry, set_readout
@@ -77,6 +80,7 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
     pub_poses = bus.publisher(KEYFRAME_POSES)
     # frames come raw or compressed, whichever the source publishes; decoding is the same call
     bus.start([RGBD, RGBD_COMPRESSED, RGBD_END, CAMERA_PROPERTIES], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
+    bus.publisher(CONFIGS["tracker"]).put(codec.config_msg("tracker", to_dict(cfg)))
     bus.watch(FRAME_PRODUCERS)  # whichever sends the frames: a replay, or a recorder publishing live
     bus.watch(["mapper"], required=False)  # a mapper may restart: keep its keyframes until it is done
     result = TrackerResult()
@@ -158,6 +162,10 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
     moved = odometry.finish()
     if moved:
         pub_poses.put(codec.keyframe_poses_msg(odometry.keyframe_poses(), result.stamps_ns[-1]))
+    # the whole trajectory at its final poses, for a log on another machine (the file is local)
+    stamps, poses = odometry.trajectory()
+    bus.publisher(TRAJECTORY).put(codec.path_msg(stamps, poses))
+    pub_kf_end.put(codec.stream_end_msg(TRAJECTORY.name, 1))
     pub_kf_end.put(codec.stream_end_msg(KEYFRAME_POSES.name, pub_poses.count))
     pub_kf_end.put(codec.stream_end_msg(pub_kf.topic_name, pub_kf.count))
     bus.linger("mapper")

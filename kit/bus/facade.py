@@ -204,11 +204,12 @@ class Bus:
         self._membership.check()
 
 
-def serve_router(listen: tuple[str, ...], *, zenoh_config: str | None = None,
+def serve_router(listen: tuple[str, ...], *, connect: tuple[str, ...] = (), zenoh_config: str | None = None,
                  stop: threading.Event | None = None, ready: Callable[[], None] | None = None) -> None:
-    """Host a Zenoh router in this process until `stop` is set (or forever); `ready()` is called
-    once its session is open."""
-    cfg = BusConfig(mode="router", listen=listen, zenoh_config=zenoh_config, multicast_scouting=False)
+    """Host a Zenoh router in this process until `stop` is set (or forever), joined to the routers
+    in `connect`; `ready()` is called once its session is open."""
+    cfg = BusConfig(mode="router", listen=listen, connect=connect, zenoh_config=zenoh_config,
+                    multicast_scouting=False)
     stop = stop or threading.Event()
     with Bus(cfg, "router"):
         if ready is not None:
