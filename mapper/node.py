@@ -15,6 +15,7 @@ import numpy as np
 from octolog.kit.bus import Bus, BusConfig
 from octolog.kit.config import to_dict
 from octolog.kit.errors import InputError, MapError
+from octolog.kit.geometry import RgbdFrame, matrix_to_pose
 from octolog.kit.metrics import write_tum
 from octolog.kit.viz import Viz
 from octolog.mapper.config import MapperConfig
@@ -22,6 +23,7 @@ from octolog.mapper.core import Mapper, bt_payload, make_mapper
 from octolog.mapper.fleet import CorrectionItem, FleetMerge, KeyframeItem
 from octolog.mapper.grid import OccupancyGrid2D, occupancy_grid_msg
 from octolog.mapper.mapframe import MapFrame
+from octolog.mapper.placement import Merge, Placement
 from octolog.schemas import codec
 from octolog.schemas.topics import (
     CONFIGS,
@@ -31,6 +33,7 @@ from octolog.schemas.topics import (
     KEYFRAME_END,
     KEYFRAME_POSES,
     MAP_END,
+    MAP_MERGE,
     MAP_QUERY,
     MAP_SAVE,
     MAP_UPDATE,
@@ -57,6 +60,8 @@ class MapperResult:
     ms: list[float] = field(default_factory=list)
     files: dict[str, str] = field(default_factory=dict)
     problems: list[str] = field(default_factory=list)
+    unmerged: list[str] = field(default_factory=list)  # robots never placed in the map (no shared place)
+    merges: list[dict] = field(default_factory=list)  # robots placed by a shared place (merge_event)
 
 
 class Publisher:
@@ -143,15 +148,19 @@ def run_fleet(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: st
         publisher = Publisher(bus, mapper, cfg.publish_every)
         result, trajectories = consume_fleet(mapper, cfg, bus, robot_buses, viz, publisher, out_dir)
         per_robot = write_trajectories(mapper, cfg.robots, trajectories, out_dir)
-        finish(mapper, result, bus, viz, publisher, out_dir, {"robots": per_robot})
+        for robot in per_robot:  # placed by its start pose or by a shared place, or left out
+            per_robot[robot]["merged"] = robot not in result.unmerged
+        finish(mapper, result, bus, viz, publisher, out_dir, {"robots": per_robot, "merges": result.merges})
     return result
 
 
 def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list[Bus], viz: Viz,
                   publisher: Publisher, out_dir: Path) -> tuple[MapperResult, list[list[tuple[int, int]]]]:
-    """Receive every robot's keyframes and corrections and integrate them in the merge's order."""
-    world_from_robot = cfg.start_pose_matrices()
-    pub_update = bus.publisher(MAP_UPDATE)
+    """Receive every robot's keyframes and corrections and integrate them in the merge's order;
+    without start poses, place the robots from the places they share (mapper/placement.py)."""
+    n = len(cfg.robots)
+    placement = Placement.known(cfg.start_pose_matrices()) if cfg.start_poses or n == 1 else Placement.by_place(n)
+    pub_update, pub_merge = bus.publisher(MAP_UPDATE), bus.publisher(MAP_MERGE)
     bus.accept(MAP_SAVE)
     bus.start([])
     bus.publisher(CONFIGS["mapper"]).put(codec.config_msg("mapper", to_dict(cfg)))
@@ -160,7 +169,6 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
                  timeout_s=cfg.wait_timeout_s)
         rb.watch(["tracker"])
     merge = FleetMerge(cfg.robots)
-    n = len(cfg.robots)
     expected: list[int | None] = [None] * n
     received = [0] * n
     expected_poses, received_poses = [0] * n, [0] * n
@@ -204,43 +212,83 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
         if isinstance(item, CorrectionItem):
             try:
                 poses = codec.keyframe_poses_from_msg(item.poses)
-                moved = {map_id[i][k]: world_from_robot[i] @ T for k, T in poses.items() if k in map_id[i]}
-                result.corrections += mapper.correct(moved)
+                W = placement.world_from_robot[i]
+                if W is None:  # not in the map yet: its waiting keyframes move
+                    placement.correct(i, poses)
+                else:
+                    result.corrections += mapper.correct({map_id[i][k]: W @ T for k, T in poses.items()
+                                                          if k in map_id[i]})
             except InputError as exc:  # the whole correction is refused; the map is unchanged
                 result.problems.append(f"{cfg.robots[i]}: {exc}")
         else:
             t0 = time.perf_counter()
-            stamp = item.stamp_ns
-            gid = len(mapper.keyframes)
             try:
                 if item.kf_id in map_id[i]:
                     raise InputError(f"keyframe {item.kf_id}: already integrated")
                 kf_id, pose, frame = codec.keyframe_from_msg(item.payload)
-                pts = mapper.integrate(gid, world_from_robot[i] @ pose, frame)
-                map_id[i][kf_id] = gid
-                trajectories[i].append((stamp, gid))
-                result.keyframes += 1
-            except (InputError, MapError) as exc:
+            except InputError as exc:
                 result.skipped += 1
                 result.problems.append(f"{cfg.robots[i]}: {exc}")
-                pts, frame = 0, None
-            ms = (time.perf_counter() - t0) * 1e3
-            result.ms.append(ms)
-            pub_update.put(codec.msgtype(MAP_UPDATE.msgtype)(
-                header=codec.header(stamp, "world"), keyframe_id=gid if frame is not None else item.kf_id,
-                n_points=pts, n_occupied=publisher.stats.get("occupied_voxels", 0),
-                n_free=publisher.stats.get("free_voxels", 0), processing_ms=ms))
-            if frame is not None:
+                continue
+            todo = [(i, kf_id, item.stamp_ns, pose, frame)]
+            if not placement.placed(i):
+                merge_ = placement.offer(i, kf_id, item.stamp_ns, pose, frame)
+                todo = [] if merge_ is None else _placed(merge_, placement, cfg, pub_merge, viz, mapper)
+            while todo:
+                r, kid, stamp, pose, frame = todo.pop(0)
+                gid = len(mapper.keyframes)
+                try:
+                    pts = mapper.integrate(gid, placement.world_from_robot[r] @ pose, frame)
+                    map_id[r][kid] = gid
+                    trajectories[r].append((stamp, gid))
+                    result.keyframes += 1
+                except (InputError, MapError) as exc:
+                    result.skipped += 1
+                    result.problems.append(f"{cfg.robots[r]}: {exc}")
+                    continue
+                for m in placement.remember(gid, mapper.keyframes[gid].world_from_camera, frame):
+                    todo += _placed(m, placement, cfg, pub_merge, viz, mapper)
+                ms = (time.perf_counter() - t0) * 1e3
+                t0 = time.perf_counter()
+                result.ms.append(ms)
+                pub_update.put(codec.msgtype(MAP_UPDATE.msgtype)(
+                    header=codec.header(stamp, "world"), keyframe_id=gid, n_points=pts,
+                    n_occupied=publisher.stats.get("occupied_voxels", 0),
+                    n_free=publisher.stats.get("free_voxels", 0), processing_ms=ms))
                 publisher.maybe(result.keyframes, stamp)
                 if viz.enabled:
                     viz.set_time(stamp, frame.seq)
-                    _log_robot(viz, mapper, cfg.robots[i], i, trajectories[i])
+                    _log_robot(viz, mapper, cfg.robots[r], r, trajectories[r])
                     if publisher.every and result.keyframes % publisher.every == 0:
                         _log_map(viz, mapper, stamp, publisher.grid)
         for k in range(n):  # a stream whose last item was just taken has ended
             if expected[k] is not None and received[k] >= expected[k] and not merge.has_items(k):
                 merge.end(k)
+    result.unmerged = [cfg.robots[r] for r in placement.unplaced()]
+    result.merges = [merge_event(m, cfg.robots) for m in placement.merges]
+    for r in placement.unplaced():
+        result.problems.append(f"{cfg.robots[r]}: never placed (no verified place shared with the map): "
+                               f"its {len(placement.waiting[r])} keyframes are not in the map")
     return result, trajectories
+
+
+def merge_event(m: Merge, robots: tuple[str, ...]) -> dict:
+    """A merge as the bus, the session log and map_stats.json give it."""
+    t, q = matrix_to_pose(m.world_from_robot)
+    return {"robot": robots[m.robot], "robot_keyframe": m.robot_kf, "map_keyframe": m.map_gid,
+            "inliers": m.alignment.inliers, "matches": m.alignment.matches,
+            "world_from_robot": [float(x) for x in (*t, *q)]}
+
+
+def _placed(m: Merge, placement: Placement, cfg: MapperConfig, pub: Any, viz: Viz,
+            mapper: Mapper) -> list[tuple[int, int, int, np.ndarray, RgbdFrame]]:
+    """A robot just placed: the merge announced (bus, so the session log; Rerun), and its waiting
+    keyframes to integrate, in their order."""
+    event = merge_event(m, cfg.robots)
+    pub.put(codec.msgtype(MAP_MERGE.msgtype)(data=json.dumps(event, sort_keys=True)))
+    viz.text("mapper/events", f"merged {cfg.robots[m.robot]} into the map: its keyframe {m.robot_kf} sees map "
+                              f"keyframe {m.map_gid} ({m.alignment.inliers} of {m.alignment.matches} matches agree)")
+    return [(m.robot, w.kf_id, w.stamp_ns, w.robot_from_camera, w.frame) for w in placement.take(m.robot)]
 
 
 def write_trajectories(mapper: Mapper, robots: tuple[str, ...], trajectories: list[list[tuple[int, int]]],

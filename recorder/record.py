@@ -29,6 +29,7 @@ import numpy as np
 from octolog.kit.errors import DiskFull, McapError, RecorderError, WriteFailed
 from octolog.kit.geometry import Intrinsics, invert
 from octolog.kit.mcaplog import McapWriter
+from octolog.kit.tftree import LINK_FROM_OPTICAL
 from octolog.recorder.capture import Capture, DeviceDescription
 from octolog.schemas import codec
 from octolog.schemas import topics as T
@@ -40,7 +41,6 @@ PNG_FORMAT = "16UC1; png compressed"  # lossless 16-bit PNG of the depth image, 
 MOTION_BATCH = 64  # IMU samples per queue entry without a frame: the queue counts frames, not IMU samples
 DISK_CHECK_S = 0.5  # free-space checks at most this often (and after every chunk): statvfs is not free
 # camera_link (x forward, y left, z up) from an optical frame (x right, y down, z forward)
-LINK_FROM_OPTICAL = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0, 0, 0, 1.0]])
 
 
 def frame_names(prefix: str) -> dict[str, str]:
@@ -149,7 +149,7 @@ def output_paths(out: Path, *, split: bool, overwrite: bool) -> Callable[[int], 
     out = Path(out)
     if out.is_dir():
         raise RecorderError(f"{out} is a directory; give a file name like {out / 'recording.mcap'}")
-    stem = out.name[:-5] if out.name.endswith(".mcap") else out.name
+    stem = out.name.removesuffix(".mcap")
 
     def part(i: int) -> Path:
         return out.with_name(f"{stem}_{i:04d}.mcap") if split else out

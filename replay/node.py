@@ -7,14 +7,17 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
+import numpy as np
+
 from octolog.kit.bus import Bus, BusConfig, Received
 from octolog.kit.config import to_dict
 from octolog.kit.errors import ConfigError, InputError
 from octolog.kit.geometry import EncodedRgbd, RgbdFrame
 from octolog.kit.mcaplog import read_wire, summarize
+from octolog.kit.tftree import LINK_FROM_OPTICAL
 from octolog.kit.viz import Viz
 from octolog.replay.config import ReplayConfig, remapped
-from octolog.replay.sources import Source, open_source
+from octolog.replay.sources import McapSource, Source, open_source
 from octolog.schemas import checks, codec
 from octolog.schemas.topics import (
     CAMERA_PROPERTIES,
@@ -27,6 +30,7 @@ from octolog.schemas.topics import (
     RGBD,
     RGBD_COMPRESSED,
     RGBD_END,
+    TF_STATIC,
     TRACKING_STATUS,
 )
 
@@ -178,6 +182,8 @@ def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Pro
     viz.text("replay/events", f"replaying {source.name}: {total} frames")  # the images: the tracker logs them
     for frame in looped(source, cfg, encoded=passthrough):
         pacer.wait(frames_pub.count, frame.stamp_ns)
+        if frames_pub.count == 0:  # the camera's own frames, before its first image (the tracker hangs world on their root)
+            bus.publisher(TF_STATIC).put(codec.tf_msg(camera_tree(source, frame.frame_id), frame.stamp_ns))
         if passthrough:  # as the source stored them: checked as every receiver will (a bad one would be dropped)
             msg = codec.encoded_rgbd_msg(frame)
             try:
@@ -201,6 +207,14 @@ def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Pro
     bus.linger("tracker")
     duration = ((last_stamp or 0) - (first_stamp or 0)) * 1e-9
     return ReplayResult(frames_pub.count, wall_s, duration)
+
+
+def camera_tree(source: Source, frame_id: str) -> list[tuple[str, str, np.ndarray]]:
+    """(parent, child, parent_from_child) of the camera's static frames: a recording's own (its
+    /tf_static), else `camera_link` -> the images' optical frame (REP 103's axes)."""
+    inner = getattr(source, "inner", source)  # a Subsampled source: the camera is the inner one's
+    recorded = inner.static_transforms() if isinstance(inner, McapSource) else []
+    return recorded or [("camera_link", frame_id, LINK_FROM_OPTICAL)]
 
 
 def play_tracker_log(cfg: ReplayConfig, bus_cfg: BusConfig) -> ReplayResult:

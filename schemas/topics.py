@@ -58,6 +58,9 @@ OCTOMAP = Topic("mapper/octomap", "octomap_msgs/msg/Octomap")
 OCCUPIED = Topic("mapper/occupied", "sensor_msgs/msg/PointCloud2")
 GRID = Topic("mapper/grid", "nav_msgs/msg/OccupancyGrid")
 MAP_END = Topic("mapper/end", "octolog_msgs/msg/StreamEnd")
+# Several robots without start poses: a robot placed in the map (JSON in a String: which keyframes
+# matched, the evidence, world_from_robot), once per robot (mapper/placement.py)
+MAP_MERGE = Topic("mapper/merge", "std_msgs/msg/String")
 
 # The frames (docs/formats.md "Frames"): the tracker's camera in `world` on every frame; the
 # mapper's `map` -> `world` once (REP 105's map frame: z up)
@@ -72,6 +75,7 @@ CONFIGS = {stage: Topic(f"{stage}/config", "std_msgs/msg/String") for stage in (
 
 ALL = (RGBD, RGBD_END, POSE, TRACKING_STATUS, KEYFRAME, KEYFRAME_END, KEYFRAME_POSES, MAP_UPDATE, OCTOMAP,
        OCCUPIED, GRID, MAP_END, RGBD_COMPRESSED, KEYFRAME_COMPRESSED, CAMERA_PROPERTIES, TF, TF_STATIC, TRAJECTORY,
+       MAP_MERGE,
        *CONFIGS.values())
 # The camera frames: what stays on a robot when the log runs elsewhere (`octolog log --no-frames`)
 FRAMES = (RGBD, RGBD_COMPRESSED)

@@ -15,6 +15,8 @@ import pytest
 from helpers import ROOT, octolog, rerun_cli, tum_first300
 from test_tum import make_tum
 
+from octolog.schemas import codec
+
 N_FRAMES = 30
 
 
@@ -124,6 +126,40 @@ def test_session_mcap_reads_back_everywhere(runs):
         assert any(f"- {entity} - data columns: [" in line and f"{entity}@{archetype}" in line
                    for line in columns.splitlines()), (entity, archetype)
     assert "octolog_msgs" not in columns
+
+
+def test_the_session_log_holds_one_tf_tree(runs):
+    """REP 105: every frame has one parent. The replay publishes the camera's own frames
+    (`camera_link` -> the optical frame) on /tf_static, the mapper `map` -> `world`, and the
+    tracker `world` -> `camera_link` on /tf, composed so that the chain gives its pose of the
+    optical frame."""
+    from octolog.kit.mcaplog import read_messages
+    from octolog.kit.tftree import StaticTree
+
+    a = runs[0]
+    parents: dict[str, set[str]] = {}
+    tree = StaticTree()
+    poses = [codec.pose_matrix(codec.decode(m.data, "geometry_msgs/msg/PoseStamped").pose)
+             for m in read_messages(a / "session.mcap", ["tracker/pose"])]
+    moving = []
+    for m in read_messages(a / "session.mcap", ["tf_static", "tf"]):
+        msg = codec.decode(m.data, "tf2_msgs/msg/TFMessage")
+        for tf in msg.transforms:
+            parents.setdefault(tf.child_frame_id, set()).add(tf.header.frame_id)
+        if m.topic == "tf_static":
+            tree.add(msg)
+        else:
+            moving.append(msg.transforms[0])
+    assert all(len(p) == 1 for p in parents.values()), parents
+    assert parents["world"] == {"map"} and parents["camera_link"] == {"world"}
+    optical = next(c for c, p in parents.items() if p == {"camera_link"})
+    root, link_from_optical = tree.root_from(optical)
+    assert root == "camera_link" and len(moving) == len(poses) == N_FRAMES
+    for tf, pose in zip(moving, poses, strict=True):
+        t, q = tf.transform.translation, tf.transform.rotation
+        world_from_link = codec.pose_matrix(codec.msgtype("geometry_msgs/msg/Pose")(
+            position=codec.msgtype("geometry_msgs/msg/Point")(x=t.x, y=t.y, z=t.z), orientation=q))
+        assert np.allclose(world_from_link @ link_from_optical, pose, atol=1e-9)
 
 
 def test_rrd_files_load_in_rerun(runs):

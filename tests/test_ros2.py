@@ -115,9 +115,9 @@ def test_a_ros2_subscriber_sees_a_runs_pose_and_grid(router, tmp_path) -> None: 
     grid = jazzy.deserialize_cdr(got["grid"][-1][0], "nav_msgs/msg/OccupancyGrid")
     assert grid.info.width * grid.info.height == len(grid.data) > 0
     assert got["other"] == []  # octolog_msgs/RgbdFrame: no ROS 2 key
-    assert len(got["tf"]) == 40  # the camera in `world`, every frame
+    assert len(got["tf"]) == 40  # the camera's tree (camera_link) in `world`, every frame
     tf = jazzy.deserialize_cdr(got["tf"][0][0], "tf2_msgs/msg/TFMessage").transforms[0]
-    assert (tf.header.frame_id, tf.child_frame_id) == ("world", "camera_color_optical_frame")
+    assert (tf.header.frame_id, tf.child_frame_id) == ("world", "camera_link")
     nodes = {t.rsplit("/", 1)[1] for t in tokens if "/NN/" in t}
     assert {"octolog_tracker", "octolog_mapper"} <= nodes
     assert any(t.endswith(f"/MP/%/%/octolog_tracker/%tracker%pose/{pose_key.split('/', 3)[3]}/::,10:,:,:,,")

@@ -14,8 +14,9 @@ import numpy as np
 from octolog.kit.bus import Bus, BusConfig, Received
 from octolog.kit.config import to_dict
 from octolog.kit.errors import InputError, TrackingError
-from octolog.kit.geometry import RgbdFrame
+from octolog.kit.geometry import RgbdFrame, invert
 from octolog.kit.metrics import write_tum
+from octolog.kit.tftree import StaticTree
 from octolog.kit.viz import Viz, encode_jpeg
 from octolog.schemas import codec
 from octolog.schemas.topics import (
@@ -30,6 +31,7 @@ from octolog.schemas.topics import (
     RGBD_COMPRESSED,
     RGBD_END,
     TF,
+    TF_STATIC,
     TRACKING_STATUS,
     TRAJECTORY,
 )
@@ -79,6 +81,8 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
     pub_kf_end = bus.publisher(KEYFRAME_END)
     pub_poses = bus.publisher(KEYFRAME_POSES)
     # frames come raw or compressed, whichever the source publishes; decoding is the same call
+    tree = StaticTree()  # the camera's own frames, from whoever knows the camera (recorder, replay)
+    bus.listen(TF_STATIC, tree.add)
     bus.start([RGBD, RGBD_COMPRESSED, RGBD_END, CAMERA_PROPERTIES], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
     bus.publisher(CONFIGS["tracker"]).put(codec.config_msg("tracker", to_dict(cfg)))
     bus.watch(FRAME_PRODUCERS)  # whichever sends the frames: a replay, or a recorder publishing live
@@ -145,7 +149,9 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
         result.tracked += res.state == TrackingState.OK
         result.lost += res.state == TrackingState.LOST
         pub_pose.put(codec.pose_stamped_msg(res.world_from_camera, frame.stamp_ns))
-        pub_tf.put(codec.tf_msg([("world", frame.frame_id, res.world_from_camera)], frame.stamp_ns))
+        # world -> the camera tree's root (camera_link), so each frame keeps one parent (REP 105)
+        root, root_from_camera = tree.root_from(frame.frame_id)
+        pub_tf.put(codec.tf_msg([("world", root, res.world_from_camera @ invert(root_from_camera))], frame.stamp_ns))
         if res.corrected:  # a loop closed: the mapper moves those keyframes
             pub_poses.put(codec.keyframe_poses_msg(res.corrected, frame.stamp_ns))
         result.loops += res.loop is not None
