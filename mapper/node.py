@@ -267,9 +267,23 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
     result.unmerged = [cfg.robots[r] for r in placement.unplaced()]
     result.merges = [merge_event(m, cfg.robots) for m in placement.merges]
     for r in placement.unplaced():
-        result.problems.append(f"{cfg.robots[r]}: never placed (no verified place shared with the map): "
-                               f"its {len(placement.waiting[r])} keyframes are not in the map")
+        waiting = placement.take(r)
+        where = write_separate_map(cfg, waiting, out_dir / cfg.robots[r].strip("/").replace("/", "_"))
+        result.problems.append(f"{cfg.robots[r]}: never placed (no verified place shared with the map): its "
+                               f"{len(waiting)} keyframes are in a map of their own, {where}")
     return result, trajectories
+
+
+def write_separate_map(cfg: MapperConfig, waiting: list, out: Path) -> Path:
+    """An unplaced robot's keyframes, in its own world, as a map of their own (its folder)."""
+    own = make_mapper(cfg)
+    for gid, w in enumerate(waiting):
+        try:
+            own.integrate(gid, w.robot_from_camera, w.frame)
+        except (InputError, MapError):
+            continue
+    own.write(out)
+    return out
 
 
 def merge_event(m: Merge, robots: tuple[str, ...]) -> dict:

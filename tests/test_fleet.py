@@ -173,8 +173,9 @@ def _start(log: Path | None, *args: str) -> subprocess.Popen:
 
 def run_fleet(out: Path, start_poses: list[list[float]], *, rerun: str = "off", source: str = f"synthetic:{FRAMES}",
               windows: tuple[tuple[int, int], ...] = ((0, HALF), (HALF, FRAMES)),
-              shifts: tuple[float, ...] = SHIFT_S) -> dict[str, str]:
-    """Router, mapper for r1+r2, and per robot a tracker and a replay: six processes over Zenoh."""
+              shifts: tuple[float, ...] = SHIFT_S, sources: tuple[str, ...] = ()) -> dict[str, str]:
+    """Router, mapper for r1+r2, and per robot a tracker and a replay: six processes over Zenoh
+    (`sources`: one per robot, else `source` for both)."""
     out.mkdir(parents=True)
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
     bus = ["--mode", "client", "--connect", endpoint, "--no-multicast"]
@@ -184,11 +185,11 @@ def run_fleet(out: Path, start_poses: list[list[float]], *, rerun: str = "off", 
         procs["mapper"] = _start(out / "mapper.log", "map", *bus, "--out", str(out), "--rerun", rerun,
                                  "--recording-id", "fleet", "--set", 'robots=["r1", "r2"]',
                                  "--set", f"start_poses={poses}")
-        for robot, (start, end), shift in zip(ROBOTS, windows, shifts):
+        for robot, (start, end), shift, src in zip(ROBOTS, windows, shifts, sources or (source, source)):
             ns = ["--namespace", robot]
             procs[f"tracker-{robot}"] = _start(out / f"tracker-{robot}.log", "track", *bus, *ns)
             procs[f"replay-{robot}"] = _start(out / f"replay-{robot}.log", "replay", *bus, *ns, "--quiet",
-                                              "--source", source, "--set", f"start={start}", "--set", f"end={end}",
+                                              "--source", src, "--set", f"start={start}", "--set", f"end={end}",
                                               "--set", f"time_shift_s={shift!r}",
                                               "--set", 'wait_for=["tracker", "mapper"]')
         for name in ("replay-r1", "replay-r2", "tracker-r1", "tracker-r2", "mapper"):
@@ -409,3 +410,19 @@ def test_a_shared_place_aligns_and_another_room_does_not():
     rel = invert(poses[0]) @ poses[80]
     assert np.linalg.norm(found.a_from_b[:3, 3] - rel[:3, 3]) < 0.02
     assert align(a, features(next(SyntheticSource(2).frames()))) is None
+
+
+def test_a_robot_that_shares_no_place_stays_out_with_a_map_of_its_own(tmp_path):
+    """Issue 18, must-show 3: r1 in the synthetic room, r2 at the TUM desk, no start poses. No merge;
+    r2 is reported unmerged with a map of its own; the fused map is r1's alone, byte for byte the
+    map `octolog run` makes of r1's frames."""
+    n = 40
+    out = tmp_path / "fleet"
+    run_fleet(out, [], windows=((0, n), (0, n)), shifts=(0.0, 0.0),
+              sources=(f"synthetic:{n}", f"tum:{tum_first300()}"))
+    stats = json.loads((out / "map_stats.json").read_text())
+    assert stats["merges"] == [] and stats["robots"]["r1"]["merged"] and not stats["robots"]["r2"]["merged"]
+    assert (out / "r2" / "map.bt").stat().st_size > 0
+    single = tmp_path / "single"
+    octolog("run", "--source", f"synthetic:{n}", "--out", str(single), "--quiet", "--rerun", "off")
+    assert (out / "map.bt").read_bytes() == (single / "map.bt").read_bytes()
