@@ -269,12 +269,26 @@ def test_rerun_has_a_trajectory_per_robot(fleet):
 # --- real data: the two halves of TUM fr1/xyz first300 --------------------------------------------------
 
 
-def test_two_halves_of_a_tum_sequence_fuse_like_on_one_host(tmp_path):
-    """Two robots on real frames: r1 the first half, r2 the second, shifted to run alongside; r2's
-    start pose from the TUM ground truth. Byte-identical to the in-process reference, and each
-    robot's keyframes near the ground truth in the common world."""
+@dataclasses.dataclass(frozen=True)
+class _Halves:
+    source: str
+    windows: tuple[tuple[int, int], ...]
+    stamps: list[int]
+    shifts: tuple[float, float]
+    gt: object
+    start_poses: list[list[float]]  # each half's first camera in the first half's, from the ground truth
+
+    def gt_pose(self, stamp: int) -> np.ndarray:
+        from octolog.kit.metrics import associate
+
+        _, ig = associate(np.array([stamp]), self.gt.stamps_ns)  # type: ignore[attr-defined]
+        return self.gt.matrices()[ig[0]]  # type: ignore[attr-defined]
+
+
+def _tum_halves() -> _Halves:
+    """TUM fr1/xyz first300 as two robots: the first half and the second, shifted to run alongside."""
     from octolog.kit.geometry import invert, matrix_to_pose
-    from octolog.kit.metrics import associate, parse_tum, read_tum
+    from octolog.kit.metrics import parse_tum
     from octolog.replay.sources import open_source
 
     source = f"tum:{tum_first300()}"
@@ -283,17 +297,23 @@ def test_two_halves_of_a_tum_sequence_fuse_like_on_one_host(tmp_path):
     windows = ((0, n // 2), (n // 2, n))
     stamps = [f.stamp_ns for f in src.frames(0, n)]
     shifts = (0.0, -round((stamps[n // 2] - stamps[0]) * 1e-9, 2) + 0.01)
-    gt = parse_tum(src.groundtruth_tum() or "", "groundtruth")
-
-    def gt_pose(stamp: int) -> np.ndarray:
-        _, ig = associate(np.array([stamp]), gt.stamps_ns)
-        return gt.matrices()[ig[0]]
-
-    world_from_first = gt_pose(stamps[0])
-    start_poses = []
+    h = _Halves(source, windows, stamps, shifts, parse_tum(src.groundtruth_tum() or "", "groundtruth"), [])
     for start, _ in windows:
-        t, q = matrix_to_pose(invert(world_from_first) @ gt_pose(stamps[start]))
-        start_poses.append([float(x) for x in (*t, *q)])
+        t, q = matrix_to_pose(invert(h.gt_pose(stamps[0])) @ h.gt_pose(stamps[start]))
+        h.start_poses.append([float(x) for x in (*t, *q)])
+    return h
+
+
+def test_two_halves_of_a_tum_sequence_fuse_like_on_one_host(tmp_path):
+    """Two robots on real frames: r1 the first half, r2 the second, shifted to run alongside; r2's
+    start pose from the TUM ground truth. Byte-identical to the in-process reference, and each
+    robot's keyframes near the ground truth in the common world."""
+    from octolog.kit.geometry import invert
+    from octolog.kit.metrics import read_tum
+
+    h = _tum_halves()
+    source, windows, shifts, gt_pose, start_poses = h.source, h.windows, h.shifts, h.gt_pose, h.start_poses
+    world_from_first = gt_pose(h.stamps[0])
     kw = {"source": source, "windows": windows, "shifts": shifts}
     _reference(tmp_path / "reference", start_poses, **kw)
     run_fleet(tmp_path / "processes", start_poses, **kw)
@@ -337,20 +357,14 @@ def test_two_halves_merge_without_start_poses(tmp_path):
     """Issue 18, must-show 1: r1 the first half of first300, r2 the second, no start poses. The mapper
     places r2 from a place both saw; every keyframe of both lies within 5 cm of the ground truth
     after one rigid alignment of the merged trajectory, and the map agrees with one robot's."""
-    from octolog.kit.metrics import associate, parse_tum, read_tum, umeyama
-    from octolog.replay.sources import open_source
+    from octolog.kit.metrics import associate, read_tum, umeyama
 
-    source = f"tum:{tum_first300()}"
-    src = open_source(source)
-    n = len(src)
-    windows = ((0, n // 2), (n // 2, n))
-    stamps = [f.stamp_ns for f in src.frames(0, n)]
-    shifts = (0.0, -round((stamps[n // 2] - stamps[0]) * 1e-9, 2) + 0.01)
+    h = _tum_halves()
+    source, windows, shifts, gt = h.source, h.windows, h.shifts, h.gt
     logs = run_fleet(tmp_path / "merged", [], source=source, windows=windows, shifts=shifts)
     out = tmp_path / "merged"
     stats = json.loads((out / "map_stats.json").read_text())
     assert stats["robots"]["r2"]["merged"] and stats["robots"]["r1"]["merged"], (stats, logs["mapper"])
-    gt = parse_tum(src.groundtruth_tum() or "", "groundtruth")
     est, truth = [], []
     for robot, shift in zip(ROBOTS, shifts):
         traj = read_tum(out / f"keyframes_{robot}.txt")
@@ -366,17 +380,7 @@ def test_two_halves_merge_without_start_poses(tmp_path):
     # the map: against the same two robots placed by their ground-truth start poses (what the merge
     # should reproduce), and, for the record, against one robot tracking the whole sequence (two
     # trackers choose other keyframes: surfaces move by a voxel here and there whatever the merge)
-    from octolog.kit.geometry import invert, matrix_to_pose
-
-    def gt_pose(stamp: int) -> np.ndarray:
-        _, ig = associate(np.array([stamp]), gt.stamps_ns)
-        return gt.matrices()[ig[0]]
-
-    start_poses = []
-    for start, _ in windows:
-        t, q = matrix_to_pose(invert(gt_pose(stamps[0])) @ gt_pose(stamps[start]))
-        start_poses.append([float(x) for x in (*t, *q)])
-    run_fleet(tmp_path / "known", start_poses, source=source, windows=windows, shifts=shifts)
+    run_fleet(tmp_path / "known", h.start_poses, source=source, windows=windows, shifts=shifts)
     single = tmp_path / "single"
     octolog("run", "--source", source, "--out", str(single), "--quiet", "--rerun", "off")
     disagree, n_cells = occupied_disagreement(out / "map.bt", tmp_path / "known" / "map.bt")
