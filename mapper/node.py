@@ -14,7 +14,7 @@ import numpy as np
 
 from octolog.kit.bus import Bus, BusConfig
 from octolog.kit.config import to_dict
-from octolog.kit.errors import InputError, MapError
+from octolog.kit.errors import InputError, MapError, StageError
 from octolog.kit.geometry import RgbdFrame, matrix_to_pose
 from octolog.kit.metrics import write_tum
 from octolog.kit.viz import Viz
@@ -62,6 +62,7 @@ class MapperResult:
     problems: list[str] = field(default_factory=list)
     unmerged: list[str] = field(default_factory=list)  # robots never placed in the map (no shared place)
     merges: list[dict] = field(default_factory=list)  # robots placed by a shared place (merge_event)
+    lost: list[str] = field(default_factory=list)  # robots gone mid-run (their tracker died)
 
 
 class Publisher:
@@ -150,6 +151,7 @@ def run_fleet(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: st
         per_robot = write_trajectories(mapper, cfg.robots, trajectories, out_dir)
         for robot in per_robot:  # placed by its start pose or by a shared place, or left out
             per_robot[robot]["merged"] = robot not in result.unmerged
+            per_robot[robot]["lost"] = robot in result.lost
         finish(mapper, result, bus, viz, publisher, out_dir, {"robots": per_robot, "merges": result.merges})
     return result
 
@@ -175,6 +177,17 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
     map_id: list[dict[int, int]] = [{} for _ in range(n)]  # robot keyframe id -> map-wide id
     trajectories: list[list[tuple[int, int]]] = [[] for _ in range(n)]  # (stamp, map-wide id)
     result = MapperResult()
+    lost: set[int] = set()
+
+    def lose(k: int, exc: StageError) -> None:
+        """Robot k is gone (its tracker died, or its data was lost for good): its stream ends with
+        what arrived, and the other robots go on."""
+        lost.add(k)
+        robot_buses[k].unwatch("tracker")
+        merge.end(k)
+        result.problems.append(f"{cfg.robots[k]}: lost mid-run after {received[k]} keyframes ({exc}); "
+                               f"what arrived is in the map")
+
     while not merge.done():
         while (q := bus.receive_nowait()) is not None:  # "save the map now", between keyframes
             _answer_save(q, mapper, out_dir)
@@ -182,12 +195,20 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
         if nxt is None:
             # the order is not decided yet: take the next message of a robot whose stream is empty
             i = merge.waiting_on()[0]
-            r = robot_buses[i].receive()
-            if r is None:
-                if expected[i] is not None:
+            try:
+                r = robot_buses[i].receive()
+                if r is None and expected[i] is not None:
                     robot_buses[i].expect_count(KEYFRAME, received[i], expected[i])
-                for rb in robot_buses:
-                    rb.check_peers()
+            except StageError as exc:
+                lose(i, exc)
+                continue
+            if r is None:
+                for k, rb in enumerate(robot_buses):
+                    if k not in lost:
+                        try:
+                            rb.check_peers()
+                        except StageError as exc:
+                            lose(k, exc)
                 continue
             if r.topic == KEYFRAME_END:
                 end = r.decode()
@@ -262,8 +283,9 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
                     if publisher.every and result.keyframes % publisher.every == 0:
                         _log_map(viz, mapper, stamp, publisher.grid)
         for k in range(n):  # a stream whose last item was just taken has ended
-            if expected[k] is not None and received[k] >= expected[k] and not merge.has_items(k):
+            if k not in lost and expected[k] is not None and received[k] >= expected[k] and not merge.has_items(k):
                 merge.end(k)
+    result.lost = [cfg.robots[r] for r in sorted(lost)]
     result.unmerged = [cfg.robots[r] for r in placement.unplaced()]
     result.merges = [merge_event(m, cfg.robots) for m in placement.merges]
     for r in placement.unplaced():

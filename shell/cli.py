@@ -126,6 +126,10 @@ def cmd_map(args: argparse.Namespace) -> int:
                    recording_id=recording_id(args))
     print(f"mapper: {res.keyframes} keyframes ({res.skipped} skipped), {res.stats.get('occupied_voxels', 0)} occupied "
           f"and {res.stats.get('free_voxels', 0)} free voxels, {res.cloud_points} cloud points → {args.out}")
+    for merge in res.merges:
+        print(f"mapper: {merge['robot']} placed in the map from a shared place ({merge['inliers']} matches agree)")
+    for problem in res.problems[:5]:
+        print(f"mapper: {problem}")
     return 0
 
 

@@ -430,3 +430,42 @@ def test_a_robot_that_shares_no_place_stays_out_with_a_map_of_its_own(tmp_path):
     single = tmp_path / "single"
     octolog("run", "--source", f"synthetic:{n}", "--out", str(single), "--quiet", "--rerun", "off")
     assert (out / "map.bt").read_bytes() == (single / "map.bt").read_bytes()
+
+
+def test_a_robot_killed_mid_run_leaves_the_others_to_finish(tmp_path):
+    """Issue 18: r2's tracker and replay are killed once 10 of its 20 frames went out; the mapper
+    takes r2 for gone after the peer timeout, keeps what arrived, and finishes r1's map (no start
+    poses: r2 is placed from the room both see)."""
+    out = tmp_path / "fleet"
+    out.mkdir()
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    bus = ["--mode", "client", "--connect", endpoint, "--no-multicast"]
+    procs = {"router": _start(out / "router.log", "router", "--listen", endpoint)}
+    try:
+        procs["mapper"] = _start(out / "mapper.log", "map", *bus, "--out", str(out), "--set", 'robots=["r1", "r2"]')
+        for robot, (start, end), shift in zip(ROBOTS, ((0, HALF), (HALF, FRAMES)), SHIFT_S):
+            ns = ["--namespace", robot]
+            procs[f"tracker-{robot}"] = _start(out / f"tracker-{robot}.log", "track", *bus, *ns)
+            procs[f"replay-{robot}"] = _start(None if robot == "r2" else out / f"replay-{robot}.log", "replay", *bus,
+                                              *ns, "--source", f"synthetic:{FRAMES}", "--set", f"start={start}",
+                                              "--set", f"end={end}", "--set", f"time_shift_s={shift!r}",
+                                              "--set", 'wait_for=["tracker", "mapper"]')
+        seen = ""
+        while f"10/{FRAMES - HALF} frames" not in seen:  # r2's progress line: frames are flowing
+            ch = procs["replay-r2"].stdout.read(1)
+            assert ch, seen
+            seen += ch
+        for name in ("tracker-r2", "replay-r2"):
+            procs[name].kill()
+            procs[name].wait(timeout=30)
+        for name in ("replay-r1", "tracker-r1", "mapper"):
+            assert procs[name].wait(timeout=600) == 0, (name, (out / f"{name}.log").read_text())
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                p.terminate()
+                p.wait(timeout=30)
+    stats = json.loads((out / "map_stats.json").read_text())
+    assert stats["robots"]["r2"]["lost"] and not stats["robots"]["r1"]["lost"], stats["robots"]
+    assert "r2: lost mid-run" in (out / "mapper.log").read_text()
+    assert stats["robots"]["r1"]["keyframes"] >= 2 and stats["occupied_voxels"] > 1000
