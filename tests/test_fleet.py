@@ -474,3 +474,18 @@ def test_a_robot_killed_mid_run_leaves_the_others_to_finish(tmp_path):
     assert stats["robots"]["r2"]["lost"] and not stats["robots"]["r1"]["lost"], stats["robots"]
     assert "r2: lost mid-run" in (out / "mapper.log").read_text()
     assert stats["robots"]["r1"]["keyframes"] >= 2 and stats["occupied_voxels"] > 1000
+
+
+@pytest.mark.parametrize("source", ["synthetic:61", "tum"])
+def test_a_photo_of_a_place_is_not_that_place(source):
+    """Issue 18, must-show 3's look-alike: the same image on a flat poster (the frame's colour, its
+    depth flattened to a wall at the median distance) matches descriptor for descriptor, but no
+    rigid motion takes the room's 3D points onto it: refused, in the room and at the TUM desk."""
+    from octolog.mapper.align import align, features
+    from octolog.replay.sources import open_source
+
+    spec = f"tum:{tum_first300()}" if source == "tum" else source
+    frames = list(open_source(spec).frames(0, 61))
+    for f in (frames[0], frames[30], frames[60]):
+        flat = np.where(f.depth > 0, np.median(f.depth[f.depth > 0]), 0).astype(np.uint16)
+        assert align(features(f), features(dataclasses.replace(f, depth=flat))) is None
