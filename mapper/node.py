@@ -176,6 +176,7 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
     expected_poses, received_poses = [0] * n, [0] * n
     map_id: list[dict[int, int]] = [{} for _ in range(n)]  # robot keyframe id -> map-wide id
     trajectories: list[list[tuple[int, int]]] = [[] for _ in range(n)]  # (stamp, map-wide id)
+    robot_pose: list[dict[int, np.ndarray]] = [{} for _ in range(n)]  # map-wide id -> robot_from_camera
     result = MapperResult()
     lost: set[int] = set()
 
@@ -237,6 +238,7 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
                 if W is None:  # not in the map yet: its waiting keyframes move
                     placement.correct(i, poses)
                 else:
+                    robot_pose[i].update({map_id[i][k]: T for k, T in poses.items() if k in map_id[i]})
                     result.corrections += mapper.correct({map_id[i][k]: W @ T for k, T in poses.items()
                                                           if k in map_id[i]})
             except InputError as exc:  # the whole correction is refused; the map is unchanged
@@ -267,8 +269,12 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
                     result.skipped += 1
                     result.problems.append(f"{cfg.robots[r]}: {exc}")
                     continue
-                for m in placement.remember(gid, mapper.keyframes[gid].world_from_camera, frame):
+                robot_pose[r][gid] = pose
+                merges, moved = placement.remember(r, gid, mapper.keyframes[gid].world_from_camera, frame, pose)
+                for m in merges:
                     todo += _placed(m, placement, cfg, pub_merge, viz, mapper)
+                if moved is not None:  # robot r's placement refined: its keyframes follow
+                    result.corrections += mapper.correct({g: moved @ T for g, T in robot_pose[r].items()})
                 ms = (time.perf_counter() - t0) * 1e3
                 t0 = time.perf_counter()
                 result.ms.append(ms)

@@ -7,7 +7,13 @@ unplaced robot is tried against the placed keyframes when the merge pops it; a p
 once integrated, is tried against the waiting keyframes of the unplaced robots (in robot order,
 then in their order). So the same streams place the same robots at the same keyframes, and the
 map's bytes do not depend on arrival timing. A robot never placed stays out of the map and is
-reported unmerged. Features are kept only while some robot is unplaced.
+reported unmerged.
+
+One match places a robot with that match's error (1-2 cm, about a degree on TUM). So the seam does
+not stay at that, the robot's next keyframes are matched too, against map keyframes of the other
+robots, up to REFINE_MATCHES verified matches in all: each gives an estimate of where the robot's
+world lies, and the robot's placement becomes their mean (rotations by their chordal mean), its
+keyframes moved with it. Features are kept only while some robot is unplaced or being refined.
 """
 
 from __future__ import annotations
@@ -18,6 +24,8 @@ import numpy as np
 
 from octolog.kit.geometry import RgbdFrame, invert
 from octolog.mapper.align import Alignment, Features, align, features
+
+REFINE_MATCHES = 5  # verified matches whose mean places a robot (the first one places it at once)
 
 
 @dataclass
@@ -48,7 +56,8 @@ class Placement:
     world_from_robot: list[np.ndarray | None] = field(default_factory=list)
     waiting: list[list[Waiting]] = field(default_factory=list)
     merges: list[Merge] = field(default_factory=list)
-    _library: list[tuple[int, np.ndarray, Features]] = field(default_factory=list)  # (gid, world_from_camera, f)
+    _library: list[tuple[int, int, np.ndarray, Features]] = field(default_factory=list)  # (robot, gid, world_from_camera, f)
+    _estimates: dict[int, list[np.ndarray]] = field(default_factory=dict)  # robot -> world_from_robot estimates
 
     @classmethod
     def known(cls, poses: list[np.ndarray]) -> Placement:
@@ -64,7 +73,10 @@ class Placement:
         return self.world_from_robot[robot] is not None
 
     def _searching(self) -> bool:
-        return any(w is None for w in self.world_from_robot)
+        return any(w is None for w in self.world_from_robot) or any(self._refining(r) for r in self._estimates)
+
+    def _refining(self, robot: int) -> bool:
+        return 0 < len(self._estimates.get(robot, [])) < REFINE_MATCHES
 
     def offer(self, robot: int, kf_id: int, stamp_ns: int, robot_from_camera: np.ndarray,
               frame: RgbdFrame) -> Merge | None:
@@ -73,7 +85,7 @@ class Placement:
         w = Waiting(kf_id, stamp_ns, robot_from_camera, frame, features(frame))
         self.waiting[robot].append(w)
         best = None
-        for gid, world_from_cam, f in self._library:
+        for _, gid, world_from_cam, f in self._library:
             a = align(f, w.features)
             if a is not None and (best is None or a.inliers > best[2].inliers):
                 best = (gid, world_from_cam, a)
@@ -81,14 +93,18 @@ class Placement:
             return None
         return self._place(robot, w, *best)
 
-    def remember(self, gid: int, world_from_camera: np.ndarray, frame: RgbdFrame) -> list[Merge]:
-        """A keyframe now in the map: kept for matching while robots are unplaced, and tried against
-        their waiting keyframes. The merges it made (robots to `take`)."""
+    def remember(self, robot_of: int, gid: int, world_from_camera: np.ndarray, frame: RgbdFrame,
+                 robot_from_camera: np.ndarray) -> tuple[list[Merge], np.ndarray | None]:
+        """A keyframe of robot `robot_of` now in the map: kept for matching while robots are unplaced
+        or refined, tried against their waiting keyframes, and, if its robot is being refined,
+        against the other robots' map keyframes. The merges it made (robots to `take`), and the
+        robot's new world_from_robot when a refinement moved it (its keyframes must follow)."""
         if not self._searching():
             self._library.clear()
-            return []
+            return [], None
         f = features(frame)
-        self._library.append((gid, world_from_camera, f))
+        moved = self._refine(robot_of, f, robot_from_camera) if self._refining(robot_of) else None
+        self._library.append((robot_of, gid, world_from_camera, f))
         out = []
         for robot in range(self.n_robots):
             if self.placed(robot):
@@ -98,7 +114,28 @@ class Placement:
                 if a is not None:
                     out.append(self._place(robot, w, gid, world_from_camera, a))
                     break
-        return out
+        return out, moved
+
+    def _refine(self, robot: int, f: Features, robot_from_camera: np.ndarray) -> np.ndarray | None:
+        """One more estimate of `robot`'s placement from a match with another robot's map keyframe
+        (the best verified one); the mean of all its estimates, or None without a match."""
+        best = None
+        for other, _, world_from_cam, g in self._library:
+            if other == robot:
+                continue
+            a = align(g, f)
+            if a is not None and (best is None or a.inliers > best[1].inliers):
+                best = (world_from_cam, a)
+        if best is None:
+            return None
+        estimates = self._estimates[robot]
+        estimates.append(best[0] @ best[1].a_from_b @ invert(robot_from_camera))
+        mean = np.eye(4)
+        U, _, Vt = np.linalg.svd(sum(E[:3, :3] for E in estimates))
+        mean[:3, :3] = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+        mean[:3, 3] = np.mean([E[:3, 3] for E in estimates], axis=0)
+        self.world_from_robot[robot] = mean
+        return mean
 
     def correct(self, robot: int, poses: dict[int, np.ndarray]) -> None:
         """A correction from an unplaced robot's tracker: its waiting keyframes move with it."""
@@ -117,6 +154,7 @@ class Placement:
     def _place(self, robot: int, w: Waiting, gid: int, world_from_cam: np.ndarray, a: Alignment) -> Merge:
         world_from_robot = world_from_cam @ a.a_from_b @ invert(w.robot_from_camera)
         self.world_from_robot[robot] = world_from_robot
+        self._estimates[robot] = [world_from_robot]
         m = Merge(robot, w.kf_id, gid, world_from_robot, a)
         self.merges.append(m)
         return m
