@@ -131,9 +131,10 @@ def split(topic: str, msgtype: str, payload: bytes) -> list[tuple[str, str, byte
 
 def wire_type(diagnostics: Any) -> str | None:
     """The wire type a logged DiagnosticArray stands for, or None (a DiagnosticArray of its own)."""
-    if len(diagnostics.status) == 1 and is_split(diagnostics.status[0].message):
-        return str(diagnostics.status[0].message)
-    return None
+    if len(diagnostics.status) != 1:
+        return None
+    msgtype = str(diagnostics.status[0].message)
+    return msgtype if is_split(msgtype) and msgtype in codec.typestore().types else None
 
 
 _DTYPES = {"bool": np.bool_, "int8": np.int8, "uint8": np.uint8, "int16": np.int16, "uint16": np.uint16,

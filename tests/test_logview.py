@@ -131,3 +131,16 @@ def test_a_log_of_the_old_layout_reads_the_same(tmp_path):
             w.write(topics.RGBD.name, topics.RGBD.msgtype, data, log_time_ns=f.stamp_ns, publish_time_ns=f.stamp_ns)
     assert [m.data for m in read_wire(tmp_path / "old.mcap", [topics.RGBD.name])] == payloads
     assert summarize(tmp_path / "old.mcap").wire_topics[topics.RGBD.name].msgtype == topics.RGBD.msgtype
+
+
+def test_a_diagnostic_array_naming_an_unknown_type_is_left_as_it_is(tmp_path):
+    """A log from a newer octolog (or a hostile one) naming a type this one does not know: the
+    message is passed on as the DiagnosticArray it is, not joined, not a crash."""
+    Status = codec.msgtype("diagnostic_msgs/msg/DiagnosticStatus")
+    diag = codec.msgtype(logview.DIAGNOSTICS)(header=codec.header(1, ""), status=[Status(
+        level=0, name="tracker/status", message="octolog_msgs/msg/FromTheFuture", hardware_id="octolog", values=[])])
+    data = codec.encode(diag, logview.DIAGNOSTICS)
+    with McapWriter(tmp_path / "s.mcap") as w:
+        w.write("tracker/status", logview.DIAGNOSTICS, data, log_time_ns=1, publish_time_ns=1)
+    (m,) = read_wire(tmp_path / "s.mcap")
+    assert m.msgtype == logview.DIAGNOSTICS and m.data == data
