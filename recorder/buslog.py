@@ -119,6 +119,9 @@ def run(bus_cfg: BusConfig, out: Path, *, compression: str = "zstd", metadata: d
             mcap.add_metadata("config", {k: json.dumps(v, sort_keys=True) for k, v in sorted(configs.items())})
     if folder is not None:
         _leave_session(folder, configs, trajectory, result)
+        summary = {"made_by": "octolog log", "frames_logged": frames, "messages": dict(sorted(result.counts.items())),
+                   "files": ["session.mcap", *result.files]}
+        (folder / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")  # last: the folder is complete
     return result
 
 

@@ -276,6 +276,7 @@ def test_deployment_doc_robot_and_server_give_the_run_bytes(hosts, tmp_path):
     served = out / "logs" / "robot1"
     assert (served / "trajectory.txt").read_bytes() == (out / "traj.txt").read_bytes()
     assert "camera/rgbd/compressed" not in summarize(served / "session.mcap").topics
+    assert "session.mcap" in octolog("info", str(served)).stdout
     whole = octolog("replay", str(served), "--out", str(tmp_path / "whole"), "--quiet", check=False)
     assert whole.returncode == 1 and "a log without camera frames" in whole.stderr and "--stages mapper" in whole.stderr
     again = tmp_path / "again"
