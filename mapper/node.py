@@ -125,7 +125,7 @@ def finish(mapper: Mapper, result: MapperResult, bus: Bus, viz: Viz, publisher: 
         {**result.stats, "cloud_points": result.cloud_points, "skipped_keyframes": result.skipped,
          "corrections": result.corrections, **(extra_stats or {})}, indent=2, sort_keys=True) + "\n")
     if viz.enabled:
-        _log_map(viz, mapper, last_stamp, publisher.grid)
+        _log_map(viz, mapper, last_stamp, publisher.grid, final=True)
     bus.publisher(MAP_END).put(codec.stream_end_msg(MAP_UPDATE.name, result.keyframes + result.skipped))
 
 
@@ -442,10 +442,17 @@ def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: Pu
     return result
 
 
-def _log_map(viz: Viz, mapper: Mapper, stamp: int, grid: Any = None) -> None:
+# The dense cloud of a snapshot while the map grows: every CLOUD_STRIDE-th point (the voxels show the
+# growing map; a full cloud per snapshot made the mapper's recording grow with the square of the
+# session). The last snapshot logs it whole.
+CLOUD_STRIDE = 8
+
+
+def _log_map(viz: Viz, mapper: Mapper, stamp: int, grid: Any = None, *, final: bool = False) -> None:
     viz.set_time(stamp)
     pts, cols = mapper.cloud.cloud()
-    viz.points3d("world/mapper/cloud", pts, cols, radius=0.004)
+    step = 1 if final else CLOUD_STRIDE
+    viz.points3d("world/mapper/cloud", pts[::step], cols[::step], radius=0.004 if final else 0.008)
     centres = mapper.octree.occupied_centres()
     if len(centres):
         # height along the grid's up (gravity when the source has an accelerometer; else the first
