@@ -252,6 +252,7 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
             except InputError as exc:
                 result.skipped += 1
                 result.problems.append(f"{cfg.robots[i]}: {exc}")
+                _update(pub_update, publisher, item.stamp_ns, item.kf_id, 0, (time.perf_counter() - t0) * 1e3)
                 continue
             todo = [(i, kf_id, item.stamp_ns, pose, frame)]
             if not placement.placed(i):
@@ -265,9 +266,11 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
                     map_id[r][kid] = gid
                     trajectories[r].append((stamp, gid))
                     result.keyframes += 1
-                except (InputError, MapError) as exc:
+                except (InputError, MapError) as exc:  # one update per keyframe taken (mapper/end's count)
                     result.skipped += 1
                     result.problems.append(f"{cfg.robots[r]}: {exc}")
+                    _update(pub_update, publisher, stamp, kid, 0, (time.perf_counter() - t0) * 1e3)
+                    t0 = time.perf_counter()
                     continue
                 robot_pose[r][gid] = pose
                 merges, moved = placement.remember(r, gid, mapper.keyframes[gid].world_from_camera, frame, pose)
@@ -278,10 +281,7 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
                 ms = (time.perf_counter() - t0) * 1e3
                 t0 = time.perf_counter()
                 result.ms.append(ms)
-                pub_update.put(codec.msgtype(MAP_UPDATE.msgtype)(
-                    header=codec.header(stamp, "world"), keyframe_id=gid, n_points=pts,
-                    n_occupied=publisher.stats.get("occupied_voxels", 0),
-                    n_free=publisher.stats.get("free_voxels", 0), processing_ms=ms))
+                _update(pub_update, publisher, stamp, gid, pts, ms)
                 publisher.maybe(result.keyframes, stamp)
                 if viz.enabled:
                     viz.set_time(stamp, frame.seq)
@@ -312,6 +312,13 @@ def write_separate_map(cfg: MapperConfig, waiting: list, out: Path) -> Path:
             continue
     own.write(out)
     return out
+
+
+def _update(pub: Any, publisher: Publisher, stamp: int, kf_id: int, pts: int, ms: float) -> None:
+    pub.put(codec.msgtype(MAP_UPDATE.msgtype)(
+        header=codec.header(stamp, "world"), keyframe_id=kf_id, n_points=pts,
+        n_occupied=publisher.stats.get("occupied_voxels", 0), n_free=publisher.stats.get("free_voxels", 0),
+        processing_ms=ms))
 
 
 def merge_event(m: Merge, robots: tuple[str, ...]) -> dict:
