@@ -37,3 +37,31 @@ def tum_first300() -> Path:
     if not (folder / "rgb.txt").is_file():
         pytest.skip(f"real data: {folder} not found")
     return folder
+
+
+def read_until(proc: subprocess.Popen, text: str) -> str:
+    """Read a text-mode process's stdout until `text` appears (blocking reads: the output is the
+    event, nothing sleeps); what was read. Fails if the process ends first."""
+    seen = ""
+    while text not in seen:
+        ch = proc.stdout.read(1)
+        assert ch, seen
+        seen += ch
+    return seen
+
+
+def kill_then_finish(procs: dict[str, subprocess.Popen], kill: tuple[str, ...], finish: tuple[str, ...],
+                     logs: Path) -> None:
+    """SIGKILL the processes `kill`, then wait for `finish` to exit 0 (their logs in `logs`); in
+    any case leave no process behind."""
+    try:
+        for name in kill:
+            procs[name].kill()
+            procs[name].wait(timeout=30)
+        for name in finish:
+            assert procs[name].wait(timeout=600) == 0, (name, (logs / f"{name}.log").read_text())
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                p.terminate()
+                p.wait(timeout=30)

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import ROOT, octolog
+from helpers import ROOT, kill_then_finish, octolog, read_until
 
 from octolog.kit.mcaplog import summarize
 
@@ -311,21 +311,11 @@ def test_three_robots_on_three_hosts_merge_without_start_poses(hosts, tmp_path):
                                               f"start={start}", "--set", f"end={start + 30}", "--set",
                                               f"time_shift_s={shift!r}", "--set", 'wait_for=["tracker", "mapper"]',
                                               log=None if robot == "r3" else out / f"replay-{robot}.log")
-        seen = ""
-        while "10/30 frames" not in seen:  # r3's progress line: its frames are flowing
-            ch = procs["replay-r3"].stdout.read(1)
-            assert ch, seen
-            seen += ch
-        for name in ("tracker-r3", "replay-r3"):
-            procs[name].kill()
-            procs[name].wait(timeout=30)
-        for name in ("replay-r1", "replay-r2", "tracker-r1", "tracker-r2", "mapper"):
-            assert procs[name].wait(timeout=600) == 0, (name, (out / f"{name}.log").read_text())
-    finally:
-        for p in procs.values():
-            if p.poll() is None:
-                p.terminate()
-                p.wait(timeout=30)
+        read_until(procs["replay-r3"], "10/30 frames")  # its progress line: its frames are flowing
+    except BaseException:
+        kill_then_finish(procs, (), (), out)
+        raise
+    kill_then_finish(procs, ("tracker-r3", "replay-r3"), ("replay-r1", "replay-r2", "tracker-r1", "tracker-r2", "mapper"), out)
     stats = json.loads((out / "map_stats.json").read_text())
     assert stats["robots"]["r3"]["lost"] and not stats["robots"]["r1"]["lost"] and not stats["robots"]["r2"]["lost"]
     assert "r2" in {m["robot"] for m in stats["merges"]}, (stats, (out / "mapper.log").read_text())

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import ROOT, octolog, tum_first300
+from helpers import ROOT, kill_then_finish, octolog, read_until, tum_first300
 
 from octolog.kit.errors import ConfigError
 from octolog.mapper.config import MapperConfig
@@ -455,21 +455,11 @@ def test_a_robot_killed_mid_run_leaves_the_others_to_finish(tmp_path):
                                               *ns, "--source", f"synthetic:{FRAMES}", "--set", f"start={start}",
                                               "--set", f"end={end}", "--set", f"time_shift_s={shift!r}",
                                               "--set", 'wait_for=["tracker", "mapper"]')
-        seen = ""
-        while f"10/{FRAMES - HALF} frames" not in seen:  # r2's progress line: frames are flowing
-            ch = procs["replay-r2"].stdout.read(1)
-            assert ch, seen
-            seen += ch
-        for name in ("tracker-r2", "replay-r2"):
-            procs[name].kill()
-            procs[name].wait(timeout=30)
-        for name in ("replay-r1", "tracker-r1", "mapper"):
-            assert procs[name].wait(timeout=600) == 0, (name, (out / f"{name}.log").read_text())
-    finally:
-        for p in procs.values():
-            if p.poll() is None:
-                p.terminate()
-                p.wait(timeout=30)
+        read_until(procs["replay-r2"], f"10/{FRAMES - HALF} frames")  # its progress line: its frames are flowing
+    except BaseException:
+        kill_then_finish(procs, (), (), out)
+        raise
+    kill_then_finish(procs, ("tracker-r2", "replay-r2"), ("replay-r1", "tracker-r1", "mapper"), out)
     stats = json.loads((out / "map_stats.json").read_text())
     assert stats["robots"]["r2"]["lost"] and not stats["robots"]["r1"]["lost"], stats["robots"]
     assert "r2: lost mid-run" in (out / "mapper.log").read_text()
