@@ -26,6 +26,11 @@ from octolog.kit.geometry import RgbdFrame, invert
 from octolog.mapper.align import Alignment, Features, align, features
 
 REFINE_MATCHES = 5  # verified matches whose mean places a robot (the first one places it at once)
+# Bounds, so that a robot that never meets the others costs the same per keyframe in minute ten as in
+# minute one: the newest LIBRARY map keyframes are kept for matching (~0.5 MB of features each), and
+# a new map keyframe is tried against the newest TRIES waiting keyframes of each unplaced robot.
+LIBRARY = 200
+TRIES = 20
 
 
 @dataclass
@@ -36,7 +41,7 @@ class Waiting:
     stamp_ns: int
     robot_from_camera: np.ndarray
     frame: RgbdFrame
-    features: Features
+    features: Features | None  # dropped once it is too old to be tried (TRIES)
 
 
 @dataclass(frozen=True)
@@ -84,6 +89,8 @@ class Placement:
         match), or kept waiting. The merge, if any; the caller then integrates `take(robot)`."""
         w = Waiting(kf_id, stamp_ns, robot_from_camera, frame, features(frame))
         self.waiting[robot].append(w)
+        if len(self.waiting[robot]) > TRIES:
+            self.waiting[robot][-TRIES - 1].features = None
         best = None
         for _, gid, world_from_cam, f in self._library:
             a = align(f, w.features)
@@ -105,11 +112,14 @@ class Placement:
         f = features(frame)
         moved = self._refine(robot_of, f, robot_from_camera) if self._refining(robot_of) else None
         self._library.append((robot_of, gid, world_from_camera, f))
+        del self._library[:-LIBRARY]
         out = []
         for robot in range(self.n_robots):
             if self.placed(robot):
                 continue
-            for w in self.waiting[robot]:
+            for w in self.waiting[robot][-TRIES:]:
+                if w.features is None:
+                    continue
                 a = align(f, w.features)
                 if a is not None:
                     out.append(self._place(robot, w, gid, world_from_camera, a))
