@@ -34,12 +34,6 @@ def up_from_samples(samples: np.ndarray, to_optical: np.ndarray, where: str) -> 
     return to_optical @ (mean / norm)
 
 
-def quat_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_quat([x, y, z, w]).as_matrix()
-
-
 def rotation_between(parent_from_child: dict[str, tuple[str, np.ndarray]], target: str, source: str) -> np.ndarray:
     """target_from_source rotation through a static tree (child -> (parent, parent_from_child));
     identity when either frame is not in it."""

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from octolog.kit.geometry import pose_to_matrix
+from octolog.schemas import codec
 
 # camera_link (x forward, y left, z up) from an optical frame (x right, y down, z forward): REP 103
 LINK_FROM_OPTICAL = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0, 0, 0, 1.0]])
@@ -30,13 +30,9 @@ class StaticTree:
         self._parent: dict[str, tuple[str, np.ndarray]] = {}
 
     def add(self, msg: Any) -> None:
-        for tf in msg.transforms:
-            t, q = tf.transform.translation, tf.transform.rotation
-            tq = np.array([t.x, t.y, t.z, q.x, q.y, q.z, q.w], dtype=np.float64)
-            if not np.isfinite(tq).all() or not np.any(tq[3:]):
-                continue  # not a rigid transform: left out rather than poisoning the chain
+        for parent, child, T in codec.tf_transforms(msg):
             with self._lock:
-                self._parent[str(tf.child_frame_id)] = (str(tf.header.frame_id), pose_to_matrix(tq[:3], tq[3:]))
+                self._parent[child] = (parent, T)
 
     def root_from(self, frame: str, *, stop: str = "world") -> tuple[str, np.ndarray]:
         """(root, root_from_frame): up the static parents of `frame` to the first frame without one

@@ -15,11 +15,9 @@ from __future__ import annotations
 
 import dataclasses
 
-import numpy as np
-
 from octolog.kit.bus import Bus
 from octolog.kit.errors import InputError
-from octolog.kit.gravity import LiveUp, quat_matrix
+from octolog.kit.gravity import LiveUp
 from octolog.kit.viz import Viz
 from octolog.mapper.core import Mapper, map_from_world
 from octolog.mapper.grid import DEFAULT_UP
@@ -77,7 +75,5 @@ class MapFrame:
 
     def _on_tf(self, msg: object) -> None:
         assert self._live is not None
-        for tf in msg.transforms:  # type: ignore[attr-defined]
-            q = tf.transform.rotation
-            if np.isfinite([q.x, q.y, q.z, q.w]).all() and any((q.x, q.y, q.z, q.w)):
-                self._live.add_transform(tf.header.frame_id, tf.child_frame_id, quat_matrix(q.x, q.y, q.z, q.w))
+        for parent, child, T in codec.tf_transforms(msg):
+            self._live.add_transform(parent, child, T[:3, :3])

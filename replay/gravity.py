@@ -30,7 +30,7 @@ import numpy as np
 
 from octolog.kit.errors import InputError
 from octolog.kit.geometry import RgbdFrame
-from octolog.kit.gravity import WINDOW_S, G, quat_matrix, rotation_between, up_from_samples
+from octolog.kit.gravity import WINDOW_S, G, rotation_between, up_from_samples
 
 # TUM's Kinect accelerometer axes in the colour camera's optical frame (see the module docstring;
 # `octolog import` writes it into the MCAP as a /tf_static)
@@ -172,9 +172,8 @@ def recorded_up(path: Path, first_stamp_ns: int, color_frame: str) -> np.ndarray
     for m in read_messages(path, [ACCEL.name, TF_STATIC.name]):
         msg = codec.decode(m.data, TF_STATIC.msgtype if m.topic == TF_STATIC.name else ACCEL.msgtype)
         if m.topic == TF_STATIC.name:
-            for tf in msg.transforms:
-                q = tf.transform.rotation
-                parent_from_child[tf.child_frame_id] = (tf.header.frame_id, quat_matrix(q.x, q.y, q.z, q.w))
+            for parent, child, T in codec.tf_transforms(msg):
+                parent_from_child[child] = (parent, T[:3, :3])
             continue
         t = codec.stamp_ns(msg.header)
         if abs(t - first_stamp_ns) <= WINDOW_S * 1e9:

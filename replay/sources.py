@@ -17,7 +17,7 @@ import numpy as np
 
 from octolog.kit.calibration import is_calibration_file, load_calibration
 from octolog.kit.errors import ConfigError, InputError
-from octolog.kit.geometry import EncodedRgbd, RgbdFrame, pose_to_matrix
+from octolog.kit.geometry import EncodedRgbd, RgbdFrame
 from octolog.kit.mcaplog import read_wire, summarize
 from octolog.kit.tum import open_tum, readout_for
 from octolog.replay import gravity
@@ -215,14 +215,8 @@ class McapSource:
     def static_transforms(self) -> list[tuple[str, str, np.ndarray]]:
         """The camera's static frames as the file has them (/tf_static; `world`, which a mapper
         hangs under `map`, left out)."""
-        out = []
-        for m in read_wire(self.path, [TF_STATIC.name]):
-            for tf in codec.decode(m.data, TF_STATIC.msgtype).transforms:
-                t, q = tf.transform.translation, tf.transform.rotation
-                tq = np.array([t.x, t.y, t.z, q.x, q.y, q.z, q.w], dtype=np.float64)
-                if tf.child_frame_id != "world" and np.isfinite(tq).all() and np.any(tq[3:]):
-                    out.append((str(tf.header.frame_id), str(tf.child_frame_id), pose_to_matrix(tq[:3], tq[3:])))
-        return out
+        return [tf for m in read_wire(self.path, [TF_STATIC.name])
+                for tf in codec.tf_transforms(codec.decode(m.data, TF_STATIC.msgtype)) if tf[1] != "world"]
 
     def gravity_up(self) -> np.ndarray | None:
         """A recording's accelerometer at its first frame; the up vector the session that wrote a

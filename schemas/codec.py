@@ -381,6 +381,18 @@ def tf_msg(transforms: list[tuple[str, str, np.ndarray]], stamp: int) -> Any:
     return msgtype("tf2_msgs/msg/TFMessage")(transforms=out)
 
 
+def tf_transforms(msg: Any) -> list[tuple[str, str, np.ndarray]]:
+    """(parent, child, parent_from_child 4x4) of a tf2_msgs/TFMessage; a transform that is not
+    rigid (not finite, zero quaternion) is left out rather than poisoning a chain."""
+    out = []
+    for tf in msg.transforms:
+        t, q = tf.transform.translation, tf.transform.rotation
+        tq = np.array([t.x, t.y, t.z, q.x, q.y, q.z, q.w], dtype=np.float64)
+        if np.isfinite(tq).all() and np.any(tq[3:]):
+            out.append((str(tf.header.frame_id), str(tf.child_frame_id), pose_to_matrix(tq[:3], tq[3:])))
+    return out
+
+
 # --- wire compression (camera/rgbd/compressed, tracker/keyframe/compressed) ---------------------
 
 
