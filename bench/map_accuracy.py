@@ -26,10 +26,10 @@ from octolog.mapper.evaluate import cloud_to_surface, voxel_accuracy  # noqa: E4
 
 def main() -> None:
     r = run.__wrapped__()
-    scene_from_world = np.linalg.inv(r.world_from_scene)
+    scene_from_map = np.linalg.inv(r.map_from_scene)
 
     def truth(points: np.ndarray) -> np.ndarray:  # exact distance to the room's mesh
-        return r.scene.distance_to_surface(transform(points, scene_from_world))
+        return r.scene.distance_to_surface(transform(points, scene_from_map))
     variants = {
         "default (SOR k=20, 3 sigma)": MapperConfig(),
         "SOR 2 sigma (PCL's usual)": dataclasses.replace(MapperConfig(), sor_std_ratio=2.0),

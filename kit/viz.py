@@ -57,8 +57,9 @@ def pipeline_blueprint() -> Any:
 
     return rrb.Blueprint(
         rrb.Horizontal(
-            # rooted at the map frame (z up), which the mapper places `world` in: the room stands upright
-            rrb.Spatial3DView(origin="/", contents="/world/**", name="map, trajectory and camera"),
+            # rooted at the map frame (z up): the mapper's cloud and voxels are logged in it (`map/...`)
+            # and it places the tracker's `world` in it, so the room stands upright
+            rrb.Spatial3DView(origin="/", contents=["/map/**", "/world/**"], name="map, trajectory and camera"),
             rrb.Vertical(
                 rrb.Spatial2DView(origin="world/tracker/camera", name="camera and keypoints"),
                 rrb.Spatial2DView(origin="world/tracker/keyframe", name="last keyframe's depth"),

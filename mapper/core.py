@@ -1,14 +1,17 @@
 """The mapper's core: keyframes → filtered dense cloud + occupancy octree, following pose corrections.
 
-Each keyframe's filtered cloud is kept in its camera frame, so a corrected pose only needs a new
-transform. The octree cannot subtract one keyframe's contribution (log-odds are clamped), so a
+Keyframe poses arrive in the tracker's `world` (the first camera's optical frame); the cloud, the
+octree and the grid are built in `map` (REP 105: z up, gravity-aligned when the source has an
+accelerometer, see mapper.grid), so `map.bt` and `cloud.ply` stand upright in any viewer and the
+octree's voxel columns are vertical. Each keyframe's filtered cloud is kept in its camera frame, so
+a corrected pose, or a new `map` frame (`set_up`), only needs a new transform. The octree cannot subtract one keyframe's contribution (log-odds are clamped), so a
 correction rebuilds it by re-inserting every keyframe in arrival order with the current poses: the
 result is, byte for byte, the map built from scratch with the corrected poses.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +47,17 @@ class Mapper:
         self.cloud = DenseCloud(voxel_m=params.cloud.voxel_m)
         self.octree = self._new_octree()
         self.rebuilds = 0
+        self.map_from_world = map_from_world(params.grid)  # 4x4: where the keyframes are put
+
+    def set_up(self, up: tuple[float, ...]) -> None:
+        """A new up direction (in `world`) for the map frame; what is integrated moves into it."""
+        grid = replace(self.params.grid, up=tuple(float(v) for v in up))
+        self.params = replace(self.params, grid=grid)
+        T = map_from_world(grid)
+        if not np.array_equal(T, self.map_from_world):
+            self.map_from_world = T
+            if self.keyframes:
+                self.rebuild()
 
     @property
     def resolution_m(self) -> float:
@@ -83,12 +97,13 @@ class Mapper:
         return len(pts)
 
     def _insert(self, kf_id: int, kf: KeyframeCloud) -> None:
-        world = transform(kf.points_cam, kf.world_from_camera)
-        self.cloud.add(kf_id, world, kf.colours)
+        map_from_camera = self.map_from_world @ kf.world_from_camera
+        pts = transform(kf.points_cam, map_from_camera)
+        self.cloud.add(kf_id, pts, kf.colours)
         # the range limit was applied when back-projecting (depth <= max_range_m), so the dense cloud
         # and the octree hold the same points; a second, Euclidean cut here would make them differ
         colour = self.params.occupancy.colour
-        self.octree.insert(world, kf.world_from_camera[:3, 3], colours=kf.colours if colour else None,
+        self.octree.insert(pts, map_from_camera[:3, 3], colours=kf.colours if colour else None,
                            max_range_m=-1.0)
 
     def correct(self, poses: dict[int, np.ndarray]) -> int:
@@ -105,19 +120,21 @@ class Mapper:
         return len(moved)
 
     def rebuild(self) -> None:
-        """Re-integrate every keyframe, in arrival order, with its current pose."""
+        """Re-integrate every keyframe, in arrival order, with its current pose (and map frame)."""
         self.octree = self._new_octree()
         for kf_id, kf in self.keyframes.items():
             self._insert(kf_id, kf)
         self.rebuilds += 1
 
     def stats(self) -> dict:
-        """The occupancy map's counts plus keyframes and rebuilds, for map_stats.json."""
-        return {**self.octree.stats(), "keyframes": len(self.keyframes), "rebuilds": self.rebuilds}
+        """The occupancy map's counts plus keyframes and rebuilds, and the frame the map is in
+        (`map_from_world`, row-major 4x4: where the tracker's poses land), for map_stats.json."""
+        return {**self.octree.stats(), "keyframes": len(self.keyframes), "rebuilds": self.rebuilds,
+                "map_from_world": self.map_from_world.tolist()}
 
     def project_grid(self) -> OccupancyGrid2D | None:
         """The 2D grid of the current octree, or None while no known voxel lies in the band."""
-        return project_grid(self.octree, self.params.grid)
+        return project_grid(self.octree, self.params.grid, self.map_from_world)
 
     def write(self, out_dir: Path, stem: str = "map") -> dict[str, str]:
         """Write the map files (.bt, .ot, cloud .ply/.pcd, the 2D grid if any); returns {kind: path}."""
@@ -146,14 +163,15 @@ def map_from_world(params: GridParams) -> np.ndarray:
     return map_from_world_for_up(np.array(params.up, dtype=float), height_m=params.camera_height_m)
 
 
-def project_grid(octree: OccupancyMap, params: GridParams) -> OccupancyGrid2D | None:
-    """The 2D occupancy grid of `octree`: a height band in a level frame (see mapper.grid), or None
-    while no known voxel lies in the band."""
+def project_grid(octree: OccupancyMap, params: GridParams, map_from_world: np.ndarray) -> OccupancyGrid2D | None:
+    """The 2D occupancy grid of `octree` (built in `map`): its height band, or None while no known
+    voxel lies in the band. The grid keeps `map_from_world`, to place world points in it."""
     try:
-        return project_octree(octree, map_from_world=map_from_world(params), z_min_m=params.z_min_m,
+        grid = project_octree(octree, map_from_world=np.eye(4), z_min_m=params.z_min_m,
                               z_max_m=params.z_max_m, resolution_m=params.resolution_m)
     except MapError:
         return None
+    return replace(grid, map_from_world=map_from_world.copy())
 
 
 def bt_payload(bt_file_bytes: bytes) -> bytes:

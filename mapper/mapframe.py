@@ -1,28 +1,34 @@
-"""The `map` frame (z up) of the grid: given in the config, or found from a live camera's IMU.
+"""The `map` frame (z up) the mapper builds in: given in the config, or found on the bus.
 
-`octolog run` on a file finds up before the stages start (the file's accelerometer, octolog.replay.gravity)
-and gives it as `mapper.grid_up`: the mapper announces `map` -> `world` at once. A live camera
-(`octolog record` publishing, `--source d455`) is only read once it runs, so with `grid_up` unset
-the mapper listens to `camera/accel/sample` and the camera's `/tf_static` on the bus (outside its
-inbox) and decides at its first snapshot: the accelerometer's mean within 0.1 s of the first
-keyframe, rotated into that keyframe's optical frame (octolog.kit.gravity). Without samples the grid
-assumes a level first camera (up = -y), as before. What the IMU gave goes into map_stats.json
-(`map_frame`); `octolog run` copies it into the session's config.toml, so a replay of the session
-log (which carries no IMU stream to the mapper) draws the same grid.
+`octolog run` on a file finds up before the stages start (the file's accelerometer,
+octolog.replay.gravity) and gives it as `mapper.grid_up`: the mapper announces `map` -> `world` at
+once. A mapper not told `grid_up` (one started on its own, `octolog map`) finds it on the bus:
+- a replay of a file serves the same up on `camera/gravity` (and publishes it before its first
+  frame); the mapper asks for it when the first keyframe arrives, before integrating it, so a
+  restarted mapper gets it too;
+- a live camera (`octolog record` publishing, `--source d455`) is only read once it runs: the
+  mapper listens to `camera/accel/sample` and the camera's `/tf_static` (outside its inbox) and
+  decides at its first snapshot: the accelerometer's mean within 0.1 s of the first keyframe,
+  rotated into that keyframe's optical frame (octolog.kit.gravity); the keyframes integrated so
+  far move into the new frame.
+Without either the map assumes a level first camera (up = -y), as before. What the bus gave goes
+into map_stats.json (`map_frame`); `octolog run` copies it into the session's config.toml, so a
+replay of the session log (which carries no IMU stream to the mapper) draws the same map.
 """
 
 from __future__ import annotations
-
-import dataclasses
 
 from octolog.kit.bus import Bus
 from octolog.kit.errors import InputError
 from octolog.kit.gravity import LiveUp
 from octolog.kit.viz import Viz
-from octolog.mapper.core import Mapper, map_from_world
+from octolog.mapper.core import Mapper
 from octolog.mapper.grid import DEFAULT_UP
 from octolog.schemas import codec
-from octolog.schemas.topics import ACCEL, TF_STATIC
+from octolog.schemas.topics import ACCEL, GRAVITY, TF_STATIC
+
+
+GRAVITY_WAIT_S = 1.0  # for the replay's answer on camera/gravity (a known queryable answers in ms)
 
 
 class MapFrame:
@@ -34,6 +40,7 @@ class MapFrame:
         self._first: tuple[int, str] | None = None  # the first keyframe's stamp and optical frame
         self._live = LiveUp() if from_imu else None
         self._announced = False
+        self._given: tuple[str, tuple[float, ...]] | None = None  # a replay's up: (its frame, up)
         if self._live is None:
             self._announce()
             return
@@ -41,15 +48,27 @@ class MapFrame:
         bus.listen(TF_STATIC, self._on_tf)
 
     def first_keyframe(self, stamp_ns: int, frame_id: str) -> None:
+        """Called before the keyframe is integrated: a replay's up for its frame applies at once."""
         if self._first is None:
             self._first = (stamp_ns, frame_id)
+            # the replay serves it from before its first frame while it runs: asked here, at a fixed
+            # point, a restarted mapper gets it too (a live camera serves none: its accelerometer is read)
+            msg = self.bus.fetch(GRAVITY, GRAVITY_WAIT_S)
+            if msg is not None and msg.header.frame_id == frame_id:
+                v = msg.vector
+                self._given = (frame_id, (float(v.x), float(v.y), float(v.z)))
+                self.resolve()
 
     def resolve(self) -> None:
         """Decide up (once, before the first grid) and announce the frame."""
         if self._announced:
             return
         assert self._live is not None
-        if self._first is not None:
+        given = self._given
+        if self._first is not None and given is not None and given[0] == self._first[1]:
+            self.mapper.set_up(given[1])  # before the first keyframe (first_keyframe): nothing to rebuild
+            self.found = {"up": list(given[1]), "note": "gravity-aligned (the replay's camera/gravity)"}
+        elif self._first is not None:
             try:
                 up = self._live.up_at(*self._first, "the camera's accelerometer")
             except InputError as exc:  # samples, but no rest reading: level, and say why
@@ -57,13 +76,12 @@ class MapFrame:
             else:
                 if up is not None:
                     up_t = tuple(float(v) for v in up)
-                    grid = dataclasses.replace(self.mapper.params.grid, up=up_t)
-                    self.mapper.params = dataclasses.replace(self.mapper.params, grid=grid)
+                    self.mapper.set_up(up_t)  # rebuilds what is integrated in the new frame
                     self.found = {"up": list(up_t), "note": "gravity-aligned (the live camera's accelerometer)"}
         self._announce()
 
     def _announce(self) -> None:
-        T = map_from_world(self.mapper.params.grid)
+        T = self.mapper.map_from_world
         self.bus.publisher(TF_STATIC).put(codec.tf_msg([("map", "world", T)], 0))
         self.viz.map_frame(T)
         self._announced = True

@@ -85,12 +85,12 @@ class Publisher:
 
     def now(self, stamp: int) -> None:
         """Publish a snapshot now: the octomap, the occupied voxels and the 2D grid."""
+        if self.frame is not None:
+            self.frame.resolve()  # may move the map into the gravity-aligned frame: before publishing it
         octree = self.mapper.octree
         msg = codec.octomap_msg(bt_payload(octree.bt_bytes()), self.mapper.resolution_m, stamp)
         self.latest = self.pub_octomap.put(msg)
         self.pub_occupied.put(codec.point_cloud_msg(octree.occupied_centres(), stamp))
-        if self.frame is not None:
-            self.frame.resolve()
         self.grid = self.mapper.project_grid()
         if self.grid is not None:
             self.pub_grid.put(occupancy_grid_msg(self.grid, stamp))
@@ -459,16 +459,14 @@ def _log_map(viz: Viz, mapper: Mapper, stamp: int, grid: Any = None, *, final: b
     viz.set_time(stamp)
     pts, cols = mapper.cloud.cloud()
     step = 1 if final else CLOUD_STRIDE
-    viz.points3d("world/mapper/cloud", pts[::step], cols[::step], radius=0.004 if final else 0.008)
+    viz.points3d("map/cloud", pts[::step], cols[::step], radius=0.004 if final else 0.008)
     centres = mapper.octree.occupied_centres()
     if len(centres):
-        # height along the grid's up (gravity when the source has an accelerometer; else the first
-        # camera's -y): `world` is that camera's optical frame
-        up_dir = np.asarray(mapper.params.grid.up, dtype=np.float64)
-        up = centres @ (up_dir / np.linalg.norm(up_dir))
+        # height: the octree is in `map`, z up (gravity when the source has an accelerometer)
+        up = centres[:, 2]
         t = (up - up.min()) / max(1e-9, float(np.ptp(up)))
         colours = np.stack([255 * t, 80 + 100 * (1 - t), 255 * (1 - t)], axis=1).astype(np.uint8)
-        viz.boxes("world/mapper/occupied", centres, mapper.resolution_m, colours)
+        viz.boxes("map/occupied", centres, mapper.resolution_m, colours)
     if grid is not None:
         # map_server colours, top row = largest y, as the PGM shows it
         image = np.full(grid.data.shape, 205, np.uint8)

@@ -70,6 +70,7 @@ def run(bus_cfg: BusConfig, out: Path, *, compression: str = "zstd", metadata: d
     result = LogResult(path=str(out))
     configs: dict[str, dict] = {}
     trajectory = None
+    up: list[float] | None = None  # the replay's camera/gravity
     metadata = dict(metadata or {})
     with Bus(bus_cfg, "log", inbox_size=16) as bus, McapWriter(out, compression=compression) as mcap:
         for name, data in metadata.items():
@@ -99,6 +100,9 @@ def run(bus_cfg: BusConfig, out: Path, *, compression: str = "zstd", metadata: d
                 configs[str(item["stage"])] = item["config"]
             elif r.topic is T.TRAJECTORY:
                 trajectory = r.decode()
+            elif r.topic is T.GRAVITY:
+                v = r.decode().vector
+                up = [float(v.x), float(v.y), float(v.z)]
             if r.topic in ends:
                 stage, closes = ends[r.topic]
                 end = r.decode()
@@ -115,6 +119,13 @@ def run(bus_cfg: BusConfig, out: Path, *, compression: str = "zstd", metadata: d
                 kfs = [t for t in (T.KEYFRAME, T.KEYFRAME_COMPRESSED) if t.name in announced]
                 if {producer, "tracker"} <= set(stages) and frame_total is not None and kfs:
                     announced[T.TRACKING_STATUS.name] = frame_total  # one per frame consumed
+        if up is not None and not configs.get("mapper", {"grid_up": True}).get("grid_up"):
+            # the mapper was not told up: it built `map` on the replay's (mapper/mapframe.py); a
+            # replay of this folder gets it the way `octolog run` gives it, in the config
+            configs["mapper"]["grid_up"] = up
+            if "gravity" not in metadata:
+                note = "gravity-aligned (the replay's camera/gravity)"
+                mcap.add_metadata("gravity", {"up": json.dumps(up), "note": note})
         if configs and "config" not in metadata:
             mcap.add_metadata("config", {k: json.dumps(v, sort_keys=True) for k, v in sorted(configs.items())})
     if folder is not None:

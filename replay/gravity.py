@@ -25,12 +25,16 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from octolog.kit.errors import InputError
 from octolog.kit.geometry import RgbdFrame
 from octolog.kit.gravity import WINDOW_S, G, rotation_between, up_from_samples
+
+if TYPE_CHECKING:
+    from octolog.replay.sources import Source
 
 # TUM's Kinect accelerometer axes in the colour camera's optical frame (see the module docstring;
 # `octolog import` writes it into the MCAP as a /tf_static)
@@ -101,6 +105,17 @@ PLANE_STRIDE = 4  # every 4th pixel in each direction
 PLANE_MIN_SPREAD = 0.3  # a patch: its second extent at least this share of its first
 PLANE_REFITS = 4  # least-squares refits of a hypothesis (LO-RANSAC)
 PLANE_MIN_CROWDING = 0.65  # inliers in the inner half of the tolerance: 0.5 if spread evenly
+
+
+def source_up(source: Source) -> tuple[np.ndarray, str] | None:
+    """(up, note) at a file source's first frame: its accelerometer, levelled on frame 0's plane
+    when there is one; None without an accelerometer. What `octolog run` gives the mapper as
+    `grid_up`, and what the replay publishes on `camera/gravity` for a mapper elsewhere."""
+    up = source.gravity_up()
+    if up is None:
+        return None
+    up, levelled = level_on_plane(up, next(iter(source.frames(0, 1))))
+    return up, "gravity-aligned (accelerometer" + (", levelled on a horizontal plane of frame 0)" if levelled else ")")
 
 
 def level_on_plane(up: np.ndarray, frame: RgbdFrame) -> tuple[np.ndarray, bool]:

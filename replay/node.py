@@ -16,11 +16,13 @@ from octolog.kit.geometry import EncodedRgbd, RgbdFrame
 from octolog.kit.mcaplog import read_wire, summarize
 from octolog.kit.tftree import LINK_FROM_OPTICAL
 from octolog.kit.viz import Viz
+from octolog.replay import gravity
 from octolog.replay.config import ReplayConfig, remapped
 from octolog.replay.sources import McapSource, Source, open_source
 from octolog.schemas import checks, codec
 from octolog.schemas.topics import (
     CAMERA_PROPERTIES,
+    GRAVITY,
     CONFIGS,
     KEYFRAME,
     KEYFRAME_COMPRESSED,
@@ -179,11 +181,19 @@ def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Pro
     pacer = Pacer(bus, cfg, status)
     t0 = time.monotonic()
     first_stamp = last_stamp = None
+    # up at frame 0, for a mapper not told `grid_up` (one that runs elsewhere); a window starting
+    # later has no accelerometer reading at its first frame here
+    up = gravity.source_up(source) if cfg.start == 0 else None
+    up_bytes: list[bytes] = []  # what a mapper's `get` on camera/gravity receives (nothing: no up)
+    bus.serve(GRAVITY, lambda: up_bytes[0] if up_bytes else None)
     viz.text("replay/events", f"replaying {source.name}: {total} frames")  # the images: the tracker logs them
     for frame in looped(source, cfg, encoded=passthrough):
         pacer.wait(frames_pub.count, frame.stamp_ns)
         if frames_pub.count == 0:  # the camera's own frames, before its first image (the tracker hangs world on their root)
             bus.publisher(TF_STATIC).put(codec.tf_msg(camera_tree(source, frame.frame_id), frame.stamp_ns))
+            if up is not None:
+                up_bytes.append(bus.publisher(GRAVITY).put(codec.vector3_stamped_msg(up[0], frame.stamp_ns,
+                                                                                    frame.frame_id)))
         if passthrough:  # as the source stored them: checked as every receiver will (a bad one would be dropped)
             msg = codec.encoded_rgbd_msg(frame)
             try:

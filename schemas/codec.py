@@ -271,14 +271,21 @@ def keyframe_poses_from_msg(msg: Any) -> dict[int, np.ndarray]:
     return {int(i): pose_matrix(p) for i, p in zip(msg.ids, msg.world_from_camera, strict=True)}
 
 
-def octomap_msg(bt_data: bytes, resolution_m: float, stamp: int, frame_id: str = "world") -> Any:
+def vector3_stamped_msg(v: np.ndarray, stamp: int, frame_id: str) -> Any:
+    """geometry_msgs/Vector3Stamped."""
+    x, y, z = (float(c) for c in np.asarray(v, dtype=np.float64).reshape(3))
+    return msgtype("geometry_msgs/msg/Vector3Stamped")(
+        header=header(stamp, frame_id), vector=msgtype("geometry_msgs/msg/Vector3")(x=x, y=y, z=z))
+
+
+def octomap_msg(bt_data: bytes, resolution_m: float, stamp: int, frame_id: str = "map") -> Any:
     """octomap_msgs/Octomap, binary: OctoMap's writeBinaryData bytes (a .bt file without its header)."""
     return msgtype("octomap_msgs/msg/Octomap")(
         header=header(stamp, frame_id), binary=True, id="OcTree", resolution=float(resolution_m),
         data=np.frombuffer(bt_data, dtype=np.int8).copy())
 
 
-def point_cloud_msg(points: np.ndarray, stamp: int, frame_id: str = "world") -> Any:
+def point_cloud_msg(points: np.ndarray, stamp: int, frame_id: str = "map") -> Any:
     """sensor_msgs/PointCloud2 with float32 x, y, z."""
     PointField = msgtype("sensor_msgs/msg/PointField")
     pts = np.ascontiguousarray(points, dtype="<f4").reshape(-1, 3)

@@ -47,6 +47,10 @@ RGBD_COMPRESSED = Topic("camera/rgbd/compressed", "octolog_msgs/msg/CompressedRg
 RGBD_END = Topic("camera/rgbd/end", "octolog_msgs/msg/StreamEnd")
 # The camera's properties a tracker needs beyond CameraInfo (the rolling-shutter readout), once per stream
 CAMERA_PROPERTIES = Topic("camera/rgbd/properties", "octolog_msgs/msg/CameraProperties")
+# Up (unit vector, against gravity) in the first frame's optical frame, from a file source's
+# accelerometer (octolog.replay.gravity), once before the first frame: a mapper that is not told
+# `grid_up` builds its `map` frame on it (mapper/mapframe.py)
+GRAVITY = Topic("camera/gravity", "geometry_msgs/msg/Vector3Stamped")
 POSE = Topic("tracker/pose", "geometry_msgs/msg/PoseStamped")
 TRACKING_STATUS = Topic("tracker/status", "octolog_msgs/msg/TrackingStatus")
 KEYFRAME = Topic("tracker/keyframe", "octolog_msgs/msg/Keyframe")
@@ -75,7 +79,7 @@ CONFIGS = {stage: Topic(f"{stage}/config", "std_msgs/msg/String") for stage in (
 
 ALL = (RGBD, RGBD_END, POSE, TRACKING_STATUS, KEYFRAME, KEYFRAME_END, KEYFRAME_POSES, MAP_UPDATE, OCTOMAP,
        OCCUPIED, GRID, MAP_END, RGBD_COMPRESSED, KEYFRAME_COMPRESSED, CAMERA_PROPERTIES, TF, TF_STATIC, TRAJECTORY,
-       MAP_MERGE,
+       MAP_MERGE, GRAVITY,
        *CONFIGS.values())
 # The camera frames: what stays on a robot when the log runs elsewhere (`octolog log --no-frames`)
 FRAMES = (RGBD, RGBD_COMPRESSED)

@@ -101,14 +101,12 @@ def _map_frame(cfg: MapperConfig, src: Source | LiveSource) -> tuple[MapperConfi
     unset (octolog.replay.gravity), and what to record of it in the session's metadata."""
     if cfg.grid_up:
         return cfg, {"note": "up given by mapper.grid_up"}
-    up = src.gravity_up()
-    if up is None:
+    if isinstance(src, LiveSource):  # the mapper reads the live camera's accelerometer (mapper/mapframe.py)
         return cfg, None
-    levelled = False
-    if not isinstance(src, LiveSource):  # a file: its first frame is at hand
-        up, levelled = gravity.level_on_plane(up, next(iter(src.frames(0, 1))))
-    up_t = tuple(float(v) for v in up)
-    note = "gravity-aligned (accelerometer" + (", levelled on a horizontal plane of frame 0)" if levelled else ")")
+    found = gravity.source_up(src)
+    if found is None:
+        return cfg, None
+    up_t, note = tuple(float(v) for v in found[0]), found[1]
     return dataclasses.replace(cfg, grid_up=up_t), {"up": json.dumps(up_t), "note": note}
 
 

@@ -47,13 +47,13 @@ ALONE: dict[str, dict[str, str]] = {
 GOLDEN: dict[str, dict[str, str]] = {
     "synthetic:40": {
         "trajectory.txt": "6d6fbcafaeb5545864911491c855499ee0ffd199bdb7ff01baaf6bfa87c18d99",
-        "map.bt": "3caa0a2e1efa5f4c504250046a19f7d9f02cc6693f8d4031626e158e961d7964",
-        "cloud.ply": "558cbd8d195892b5c73b6e6ef8adf7895ee03f6eb32873c2f8253ce92a43b671",
+        "map.bt": "f6c936d2be40879e09aff0f729d5f49b6e59e541b12d61c3ec8e74d267de6920",
+        "cloud.ply": "24e5992a5588e6d84b69a81ae5ca3994c3f9938d346d1efffd41bfa856afe5de",
     },
     "tum-first300": {
         "trajectory.txt": "d7e46b43133916aab091cb1cdddc0fb82f431e7f1391ddfb32ad7d3a0301cd40",
-        "map.bt": "32ebc4f759cb288d23a64e588f2d9b8d377f88cd123243f9c64337adcf955e49",
-        "cloud.ply": "4ab649024f5a7fd34f081b0220f9e9d4e5df04881acea6d1af0c8aadb343251b",
+        "map.bt": "57f22c6512014951067353486b4f2ec8cebb2a1f7e849e3ce187bca24b08751d",
+        "cloud.ply": "ef27248a72d19c21b593df3e28080492d3c3c18bfcba325b9482ab814fbc3b21",
     },
 }
 

@@ -129,6 +129,9 @@ def test_stages_on_four_hosts_match_one_host(hosts, single_host, tmp_path):
     _distributed_run(names, addr, tmp_path / "multi")
     for name in ("trajectory.txt", "map.bt"):
         assert (tmp_path / "multi" / name).read_bytes() == (single_host / name).read_bytes(), name
+    # the mapper on its own host built `map` on the replay's up (octolog run resolved the same up itself)
+    stats = json.loads((tmp_path / "multi" / "map_stats.json").read_text())
+    assert stats["map_frame"]["note"] == "gravity-aligned (the replay's camera/gravity)"
 
 
 def _same_result(run: Path, single: Path) -> None:
@@ -136,6 +139,10 @@ def _same_result(run: Path, single: Path) -> None:
         assert (run / name).read_bytes() == (single / name).read_bytes(), name
     # every keyframe integrated exactly once: a duplicate or a gap would change the count
     stats = json.loads((run / "map_stats.json").read_text())
+    # a mapper on its own took up from the replay's camera/gravity and says so (octolog run, restarting
+    # its mapper, gives up in the config); the same up either way: map_from_world is in the stats
+    found = stats.pop("map_frame", None)
+    assert found is None or found["note"] == "gravity-aligned (the replay's camera/gravity)", found
     assert stats == json.loads((single / "map_stats.json").read_text())
 
 

@@ -243,7 +243,10 @@ def test_fused_map_lies_on_the_scene_and_trajectories_follow_ground_truth(fleet)
     tree = octomap.OcTree(0.05)
     assert tree.readBinary(str(procs / "map.bt").encode())
     centres = np.array([it.getCoordinate() for it in tree.begin_leafs() if tree.isNodeOccupied(it)])
-    dist, _ = cKDTree(scene.surface_samples(0.02)).query(centres @ T0[:3, :3].T + T0[:3, 3])
+    # the map is in `map`; map_stats.json says where the tracker's world (r1's first camera) is in it
+    M = np.array(json.loads((procs / "map_stats.json").read_text())["map_from_world"])
+    S = T0 @ np.linalg.inv(M)
+    dist, _ = cKDTree(scene.surface_samples(0.02)).query(centres @ S[:3, :3].T + S[:3, 3])
     assert np.mean(dist < 0.1) > 0.95
     for robot, shift in zip(ROBOTS, SHIFT_S):
         stamps = {scene.stamp_ns(i) + round(shift * 1e9): i for i in range(FRAMES)}
@@ -433,7 +436,10 @@ def test_a_robot_that_shares_no_place_stays_out_with_a_map_of_its_own(tmp_path):
     assert stats["merges"] == [] and stats["robots"]["r1"]["merged"] and not stats["robots"]["r2"]["merged"]
     assert (out / "r2" / "map.bt").stat().st_size > 0
     single = tmp_path / "single"
-    octolog("run", "--source", f"synthetic:{n}", "--out", str(single), "--quiet", "--rerun", "off")
+    # the fleet's mapper reads no robot's accelerometer: its map frame is the level first camera's
+    up = json.loads((out / "map_stats.json").read_text())["map_from_world"][2][:3]
+    octolog("run", "--source", f"synthetic:{n}", "--out", str(single), "--quiet", "--rerun", "off",
+            "--set", f"mapper.grid_up={up!r}")
     assert (out / "map.bt").read_bytes() == (single / "map.bt").read_bytes()
 
 

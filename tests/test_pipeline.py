@@ -63,19 +63,28 @@ def test_outputs_are_deterministic_and_independent_of_rerun(runs):
 
 
 def test_bt_opens_in_octomap_and_lies_on_the_scene(runs):
+    """map.bt opened alone (what octovis does) is in `map`: z up, and placed by the session's
+    `map` -> `world` on /tf_static it lies on the scene's surfaces."""
     import octomap
     from scipy.spatial import cKDTree
 
+    from octolog.kit.mcaplog import read_messages
     from octolog.replay.synthetic import SyntheticScene
 
     tree = octomap.OcTree(0.05)
     assert tree.readBinary(str(runs[0] / "map.bt").encode())
     centres = np.array([it.getCoordinate() for it in tree.begin_leafs() if tree.isNodeOccupied(it)])
     assert len(centres) > 100
+    statics = [tf for m in read_messages(runs[0] / "session.mcap", ["tf_static"])
+               for tf in codec.tf_transforms(codec.decode(m.data, "tf2_msgs/msg/TFMessage"))]
+    map_from_world = next(T for parent, child, T in statics if (parent, child) == ("map", "world"))
     scene = SyntheticScene(n_frames=N_FRAMES)
     # the tracker's world is its first camera frame; the scene's ground truth says where that is
-    T0 = scene.pose(0)
-    dist, _ = cKDTree(scene.surface_samples(0.02)).query(centres @ T0[:3, :3].T + T0[:3, 3])
+    scene_from_map = scene.pose(0) @ np.linalg.inv(map_from_world)
+    # upright: the map's z is the scene's up (the replay's simulated IMU, levelled on the floor)
+    tilt = np.degrees(np.arccos(np.clip(scene_from_map[2, 2], -1, 1)))
+    assert tilt < 2.0, tilt
+    dist, _ = cKDTree(scene.surface_samples(0.02)).query(centres @ scene_from_map[:3, :3].T + scene_from_map[:3, 3])
     # an occupied leaf (up to a few 5 cm voxels merged) holds surface: its centre is within reach
     assert np.mean(dist < 0.1) > 0.95
 

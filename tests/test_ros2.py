@@ -12,12 +12,11 @@ import threading
 import pytest
 import zenoh
 from helpers import ROOT
-from rosbags.typesys import Stores, get_typestore
-from test_hostile import router  # noqa: F401  (fixture: a Zenoh router in this process)
-
 from octolog.kit.bus import ros2
 from octolog.kit.busconfig import BusConfig
 from octolog.kit.errors import BusError
+from rosbags.typesys import Stores, get_typestore
+from test_hostile import router  # noqa: F401  (fixture: a Zenoh router in this process)
 
 # As ROS 2 Jazzy announces them (`ros2 topic info -v` prints "Topic type hash"; the same values are
 # in each package's share/<pkg>/msg/<Type>.json): not computed here, copied from ROS.
@@ -122,3 +121,48 @@ def test_a_ros2_subscriber_sees_a_runs_pose_and_grid(router, tmp_path) -> None: 
     assert {"octolog_tracker", "octolog_mapper"} <= nodes
     assert any(t.endswith(f"/MP/%/%/octolog_tracker/%tracker%pose/{pose_key.split('/', 3)[3]}/::,10:,:,:,,")
                for t in tokens), sorted(tokens)
+
+
+def test_tf_static_is_latched_for_a_ros2_node_that_joins_late(router) -> None:  # noqa: F811
+    """/tf_static as ROS 2 expects it (TRANSIENT_LOCAL, depth 1): a subscription that joins after the
+    mapper announced `map` -> `world` still gets it, asking as an rmw_zenoh subscription does
+    (zenoh-ext's AdvancedSubscriber with history, detecting late publishers), and the graph token
+    says TRANSIENT_LOCAL. A volatile topic's publisher keeps nothing for it."""
+    import queue
+
+    import numpy as np
+    import zenoh.ext
+
+    from octolog.kit.bus import Bus
+    from octolog.schemas import codec
+    from octolog.schemas.topics import POSE, TF_STATIC
+
+    T = np.eye(4)
+    T[:3, 3] = (0.0, 0.0, 1.25)
+    tf_key = "0/tf_static/tf2_msgs::msg::dds_::TFMessage_/" + ros2.type_hash("tf2_msgs/msg/TFMessage")
+    pose_key = "0/tracker/pose/geometry_msgs::msg::dds_::PoseStamped_/" + PUBLISHED["geometry_msgs/msg/PoseStamped"]
+    cfg = BusConfig(mode="client", connect=(router,), multicast_scouting=False, ros2_domain=0)
+    got: queue.Queue = queue.Queue()
+    with Bus(cfg, "mapper") as bus:
+        bus.publisher(TF_STATIC).put(codec.tf_msg([("map", "world", T)], 0))
+        bus.publisher(POSE).put(codec.pose_stamped_msg(T, 7))  # volatile: a late subscription gets none
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"client"')
+        conf.insert_json5("connect/endpoints", f'["{router}"]')
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        with zenoh.open(conf) as z:
+            tokens = [str(r.ok.key_expr) for r in z.liveliness().get("@ros2_lv/0/**") if r.ok is not None]
+            history = zenoh.ext.HistoryConfig(detect_late_publishers=True)
+            subs = [zenoh.ext.declare_advanced_subscriber(z, key, lambda s, k=key: got.put((k, s.payload.to_bytes(),
+                                                                                           s.attachment.to_bytes())),
+                                                          history=history)
+                    for key in (tf_key, pose_key)]
+            key, data, att = got.get(timeout=30)
+            del subs
+    assert key == tf_key
+    tf = get_typestore(Stores.ROS2_JAZZY).deserialize_cdr(data, "tf2_msgs/msg/TFMessage").transforms[0]
+    assert (tf.header.frame_id, tf.child_frame_id, tf.transform.translation.z) == ("map", "world", 1.25)
+    assert ros2.parse_attachment(att)[0] == 1
+    assert got.empty()
+    latched = [t for t in tokens if "/%tf_static/" in t]
+    assert latched and all(t.endswith("/" + ros2.QOS_LATCHED) for t in latched), tokens

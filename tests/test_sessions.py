@@ -60,7 +60,7 @@ def test_merged_rrd_holds_every_stage_on_one_timeline(live):
     stats = subprocess.run([rerun_cli(), "rrd", "stats", str(merged)], capture_output=True, text=True,
                            check=True, env=env, timeout=120).stdout
     entities = set(re.findall(r"^(/\S+): \d+$", stats, re.M))
-    assert {"/world/tracker/camera/image", "/world/tracker/keyframe/depth", "/world/mapper/cloud"} <= entities
+    assert {"/world/tracker/camera/image", "/world/tracker/keyframe/depth", "/map/cloud"} <= entities
     assert "sensor_time:" in stats
     printed = subprocess.run([rerun_cli(), "rrd", "print", str(merged)], capture_output=True, text=True,
                              check=True, env=env, timeout=120).stdout

@@ -20,7 +20,7 @@ from collections import deque
 from typing import Any
 
 from octolog.kit.bus import wire
-from octolog.kit.bus.ros2 import Ros2Mirror, Ros2Node, is_ros_type
+from octolog.kit.bus.ros2 import LATCHED, Ros2Mirror, Ros2Node, is_ros_type
 from octolog.kit.bus.session import Session
 from octolog.kit.busconfig import BusConfig
 from octolog.schemas import codec
@@ -128,7 +128,8 @@ class Publishing:
             return None
         if self._ros2_node is None:
             self._ros2_node = Ros2Node(self._session, self._cfg.ros2_domain, self._stage)
-        return self._ros2_node.mirror(topic.ros_name(self._cfg.namespace), topic.msgtype, uuid.uuid4().bytes)
+        return self._ros2_node.mirror(topic.ros_name(self._cfg.namespace), topic.msgtype, uuid.uuid4().bytes,
+                                      latched=topic.name in LATCHED)
 
     def publisher(self, topic: Topic) -> Publisher:
         key = topic.key(self._cfg.namespace)

@@ -31,6 +31,11 @@ ADMIN_SPACE = "@ros2_lv"
 # rmw_zenoh's QoS field: reliability:durability:history,depth:deadline:lifespan:liveliness, each
 # empty where it is the default (reliable, volatile, keep last; depth 10 is written out)
 QOS_DEFAULT = "::,10:,:,:,,"
+# /tf_static as tf2's StaticTransformBroadcaster declares it: reliable, TRANSIENT_LOCAL (1), keep last 1
+QOS_LATCHED = ":1:,1:,:,:,,"
+# octolog topics a ROS 2 node expects latched (durability TRANSIENT_LOCAL): rmw_zenoh serves a late
+# subscription from the publisher's cache (zenoh-ext's AdvancedPublisher, depth samples)
+LATCHED = frozenset({"tf_static"})
 GID_SIZE = 16  # RMW_GID_STORAGE_SIZE since Iron
 
 
@@ -66,9 +71,9 @@ def node_token(domain: int, zid: str, node_id: int, node_name: str) -> str:
 
 
 def publisher_token(domain: int, zid: str, node_id: int, entity_id: int, node_name: str, ros_name: str,
-                    msgtype: str) -> str:
+                    msgtype: str, qos: str = QOS_DEFAULT) -> str:
     return (f"{ADMIN_SPACE}/{domain}/{zid}/{node_id}/{entity_id}/MP/%/%/{node_name}/{mangle(ros_name)}/"
-            f"{dds_type_name(msgtype)}/{type_hash(msgtype)}/{QOS_DEFAULT}")
+            f"{dds_type_name(msgtype)}/{type_hash(msgtype)}/{qos}")
 
 
 def attachment(seq: int, stamp_ns: int, gid: bytes) -> bytes:
@@ -100,11 +105,15 @@ class Ros2Node:
         self._entities = 0
         session.declare_token(node_token(domain, self._zid, 0, self.name))
 
-    def mirror(self, ros_name: str, msgtype: str, gid: bytes) -> Ros2Mirror:
+    def mirror(self, ros_name: str, msgtype: str, gid: bytes, *, latched: bool = False) -> Ros2Mirror:
+        """A publisher on the rmw_zenoh key. `latched`: TRANSIENT_LOCAL depth 1, as rmw_zenoh (Jazzy,
+        since its AdvancedPublisher change) declares it: a cache of the last sample that a late
+        subscription's history query reads, and a liveliness token so it finds late publishers."""
         self._entities += 1
+        key = topic_key(self.domain, ros_name, msgtype)
         self._session.declare_token(publisher_token(self.domain, self._zid, 0, self._entities, self.name,
-                                                    ros_name, msgtype))
-        pub = self._session.declare_publisher(topic_key(self.domain, ros_name, msgtype))
+                                                    ros_name, msgtype, QOS_LATCHED if latched else QOS_DEFAULT))
+        pub = self._session.declare_latched_publisher(key) if latched else self._session.declare_publisher(key)
         return Ros2Mirror(pub, gid[:GID_SIZE].ljust(GID_SIZE, b"\0"))
 
 

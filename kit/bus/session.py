@@ -20,6 +20,7 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import zenoh
+import zenoh.ext
 
 from octolog.kit.bus.diagnose import diagnosis
 from octolog.kit.busconfig import BusConfig
@@ -50,6 +51,10 @@ def zenoh_config(cfg: BusConfig) -> zenoh.Config:
         # mapper busy with a keyframe would lose data. Back-pressure must wait, so wait longer.
         if json.loads(zc.get_json(_BLOCK_CLOSE)) == _ZENOH_DEFAULT_BLOCK_CLOSE_US:
             zc.insert_json5(_BLOCK_CLOSE, str(BLOCK_CLOSE_US))
+        if cfg.ros2_domain >= 0:
+            # latched ROS 2 topics (/tf_static) keep their last sample in a zenoh-ext cache, which
+            # orders samples by timestamp: rmw_zenoh's default configs turn timestamping on too
+            zc.insert_json5("timestamping/enabled", "true")
     except Exception as exc:  # zenoh raises ZError with the parser's message, over several lines
         where = f" {cfg.zenoh_config}" if cfg.zenoh_config else ""
         raise BusError(f"invalid Zenoh configuration{where}: {one_line(exc)}") from None
@@ -113,6 +118,14 @@ class Session:
         """A reliable publisher that blocks when the link is congested (never drops)."""
         return self._keep(self.zenoh.declare_publisher(
             key, congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE))
+
+    def declare_latched_publisher(self, key: str, depth: int = 1) -> Any:
+        """A reliable, blocking publisher that keeps its last `depth` samples for subscribers that
+        join later and ask for history (zenoh-ext's AdvancedPublisher, as rmw_zenoh declares a
+        TRANSIENT_LOCAL publisher), and can be detected by them (liveliness)."""
+        return self._keep(zenoh.ext.declare_advanced_publisher(
+            self.zenoh, key, congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE,
+            cache=zenoh.ext.CacheConfig(depth), publisher_detection=True))
 
     def subscribe(self, key: str, on_sample: Callable[[bytes, bytes | None], None]) -> None:
         """Call `on_sample(payload, attachment)` on Zenoh's receive thread for each sample on `key`,
