@@ -9,8 +9,9 @@ once. A mapper not told `grid_up` (one started on its own, `octolog map`) finds 
 - a live camera (`octolog record` publishing, `--source d455`) is only read once it runs: the
   mapper listens to `camera/accel/sample` and the camera's `/tf_static` (outside its inbox) and
   decides at its first snapshot: the accelerometer's mean within 0.1 s of the first keyframe,
-  rotated into that keyframe's optical frame (octolog.kit.gravity); the keyframes integrated so
-  far move into the new frame.
+  rotated into that keyframe's optical frame and levelled on its dominant near-horizontal plane
+  as a file's first frame is (octolog.kit.gravity); the keyframes integrated so far move into the
+  new frame.
 Without either the map assumes a level first camera (up = -y), as before. What the bus gave goes
 into map_stats.json (`map_frame`); `octolog run` copies it into the session's config.toml, so a
 replay of the session log (which carries no IMU stream to the mapper) draws the same map.
@@ -20,7 +21,8 @@ from __future__ import annotations
 
 from octolog.kit.bus import Bus
 from octolog.kit.errors import InputError
-from octolog.kit.gravity import LiveUp
+from octolog.kit.geometry import RgbdFrame
+from octolog.kit.gravity import LiveUp, level_on_plane
 from octolog.kit.viz import Viz
 from octolog.mapper.core import Mapper
 from octolog.mapper.grid import DEFAULT_UP
@@ -38,6 +40,7 @@ class MapFrame:
         self.mapper, self.bus, self.viz = mapper, bus, viz
         self.found: dict | None = None  # what the IMU gave, for map_stats.json
         self._first: tuple[int, str] | None = None  # the first keyframe's stamp and optical frame
+        self._first_frame: RgbdFrame | None = None
         self._live = LiveUp() if from_imu else None
         self._announced = False
         self._given: tuple[str, tuple[float, ...]] | None = None  # a replay's up: (its frame, up)
@@ -47,10 +50,12 @@ class MapFrame:
         bus.listen(ACCEL, self._on_accel)
         bus.listen(TF_STATIC, self._on_tf)
 
-    def first_keyframe(self, stamp_ns: int, frame_id: str) -> None:
+    def first_keyframe(self, frame: RgbdFrame) -> None:
         """Called before the keyframe is integrated: a replay's up for its frame applies at once."""
         if self._first is None:
-            self._first = (stamp_ns, frame_id)
+            frame_id = frame.frame_id
+            self._first = (frame.stamp_ns, frame_id)
+            self._first_frame = frame  # to level a live camera's up on (resolve)
             # the replay serves it from before its first frame while it runs: asked here, at a fixed
             # point, a restarted mapper gets it too (a live camera serves none: its accelerometer is read)
             msg = self.bus.fetch(GRAVITY, GRAVITY_WAIT_S)
@@ -75,9 +80,11 @@ class MapFrame:
                 self.found = {"up": [float(v) for v in DEFAULT_UP], "note": f"not gravity-aligned: {exc}"}
             else:
                 if up is not None:
+                    up, levelled = level_on_plane(up, self._first_frame)
                     up_t = tuple(float(v) for v in up)
                     self.mapper.set_up(up_t)  # rebuilds what is integrated in the new frame
-                    self.found = {"up": list(up_t), "note": "gravity-aligned (the live camera's accelerometer)"}
+                    on = ", levelled on a horizontal plane of the first keyframe" if levelled else ""
+                    self.found = {"up": list(up_t), "note": f"gravity-aligned (the live camera's accelerometer{on})"}
         self._announce()
 
     def _announce(self) -> None:

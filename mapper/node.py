@@ -424,7 +424,7 @@ def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: Pu
         try:
             kf_id, pose, frame = codec.keyframe_from_msg(msg)
             if publisher.frame is not None:
-                publisher.frame.first_keyframe(frame.stamp_ns, frame.frame_id)
+                publisher.frame.first_keyframe(frame)
             n = mapper.integrate(kf_id, pose, frame)
             result.keyframes += 1
         except (InputError, MapError) as exc:

@@ -15,7 +15,7 @@ first frame are averaged and rotated into the colour camera's optical frame.
 
 A consumer accelerometer's bias is worth degrees (TUM's Kinect: 0.7 m/s², about 4 degrees, over
 the whole of fr1/xyz against the ground truth). So when frame 0 shows a large plane within 5 degrees
-of the accelerometer's up (a floor, a table), its normal is taken instead (`level_on_plane`).
+of the accelerometer's up (a floor, a table), its normal is taken instead (`octolog.kit.gravity.level_on_plane`).
 
 A source without an accelerometer gives None. The run then keeps the old assumption (a camera held
 level at the start, up = -y) and says so in `summary.json` and the status output.
@@ -24,17 +24,15 @@ level at the start, up = -y) and says so in `summary.json` and the status output
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
 from octolog.kit.errors import InputError
 from octolog.kit.geometry import RgbdFrame
-from octolog.kit.gravity import WINDOW_S, G, rotation_between, up_from_samples
-
-if TYPE_CHECKING:
-    from octolog.replay.sources import Source
+from octolog.kit.gravity import WINDOW_S, G, level_on_plane, rotation_between, up_from_samples
 
 # TUM's Kinect accelerometer axes in the colour camera's optical frame (see the module docstring;
 # `octolog import` writes it into the MCAP as a /tf_static)
@@ -94,20 +92,15 @@ def up_from_metadata(metadata: dict, where: str) -> np.ndarray | None:
     return up
 
 
-# Levelling on a horizontal plane: the largest plane of frame 0 whose normal is this close to the
-# accelerometer's up, with at least this share of the frame's depth points, gives up instead (a floor
-# or a table is level to a fraction of a degree; a consumer accelerometer's bias is worth degrees).
-PLANE_MAX_DEG = 5.0
-PLANE_MIN_SHARE = 0.05
-PLANE_TOLERANCE_M = 0.01
-PLANE_TRIES = 300
-PLANE_STRIDE = 4  # every 4th pixel in each direction
-PLANE_MIN_SPREAD = 0.3  # a patch: its second extent at least this share of its first
-PLANE_REFITS = 4  # least-squares refits of a hypothesis (LO-RANSAC)
-PLANE_MIN_CROWDING = 0.65  # inliers in the inner half of the tolerance: 0.5 if spread evenly
+class UpSource(Protocol):
+    """What `source_up` needs of a replay source (octolog.replay.sources.Source)."""
+
+    def gravity_up(self) -> np.ndarray | None: ...
+
+    def frames(self, start: int = 0, end: int | None = None) -> Iterator[RgbdFrame]: ...
 
 
-def source_up(source: Source) -> tuple[np.ndarray, str] | None:
+def source_up(source: UpSource) -> tuple[np.ndarray, str] | None:
     """(up, note) at a file source's first frame: its accelerometer, levelled on frame 0's plane
     when there is one; None without an accelerometer. What `octolog run` gives the mapper as
     `grid_up`, and what the replay publishes on `camera/gravity` for a mapper elsewhere."""
@@ -116,61 +109,6 @@ def source_up(source: Source) -> tuple[np.ndarray, str] | None:
         return None
     up, levelled = level_on_plane(up, next(iter(source.frames(0, 1))))
     return up, "gravity-aligned (accelerometer" + (", levelled on a horizontal plane of frame 0)" if levelled else ")")
-
-
-def level_on_plane(up: np.ndarray, frame: RgbdFrame) -> tuple[np.ndarray, bool]:
-    """(up, levelled): `up` replaced by the normal of frame 0's dominant near-horizontal plane when
-    there is one (see PLANE_*), else `up` as it was. RANSAC with a fixed seed, then a least-squares
-    fit to the inliers: the same frame gives the same bytes."""
-    K = frame.intrinsics
-    depth = frame.depth[::PLANE_STRIDE, ::PLANE_STRIDE].astype(np.float64) * frame.depth_scale_m
-    v, u = np.nonzero(depth > 0)
-    if v.size < 100:
-        return up, False
-    z = depth[v, u]
-    u, v = u * PLANE_STRIDE, v * PLANE_STRIDE
-    P = np.stack([(u - K.cx) / K.fx * z, (v - K.cy) / K.fy * z, z], axis=1)
-    rng = np.random.default_rng(0)
-    cos_max = np.cos(np.radians(PLANE_MAX_DEG))
-    best, best_count = None, int(PLANE_MIN_SHARE * len(P))
-    for idx in rng.integers(0, len(P), (PLANE_TRIES, 3)):
-        n = np.cross(P[idx[1]] - P[idx[0]], P[idx[2]] - P[idx[0]])
-        norm = float(np.linalg.norm(n))
-        if norm < 1e-12 or abs(n @ up) / norm < cos_max:
-            continue
-        n /= norm
-        inliers = np.abs((P - P[idx[0]]) @ n) < PLANE_TOLERANCE_M
-        count = int(inliers.sum())
-        if count > best_count and (fit := _refine_plane(P, inliers, up, cos_max)) is not None:
-            best, best_count = fit
-    return (best, True) if best is not None else (up, False)
-
-
-def _refine_plane(P: np.ndarray, inliers: np.ndarray, up: np.ndarray,
-                  cos_max: float) -> tuple[np.ndarray, int] | None:
-    """(normal towards up, support) of the plane a RANSAC hypothesis leads to: fitted to its inliers
-    by least squares, the inliers taken again around the fit, PLANE_REFITS times (LO-RANSAC). A
-    hypothesis that cuts through a surface (a band a few cm wide across the floor) drifts onto that
-    surface, and is then judged by that surface's normal. None when the result is not a patch (a
-    strip) or not one surface (its points spread evenly across the tolerance), leaves the window
-    around up, or loses its support."""
-    for _ in range(PLANE_REFITS):
-        Q = P[inliers]
-        if len(Q) < 3:
-            return None
-        centre = Q.mean(axis=0)
-        _, sv, vt = np.linalg.svd(Q - centre, full_matrices=False)
-        normal = vt[2] if vt[2] @ up > 0 else -vt[2]
-        distance = np.abs((P - centre) @ normal)
-        inliers = distance < PLANE_TOLERANCE_M
-    count = int(inliers.sum())
-    # a surface's points crowd around its plane (depth noise); a plane through bands of several
-    # surfaces has its points spread evenly across the tolerance (half of them in its inner half)
-    crowded = np.mean(distance[inliers] < 0.5 * PLANE_TOLERANCE_M) if count else 0.0
-    if (sv[1] < PLANE_MIN_SPREAD * sv[0] or crowded < PLANE_MIN_CROWDING or normal @ up < cos_max
-            or count < PLANE_MIN_SHARE * len(P)):
-        return None
-    return normal, count
 
 
 def recorded_up(path: Path, first_stamp_ns: int, color_frame: str) -> np.ndarray | None:

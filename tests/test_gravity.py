@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 
 from octolog.kit import metrics
 from octolog.kit.errors import ConfigError, InputError
+from octolog.kit.gravity import level_on_plane
 from octolog.mapper.grid import grid_from_msg, map_from_world_for_up
 from octolog.replay import gravity
 from octolog.replay.sources import open_source
@@ -82,15 +83,15 @@ def test_levelling_on_a_plane_takes_the_floor_not_a_wall() -> None:
     tilted = open_source("synthetic:2:tilt=30")
     truth = _true_up(tilted.scene.pose(0))
     frame = next(iter(tilted.frames(0, 1)))
-    up, levelled = gravity.level_on_plane(tilted.gravity_up(), frame)
+    up, levelled = level_on_plane(tilted.gravity_up(), frame)
     assert levelled and _deg(up, truth) < 0.05
-    assert gravity.level_on_plane(tilted.gravity_up(), frame)[0].tobytes() == up.tobytes()  # same bytes
+    assert level_on_plane(tilted.gravity_up(), frame)[0].tobytes() == up.tobytes()  # same bytes
     level = open_source("synthetic:2")
     accel = level.gravity_up()
-    up, levelled = gravity.level_on_plane(accel, next(iter(level.frames(0, 1))))
+    up, levelled = level_on_plane(accel, next(iter(level.frames(0, 1))))
     assert not levelled and up is accel
     off = Rotation.from_rotvec([math.radians(10.0), 0.0, 0.0]).as_matrix() @ truth
-    up, levelled = gravity.level_on_plane(off, frame)
+    up, levelled = level_on_plane(off, frame)
     assert not levelled and up is off
 
 
@@ -155,3 +156,43 @@ def test_the_grid_does_not_depend_on_how_the_camera_was_held_at_the_start(tmp_pa
     # and the tilted session's map frame is upright: 0.6 degrees from the room's z (measured)
     up = np.array(tomllib.loads((tilted / "config.toml").read_text())["mapper"]["grid_up"])
     assert _z_tilt(tilted, map_from_world_for_up(up)) <= 2.0
+
+
+def test_a_live_cameras_up_is_levelled_on_the_first_keyframes_floor(tmp_path: Path) -> None:
+    """The mapper's live path (mapper/mapframe.py): accelerometer samples around the first keyframe
+    give up within the accelerometer's error; a floor in that keyframe then levels it, as a file's
+    frame 0 is levelled. A first keyframe that sees no floor keeps the accelerometer's up."""
+    from octolog.kit.bus import Bus
+    from octolog.kit.busconfig import BusConfig
+    from octolog.kit.viz import Viz
+    from octolog.mapper.config import MapperConfig
+    from octolog.mapper.core import make_mapper
+    from octolog.mapper.mapframe import MapFrame
+    from octolog.schemas import codec
+
+    def live_up(source: str) -> tuple[dict, np.ndarray]:
+        src = open_source(source)
+        frame = next(iter(src.frames(0, 1)))
+        truth = _true_up(src.scene.pose(0))
+        # 2 degrees of accelerometer bias, samples at 200 Hz around the first keyframe
+        biased = Rotation.from_rotvec([0.0, 0.0, math.radians(2.0)]).as_matrix() @ truth
+        mapper = make_mapper(MapperConfig())
+        with Bus(BusConfig(multicast_scouting=False), "mapper") as bus, Viz("off", "mapper", "t") as viz:
+            live = MapFrame(mapper, bus, viz, from_imu=True)
+            for k in range(-40, 41):
+                a = tuple(float(v) for v in 9.80665 * biased)
+                live._on_accel(codec.imu_msg(frame.stamp_ns + k * 5_000_000, frame.frame_id, linear_acceleration=a))
+            live.first_keyframe(frame)
+            live.resolve()
+        assert live.found is not None
+        np.testing.assert_array_equal(mapper.map_from_world[2, :3], np.array(live.found["up"]) /
+                                      np.linalg.norm(live.found["up"]))
+        return live.found, truth
+
+    found, truth = live_up("synthetic:2:tilt=30")  # looks down at the floor
+    assert found["note"] == ("gravity-aligned (the live camera's accelerometer, levelled on a horizontal plane "
+                             "of the first keyframe)")
+    assert _deg(np.array(found["up"]), truth) < 0.05
+    found, truth = live_up("synthetic:2")  # sees the walls
+    assert found["note"] == "gravity-aligned (the live camera's accelerometer)"
+    assert 1.9 < _deg(np.array(found["up"]), truth) < 2.1
