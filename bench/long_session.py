@@ -93,6 +93,9 @@ def main() -> None:
               f"({args.minutes:g} min at {FPS} fps)", flush=True)
         odom = make_odometry(cfg)
         worker = getattr(getattr(odom, "worker", None), "_proc", None)
+        if getattr(odom, "worker", None) is not None:
+            odom.worker.ready()  # its imports done: the empty tracker's memory below holds no keyframe
+        empty = (_mb("self", "VmRSS"), _mb(worker.pid, "VmRSS") if worker else 0.0)
         stamps, ms, rows = [], [], []
         cpu0 = resource.getrusage(resource.RUSAGE_SELF)
         for i in range(n):
@@ -123,6 +126,10 @@ def main() -> None:
     kf_growth = last[3] - first[3]
     mb_per_1000 = (last[5] - first[5]) / kf_growth * 1000.0 if kf_growth > 0 else float("nan")
     wmb_per_1000 = (last[6] - first[6]) / kf_growth * 1000.0 if kf_growth > 0 else float("nan")
+    # per keyframe from the empty tracker to the first minute: what a map of that size holds (with the
+    # frames' trajectory, small); the growth after it, when the map still grows on later minutes
+    kf1 = max(1, first[3])
+    mb_first = ((first[5] - empty[0]) / kf1 * 1000.0, (first[6] - empty[1]) / kf1 * 1000.0)
     cpu = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
     load = os.getloadavg()
     print()
@@ -140,7 +147,12 @@ def main() -> None:
     print(f"| last minute / first minute, p90 | {last[2] / first[2]:.2f}x |")
     print(f"| peak RSS, MB (tracker process VmHWM + worker VmHWM) | {_mb('self', 'VmHWM'):.0f} + "
           f"{odom.worker_peak_rss_mb:.0f} |")
+    print(f"| RSS of the empty tracker (imports, worker ready), MB (tracker; worker) | {empty[0]:.0f}; {empty[1]:.0f} |")
+    print(f"| MB per 1,000 keyframes, empty tracker to the first minute (tracker; worker) | {mb_first[0]:.0f}; "
+          f"{mb_first[1]:.0f} |")
     print(f"| MB per 1,000 keyframes after the first minute (tracker; worker) | {mb_per_1000:.0f}; {wmb_per_1000:.0f} |")
+    if kf_growth == 0:
+        print("| (after the first minute: no keyframe was added, so no growth per keyframe to measure) | |")
     print(f"| keyframes | {odom.n_keyframes} |")
     print(f"| end of stream (finish: last back end + final BA), s | {end_s:.1f} |")
     print(f"| CPU of the tracking process, ms per frame (worker not counted while alive) | {cpu / n * 1e3:.1f} |")
