@@ -147,10 +147,12 @@ def main() -> None:
     print(f"| last minute / first minute, p90 | {last[2] / first[2]:.2f}x |")
     print(f"| peak RSS, MB (tracker process VmHWM + worker VmHWM) | {_mb('self', 'VmHWM'):.0f} + "
           f"{odom.worker_peak_rss_mb:.0f} |")
-    print(f"| RSS of the empty tracker (imports, worker ready), MB (tracker; worker) | {empty[0]:.0f}; {empty[1]:.0f} |")
+    print(f"| RSS of the empty tracker (imports, worker ready), MB (tracker; worker) | {empty[0]:.0f}; "
+          f"{empty[1]:.0f} |")
     print(f"| MB per 1,000 keyframes, empty tracker to the first minute (tracker; worker) | {mb_first[0]:.0f}; "
           f"{mb_first[1]:.0f} |")
-    print(f"| MB per 1,000 keyframes after the first minute (tracker; worker) | {mb_per_1000:.0f}; {wmb_per_1000:.0f} |")
+    print(f"| MB per 1,000 keyframes after the first minute (tracker; worker) | {mb_per_1000:.0f}; "
+          f"{wmb_per_1000:.0f} |")
     if kf_growth == 0:
         print("| (after the first minute: no keyframe was added, so no growth per keyframe to measure) | |")
     print(f"| keyframes | {odom.n_keyframes} |")
