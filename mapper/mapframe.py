@@ -19,6 +19,8 @@ replay of the session log (which carries no IMU stream to the mapper) draws the 
 
 from __future__ import annotations
 
+import numpy as np
+
 from octolog.kit.bus import Bus
 from octolog.kit.errors import InputError
 from octolog.kit.geometry import RgbdFrame
@@ -36,8 +38,12 @@ GRAVITY_WAIT_S = 1.0  # for the replay's answer on camera/gravity (a known query
 class MapFrame:
     """Announces `map` -> `world` on /tf_static and in Rerun, once up is known."""
 
-    def __init__(self, mapper: Mapper, bus: Bus, viz: Viz, *, from_imu: bool) -> None:
+    def __init__(self, mapper: Mapper, bus: Bus, viz: Viz, *, from_imu: bool, ask: Bus | None = None) -> None:
+        """`from_imu`: up from the bus (a replay's camera/gravity, a live accelerometer); `ask`
+        (several robots): the first robot's bus, asked for its replay's camera/gravity
+        (`from_first_robot`)."""
         self.mapper, self.bus, self.viz = mapper, bus, viz
+        self._ask = ask
         self.found: dict | None = None  # what the IMU gave, for map_stats.json
         self._first: tuple[int, str] | None = None  # the first keyframe's stamp and optical frame
         self._first_frame: RgbdFrame | None = None
@@ -45,7 +51,8 @@ class MapFrame:
         self._announced = False
         self._given: tuple[str, tuple[float, ...]] | None = None  # a replay's up: (its frame, up)
         if self._live is None:
-            self._announce()
+            if ask is None:
+                self._announce()
             return
         bus.listen(ACCEL, self._on_accel)
         bus.listen(TF_STATIC, self._on_tf)
@@ -63,6 +70,19 @@ class MapFrame:
                 v = msg.vector
                 self._given = (frame_id, (float(v.x), float(v.y), float(v.z)))
                 self.resolve()
+
+    def from_first_robot(self, world_from_robot: np.ndarray | None) -> None:
+        """Several robots: before the first keyframe is integrated (every robot still running then
+        has one waiting, so the first robot's replay is up), its up, turned into the map's world."""
+        if self._announced or self._ask is None:
+            return
+        msg = self._ask.fetch(GRAVITY, GRAVITY_WAIT_S) if world_from_robot is not None else None
+        if msg is not None:
+            v = np.array([msg.vector.x, msg.vector.y, msg.vector.z], dtype=np.float64)
+            up = tuple(float(c) for c in world_from_robot[:3, :3] @ v)  # type: ignore[index]
+            self.mapper.set_up(up)
+            self.found = {"up": list(up), "note": "gravity-aligned (the first robot's camera/gravity)"}
+        self._announce()
 
     def resolve(self) -> None:
         """Decide up (once, before the first grid) and announce the frame."""

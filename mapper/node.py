@@ -145,19 +145,22 @@ def run_fleet(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: st
         robot_buses = [stack.enter_context(Bus(dataclasses.replace(bus_cfg, namespace=r), "mapper"))
                        for r in cfg.robots]
         viz = stack.enter_context(Viz(rerun, "mapper", recording_id))
-        MapFrame(mapper, bus, viz, from_imu=False)
+        frame = MapFrame(mapper, bus, viz, from_imu=False, ask=None if cfg.grid_up else robot_buses[0])
         publisher = Publisher(bus, mapper, cfg.publish_every)
-        result, trajectories = consume_fleet(mapper, cfg, bus, robot_buses, viz, publisher, out_dir)
+        result, trajectories = consume_fleet(mapper, cfg, bus, robot_buses, viz, publisher, out_dir, frame)
         per_robot = write_trajectories(mapper, cfg.robots, trajectories, out_dir)
         for robot in per_robot:  # placed by its start pose or by a shared place, or left out
             per_robot[robot]["merged"] = robot not in result.unmerged
             per_robot[robot]["lost"] = robot in result.lost
-        finish(mapper, result, bus, viz, publisher, out_dir, {"robots": per_robot, "merges": result.merges})
+        frame.from_first_robot(None)  # no keyframe came: announce the level frame
+        stats = {"robots": per_robot, "merges": result.merges, **({"map_frame": frame.found} if frame.found else {})}
+        finish(mapper, result, bus, viz, publisher, out_dir, stats)
     return result
 
 
 def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list[Bus], viz: Viz,
-                  publisher: Publisher, out_dir: Path) -> tuple[MapperResult, list[list[tuple[int, int]]]]:
+                  publisher: Publisher, out_dir: Path,
+                  frame_of_map: MapFrame | None = None) -> tuple[MapperResult, list[list[tuple[int, int]]]]:
     """Receive every robot's keyframes and corrections and integrate them in the merge's order;
     without start poses, place the robots from the places they share (mapper/placement.py)."""
     n = len(cfg.robots)
@@ -258,6 +261,8 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
             if not placement.placed(i):
                 merge_ = placement.offer(i, kf_id, item.stamp_ns, pose, frame)
                 todo = [] if merge_ is None else _placed(merge_, placement, cfg, pub_merge, viz, mapper)
+            if todo and frame_of_map is not None and not mapper.keyframes:  # `map` before the first keyframe
+                frame_of_map.from_first_robot(placement.world_from_robot[0])
             while todo:
                 r, kid, stamp, pose, frame = todo.pop(0)
                 gid = len(mapper.keyframes)

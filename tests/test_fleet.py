@@ -120,6 +120,7 @@ def _reference(out: Path, start_poses: list[list[float]], *, source: str = f"syn
     from octolog.kit.geometry import pose_to_matrix
     from octolog.kit.metrics import write_tum
     from octolog.mapper.core import make_mapper
+    from octolog.replay import gravity
     from octolog.replay.sources import open_source
     from octolog.schemas import codec
     from octolog.tracker.config import TrackerConfig, for_source
@@ -145,7 +146,14 @@ def _reference(out: Path, start_poses: list[list[float]], *, source: str = f"syn
         if hasattr(odometry, "finish") and odometry.finish():
             poses.update({k: wire(T) for k, T in odometry.keyframe_poses().items() if k in poses})
         latest.append(poses)
-    mapper = make_mapper(MapperConfig())
+    # the map's up: the first robot's replay serves it (camera/gravity) when its window starts at frame 0
+    cfg = MapperConfig()
+    found = gravity.source_up(src) if windows[0][0] == 0 else None
+    if found is not None:
+        q = np.array(start_poses[0][3:])
+        R0 = pose_to_matrix(np.array(start_poses[0][:3]), q / np.linalg.norm(q))[:3, :3]
+        cfg = dataclasses.replace(cfg, grid_up=tuple(float(c) for c in R0 @ found[0]))
+    mapper = make_mapper(cfg)
     per_robot: dict[int, list] = {0: [], 1: []}
     for gid, (stamp, r, kf, frame) in enumerate(sorted(keyframes, key=lambda k: k[:3])):
         T = latest[r][kf]
@@ -436,8 +444,9 @@ def test_a_robot_that_shares_no_place_stays_out_with_a_map_of_its_own(tmp_path):
     assert stats["merges"] == [] and stats["robots"]["r1"]["merged"] and not stats["robots"]["r2"]["merged"]
     assert (out / "r2" / "map.bt").stat().st_size > 0
     single = tmp_path / "single"
-    # the fleet's mapper reads no robot's accelerometer: its map frame is the level first camera's
-    up = json.loads((out / "map_stats.json").read_text())["map_from_world"][2][:3]
+    # the fleet's map frame: r1's up, from its replay's camera/gravity (as `octolog run` finds it)
+    assert stats["map_frame"]["note"] == "gravity-aligned (the first robot's camera/gravity)"
+    up = stats["map_frame"]["up"]
     octolog("run", "--source", f"synthetic:{n}", "--out", str(single), "--quiet", "--rerun", "off",
             "--set", f"mapper.grid_up={up!r}")
     assert (out / "map.bt").read_bytes() == (single / "map.bt").read_bytes()
