@@ -4,9 +4,10 @@ Keyframe poses arrive in the tracker's `world` (the first camera's optical frame
 octree and the grid are built in `map` (REP 105: z up, gravity-aligned when the source has an
 accelerometer, see mapper.grid), so `map.bt` and `cloud.ply` stand upright in any viewer and the
 octree's voxel columns are vertical. Each keyframe's filtered cloud is kept in its camera frame, so
-a corrected pose, or a new `map` frame (`set_up`), only needs a new transform. The octree cannot subtract one keyframe's contribution (log-odds are clamped), so a
-correction rebuilds it by re-inserting every keyframe in arrival order with the current poses: the
-result is, byte for byte, the map built from scratch with the corrected poses.
+a corrected pose, or a new `map` frame (`set_up`), only needs a new transform. The octree cannot
+subtract one keyframe's contribution (log-odds are clamped), so a correction rebuilds it by
+re-inserting every keyframe in arrival order with the current poses: the result is, byte for byte,
+the map built from scratch with the corrected poses.
 """
 
 from __future__ import annotations

@@ -49,7 +49,6 @@ class MapFrame:
         self._first_frame: RgbdFrame | None = None
         self._live = LiveUp() if from_imu else None
         self._announced = False
-        self._given: tuple[str, tuple[float, ...]] | None = None  # a replay's up: (its frame, up)
         if self._live is None:
             if ask is None:
                 self._announce()
@@ -65,11 +64,11 @@ class MapFrame:
             self._first_frame = frame  # to level a live camera's up on (resolve)
             # the replay serves it from before its first frame while it runs: asked here, at a fixed
             # point, a restarted mapper gets it too (a live camera serves none: its accelerometer is read)
-            msg = self.bus.fetch(GRAVITY, GRAVITY_WAIT_S)
+            msg = None if self._announced else self.bus.fetch(GRAVITY, GRAVITY_WAIT_S)
             if msg is not None and msg.header.frame_id == frame_id:
-                v = msg.vector
-                self._given = (frame_id, (float(v.x), float(v.y), float(v.z)))
-                self.resolve()
+                v = msg.vector  # nothing integrated yet: nothing to rebuild
+                self._apply((v.x, v.y, v.z), "gravity-aligned (the replay's camera/gravity)")
+                self._announce()
 
     def from_first_robot(self, world_from_robot: np.ndarray | None) -> None:
         """Several robots: before the first keyframe is integrated (every robot still running then
@@ -79,9 +78,8 @@ class MapFrame:
         msg = self._ask.fetch(GRAVITY, GRAVITY_WAIT_S) if world_from_robot is not None else None
         if msg is not None:
             v = np.array([msg.vector.x, msg.vector.y, msg.vector.z], dtype=np.float64)
-            up = tuple(float(c) for c in world_from_robot[:3, :3] @ v)  # type: ignore[index]
-            self.mapper.set_up(up)
-            self.found = {"up": list(up), "note": "gravity-aligned (the first robot's camera/gravity)"}
+            up = world_from_robot[:3, :3] @ v  # type: ignore[index]
+            self._apply(up, "gravity-aligned (the first robot's camera/gravity)")
         self._announce()
 
     def resolve(self) -> None:
@@ -89,11 +87,7 @@ class MapFrame:
         if self._announced:
             return
         assert self._live is not None
-        given = self._given
-        if self._first is not None and given is not None and given[0] == self._first[1]:
-            self.mapper.set_up(given[1])  # before the first keyframe (first_keyframe): nothing to rebuild
-            self.found = {"up": list(given[1]), "note": "gravity-aligned (the replay's camera/gravity)"}
-        elif self._first is not None:
+        if self._first is not None:
             try:
                 up = self._live.up_at(*self._first, "the camera's accelerometer")
             except InputError as exc:  # samples, but no rest reading: level, and say why
@@ -101,11 +95,15 @@ class MapFrame:
             else:
                 if up is not None:
                     up, levelled = level_on_plane(up, self._first_frame)
-                    up_t = tuple(float(v) for v in up)
-                    self.mapper.set_up(up_t)  # rebuilds what is integrated in the new frame
                     on = ", levelled on a horizontal plane of the first keyframe" if levelled else ""
-                    self.found = {"up": list(up_t), "note": f"gravity-aligned (the live camera's accelerometer{on})"}
+                    self._apply(up, f"gravity-aligned (the live camera's accelerometer{on})")
         self._announce()
+
+    def _apply(self, up: object, note: str) -> None:
+        """Build `map` on `up` (what is integrated moves into it) and say where it came from."""
+        up_t = tuple(float(v) for v in up)  # type: ignore[attr-defined]
+        self.mapper.set_up(up_t)
+        self.found = {"up": list(up_t), "note": note}
 
     def _announce(self) -> None:
         T = self.mapper.map_from_world
