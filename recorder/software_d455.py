@@ -30,7 +30,8 @@ class SyntheticPattern:
     bumpy depth surface.
 
     Frames are windows into larger precomputed images (cheap to cut, so the source costs little
-    next to the recorder), shifted a little each frame; fixed-seed noise makes the compression
+    next to the recorder), shifted a little each frame, back and forth as a hand sweeps a camera
+    (a window that wrapped round would jump, which no camera does); fixed-seed noise makes the compression
     figures closer to a real sensor's than flat test patterns would.
     """
 
@@ -56,8 +57,14 @@ class SyntheticPattern:
         self._cwh, self._dwh = color_wh, depth_wh
 
     def _window(self, img: np.ndarray, wh: tuple[int, int], i: int) -> np.ndarray:
-        dx, dy = (3 * i) % self.PAD, (2 * i) % self.PAD
+        dx, dy = self._sweep(3 * i), self._sweep(2 * i)
         return np.ascontiguousarray(img[dy:dy + wh[1], dx:dx + wh[0]])
+
+    @classmethod
+    def _sweep(cls, t: int) -> int:
+        """0, 1, ... PAD, PAD - 1, ... 0, 1, ...: a triangle wave."""
+        t %= 2 * cls.PAD
+        return t if t <= cls.PAD else 2 * cls.PAD - t
 
     def color(self, i: int) -> np.ndarray:
         return self._window(self._color, self._cwh, i)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -73,6 +74,19 @@ def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+# Stages that yield the CPU to the others (`nice` levels): the mapper works on keyframes from a deep
+# queue, so when the cores are short it is the one to wait, not the tracker (whose frames are live)
+# nor the camera or the session log. Its outputs do not depend on when it runs.
+NICENESS = {"mapper": 10}
+
+
+def _niced(name: str) -> list[str]:
+    """The command prefix that starts stage `name` at its NICENESS (`nice -n N`), race-free: every
+    thread the stage starts inherits it."""
+    n = NICENESS.get(name, 0)
+    return ["nice", "-n", str(n)] if n and shutil.which("nice") else []
 
 
 # Live sources: a D455 (pyrealsense2) or the simulated one (its software device, paced at the
@@ -164,8 +178,8 @@ class _Children:
         profile = name in os.environ.get("OCTOLOG_PROFILE", "").split(",")
         prof = ["-m", "cProfile", "-o", str(self.logs / f"{name}.prof")] if profile else []
         self.procs[name] = proc = subprocess.Popen(
-            [sys.executable, *prof, "-m", "octolog", *argv], stdout=log, stderr=subprocess.PIPE if show_stderr else log,
-            env=env, start_new_session=True)
+            [*_niced(name), sys.executable, *prof, "-m", "octolog", *argv], stdout=log,
+            stderr=subprocess.PIPE if show_stderr else log, env=env, start_new_session=True)
         if show_stderr:
             relay = threading.Thread(target=self._relay, args=(proc.stderr,), daemon=True)
             relay.start()

@@ -4,20 +4,19 @@ from __future__ import annotations
 
 import sys
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from octolog.kit.bus import Bus, BusConfig, Received
+from octolog.kit.bus import Bus, BusConfig
 from octolog.kit.config import to_dict
 from octolog.kit.errors import InputError, TrackingError
 from octolog.kit.geometry import RgbdFrame, invert
 from octolog.kit.metrics import write_tum
 from octolog.kit.tftree import StaticTree
-from octolog.kit.viz import Viz, encode_jpeg
+from octolog.kit.viz import Viz
 from octolog.schemas import codec
 from octolog.schemas.topics import (
     CAMERA_PROPERTIES,
@@ -37,10 +36,8 @@ from octolog.schemas.topics import (
 )
 from octolog.tracker.config import TrackerConfig
 from octolog.tracker.factory import make_odometry, set_readout
+from octolog.tracker.intake import FRAME_PRODUCERS, Intake
 from octolog.tracker.interface import Tracker, TrackingState, TrackResult
-
-FRAME_PRODUCERS = ("replay", "recorder")
-
 
 def status_code(state: TrackingState) -> int:
     """The `TrackingStatus.state` code of a state: the message's constant of the same name."""
@@ -89,80 +86,68 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
     bus.watch(["mapper"], required=False)  # a mapper may restart: keep its keyframes until it is done
     result = TrackerResult()
     expected: int | None = None
-    held: Received | None = None  # a message already taken off the bus, to handle next
-    decoded: dict[int, Future] = {}  # frames being decoded ahead, on the helper thread, by id(Received)
-    while expected is None or result.frames < expected:
-        r, held = (held, None) if held is not None else (bus.receive(), None)
-        if r is None:
-            if expected is not None:
+    with Intake(bus, odometry, viz=viz.enabled, live=cfg.live) as intake:
+        while expected is None or result.frames < expected:
+            if (item := intake.get()) is None:
+                if expected is not None:
+                    bus.expect_count(RGBD, result.frames, expected)
+                continue
+            r, prep = item
+            if r.topic == CAMERA_PROPERTIES:
+                use_camera(odometry, cfg, r.decode())
+                continue
+            if r.topic == RGBD_END:
+                expected = int(r.decode().count)
                 bus.expect_count(RGBD, result.frames, expected)
-            continue
-        if r.topic == CAMERA_PROPERTIES:
-            use_camera(odometry, cfg, r.decode())
-            continue
-        if r.topic == RGBD_END:
-            expected = int(r.decode().count)
-            bus.expect_count(RGBD, result.frames, expected)
-            for producer in FRAME_PRODUCERS:
-                bus.unwatch(producer)  # the source may now leave
-            continue
-        result.frames += 1
-        if cfg.live:
-            # stay real-time: the newest waiting frame wins, the older ones are skipped, on record
-            while (newer := bus.receive_nowait()) is not None:
-                if newer.topic not in (RGBD, RGBD_COMPRESSED):
-                    held = newer
-                    break
-                old = r.decode()
-                skipped = TrackingState.SKIPPED
-                pub_status.put(_status(old.seq, codec.stamp_ns(old.header), skipped, False, -1, 0, 0, 0.0))
-                result.skipped += 1
-                result.frames += 1
-                r = newer
-        t0 = time.perf_counter()
-        ahead = decoded.pop(id(r), None)
-        if not cfg.live and held is None:
-            # decode the next frame and extract its features, if it is already here, while this one
-            # is tracked (OpenCV releases the GIL): the second core works for the tracking thread
-            held = bus.receive_nowait()
-            if held is not None and held.topic in (RGBD, RGBD_COMPRESSED):
-                decoded[id(held)] = _DECODER.submit(_decode, held, odometry, viz.enabled)
-        msg, frame_or_error, prepared = ahead.result() if ahead is not None else _decode(r)
-        try:
-            if isinstance(frame_or_error, InputError):
-                raise frame_or_error
-            frame = frame_or_error
-            res = odometry.track(frame, prepared)
-        except (InputError, TrackingError) as exc:
-            # an undecodable frame, or one that contradicts its camera (size, depth type, changed
-            # intrinsics), is consumed and reported LOST, never a crash
-            result.rejected += 1
-            result.problems.append(f"frame {msg.seq}: {exc}")
-            pub_status.put(_status(msg.seq, codec.stamp_ns(msg.header), TrackingState.LOST, False, -1, 0, 0, 0.0))
-            continue
-        if cfg.throttle_ms:
-            time.sleep(max(0.0, cfg.throttle_ms / 1e3 - (time.perf_counter() - t0)))
-        ms = (time.perf_counter() - t0) * 1e3
-        result.ms.append(ms)
-        result.stamps_ns.append(frame.stamp_ns)
-        result.poses.append(res.world_from_camera)
-        result.tracked += res.state == TrackingState.OK
-        result.lost += res.state == TrackingState.LOST
-        pub_pose.put(codec.pose_stamped_msg(res.world_from_camera, frame.stamp_ns))
-        # world -> the camera tree's root (camera_link), so each frame keeps one parent (REP 105)
-        root, root_from_camera = tree.root_from(frame.frame_id)
-        pub_tf.put(codec.tf_msg([("world", root, res.world_from_camera @ invert(root_from_camera))], frame.stamp_ns))
-        if res.corrected:  # a loop closed: the mapper moves those keyframes
-            pub_poses.put(codec.keyframe_poses_msg(res.corrected, frame.stamp_ns))
-        result.loops += res.loop is not None
-        result.relocalisations += res.relocalised
-        if res.is_keyframe:
-            pub_kf.put(res.keyframe_id, res.world_from_camera, frame)
-            result.keyframes += 1
-        pub_status.put(_status(frame.seq, frame.stamp_ns, res.state, res.is_keyframe, res.keyframe_id,
-                               res.n_matches, res.n_inliers, ms))
-        if viz.enabled:
-            _log(viz, frame, res, result, odometry)
+                continue
+            result.frames += 1
+            if cfg.live:
+                # stay real-time: the newest waiting frame wins, the older ones are skipped, on record
+                while (newer := intake.newer_frame()) is not None:
+                    old = r.decode()
+                    pub_status.put(_status(old.seq, codec.stamp_ns(old.header), TrackingState.SKIPPED, False, -1, 0,
+                                           0, 0.0))
+                    result.skipped += 1
+                    result.frames += 1
+                    r, prep = newer
+            t0 = time.perf_counter()
+            msg, frame_or_error, prepared = intake.prepared(r, prep)
+            try:
+                if isinstance(frame_or_error, InputError):
+                    raise frame_or_error
+                frame = frame_or_error
+                res = odometry.track(frame, prepared)
+            except (InputError, TrackingError) as exc:
+                # an undecodable frame, or one that contradicts its camera (size, depth type, changed
+                # intrinsics), is consumed and reported LOST, never a crash
+                result.rejected += 1
+                result.problems.append(f"frame {msg.seq}: {exc}")
+                pub_status.put(_status(msg.seq, codec.stamp_ns(msg.header), TrackingState.LOST, False, -1, 0, 0, 0.0))
+                continue
+            if cfg.throttle_ms:
+                time.sleep(max(0.0, cfg.throttle_ms / 1e3 - (time.perf_counter() - t0)))
+            ms = (time.perf_counter() - t0) * 1e3
+            result.ms.append(ms)
+            result.stamps_ns.append(frame.stamp_ns)
+            result.poses.append(res.world_from_camera)
+            result.tracked += res.state == TrackingState.OK
+            result.lost += res.state == TrackingState.LOST
+            pub_pose.put(codec.pose_stamped_msg(res.world_from_camera, frame.stamp_ns))
+            # world -> the camera tree's root (camera_link), so each frame keeps one parent (REP 105)
+            root, root_from_camera = tree.root_from(frame.frame_id)
+            world_from_root = res.world_from_camera @ invert(root_from_camera)
+            pub_tf.put(codec.tf_msg([("world", root, world_from_root)], frame.stamp_ns))
+            if res.corrected:  # a loop closed: the mapper moves those keyframes
+                pub_poses.put(codec.keyframe_poses_msg(res.corrected, frame.stamp_ns))
+            result.loops += res.loop is not None
+            result.relocalisations += res.relocalised
+            if res.is_keyframe:
+                pub_kf.put(res.keyframe_id, res.world_from_camera, frame)
+                result.keyframes += 1
+            pub_status.put(_status(frame.seq, frame.stamp_ns, res.state, res.is_keyframe, res.keyframe_id,
+                                   res.n_matches, res.n_inliers, ms))
+            if viz.enabled:
+                _log(viz, frame, res, result, odometry)
     # the back end's last word: every keyframe at its final pose, so the map matches the
     # trajectory. Sent before the end messages, whose count for it the mapper waits for.
     moved = odometry.finish()
@@ -187,24 +172,6 @@ def use_camera(odometry: Tracker, cfg: TrackerConfig, props: Any) -> None:
         print(f"tracker: warning: tracker.rolling_shutter_ms = {cfg.rolling_shutter_ms:g} but the camera "
               f"({props.camera}) reads out in {props.readout_s * 1e3:g} ms; using {cfg.rolling_shutter_ms:g} "
               f"(the local setting)", file=sys.stderr, flush=True)
-
-
-_DECODER = ThreadPoolExecutor(1, thread_name_prefix="decode")
-
-
-def _decode(r: Received, odometry: Tracker | None = None, viz: bool = False) -> tuple[Any, RgbdFrame | InputError, Any]:
-    """A frame message, its decoded frame (or the InputError that says why it cannot be one) and,
-    given the tracker, what `odometry.prepare` makes of it ahead of `track`; with `viz`, the frame's
-    colour as the JPEG the recording logs (`extra["jpeg"]`), unless it came as one."""
-    msg = r.decode()
-    try:
-        frame = codec.rgbd_from_msg(msg)
-    except InputError as exc:
-        return msg, exc, None
-    colour = frame.extra.get("wire", (None,))[0]
-    if viz and (colour is None or "jpeg" not in colour.format):
-        frame.extra["jpeg"] = encode_jpeg(frame.rgb)
-    return msg, frame, odometry.prepare(frame) if odometry is not None else None
 
 
 class KeyframeOut:
