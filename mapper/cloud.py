@@ -256,6 +256,15 @@ class DenseCloud:
     def __len__(self) -> int:
         return len(self._parts)
 
+    def preview(self, step: int) -> tuple[np.ndarray, np.ndarray]:
+        """Every `step`-th point of each keyframe's contribution, ascending ids, not merged: a look at
+        the growing cloud for the viewer that costs a copy, not the merge (`cloud`) over every point."""
+        ids = sorted(self._parts)
+        if not ids:
+            return _EMPTY_POINTS.copy(), _EMPTY_COLOURS.copy()
+        return (np.concatenate([self._parts[i][0][::step] for i in ids]),
+                np.concatenate([self._parts[i][1][::step] for i in ids]))
+
     def cloud(self) -> tuple[np.ndarray, np.ndarray]:
         """The merged cloud (points (N,3) float64, colours (N,3) uint8), voxel-down-sampled."""
         if self._cache is None:

@@ -454,17 +454,17 @@ def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: Pu
     return result
 
 
-# The dense cloud of a snapshot while the map grows: every CLOUD_STRIDE-th point (the voxels show the
-# growing map; a full cloud per snapshot made the mapper's recording grow with the square of the
-# session). The last snapshot logs it whole.
+# The dense cloud of a snapshot while the map grows: every CLOUD_STRIDE-th point of each keyframe's
+# filtered cloud, not merged across keyframes (the voxels show the growing map; a full cloud per
+# snapshot made the mapper's recording grow with the square of the session, and merging every point
+# for it cost a second a snapshot at 3 M points). The last snapshot logs the merged cloud whole.
 CLOUD_STRIDE = 8
 
 
 def _log_map(viz: Viz, mapper: Mapper, stamp: int, grid: Any = None, *, final: bool = False) -> None:
     viz.set_time(stamp)
-    pts, cols = mapper.cloud.cloud()
-    step = 1 if final else CLOUD_STRIDE
-    viz.points3d("map/cloud", pts[::step], cols[::step], radius=0.004 if final else 0.008)
+    pts, cols = mapper.cloud.cloud() if final else mapper.cloud.preview(CLOUD_STRIDE)
+    viz.points3d("map/cloud", pts, cols, radius=0.004 if final else 0.008)
     centres = mapper.octree.occupied_centres()
     if len(centres):
         # height: the octree is in `map`, z up (gravity when the source has an accelerometer)

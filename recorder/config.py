@@ -78,6 +78,10 @@ class RecorderConfig:
     queue_frames: int = 30  # capture -> writer queue (frame sets); beyond it frames are dropped, counted
     encode_threads: int = 2
     live_queue_frames: int = 4  # per live sink (bus, Rerun); a slow consumer loses frames there, counted
+    # --publish: at most this many frames out on camera/rgbd that no tracker/status has answered yet;
+    # a frame beyond them is recorded but not published (nor encoded for the wire): a tracker that
+    # far behind would skip it. 0: publish every frame (no tracker needed). `octolog run` live: 2
+    publish_window: int = 0
     min_free_mb: float = 256.0  # stop cleanly before the disk is full
     frame_prefix: str = "camera"
     # --publish: stages that must be up before capture starts (e.g. "tracker"), so none misses frames
@@ -111,8 +115,8 @@ class RecorderConfig:
         for key in ("chunk_size_mb",):
             if getattr(self, key) <= 0:
                 raise ConfigError(f"recorder.{key} {getattr(self, key)}: want > 0")
-        for key in ("split_size_mb", "split_duration_s", "min_free_mb", "depth_units_m", "color_exposure",
-                    "depth_exposure", "gyro_fps", "accel_fps"):
+        for key in ("split_size_mb", "split_duration_s", "min_free_mb", "publish_window", "depth_units_m",
+                    "color_exposure", "depth_exposure", "gyro_fps", "accel_fps"):
             if getattr(self, key) < 0:
                 raise ConfigError(f"recorder.{key} {getattr(self, key)}: want >= 0")
         for key in ("queue_frames", "encode_threads", "live_queue_frames"):

@@ -132,7 +132,8 @@ def open_sinks(stack: ExitStack, cfg: RecorderConfig, device: DeviceDescription,
     sinks: list[LiveSink] = []
     if bus_cfg is not None:
         bus = stack.enter_context(Bus(bus_cfg, "recorder"))
-        pub = BusPublisher(bus, device, frame_names(cfg.frame_prefix), compressed=cfg.color_codec == "jpeg")
+        pub = BusPublisher(bus, device, frame_names(cfg.frame_prefix), compressed=cfg.color_codec == "jpeg",
+                           window=cfg.publish_window)
         bus.watch(cfg.wait_for)
         bus.wait_for(cfg.wait_for, cfg.wait_timeout_s)
         sink = LiveSink("bus", pub, size=cfg.live_queue_frames, on_close=pub.end)
@@ -149,7 +150,8 @@ def open_sinks(stack: ExitStack, cfg: RecorderConfig, device: DeviceDescription,
 class BusPublisher:
     """Publishes each written message on its topic, and colour + aligned depth as `camera/rgbd`."""
 
-    def __init__(self, bus: Any, device: DeviceDescription, frames: dict[str, str], *, compressed: bool = False) -> None:
+    def __init__(self, bus: Any, device: DeviceDescription, frames: dict[str, str], *, compressed: bool = False,
+                 window: int = 0) -> None:
         self._bus = bus
         self._device = device
         self._frames = frames
@@ -163,8 +165,15 @@ class BusPublisher:
         self._rgbd = bus.publisher(T.RGBD_COMPRESSED if compressed else T.RGBD)
         self._rgbd_end = bus.publisher(T.RGBD_END)
         self._props = bus.publisher(T.CAMERA_PROPERTIES)
+        # a live tracker's pace (RecorderConfig.publish_window): frames out, minus statuses back
+        self.window, self.answered, self.held_back = window, 0, 0
+        if window:
+            bus.listen(T.TRACKING_STATUS, self._answered)
         bus.announce()
         bus.watch(["tracker"], required=False)  # see `end`
+
+    def _answered(self, _status: Any) -> None:
+        self.answered += 1  # on Zenoh's thread; read by the publishing thread
 
     def __call__(self, cap: Capture, msgs: list[Encoded]) -> None:
         if self._tf_static.count == 0:
@@ -178,6 +187,9 @@ class BusPublisher:
             c, d = cap.color, cap.aligned_depth
             if self._props.count == 0:  # before the first frame: the D455's colour camera has a global shutter
                 self._props.put(codec.camera_properties_msg(self._device.name, 0.0, c.stamp_ns))
+            if self.window and self._rgbd.count - self.answered >= self.window:
+                self.held_back += 1  # the tracker has `window` frames in hand: it would skip this one
+                return
             if self._rgbd.topic is T.RGBD:
                 self._rgbd.put(codec.rgbd_msg(RgbdFrame(c.frame_number, c.stamp_ns, c.array, d.array,
                                                         self._device.depth_scale_m, self._device.color, self._frame)))

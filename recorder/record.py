@@ -102,6 +102,7 @@ class Status:
     free_mb: float
     queue: int
     files: int
+    held_back: int = 0  # frames not published: the live tracker had RecorderConfig.publish_window in hand
 
 
 @dataclass
@@ -114,6 +115,7 @@ class RecordResult:
     wall_s: float = 0.0
     first_stamp_ns: int = 0
     last_stamp_ns: int = 0
+    held_back: int = 0  # RGB-D frames recorded but not published (RecorderConfig.publish_window)
 
     @property
     def dropped(self) -> int:
@@ -170,7 +172,7 @@ class LiveSink:
 
     def __init__(self, name: str, fn: Sink, *, size: int, on_close: Callable[[], None] | None = None) -> None:
         self.name = name
-        self._fn = fn
+        self.fn = fn
         self._on_close = on_close
         self._q: queue.Queue[tuple[Capture, list[Encoded]] | None] = queue.Queue(maxsize=size)
         self.dropped: dict[str, int] = {}
@@ -192,7 +194,7 @@ class LiveSink:
         while (job := self._q.get()) is not None:
             if self.error is None:
                 try:
-                    self._fn(*job)
+                    self.fn(*job)
                 except Exception as exc:  # noqa: BLE001 - reported by the recorder, file goes on
                     self.error = exc
 
@@ -317,6 +319,7 @@ class Recorder:
             sink.close()
             for s, n in sink.dropped.items():
                 self.stats[s].live_drops += n
+            self.result.held_back += getattr(sink.fn, "held_back", 0)
         self.result.stop_reason = self.error.args[0] if self.error else reason
         path = self._writer.path if self._writer else None
         finish_error = self._close_file()
@@ -356,7 +359,8 @@ class Recorder:
             messages=self._messages_before + (w.count if w else 0),
             flushed_messages=self._messages_before + (w.flushed_count if w else 0),
             mb_written=total / 1e6, mb_per_s=(total - b_prev) / dt / 1e6, free_mb=self._free_bytes / 1e6,
-            queue=self._q.qsize(), files=self._file_index + 1)
+            queue=self._q.qsize(), files=self._file_index + 1,
+            held_back=sum(getattr(k.fn, "held_back", 0) for k in self._sinks))
 
     def _bytes_written(self) -> int:
         w = self._writer
@@ -580,6 +584,8 @@ def format_status(s: Status) -> str:
             parts.append(f"{name} {s.frames[name]} ({s.rates_hz[name]:.0f} Hz){drop}")
     drops = sum(s.dropped.values())
     parts.append(f"dropped {drops}" + (f" +{s.live_drops} live" if s.live_drops else ""))
+    if s.held_back:
+        parts.append(f"held back {s.held_back} (tracker busy)")
     parts.append(f"{s.mb_per_s:5.1f} MB/s, {s.mb_written:.0f} MB")
     parts.append(f"{s.free_mb / 1e3:.1f} GB free")
     if s.files > 1:

@@ -144,7 +144,9 @@ def cmd_record(args: argparse.Namespace) -> int:
         _write_session_files(out.parent, cfg, res)
     print(f"record: {res.messages} messages ({frames}) over {span:.1f} s, {res.bytes / 1e6:.1f} MB "
           f"-> {', '.join(map(str, res.paths))}; dropped: {drops}"
-          + (f"; live publishing skipped {live}" if live else "") + f"; stopped: {res.stop_reason}")
+          + (f"; live publishing skipped {live}" if live else "")
+          + (f"; held back {res.held_back} (the tracker had recorder.publish_window frames)" if res.held_back else "")
+          + f"; stopped: {res.stop_reason}")
     return 0
 
 

@@ -36,6 +36,7 @@ from octolog.replay import gravity
 from octolog.replay.config import ReplayConfig
 from octolog.replay.sources import Source, open_source
 from octolog.schemas import codec
+from octolog.schemas import topics as T
 from octolog.schemas.topics import RGBD, RGBD_COMPRESSED, TRACKING_STATUS
 from octolog.shell import errorfile
 from octolog.shell.sessiondir import INCOMPLETE, incomplete_reason, prepare_out
@@ -280,9 +281,10 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     Until it succeeds, `out` holds an INCOMPLETE file; a failed run writes its error there.
     """
     live = source in LIVE_SOURCES
-    # a live camera: the tracker keeps up by skipping frames (each skip on record), unless told otherwise
-    cfgs = _resolve_configs(source, config, _split_overrides((["tracker.live=true"] if live else []) + (overrides or []),
-                                                             live=live))
+    # a live camera: the tracker keeps up by skipping frames (each skip on record), and the camera
+    # publishes no frame while the tracker has two in hand (it would skip it), unless told otherwise
+    live_sets = ["tracker.live=true", "recorder.publish_window=2"] if live else []
+    cfgs = _resolve_configs(source, config, _split_overrides(live_sets + (overrides or []), live=live))
     replay_cfg = cfgs["replay"]
     feed_tracker = replay_cfg.play == "tracker"  # a log player stands in for the tracker
     if duration_s and not live:
@@ -401,8 +403,17 @@ def _keep_live_up(out: Path, found: dict) -> None:
     meta_path.write_text(json.dumps(metadata, indent=2, sort_keys=True))
 
 
-def frame_counts(log: Path) -> dict[str, int]:
-    """What the session log says about frames: published, consumed by the tracker, skipped."""
+def camera_frames(recording: Path) -> int:
+    """RGB-D frames a live camera delivered: colour with aligned depth, counted in its recording."""
+    counts = message_counts(recording) or {}
+    colour = counts.get(T.COLOR.name, 0) + counts.get(T.COLOR_JPEG.name, 0)
+    return min(colour, counts.get(T.ALIGNED_DEPTH.name, 0) + counts.get(T.ALIGNED_DEPTH_PNG.name, 0))
+
+
+def frame_counts(log: Path, camera: int | None = None) -> dict[str, int]:
+    """What the session log says about frames: published, consumed by the tracker, skipped. With the
+    frames a live camera delivered (`camera`), the ones it did not publish count as skipped too
+    (`held_back`: the tracker had RecorderConfig.publish_window frames in hand)."""
     skipped_code = codec.msgtype(TRACKING_STATUS.msgtype).SKIPPED
     published = consumed = skipped = 0
     counts = message_counts(log)  # the frames counted from the summary: not read (they are gigabytes)
@@ -416,7 +427,11 @@ def frame_counts(log: Path) -> dict[str, int]:
             skipped += 1
         else:
             consumed += 1
-    return {"published": published, "consumed": consumed, "skipped": skipped}
+    if camera is None:
+        return {"published": published, "consumed": consumed, "skipped": skipped}
+    held_back = max(0, camera - published)
+    return {"camera": camera, "published": published, "consumed": consumed, "skipped": skipped + held_back,
+            "held_back": held_back}
 
 
 def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, recording_id: str) -> SessionSummary:
@@ -430,7 +445,8 @@ def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, re
         _keep_live_up(out, s.map["map_frame"])
     if (out / "metadata.json").exists():
         s.map_frame = json.loads((out / "metadata.json").read_text()).get("gravity", {}).get("note", NOT_ALIGNED)
-    frames = frame_counts(out / "session.mcap")
+    live = isinstance(src, LiveSource) and (out / "recording.mcap").exists()
+    frames = frame_counts(out / "session.mcap", camera_frames(out / "recording.mcap") if live else None)
     if (out / "trajectory.txt").exists():  # absent when the tracker was fed from a log
         traj = metrics.read_tum(out / "trajectory.txt")
         s.frames = len(traj.stamps_ns)

@@ -501,6 +501,36 @@ def test_publishes_live_while_recording(tmp_path):
     assert bytes(msg.color.data) == bytes(jpeg.data)  # the frame carries the recorded JPEG, not a re-encoding
 
 
+def test_publish_window_holds_back_what_the_tracker_has_no_hand_for(tmp_path):
+    """With recorder.publish_window = 1 and a consumer that answers no frame (no tracker/status),
+    exactly one frame goes out; every other one is recorded, not published, and counted."""
+    from octolog.kit.bus import Bus, BusConfig
+
+    ep = f"tcp/127.0.0.1:{_port()}"
+    sub_cfg = BusConfig(listen=(ep,), multicast_scouting=False, namespace="win")
+    pub_cfg = BusConfig(connect=(ep,), multicast_scouting=False, namespace="win")
+    frames: list[bytes] = []
+    end = None
+    with Bus(sub_cfg, "tracker", inbox_size=64) as sub:
+        sub.start([T.RGBD_COMPRESSED, T.RGBD_END])
+        cfg = dataclasses.replace(BASE, wait_for=("tracker",), wait_timeout_s=30.0, publish_window=1)
+        result: dict = {}
+        t = threading.Thread(target=lambda: result.update(res=_run(tmp_path, cfg, frames=20, bus_cfg=pub_cfg)[1]))
+        t.start()
+        while end is None:
+            r = sub.receive(30.0)
+            assert r is not None, "no end message"
+            if r.topic is T.RGBD_END:
+                end = codec.decode(r.payload, T.RGBD_END.msgtype)
+            else:
+                frames.append(r.payload)
+    t.join(60)
+    res = result["res"]
+    assert len(frames) == 1 and int(end.count) == 1
+    assert res.held_back + res.streams["color"].live_drops == 19
+    assert res.streams["color"].frames == 20  # the file has them all
+
+
 def test_rerun_logs_what_is_recorded(tmp_path):
     _, res = _run(tmp_path, frames=5, rerun=f"save:{tmp_path / 'rr'}", recording_id="test")
     rrd = tmp_path / "rr" / "recorder.rrd"
