@@ -6,8 +6,9 @@
 profile's rate (pyrealsense2's software device, as a camera would deliver), default outputs
 (session log and Rerun recordings on). The recorder writes `recording.mcap` (what `octolog record`
 alone writes for the same frames) beside the session; the session's own outputs are `session.mcap`
-and the `.rrd` files. Prints one row per frame rate: frames published / consumed / skipped (the
-tracker keeps up by skipping, each skip on record), and the outputs' size against the recording's.
+and the `.rrd` files. Prints one row per frame rate: frames the camera delivered / published /
+consumed / skipped (the tracker keeps up by skipping, each skip on record; the camera holds back a
+frame while the tracker has two in hand), and the outputs' size against the recording's.
 """
 
 from __future__ import annotations
@@ -41,17 +42,22 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seconds", type=float, default=30.0)
     ap.add_argument("--fps", type=int, nargs="+", default=[15, 30])
+    ap.add_argument("--repeat", type=int, default=1, help="runs per frame rate, one row each")
     args = ap.parse_args()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for fps in args.fps:
-            rows.append(run(args.seconds, fps, Path(tmp) / f"live{fps}"))
-    print(f"d455:software, 640x480 colour + depth, {args.seconds:g} s, default outputs; one run each")
-    print("| fps | published | consumed | skipped | recording.mcap MB | session.mcap + .rrd MB | outputs / recording | wall s |")
-    print("|---|---|---|---|---|---|---|---|")
+            for i in range(args.repeat):
+                rows.append(run(args.seconds, fps, Path(tmp) / f"live{fps}-{i}"))
+    print(f"d455:software, 640x480 colour + depth, {args.seconds:g} s, default outputs; {args.repeat} run(s) each")
+    print("| fps | camera | published | consumed | skipped (of them held back) | recording.mcap MB "
+          "| session.mcap + .rrd MB | outputs / recording | wall s |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['fps']} | {r['published']} | {r['consumed']} | {r['skipped']} ({r['skipped'] / max(r['published'], 1):.0%}) "
-              f"| {r['recording_mb']:.1f} | {r['outputs_mb']:.1f} | {r['outputs_mb'] / r['recording_mb']:.2f} | {r['wall_s']:.1f} |")
+        print(f"| {r['fps']} | {r['camera']} | {r['published']} | {r['consumed']} | {r['skipped']} "
+              f"({r['skipped'] / max(r['camera'], 1):.0%}; {r['held_back']}) "
+              f"| {r['recording_mb']:.1f} | {r['outputs_mb']:.1f} | {r['outputs_mb'] / r['recording_mb']:.2f} "
+              f"| {r['wall_s']:.1f} |")
 
 
 if __name__ == "__main__":

@@ -5,7 +5,12 @@ first300 as recorded and with every 3rd frame (the fast-motion case), then reads
 for per-stage figures, and runs the same tracker and mapper cores in one process (frames decoded
 as they are read, no transport, no logging) as the reference. Prints one table per case.
 
-    python bench/pipeline.py [--source tum:PATH] [--every 1,3] [--repeat 3]
+    python bench/pipeline.py [--source tum:PATH] [--every 1,3] [--repeat 3] [--live N]
+
+`--live N`: also N runs of first300 as a live camera would deliver it: paced at the sequence's own
+rate (`replay.rate=1`) with the live tracker (`tracker.live=true`: the newest frame wins, older
+ones are skipped, on record): frames skipped, and the frame->pose latency a camera sees, without
+the frame the lockstep replay keeps queued on purpose (`replay.window=2`).
 
 Figures:
 - real-time factor: sequence seconds / wall seconds. "streaming" counts from the first frame on
@@ -60,19 +65,20 @@ def source_bytes(source: str, every: int) -> int:
                for _, rgb, _, depth in seq.pairs[::every])
 
 
-def run_pipeline(source: str, every: int, out: Path) -> dict:
+def run_pipeline(source: str, every: int, out: Path, *, live: bool = False) -> dict:
     from octolog.kit.mcaplog import read_wire
     from octolog.schemas import codec, topics
 
     t0_ns = time.time_ns()
     t0 = time.monotonic()
+    paced = ["--set", "replay.rate=1", "--set", "tracker.live=true"] if live else []
     subprocess.run([sys.executable, "-m", "octolog", "run", "--source", source, "--out", str(out), "--quiet",
-                    "--set", f"replay.every={every}"], check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
+                    "--set", f"replay.every={every}", *paced], check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
     wall = time.monotonic() - t0
     end_ns = t0_ns + round(wall * 1e9)
     frame_rx: dict[int, int] = {}
     track_ms, latency_ms, map_ms = [], [], []
-    first_frame_ns = last_status_ns = 0
+    first_frame_ns = last_status_ns = skipped = 0
     frame_topics = (topics.RGBD.name, topics.RGBD_COMPRESSED.name)
     for m in read_wire(out / "session.mcap"):
         if m.topic in frame_topics:
@@ -81,6 +87,9 @@ def run_pipeline(source: str, every: int, out: Path) -> dict:
             first_frame_ns = first_frame_ns or m.log_time_ns
         elif m.topic == topics.TRACKING_STATUS.name:
             st = codec.decode(m.data, topics.TRACKING_STATUS.msgtype)
+            if st.state == st.SKIPPED:
+                skipped += 1
+                continue
             track_ms.append(st.processing_ms)
             last_status_ns = m.log_time_ns
             if st.seq in frame_rx:
@@ -94,7 +103,8 @@ def run_pipeline(source: str, every: int, out: Path) -> dict:
             "startup": (first_frame_ns - t0_ns) * 1e-9, "end": (end_ns - last_status_ns) * 1e-9,
             "frames": summary["tracked_frames"], "duration": summary["duration_s"],
             "ate_cm": (summary["ate"] or {}).get("rmse_m", float("nan")) * 100, "track_ms": track_ms,
-            "latency_ms": latency_ms, "map_ms": map_ms, "keyframes": len(map_ms), "sizes": sizes}
+            "latency_ms": latency_ms, "map_ms": map_ms, "keyframes": len(map_ms), "sizes": sizes,
+            "skipped": skipped}
 
 
 def run_in_process(source: str, every: int) -> dict:
@@ -164,6 +174,7 @@ def main() -> None:
     ap.add_argument("--source", default=None)
     ap.add_argument("--every", default="1,3", help="cases: play every N-th frame (3: the fast-motion case)")
     ap.add_argument("--repeat", type=int, default=3, help="pipeline runs per case (medians over runs)")
+    ap.add_argument("--live", type=int, default=0, help="runs paced at the camera's rate with the live tracker")
     args = ap.parse_args()
     source = args.source or default_source()
     load = os.getloadavg()[0]
@@ -172,7 +183,7 @@ def main() -> None:
           f"load average {load:.1f} before; pipeline = `octolog run` with its default outputs (session log, "
           f"Rerun recordings), {args.repeat} runs; reference = the same cores in one process, no transport, "
           f"no logging")
-    for every in (int(e) for e in args.every.split(",")):
+    for every in (int(e) for e in args.every.split(",") if e):
         runs = []
         with tempfile.TemporaryDirectory() as tmp:
             for i in range(args.repeat):
@@ -185,6 +196,19 @@ def main() -> None:
         print(f"{'':<{w}}  {'pipeline':>18}  {'in-process':>18}  {'ratio':>9}")
         for name, a, b, ratio in rows:
             print(f"{name:<{w}}  {a:>18}  {b:>18}  {ratio:>9}")
+    if args.live:
+        with tempfile.TemporaryDirectory() as tmp:
+            runs = [run_pipeline(source, 1, Path(tmp) / f"live{i}", live=True) for i in range(args.live)]
+        lat = [x for r in runs for x in r["latency_ms"]]
+        track = [x for r in runs for x in r["track_ms"]]
+        print(f"\nas a live camera (paced at the sequence's rate, live tracker), {args.live} run(s): "
+              f"load average {os.getloadavg()[0]:.1f} after")
+        for r in runs:
+            n = r["skipped"] + len(r["track_ms"])
+            print(f"  {n} frames, {len(r['track_ms'])} tracked, {r['skipped']} skipped "
+                  f"({r['skipped'] / max(n, 1):.0%}), ATE {r['ate_cm']:.2f} cm, keyframes {r['keyframes']}")
+        print(f"  frame->pose latency ms median / p90: {pct(lat, 50):.1f} / {pct(lat, 90):.1f}; "
+              f"tracker ms/frame median / p90: {pct(track, 50):.1f} / {pct(track, 90):.1f}")
 
 
 if __name__ == "__main__":

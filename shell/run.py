@@ -90,6 +90,18 @@ def _niced(name: str) -> list[str]:
     return ["nice", "-n", str(n)] if n and shutil.which("nice") else []
 
 
+def _nice_session(name: str, pid: int) -> None:
+    """The same level for the stage's session: each stage leads a session of its own, and where Linux
+    groups the scheduling by session (autogroup, the desktop default) a process's nice level only
+    weighs inside its group, so the group's level is what yields the cores to the other stages."""
+    n = NICENESS.get(name, 0)
+    if n:
+        try:
+            Path(f"/proc/{pid}/autogroup").write_text(str(n))
+        except OSError:
+            pass  # no autogroup (kernel without it, or not Linux): nice alone does it
+
+
 # Live sources: a D455 (pyrealsense2) or the simulated one (its software device, paced at the
 # profile's rate). The recorder stands where the replay stands: it records the camera in full
 # (OUT/recording.mcap) and publishes camera/rgbd; the tracker runs live (it skips frames when behind).
@@ -181,6 +193,7 @@ class _Children:
         self.procs[name] = proc = subprocess.Popen(
             [*_niced(name), sys.executable, *prof, "-m", "octolog", *argv], stdout=log,
             stderr=subprocess.PIPE if show_stderr else log, env=env, start_new_session=True)
+        _nice_session(name, proc.pid)
         if show_stderr:
             relay = threading.Thread(target=self._relay, args=(proc.stderr,), daemon=True)
             relay.start()

@@ -126,8 +126,14 @@ def _die_with(parent: int) -> None:
         os._exit(0)
 
 
+# The back end yields the CPU to the tracking thread: its result is wanted at the next keyframe, the
+# tracking thread's every frame. A back end behind is waited for there, and then has the cores.
+NICENESS = 5
+
+
 def main() -> None:
     _die_with(int(sys.argv[1]))
+    os.nice(NICENESS)
     stdin, stdout = sys.stdin.buffer, sys.stdout.buffer
     while True:
         try:
