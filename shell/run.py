@@ -400,7 +400,7 @@ def _run(source: str, out: Path, src: Source | LiveSource, cfgs: dict[str, Any],
         # Zenoh at exit aborts the process
         thread.join(timeout=10)
     wall = time.monotonic() - t0
-    return _summarize(out, source, src, wall, recording_id)
+    return _summarize(out, source, src, wall, recording_id, loop=cfgs["replay"].loop)
 
 
 def _keep_live_up(out: Path, found: dict) -> None:
@@ -447,12 +447,23 @@ def frame_counts(log: Path, camera: int | None = None) -> dict[str, int]:
             "held_back": held_back}
 
 
-def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, recording_id: str) -> SessionSummary:
+def played_ns(duration_ns: int, frames: int, loop: int) -> int:
+    """Sensor time a replay plays: the source's span, `loop` times, each later pass one frame interval
+    after the one before (as replay/node.py: looped moves time on)."""
+    if loop <= 1:
+        return duration_ns
+    gap = duration_ns // (frames - 1) if frames > 1 else 33_333_333
+    return loop * duration_ns + (loop - 1) * gap
+
+
+def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, recording_id: str, *,
+               loop: int = 1) -> SessionSummary:
     if isinstance(src, LiveSource):  # how long the camera ran: the frames the session log holds
         t = next((t for name, t in summarize(out / "session.mcap").topics.items() if name in (RGBD.name,
                   RGBD_COMPRESSED.name)), None)
         src.duration_ns = t.last_ns - t.first_ns if t is not None else 0
-    s = SessionSummary(out=out, source=source, wall_s=wall, duration_s=src.duration_ns * 1e-9)
+    played = src.duration_ns if isinstance(src, LiveSource) else played_ns(src.duration_ns, len(src), loop)
+    s = SessionSummary(out=out, source=source, wall_s=wall, duration_s=played * 1e-9)
     s.map = json.loads((out / "map_stats.json").read_text())
     if "map_frame" in s.map:  # a live camera: the mapper found up from its accelerometer
         _keep_live_up(out, s.map["map_frame"])

@@ -54,6 +54,12 @@ def test_loop_keeps_sequence_and_time_moving_on():
     seqs, stamps = zip(*got)
     assert list(seqs) == list(range(30))
     assert all(b - a == 100_000_000 for a, b in zip(stamps, stamps[1:]))
+    # the sensor time `octolog run` reports (summary.json duration_s, the real-time factor) is what played
+    from octolog.shell.run import played_ns
+
+    src = FakeSource()
+    assert played_ns(src.duration_ns, len(src), 3) == stamps[-1] - stamps[0]
+    assert played_ns(src.duration_ns, len(src), 1) == src.duration_ns
 
 
 def test_every_nth_frame_keeps_the_stamps_and_numbers_frames_anew(tmp_path):
