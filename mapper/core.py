@@ -7,7 +7,10 @@ octree's voxel columns are vertical. Each keyframe's filtered cloud is kept in i
 a corrected pose, or a new `map` frame (`set_up`), only needs a new transform. The octree cannot
 subtract one keyframe's contribution (log-odds are clamped), so a correction rebuilds it by
 re-inserting every keyframe in arrival order with the current poses: the result is, byte for byte,
-the map built from scratch with the corrected poses.
+the map built from scratch with the corrected poses. The rebuild waits until the map is looked at
+(a snapshot, the grid, the files): the loops a live session closes between two snapshots cost one
+rebuild, not one each, and keyframes that arrive meanwhile are inserted once, by it. What is looked
+at is the same either way, so the outputs do not depend on when it ran.
 """
 
 from __future__ import annotations
@@ -45,8 +48,9 @@ class Mapper:
     def __init__(self, params: MapperParams) -> None:
         self.params = params
         self.keyframes: dict[int, KeyframeCloud] = {}  # insertion order = integration order
-        self.cloud = DenseCloud(voxel_m=params.cloud.voxel_m)
-        self.octree = self._new_octree()
+        self._cloud = DenseCloud(voxel_m=params.cloud.voxel_m)
+        self._octree = self._new_octree()
+        self._stale = False  # poses or the map frame moved since the octree and cloud were built
         self.rebuilds = 0
         self.map_from_world = map_from_world(params.grid)  # 4x4: where the keyframes are put
 
@@ -58,7 +62,22 @@ class Mapper:
         if not np.array_equal(T, self.map_from_world):
             self.map_from_world = T
             if self.keyframes:
-                self.rebuild()
+                self._stale = True
+
+    @property
+    def octree(self) -> OccupancyMap:
+        """The occupancy map of every integrated keyframe at its current pose (rebuilt here when a
+        correction or a new map frame left it stale)."""
+        if self._stale:
+            self.rebuild()
+        return self._octree
+
+    @property
+    def cloud(self) -> DenseCloud:
+        """The dense cloud of every integrated keyframe at its current pose (as `octree`)."""
+        if self._stale:
+            self.rebuild()
+        return self._cloud
 
     @property
     def resolution_m(self) -> float:
@@ -94,17 +113,18 @@ class Mapper:
             raise InputError(f"keyframe {kf_id}: no valid depth within {c.max_range_m} m")
         kf = KeyframeCloud(pts, cols, world_from_camera.copy(), frame.stamp_ns, frame.seq)
         self.keyframes[kf_id] = kf
-        self._insert(kf_id, kf)
+        if not self._stale:  # else the coming rebuild inserts it
+            self._insert(kf_id, kf)
         return len(pts)
 
     def _insert(self, kf_id: int, kf: KeyframeCloud) -> None:
         map_from_camera = self.map_from_world @ kf.world_from_camera
         pts = transform(kf.points_cam, map_from_camera)
-        self.cloud.add(kf_id, pts, kf.colours)
+        self._cloud.add(kf_id, pts, kf.colours)
         # the range limit was applied when back-projecting (depth <= max_range_m), so the dense cloud
         # and the octree hold the same points; a second, Euclidean cut here would make them differ
         colour = self.params.occupancy.colour
-        self.octree.insert(pts, map_from_camera[:3, 3], colours=kf.colours if colour else None,
+        self._octree.insert(pts, map_from_camera[:3, 3], colours=kf.colours if colour else None,
                            max_range_m=-1.0)
 
     def correct(self, poses: dict[int, np.ndarray]) -> int:
@@ -117,12 +137,13 @@ class Mapper:
             return 0
         for i, T in moved.items():
             self.keyframes[i].world_from_camera = T.copy()
-        self.rebuild()
+        self._stale = True  # rebuilt when next looked at
         return len(moved)
 
     def rebuild(self) -> None:
         """Re-integrate every keyframe, in arrival order, with its current pose (and map frame)."""
-        self.octree = self._new_octree()
+        self._octree = self._new_octree()
+        self._stale = False
         for kf_id, kf in self.keyframes.items():
             self._insert(kf_id, kf)
         self.rebuilds += 1

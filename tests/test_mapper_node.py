@@ -53,6 +53,26 @@ def test_corrected_map_equals_map_built_with_corrected_poses(scene, tmp_path):
     assert drifted_bt != _bytes(scratch, tmp_path, "scratch2")[0]  # the correction did change the map
 
 
+def test_corrections_between_looks_cost_one_rebuild_and_change_no_byte(scene, tmp_path):
+    # a live session closes loops faster than it looks at the map: each correction marks the map
+    # stale, the next look (snapshot, files) rebuilds it once, keyframes arriving meanwhile included
+    kfs = _keyframes(scene)
+    lazy = make_mapper(MapperConfig())
+    for k, T, f in kfs[:3]:
+        lazy.integrate(k, _drifted(T, k), f)
+    assert lazy.correct({k: _drifted(T, k + 1) for k, T, _ in kfs[:3]}) == 3
+    assert lazy.correct({k: T for k, T, _ in kfs[:3]}) == 3
+    for k, T, f in kfs[3:]:
+        lazy.integrate(k, T, f)
+    assert lazy.rebuilds == 0
+    scratch = make_mapper(MapperConfig())
+    for k, T, f in kfs:
+        scratch.integrate(k, T, f)
+    assert _bytes(lazy, tmp_path, "lazy") == _bytes(scratch, tmp_path, "scratch")
+    assert lazy.rebuilds == 1 and scratch.rebuilds == 0
+    assert lazy.octree.bt_bytes() == scratch.octree.bt_bytes() and lazy.rebuilds == 1  # fresh now
+
+
 @pytest.mark.parametrize(
     ("pose", "depth_zero", "message"),
     [
