@@ -15,13 +15,14 @@ import numpy as np
 from octolog.kit.bus import Bus, BusConfig
 from octolog.kit.config import to_dict
 from octolog.kit.errors import InputError, MapError, StageError
-from octolog.kit.geometry import RgbdFrame, matrix_to_pose
+from octolog.kit.geometry import RgbdFrame, invert, matrix_to_pose
 from octolog.kit.metrics import write_tum
 from octolog.kit.viz import Viz
 from octolog.mapper.config import MapperConfig
 from octolog.mapper.core import Mapper, bt_payload, make_mapper
 from octolog.mapper.fleet import CorrectionItem, FleetMerge, KeyframeItem
 from octolog.mapper.grid import OccupancyGrid2D, occupancy_grid_msg
+from octolog.mapper.joint import Link, joint_poses, needs_graph
 from octolog.mapper.mapframe import MapFrame
 from octolog.mapper.placement import Merge, Placement
 from octolog.schemas import codec
@@ -183,6 +184,20 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
     result = MapperResult()
     lost: set[int] = set()
 
+    def settle() -> int | None:
+        """With more links between robots than placing them took, one pose graph over every placed
+        robot's keyframes (mapper/joint.py) moves them; later keyframes follow their robot's newest.
+        Returns how many keyframes moved; None without a graph to solve."""
+        links = [Link(a, map_id[r][k], al.a_from_b, al.rmse_m) for a, r, k, al in placement.links if k in map_id[r]]
+        if not needs_graph(links, sum(W is not None for W in placement.world_from_robot)):
+            return None
+        poses = joint_poses(robot_pose, placement.world_from_robot, links)
+        for r, mine in enumerate(robot_pose):
+            if mine and placement.world_from_robot[r] is not None:
+                last = max(mine)
+                placement.world_from_robot[r] = poses[last] @ invert(mine[last])
+        return mapper.correct(poses)
+
     def lose(k: int, exc: StageError) -> None:
         """Robot k is gone (its tracker died, or its data was lost for good): its stream ends with
         what arrived, and the other robots go on."""
@@ -242,8 +257,10 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
                     placement.correct(i, poses)
                 else:
                     robot_pose[i].update({map_id[i][k]: T for k, T in poses.items() if k in map_id[i]})
-                    result.corrections += mapper.correct({map_id[i][k]: W @ T for k, T in poses.items()
-                                                          if k in map_id[i]})
+                    moved = settle()  # with links: the joint graph, from the robot's corrected poses
+                    if moved is None:
+                        moved = mapper.correct({map_id[i][k]: W @ T for k, T in poses.items() if k in map_id[i]})
+                    result.corrections += moved
             except InputError as exc:  # the whole correction is refused; the map is unchanged
                 result.problems.append(f"{cfg.robots[i]}: {exc}")
         else:
@@ -278,11 +295,11 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
                     t0 = time.perf_counter()
                     continue
                 robot_pose[r][gid] = pose
-                merges, moved = placement.remember(r, gid, mapper.keyframes[gid].world_from_camera, frame, pose)
+                merges, linked = placement.remember(r, kid, gid, mapper.keyframes[gid].world_from_camera, frame)
                 for m in merges:
                     todo += _placed(m, placement, cfg, pub_merge, viz, mapper)
-                if moved is not None:  # robot r's placement refined: its keyframes follow
-                    result.corrections += mapper.correct({g: moved @ T for g, T in robot_pose[r].items()})
+                if linked:  # one more match between robots: the joint graph settles the keyframes
+                    result.corrections += settle() or 0
                 ms = (time.perf_counter() - t0) * 1e3
                 t0 = time.perf_counter()
                 result.ms.append(ms)

@@ -11,9 +11,9 @@ reported unmerged.
 
 One match places a robot with that match's error (1-2 cm, about a degree on TUM). So the seam does
 not stay at that, the robot's next keyframes are matched too, against map keyframes of the other
-robots, up to REFINE_MATCHES verified matches in all: each gives an estimate of where the robot's
-world lies, and the robot's placement becomes their mean (rotations by their chordal mean), its
-keyframes moved with it. Features are kept only while some robot is unplaced or being refined.
+robots, up to REFINE_MATCHES verified matches in all; every match is kept as a link between two
+keyframes (`links`), and the mapper settles the links and the robots' own trajectories in one pose
+graph (mapper/joint.py). Features are kept only while some robot is unplaced or being refined.
 """
 
 from __future__ import annotations
@@ -61,8 +61,10 @@ class Placement:
     world_from_robot: list[np.ndarray | None] = field(default_factory=list)
     waiting: list[list[Waiting]] = field(default_factory=list)
     merges: list[Merge] = field(default_factory=list)
+    # every verified match between robots: (map keyframe, robot, that robot's keyframe id, the alignment)
+    links: list[tuple[int, int, int, Alignment]] = field(default_factory=list)
     _library: list[tuple[int, int, np.ndarray, Features]] = field(default_factory=list)  # (robot, gid, world_from_camera, f)
-    _estimates: dict[int, list[np.ndarray]] = field(default_factory=dict)  # robot -> world_from_robot estimates
+    _matches: dict[int, int] = field(default_factory=dict)  # robot -> verified matches that placed or refined it
 
     @classmethod
     def known(cls, poses: list[np.ndarray]) -> Placement:
@@ -78,10 +80,10 @@ class Placement:
         return self.world_from_robot[robot] is not None
 
     def _searching(self) -> bool:
-        return any(w is None for w in self.world_from_robot) or any(self._refining(r) for r in self._estimates)
+        return any(w is None for w in self.world_from_robot) or any(self._refining(r) for r in self._matches)
 
     def _refining(self, robot: int) -> bool:
-        return 0 < len(self._estimates.get(robot, [])) < REFINE_MATCHES
+        return 0 < self._matches.get(robot, 0) < REFINE_MATCHES
 
     def offer(self, robot: int, kf_id: int, stamp_ns: int, robot_from_camera: np.ndarray,
               frame: RgbdFrame) -> Merge | None:
@@ -100,17 +102,17 @@ class Placement:
             return None
         return self._place(robot, w, *best)
 
-    def remember(self, robot_of: int, gid: int, world_from_camera: np.ndarray, frame: RgbdFrame,
-                 robot_from_camera: np.ndarray) -> tuple[list[Merge], np.ndarray | None]:
-        """A keyframe of robot `robot_of` now in the map: kept for matching while robots are unplaced
-        or refined, tried against their waiting keyframes, and, if its robot is being refined,
-        against the other robots' map keyframes. The merges it made (robots to `take`), and the
-        robot's new world_from_robot when a refinement moved it (its keyframes must follow)."""
+    def remember(self, robot_of: int, kf_id: int, gid: int, world_from_camera: np.ndarray,
+                 frame: RgbdFrame) -> tuple[list[Merge], bool]:
+        """A keyframe of robot `robot_of` (its id `kf_id`, the map's `gid`) now in the map: kept for
+        matching while robots are unplaced or refined, tried against their waiting keyframes, and, if
+        its robot is being refined, against the other robots' map keyframes. The merges it made
+        (robots to `take`), and whether it added a link (the joint pose graph has more to settle)."""
         if not self._searching():
             self._library.clear()
-            return [], None
+            return [], False
         f = features(frame)
-        moved = self._refine(robot_of, f, robot_from_camera) if self._refining(robot_of) else None
+        linked = self._refine(robot_of, kf_id, f) if self._refining(robot_of) else False
         self._library.append((robot_of, gid, world_from_camera, f))
         del self._library[:-LIBRARY]
         out = []
@@ -124,28 +126,23 @@ class Placement:
                 if a is not None:
                     out.append(self._place(robot, w, gid, world_from_camera, a))
                     break
-        return out, moved
+        return out, linked
 
-    def _refine(self, robot: int, f: Features, robot_from_camera: np.ndarray) -> np.ndarray | None:
-        """One more estimate of `robot`'s placement from a match with another robot's map keyframe
-        (the best verified one); the mean of all its estimates, or None without a match."""
+    def _refine(self, robot: int, kf_id: int, f: Features) -> bool:
+        """One more link for `robot` from its keyframe `kf_id`: the best verified match with another
+        robot's map keyframe; False without one."""
         best = None
-        for other, _, world_from_cam, g in self._library:
+        for other, gid, _, g in self._library:
             if other == robot:
                 continue
             a = align(g, f)
             if a is not None and (best is None or a.inliers > best[1].inliers):
-                best = (world_from_cam, a)
+                best = (gid, a)
         if best is None:
-            return None
-        estimates = self._estimates[robot]
-        estimates.append(best[0] @ best[1].a_from_b @ invert(robot_from_camera))
-        mean = np.eye(4)
-        U, _, Vt = np.linalg.svd(sum(E[:3, :3] for E in estimates))
-        mean[:3, :3] = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
-        mean[:3, 3] = np.mean([E[:3, 3] for E in estimates], axis=0)
-        self.world_from_robot[robot] = mean
-        return mean
+            return False
+        self.links.append((best[0], robot, kf_id, best[1]))
+        self._matches[robot] += 1
+        return True
 
     def correct(self, robot: int, poses: dict[int, np.ndarray]) -> None:
         """A correction from an unplaced robot's tracker: its waiting keyframes move with it."""
@@ -164,7 +161,8 @@ class Placement:
     def _place(self, robot: int, w: Waiting, gid: int, world_from_cam: np.ndarray, a: Alignment) -> Merge:
         world_from_robot = world_from_cam @ a.a_from_b @ invert(w.robot_from_camera)
         self.world_from_robot[robot] = world_from_robot
-        self._estimates[robot] = [world_from_robot]
+        self.links.append((gid, robot, w.kf_id, a))
+        self._matches[robot] = 1
         m = Merge(robot, w.kf_id, gid, world_from_robot, a)
         self.merges.append(m)
         return m

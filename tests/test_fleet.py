@@ -80,6 +80,48 @@ def test_merge_order_does_not_depend_on_arrival_order():
     assert kinds.index((1, "CorrectionItem")) == 6  # after 1, 5, 17, 17, 18, 30
 
 
+def _pose(x: float, y: float, yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    T = np.eye(4)
+    T[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+    T[:3, 3] = [x, y, 0.0]
+    return T
+
+
+def test_the_joint_graph_closes_the_seam_a_rigid_placement_leaves():
+    """Issue 18, after a merge: r2 is placed by a match at its first keyframe, but its own trajectory
+    drifts (1 mm and 0.1 degree a 10 cm step); a second link where the robots meet again no longer fits
+    one rigid placement. The joint pose graph moves r2's keyframes (and r1's, a little) so both
+    links hold and r2's end comes back towards the truth; one link alone asks for no graph."""
+    from octolog.kit.geometry import invert
+    from octolog.mapper.joint import Link, joint_poses, needs_graph
+
+    n = 12
+    truth1 = [_pose(0.1 * k, 0.0, 0.0) for k in range(n)]  # r1: along x
+    truth2 = [_pose(0.1 * k, 0.5, 0.0) for k in range(n)]  # r2: alongside, half a metre over
+    drift = [_pose(0.001 * k, 0.0, np.radians(0.1) * k) for k in range(n)]
+    r2_own = [drift[k] @ invert(truth2[0]) @ truth2[k] for k in range(n)]  # r2's own world: its first camera
+    robot_poses = [dict(enumerate(truth1)), {n + k: T for k, T in enumerate(r2_own)}]
+    W2 = truth2[0] @ invert(r2_own[0])  # placed exactly by the first match
+    first = Link(0, n, invert(truth1[0]) @ truth2[0], rmse_m=0.002)
+    second = Link(n - 1, 2 * n - 1, invert(truth1[n - 1]) @ truth2[n - 1], rmse_m=0.002)
+    assert not needs_graph([first], 2) and needs_graph([first, second], 2)
+    def seam(P1: np.ndarray, P2: np.ndarray) -> float:  # how far the second link is from holding
+        return float(np.linalg.norm((invert(P1) @ P2 @ invert(second.a_from_b))[:3, 3]))
+
+    rigid = {g: T for g, T in robot_poses[0].items()} | {g: W2 @ T for g, T in robot_poses[1].items()}
+    poses = joint_poses(robot_poses, [np.eye(4), W2], [first, second])
+    before, after = seam(rigid[n - 1], rigid[2 * n - 1]), seam(poses[n - 1], poses[2 * n - 1])
+    assert before > 0.02 and after < before / 3, (before, after)
+    # both robots' trajectories carry the same weight: the truth lies in between, r2's end halfway back
+    end = [float(np.linalg.norm(P[2 * n - 1][:3, 3] - truth2[-1][:3, 3])) for P in (rigid, poses)]
+    assert end[1] < end[0] / 2, end
+    np.testing.assert_array_equal(poses[0], truth1[0])  # the map's first keyframe holds the world
+    # same inputs, same poses: the joint graph is part of the map's deterministic order
+    again = joint_poses(robot_poses, [np.eye(4), W2], [first, second])
+    assert all(np.array_equal(poses[g], again[g]) for g in poses)
+
+
 def test_config_checks_robots_and_start_poses():
     with pytest.raises(ConfigError, match="2 poses for 1 robots"):
         MapperConfig(robots=("r1",), start_poses=((0, 0, 0, 0, 0, 0, 1), (0, 0, 0, 0, 0, 0, 1))).validate()

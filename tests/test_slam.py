@@ -21,7 +21,7 @@ from octolog.tracker.bundle import BundleProblem, bundle_adjust
 from octolog.tracker.config import KeyframeParams, TrackerConfig
 from octolog.tracker.interface import TrackingState
 from octolog.tracker.odometry import RgbdOdometry
-from octolog.tracker.optimize import optimize_pose_graph
+from octolog.kit.posegraph import optimize_pose_graph
 from octolog.tracker.places import BowIndex, rigid_ransac, verify, vote
 from octolog.tracker.pose import optimize_pose, so3_exp
 from octolog.tracker.vocab import train

@@ -21,7 +21,7 @@ from octolog.tracker.bundle import BundleProblem, bundle_adjust
 from octolog.tracker.config import OdometryParams
 from octolog.tracker.features import FrameFeatures
 from octolog.tracker.keyframe_map import Keyframe, MapPoints
-from octolog.tracker.optimize import optimize_pose_graph
+from octolog.kit.posegraph import optimize_pose_graph
 from octolog.tracker.places import BowIndex, recognise
 from octolog.tracker.pose import rotation_angle
 

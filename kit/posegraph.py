@@ -1,4 +1,4 @@
-"""Keyframe pose graphs with gtsam (loop closing). Bundle adjustment is in tracker.bundle.
+"""Keyframe pose graphs with gtsam: the tracker's loop closing, the mapper's joint correction of merged robots.
 
 gtsam is imported where it is used, so a process that never closes a loop does not carry its ~50 MB.
 """
