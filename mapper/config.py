@@ -65,6 +65,9 @@ class MapperConfig:
     # per robot, its start frame (its tracker's world) in the common world: x y z qx qy qz qw;
     # empty: every robot starts at the world origin
     start_poses: tuple[tuple[float, ...], ...] = ()
+    # a robot silent this long (alive: its tracker answers) no longer holds the others back; its later
+    # keyframes come late and the map is built again in the defined order at the end. 0: wait for it
+    robot_stall_s: float = 30.0
 
     def validate(self) -> None:
         """The one check of every value; the core and the backends trust what passes it."""
@@ -77,6 +80,8 @@ class MapperConfig:
             raise ConfigError(f"mapper.grid_z_min_m {self.grid_z_min_m} must be below grid_z_max_m {self.grid_z_max_m}")
         if self.backend not in BACKENDS:
             raise ConfigError(f"mapper.backend {self.backend!r}: want numpy or octomap")
+        if not (math.isfinite(self.robot_stall_s) and self.robot_stall_s >= 0):
+            raise ConfigError(f"mapper.robot_stall_s {self.robot_stall_s}: want >= 0 (0: wait for every robot)")
         if self.publish_every < 0:
             raise ConfigError(f"mapper.publish_every {self.publish_every}: want >= 0")
         if self.pixel_stride < 1:

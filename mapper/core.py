@@ -54,6 +54,13 @@ class Mapper:
         self.rebuilds = 0
         self.map_from_world = map_from_world(params.grid)  # 4x4: where the keyframes are put
 
+    def clear(self) -> None:
+        """Forget every keyframe (the map frame and the parameters stay)."""
+        self.keyframes = {}
+        self._cloud = DenseCloud(voxel_m=self.params.cloud.voxel_m)
+        self._octree = self._new_octree()
+        self._stale = False
+
     def set_up(self, up: tuple[float, ...]) -> None:
         """A new up direction (in `world`) for the map frame; what is integrated moves into it."""
         grid = replace(self.params.grid, up=tuple(float(v) for v in up))

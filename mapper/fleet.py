@@ -13,8 +13,12 @@ left to arrival timing:
 3. otherwise the keyframe with the smallest (sensor stamp, robot index, keyframe id) is integrated.
 
 The decision depends only on the streams' contents, never on which message came first over the
-network: the same streams give the same map, byte for byte. The price is that a robot with no new
-keyframe holds the others back until it sends one or ends its stream (see docs/deployment.md).
+network: the same streams give the same map, byte for byte. A robot with no new keyframe holds the
+others back until it sends one or ends its stream, or until the mapper pauses it (`pause`, after
+`mapper.robot_stall_s` of silence): then the others go on without it, its later items join the
+merge when they come (late, out of the defined order), and the merge says it `jumped`. Every item
+is kept (`history`), so the mapper can then build the map again in the defined order
+(`canonical`): the final map is the one the order defines, whatever the timing was.
 Keyframes get map-wide ids 0, 1, 2, ... in integration order.
 """
 
@@ -61,6 +65,8 @@ class CorrectionItem:
 class _Stream:
     items: deque = field(default_factory=deque)
     ended: bool = False
+    paused: bool = False  # silent too long: not waited for until its next item
+    history: list = field(default_factory=list)  # every item pushed, in order
 
 
 class FleetMerge:
@@ -69,10 +75,22 @@ class FleetMerge:
     def __init__(self, robots: tuple[str, ...]) -> None:
         self.robots = robots
         self._streams = [_Stream() for _ in robots]
+        self.jumped = False  # an item was taken while a paused robot had nothing waiting
 
     def push(self, robot: int, item: KeyframeItem | CorrectionItem) -> None:
         """Append an item to robot `robot`'s stream, in the order its tracker sent it."""
-        self._streams[robot].items.append(item)
+        s = self._streams[robot]
+        s.items.append(item)
+        s.history.append(item)
+        s.paused = False
+
+    def pause(self, robot: int) -> None:
+        """Stop waiting for robot `robot` until its next item (it is silent, not gone)."""
+        self._streams[robot].paused = True
+
+    def paused(self) -> list[int]:
+        """Robots paused with nothing waiting (not ended)."""
+        return [i for i, s in enumerate(self._streams) if s.paused and not s.items and not s.ended]
 
     def end(self, robot: int) -> None:
         """No more items from this robot (its stream end arrived and the count is complete)."""
@@ -80,7 +98,7 @@ class FleetMerge:
 
     def waiting_on(self) -> list[int]:
         """Robots whose next item is needed before anything can be decided."""
-        return [i for i, s in enumerate(self._streams) if not s.items and not s.ended]
+        return [i for i, s in enumerate(self._streams) if not s.items and not s.ended and not s.paused]
 
     def has_items(self, robot: int) -> bool:
         """Whether robot `robot` has items waiting."""
@@ -97,15 +115,21 @@ class FleetMerge:
         heads = [(i, s.items[0]) for i, s in enumerate(self._streams) if s.items]
         if not heads:
             return None
+        self.jumped = self.jumped or bool(self.paused())
         for i, item in heads:
             if isinstance(item, CorrectionItem):
                 return i, self._streams[i].items.popleft()
         i, _ = min(heads, key=lambda h: (h[1].stamp_ns, h[0], h[1].kf_id))
         return i, self._streams[i].items.popleft()
 
+    def canonical(self) -> list[tuple[int, KeyframeItem | CorrectionItem]]:
+        """Every item pushed so far, in the defined order (as if every stream had been complete
+        from the start): the order the map is built in again after a pause let the merge jump."""
+        return merged_order([s.history for s in self._streams])
 
-def merged_order(streams: list[list[KeyframeItem]]) -> list[tuple[int, KeyframeItem]]:
-    """The integration order of complete keyframe-only streams (what `FleetMerge` yields for them)."""
+
+def merged_order(streams: list[list]) -> list[tuple[int, KeyframeItem | CorrectionItem]]:
+    """The order `FleetMerge` yields complete streams (keyframes and corrections) in."""
     merge = FleetMerge(tuple(str(i) for i in range(len(streams))))
     for i, items in enumerate(streams):
         for item in items:
@@ -113,5 +137,5 @@ def merged_order(streams: list[list[KeyframeItem]]) -> list[tuple[int, KeyframeI
         merge.end(i)
     out = []
     while (nxt := merge.pop()) is not None:
-        out.append(nxt)  # type: ignore[arg-type]
+        out.append(nxt)
     return out

@@ -15,14 +15,14 @@ import numpy as np
 from octolog.kit.bus import Bus, BusConfig
 from octolog.kit.config import to_dict
 from octolog.kit.errors import InputError, MapError, StageError
-from octolog.kit.geometry import RgbdFrame, invert, matrix_to_pose
+from octolog.kit.geometry import RgbdFrame, matrix_to_pose
 from octolog.kit.metrics import write_tum
 from octolog.kit.viz import Viz
 from octolog.mapper.config import MapperConfig
 from octolog.mapper.core import Mapper, bt_payload, make_mapper
 from octolog.mapper.fleet import CorrectionItem, FleetMerge, KeyframeItem
 from octolog.mapper.grid import OccupancyGrid2D, occupancy_grid_msg
-from octolog.mapper.joint import Link, joint_poses, needs_graph
+from octolog.mapper.fleetmap import FleetHooks, FleetMap
 from octolog.mapper.mapframe import MapFrame
 from octolog.mapper.placement import Merge, Placement
 from octolog.schemas import codec
@@ -163,9 +163,10 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
                   publisher: Publisher, out_dir: Path,
                   frame_of_map: MapFrame | None = None) -> tuple[MapperResult, list[list[tuple[int, int]]]]:
     """Receive every robot's keyframes and corrections and integrate them in the merge's order;
-    without start poses, place the robots from the places they share (mapper/placement.py)."""
+    without start poses, place the robots from the places they share (mapper/placement.py). A robot
+    silent for `mapper.robot_stall_s` is paused: the others go on, and if anything was taken out of
+    the defined order meanwhile, the map is built again in that order at the end (mapper/fleet.py)."""
     n = len(cfg.robots)
-    placement = Placement.known(cfg.start_pose_matrices()) if cfg.start_poses or n == 1 else Placement.by_place(n)
     pub_update, pub_merge = bus.publisher(MAP_UPDATE), bus.publisher(MAP_MERGE)
     bus.accept(MAP_SAVE)
     bus.start([])
@@ -178,25 +179,26 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
     expected: list[int | None] = [None] * n
     received = [0] * n
     expected_poses, received_poses = [0] * n, [0] * n
-    map_id: list[dict[int, int]] = [{} for _ in range(n)]  # robot keyframe id -> map-wide id
-    trajectories: list[list[tuple[int, int]]] = [[] for _ in range(n)]  # (stamp, map-wide id)
-    robot_pose: list[dict[int, np.ndarray]] = [{} for _ in range(n)]  # map-wide id -> robot_from_camera
     result = MapperResult()
     lost: set[int] = set()
+    heard = [time.monotonic()] * n  # when each robot last sent something (or the wait began)
+    turn = 0
 
-    def settle() -> int | None:
-        """With more links between robots than placing them took, one pose graph over every placed
-        robot's keyframes (mapper/joint.py) moves them; later keyframes follow their robot's newest.
-        Returns how many keyframes moved; None without a graph to solve."""
-        links = [Link(a, map_id[r][k], al.a_from_b, al.rmse_m) for a, r, k, al in placement.links if k in map_id[r]]
-        if not needs_graph(links, sum(W is not None for W in placement.world_from_robot)):
-            return None
-        poses = joint_poses(robot_pose, placement.world_from_robot, links)
-        for r, mine in enumerate(robot_pose):
-            if mine and placement.world_from_robot[r] is not None:
-                last = max(mine)
-                placement.world_from_robot[r] = poses[last] @ invert(mine[last])
-        return mapper.correct(poses)
+    def integrated(r: int, stamp: int, gid: int, pts: int, ms: float, frame: RgbdFrame) -> None:
+        _update(pub_update, publisher, stamp, gid, pts, ms)
+        publisher.maybe(fm.keyframes, stamp)
+        if viz.enabled:
+            viz.set_time(stamp, frame.seq)
+            _log_robot(viz, mapper, cfg.robots[r], r, fm.trajectories[r])
+            if publisher.every and fm.keyframes % publisher.every == 0:
+                _log_map(viz, mapper, stamp, publisher.grid)
+
+    hooks = FleetHooks(
+        merged=lambda m: _announce(m, cfg, pub_merge, viz),
+        first=lambda W: frame_of_map.from_first_robot(W) if frame_of_map is not None else None,
+        integrated=integrated,
+        refused=lambda stamp, kid, ms: _update(pub_update, publisher, stamp, kid, 0, ms))
+    fm = FleetMap(mapper, cfg.robots, _placement(cfg), hooks)
 
     def lose(k: int, exc: StageError) -> None:
         """Robot k is gone (its tracker died, or its data was lost for good): its stream ends with
@@ -213,7 +215,10 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
         nxt = merge.pop()
         if nxt is None:
             # the order is not decided yet: take the next message of a robot whose stream is empty
-            i = merge.waiting_on()[0]
+            # (the paused ones in turn when nobody else is awaited)
+            candidates = merge.waiting_on() or merge.paused()
+            i = candidates[turn % len(candidates)]
+            turn += 1
             try:
                 r = robot_buses[i].receive()
                 if r is None and expected[i] is not None:
@@ -228,7 +233,16 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
                             rb.check_peers()
                         except StageError as exc:
                             lose(k, exc)
+                silent = time.monotonic() - heard[i]
+                if cfg.robot_stall_s and silent > cfg.robot_stall_s and i in merge.waiting_on() \
+                        and any(merge.has_items(k) for k in range(n)):
+                    merge.pause(i)  # alive but silent: the others go on (its later items come late)
+                    note = (f"{cfg.robots[i]}: silent for {silent:.0f} s (mapper.robot_stall_s {cfg.robot_stall_s:g}): "
+                            f"the others went on without it")
+                    result.problems.append(note)
+                    print(f"mapper: {note}", flush=True)  # now, not at the end: an operator is waiting
                 continue
+            heard[i] = time.monotonic()
             if r.topic == KEYFRAME_END:
                 end = r.decode()
                 if end.topic == KEYFRAME_POSES.name:  # corrections end before keyframes, on one publisher
@@ -249,70 +263,24 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
                 merge.end(i)
             continue
         i, item = nxt
-        if isinstance(item, CorrectionItem):
-            try:
-                poses = codec.keyframe_poses_from_msg(item.poses)
-                W = placement.world_from_robot[i]
-                if W is None:  # not in the map yet: its waiting keyframes move
-                    placement.correct(i, poses)
-                else:
-                    robot_pose[i].update({map_id[i][k]: T for k, T in poses.items() if k in map_id[i]})
-                    moved = settle()  # with links: the joint graph, from the robot's corrected poses
-                    if moved is None:
-                        moved = mapper.correct({map_id[i][k]: W @ T for k, T in poses.items() if k in map_id[i]})
-                    result.corrections += moved
-            except InputError as exc:  # the whole correction is refused; the map is unchanged
-                result.problems.append(f"{cfg.robots[i]}: {exc}")
-        else:
-            t0 = time.perf_counter()
-            try:
-                if item.kf_id in map_id[i]:
-                    raise InputError(f"keyframe {item.kf_id}: already integrated")
-                kf_id, pose, frame = codec.keyframe_from_msg(item.payload)
-            except InputError as exc:
-                result.skipped += 1
-                result.problems.append(f"{cfg.robots[i]}: {exc}")
-                _update(pub_update, publisher, item.stamp_ns, item.kf_id, 0, (time.perf_counter() - t0) * 1e3)
-                continue
-            todo = [(i, kf_id, item.stamp_ns, pose, frame)]
-            if not placement.placed(i):
-                merge_ = placement.offer(i, kf_id, item.stamp_ns, pose, frame)
-                todo = [] if merge_ is None else _placed(merge_, placement, cfg, pub_merge, viz, mapper)
-            if todo and frame_of_map is not None and not mapper.keyframes:  # `map` before the first keyframe
-                frame_of_map.from_first_robot(placement.world_from_robot[0])
-            while todo:
-                r, kid, stamp, pose, frame = todo.pop(0)
-                gid = len(mapper.keyframes)
-                try:
-                    pts = mapper.integrate(gid, placement.world_from_robot[r] @ pose, frame)
-                    map_id[r][kid] = gid
-                    trajectories[r].append((stamp, gid))
-                    result.keyframes += 1
-                except (InputError, MapError) as exc:  # one update per keyframe taken (mapper/end's count)
-                    result.skipped += 1
-                    result.problems.append(f"{cfg.robots[r]}: {exc}")
-                    _update(pub_update, publisher, stamp, kid, 0, (time.perf_counter() - t0) * 1e3)
-                    t0 = time.perf_counter()
-                    continue
-                robot_pose[r][gid] = pose
-                merges, linked = placement.remember(r, kid, gid, mapper.keyframes[gid].world_from_camera, frame)
-                for m in merges:
-                    todo += _placed(m, placement, cfg, pub_merge, viz, mapper)
-                if linked:  # one more match between robots: the joint graph settles the keyframes
-                    result.corrections += settle() or 0
-                ms = (time.perf_counter() - t0) * 1e3
-                t0 = time.perf_counter()
-                result.ms.append(ms)
-                _update(pub_update, publisher, stamp, gid, pts, ms)
-                publisher.maybe(result.keyframes, stamp)
-                if viz.enabled:
-                    viz.set_time(stamp, frame.seq)
-                    _log_robot(viz, mapper, cfg.robots[r], r, trajectories[r])
-                    if publisher.every and result.keyframes % publisher.every == 0:
-                        _log_map(viz, mapper, stamp, publisher.grid)
+        heard = [time.monotonic()] * n  # the merge moved: every robot's silence counts from now
+        fm.apply(i, item)
         for k in range(n):  # a stream whose last item was just taken has ended
             if k not in lost and expected[k] is not None and received[k] >= expected[k] and not merge.has_items(k):
                 merge.end(k)
+    live = fm
+    if merge.jumped:
+        # a pause let items through out of the defined order: the map, the placements and the joint
+        # graph are built again from every item in that order, so the result does not depend on timing
+        mapper.clear()
+        fm = FleetMap(mapper, cfg.robots, _placement(cfg))
+        for i, item in merge.canonical():
+            fm.apply(i, item)
+        result.problems.append("the map was built again in the defined order (a silent robot's items came late)")
+    result.keyframes, result.skipped, result.corrections = fm.keyframes, fm.skipped, fm.corrections
+    result.ms = live.ms
+    result.problems = live.problems + result.problems + (fm.problems if fm is not live else [])
+    placement = fm.placement
     result.lost = [cfg.robots[r] for r in sorted(lost)]
     result.unmerged = [cfg.robots[r] for r in placement.unplaced()]
     result.merges = [merge_event(m, cfg.robots) for m in placement.merges]
@@ -321,7 +289,13 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
         where = write_separate_map(cfg, waiting, out_dir / cfg.robots[r].strip("/").replace("/", "_"))
         result.problems.append(f"{cfg.robots[r]}: never placed (no verified place shared with the map): its "
                                f"{len(waiting)} keyframes are in a map of their own, {where}")
-    return result, trajectories
+    return result, fm.trajectories
+
+
+def _placement(cfg: MapperConfig) -> Placement:
+    """Known start poses, or (none given, several robots) placing by shared places."""
+    n = len(cfg.robots)
+    return Placement.known(cfg.start_pose_matrices()) if cfg.start_poses or n == 1 else Placement.by_place(n)
 
 
 def write_separate_map(cfg: MapperConfig, waiting: list, out: Path) -> Path:
@@ -351,15 +325,12 @@ def merge_event(m: Merge, robots: tuple[str, ...]) -> dict:
             "world_from_robot": [float(x) for x in (*t, *q)]}
 
 
-def _placed(m: Merge, placement: Placement, cfg: MapperConfig, pub: Any, viz: Viz,
-            mapper: Mapper) -> list[tuple[int, int, int, np.ndarray, RgbdFrame]]:
-    """A robot just placed: the merge announced (bus, so the session log; Rerun), and its waiting
-    keyframes to integrate, in their order."""
+def _announce(m: Merge, cfg: MapperConfig, pub: Any, viz: Viz) -> None:
+    """A robot just placed: the merge event on the bus (so in the session log) and in Rerun."""
     event = merge_event(m, cfg.robots)
     pub.put(codec.msgtype(MAP_MERGE.msgtype)(data=json.dumps(event, sort_keys=True)))
     viz.text("mapper/events", f"merged {cfg.robots[m.robot]} into the map: its keyframe {m.robot_kf} sees map "
                               f"keyframe {m.map_gid} ({m.alignment.inliers} of {m.alignment.matches} matches agree)")
-    return [(m.robot, w.kf_id, w.stamp_ns, w.robot_from_camera, w.frame) for w in placement.take(m.robot)]
 
 
 def write_trajectories(mapper: Mapper, robots: tuple[str, ...], trajectories: list[list[tuple[int, int]]],

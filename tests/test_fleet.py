@@ -122,6 +122,29 @@ def test_the_joint_graph_closes_the_seam_a_rigid_placement_leaves():
     assert all(np.array_equal(poses[g], again[g]) for g in poses)
 
 
+def test_a_paused_robot_holds_the_others_back_no_longer_and_the_defined_order_stays():
+    """Issue 18, the per-robot watermark: a robot paused for silence is not waited for; its item
+    that comes later is taken late (out of the defined order, and the merge says so), and
+    `canonical` gives every item in the order complete streams would have had."""
+    a0, a1, b0 = KeyframeItem(10, 0, "a0"), KeyframeItem(30, 1, "a1"), KeyframeItem(5, 0, "b0")
+    merge = FleetMerge(("a", "b"))
+    merge.push(0, a0)
+    merge.push(0, a1)
+    assert merge.pop() is None and merge.waiting_on() == [1]
+    merge.pause(1)
+    assert merge.waiting_on() == [] and merge.paused() == [1]
+    assert merge.pop() == (0, a0) and merge.jumped
+    merge.push(1, b0)  # older than what was taken: late
+    assert merge.paused() == [] and merge.pop() == (1, b0)
+    merge.end(1)
+    assert merge.pop() == (0, a1)
+    assert merge.canonical() == [(1, b0), (0, a0), (0, a1)]
+    steady = FleetMerge(("a", "b"))
+    for i, item in ((0, a0), (1, b0), (0, a1)):
+        steady.push(i, item)
+    assert steady.pop() == (1, b0) and not steady.jumped
+
+
 def test_config_checks_robots_and_start_poses():
     with pytest.raises(ConfigError, match="2 poses for 1 robots"):
         MapperConfig(robots=("r1",), start_poses=((0, 0, 0, 0, 0, 0, 1), (0, 0, 0, 0, 0, 0, 1))).validate()
@@ -275,6 +298,45 @@ def test_two_robots_fuse_into_the_map_built_on_one_host(fleet):
     stats = json.loads((procs / "map_stats.json").read_text())
     assert stats["robots"]["r1"]["keyframes"] + stats["robots"]["r2"]["keyframes"] == stats["keyframes"]
     assert stats["skipped_keyframes"] == 0
+
+
+def test_a_silent_robot_no_longer_stalls_the_others_and_the_map_is_the_same(fleet, tmp_path):
+    """Issue 18: r2's tracker is up but its camera sends nothing; after mapper.robot_stall_s the
+    mapper goes on with r1 (it says so at once), and r2's keyframes, when its replay starts, come
+    late. The mapper then builds the map again in the defined order: the same bytes as the run
+    where both robots came at once."""
+    _, together = fleet
+    out = tmp_path / "late"
+    out.mkdir()
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    bus = ["--mode", "client", "--connect", endpoint, "--no-multicast"]
+    poses = "[" + ", ".join("[" + ", ".join(repr(x) for x in p) + "]" for p in _start_poses()) + "]"
+    procs = {"router": _start(out / "router.log", "router", "--listen", endpoint)}
+    replay = {robot: ("replay", *bus, "--namespace", robot, "--quiet", "--source", f"synthetic:{FRAMES}",
+                      "--set", f"start={start}", "--set", f"end={end}", "--set", f"time_shift_s={shift!r}",
+                      "--set", 'wait_for=["tracker", "mapper"]')
+              for robot, (start, end), shift in zip(ROBOTS, ((0, HALF), (HALF, FRAMES)), SHIFT_S)}
+    try:
+        procs["mapper"] = _start(None, "map", *bus, "--out", str(out), "--rerun", "off", "--set", 'robots=["r1", "r2"]',
+                                 "--set", f"start_poses={poses}", "--set", "robot_stall_s=2.0")
+        for robot in ROBOTS:
+            procs[f"tracker-{robot}"] = _start(out / f"tracker-{robot}.log", "track", *bus, "--namespace", robot)
+        procs["replay-r1"] = _start(out / "replay-r1.log", *replay["r1"])
+        said = read_until(procs["mapper"], "the others went on without it")  # the event: r2 is paused
+        assert "r2: silent for" in said, said
+        procs["replay-r2"] = _start(out / "replay-r2.log", *replay["r2"])
+        rest, _ = procs["mapper"].communicate(timeout=600)
+        assert procs["mapper"].returncode == 0, said + rest
+        for name in ("replay-r1", "replay-r2", "tracker-r1", "tracker-r2"):
+            assert procs[name].wait(timeout=600) == 0, (name, (out / f"{name}.log").read_text())
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                p.terminate()
+                p.wait(timeout=30)
+    assert "built again in the defined order" in said + rest
+    for name in ("map.bt", "map.ot", "cloud.ply", "keyframes_r1.txt", "keyframes_r2.txt"):
+        assert (out / name).read_bytes() == (together / name).read_bytes(), name
 
 
 def test_fused_map_lies_on_the_scene_and_trajectories_follow_ground_truth(fleet):
