@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,8 +22,8 @@ from octolog.kit.viz import Viz
 from octolog.mapper.config import MapperConfig
 from octolog.mapper.core import Mapper, bt_payload, make_mapper
 from octolog.mapper.fleet import CorrectionItem, FleetMerge, KeyframeItem
-from octolog.mapper.grid import OccupancyGrid2D, occupancy_grid_msg
 from octolog.mapper.fleetmap import FleetHooks, FleetMap
+from octolog.mapper.grid import OccupancyGrid2D, occupancy_grid_msg
 from octolog.mapper.mapframe import MapFrame
 from octolog.mapper.placement import Merge, Placement
 from octolog.schemas import codec
@@ -240,7 +241,9 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
                     note = (f"{cfg.robots[i]}: silent for {silent:.0f} s (mapper.robot_stall_s {cfg.robot_stall_s:g}): "
                             f"the others went on without it")
                     result.problems.append(note)
-                    print(f"mapper: {note}", flush=True)  # now, not at the end: an operator is waiting
+                    # now, not at the end: an operator is waiting (stderr, as the tracker's warnings; Rerun)
+                    print(f"mapper: warning: {note}", file=sys.stderr, flush=True)
+                    viz.text("mapper/events", note)
                 continue
             heard[i] = time.monotonic()
             if r.topic == KEYFRAME_END:

@@ -61,7 +61,12 @@ def kill_then_finish(procs: dict[str, subprocess.Popen], kill: tuple[str, ...], 
         for name in finish:
             assert procs[name].wait(timeout=600) == 0, (name, (logs / f"{name}.log").read_text())
     finally:
-        for p in procs.values():
-            if p.poll() is None:
-                p.terminate()
-                p.wait(timeout=30)
+        stop_all(procs)
+
+
+def stop_all(procs: dict[str, subprocess.Popen]) -> None:
+    """Terminate whatever of `procs` is still running, and wait for it: no process left behind."""
+    for p in procs.values():
+        if p.poll() is None:
+            p.terminate()
+            p.wait(timeout=30)

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import ROOT, kill_then_finish, octolog, read_until
+from helpers import ROOT, kill_then_finish, octolog, read_until, stop_all
 
 from octolog.kit.mcaplog import summarize
 
@@ -111,10 +111,7 @@ def _distributed_run(names: dict, addr: dict, out: Path, *, cut_s: float = 0.0, 
             log = out / ("mapper-restarted.log" if stage == "mapper" and kill_mapper else f"{stage}.log")
             assert procs[stage].wait(timeout=300) == 0, log.read_text()
     finally:
-        for p in procs.values():
-            if p.poll() is None:
-                p.terminate()
-                p.wait(timeout=30)
+        stop_all(procs)
 
 
 @pytest.fixture(scope="module")
@@ -264,10 +261,7 @@ def test_deployment_doc_robot_and_server_give_the_run_bytes(hosts, tmp_path):
             assert procs[stage].wait(timeout=600) == 0, log.read_text()
         crossed = _link_bytes(names["d"], link) - before
     finally:
-        for p in procs.values():
-            if p.poll() is None:
-                p.terminate()
-                p.wait(timeout=30)
+        stop_all(procs)
     single = tmp_path / "single"
     octolog("run", "--source", source, "--out", str(single), "--quiet", "--rerun", "off")
     assert "warning" not in (out / "tracker.log").read_text()

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import ROOT, kill_then_finish, octolog, read_until, tum_first300
+from helpers import ROOT, kill_then_finish, octolog, read_until, stop_all, tum_first300
 
 from octolog.kit.errors import ConfigError
 from octolog.mapper.config import MapperConfig
@@ -269,10 +269,7 @@ def run_fleet(out: Path, start_poses: list[list[float]], *, rerun: str = "off", 
             code = procs[name].wait(timeout=600)
             assert code == 0, (name, (out / f"{name}.log").read_text())
     finally:
-        for p in procs.values():
-            if p.poll() is None:
-                p.terminate()
-                p.wait(timeout=30)
+        stop_all(procs)
     return {name: (out / f"{name}.log").read_text() for name in procs}
 
 
@@ -330,10 +327,7 @@ def test_a_silent_robot_no_longer_stalls_the_others_and_the_map_is_the_same(flee
         for name in ("replay-r1", "replay-r2", "tracker-r1", "tracker-r2"):
             assert procs[name].wait(timeout=600) == 0, (name, (out / f"{name}.log").read_text())
     finally:
-        for p in procs.values():
-            if p.poll() is None:
-                p.terminate()
-                p.wait(timeout=30)
+        stop_all(procs)
     assert "built again in the defined order" in said + rest
     for name in ("map.bt", "map.ot", "cloud.ply", "keyframes_r1.txt", "keyframes_r2.txt"):
         assert (out / name).read_bytes() == (together / name).read_bytes(), name
