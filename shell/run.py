@@ -426,7 +426,7 @@ def camera_frames(recording: Path) -> int:
 def frame_counts(log: Path, camera: int | None = None) -> dict[str, int]:
     """What the session log says about frames: published, consumed by the tracker, skipped. With the
     frames a live camera delivered (`camera`), the ones it did not publish count as skipped too
-    (`held_back`: the tracker had RecorderConfig.publish_window frames in hand, or, rarely, the
+    (`held_back`: the tracker had RecorderConfig.publish_window frames in hand, or the
     recorder's live queue was full; the recorder's own summary line tells the two apart)."""
     skipped_code = codec.msgtype(TRACKING_STATUS.msgtype).SKIPPED
     published = consumed = skipped = 0
