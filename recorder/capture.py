@@ -166,3 +166,15 @@ class Backend(Protocol):
         ...
 
     def close(self) -> None: ...
+
+
+def blank_capture(device: DeviceDescription) -> Capture:
+    """A tiny capture of every stream the device has (zeros), to warm up the writer's lazy set-up with."""
+    def video(stream: str, shape: tuple[int, ...], dtype: type) -> VideoFrame:
+        return VideoFrame(stream, 0, 0, np.zeros(shape, dtype))
+
+    return Capture(color=video("color", (8, 8, 3), np.uint8) if device.color is not None else None,
+                   depth=video("depth", (8, 8), np.uint16) if device.depth is not None else None,
+                   aligned_depth=video("aligned_depth", (8, 8), np.uint16) if device.color is not None else None,
+                   motion=[MotionSample(s, 0, 0, (0.0, 0.0, 0.0)) for s in MOTION_STREAMS])
+

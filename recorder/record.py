@@ -30,7 +30,7 @@ from octolog.kit.errors import DiskFull, McapError, RecorderError, WriteFailed
 from octolog.kit.geometry import Intrinsics, invert
 from octolog.kit.mcaplog import McapWriter
 from octolog.kit.tftree import LINK_FROM_OPTICAL
-from octolog.recorder.capture import Capture, DeviceDescription
+from octolog.recorder.capture import Capture, DeviceDescription, blank_capture
 from octolog.schemas import codec
 from octolog.schemas import topics as T
 from octolog.schemas.topics import Topic
@@ -256,6 +256,11 @@ class Recorder:
         self.frames = frame_names(params.frame_prefix)
         self._color_info = device.color
         self._depth_info = device.depth
+        # the lazy set-up (type store, each type's CDR code and schema, the codecs) now, not on the first
+        # frame: the camera is streaming by then, and a late first frame holds back the live ones behind it
+        tf = Encoded(T.TF_STATIC, codec.encode(codec.tf_msg(self._transforms(), 0), T.TF_STATIC.msgtype), 0)
+        for m in [*self._encode(blank_capture(device)), tf]:
+            codec.msgdef(m.topic.msgtype)
         self._thread = threading.Thread(target=self._write_loop, name="recorder-writer", daemon=True)
         self._thread.start()
 

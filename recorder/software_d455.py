@@ -98,7 +98,8 @@ class SoftwareDeviceBackend:
 
     On demand (default) a frame pair and the IMU samples up to the next frame time are pushed
     each time the recorder asks, so sensor time runs as fast as the recorder takes frames;
-    `paced` pushes on the sensor clock in wall time, like a camera. `frames` ends the stream
+    `paced` pushes on the sensor clock in wall time, like a camera, from the recorder's first `wait`
+    (a recorder still setting up its outputs loses no frames to it). `frames` ends the stream
     after that many pairs; `unplug_after` raises DeviceLost after that many, like a pulled cable.
     `pushed` logs what went in, for tests.
     """
@@ -214,7 +215,6 @@ class SoftwareDeviceBackend:
         _, dp = res.profiles["depth"]
         self._fps = cp.fps()
         self.pattern = SyntheticPattern(profile.color[:2], profile.depth[:2], seed=self.seed)
-        self._t0 = time.monotonic()
         return describe(self._dev, res, "software", options)
 
     def stamp_of(self, stream: str, n: int) -> int:
@@ -233,6 +233,7 @@ class SoftwareDeviceBackend:
             self._done = True
             raise DeviceLost(f"camera {self.serial} disconnected (software device unplugged after {self._i} frames)")
         if self.paced:
+            self._t0 = self._t0 or time.monotonic()  # the sensor clock starts with the first take
             self._skip_late()
             due = self._t0 + (self._next_stamp() - self.START_NS) / 1e9 - time.monotonic()
             if due > timeout_s:

@@ -24,7 +24,15 @@ from octolog.replay import gravity
 from octolog.replay.standard import has_standard_frames, open_standard
 from octolog.replay.synthetic import SyntheticScene
 from octolog.schemas import codec
-from octolog.schemas.topics import KEYFRAME, KEYFRAME_COMPRESSED, RGBD, RGBD_COMPRESSED, TF_STATIC, TRACKING_STATUS
+from octolog.schemas.topics import (
+    BACKEND_DEFERRED,
+    KEYFRAME,
+    KEYFRAME_COMPRESSED,
+    RGBD,
+    RGBD_COMPRESSED,
+    TF_STATIC,
+    TRACKING_STATUS,
+)
 
 T = TypeVar("T")
 F = TypeVar("F", RgbdFrame, EncodedRgbd)
@@ -237,6 +245,13 @@ def consumed_frames(path: Path) -> set[int]:
     if not seqs:
         raise InputError(f"{path}: no /{TRACKING_STATUS.name} messages: cannot tell which frames the tracker consumed")
     return seqs
+
+
+def backend_deferred(path: Path) -> list[int]:
+    """Frame numbers of the keyframes a logged live tracker inserted without waiting for its back end
+    (tracker/backend_deferred), ascending; a replay defers at the same frames."""
+    return sorted(int(json.loads(codec.decode(m.data, BACKEND_DEFERRED.msgtype).data)["seq"])
+                  for m in read_wire(path, [BACKEND_DEFERRED.name]))
 
 
 @dataclass

@@ -53,6 +53,9 @@ CAMERA_PROPERTIES = Topic("camera/rgbd/properties", "octolog_msgs/msg/CameraProp
 GRAVITY = Topic("camera/gravity", "geometry_msgs/msg/Vector3Stamped")
 POSE = Topic("tracker/pose", "geometry_msgs/msg/PoseStamped")
 TRACKING_STATUS = Topic("tracker/status", "octolog_msgs/msg/TrackingStatus")
+# A live tracker's keyframe that went in while the back end was still busy with the previous one
+# (JSON in a String: seq, keyframe_id, stamp_ns), so a replay applies its results where it did
+BACKEND_DEFERRED = Topic("tracker/backend_deferred", "std_msgs/msg/String")
 KEYFRAME = Topic("tracker/keyframe", "octolog_msgs/msg/Keyframe")
 KEYFRAME_COMPRESSED = Topic("tracker/keyframe/compressed", "octolog_msgs/msg/CompressedKeyframe")
 KEYFRAME_END = Topic("tracker/keyframe/end", "octolog_msgs/msg/StreamEnd")
@@ -79,7 +82,7 @@ CONFIGS = {stage: Topic(f"{stage}/config", "std_msgs/msg/String") for stage in (
 
 ALL = (RGBD, RGBD_END, POSE, TRACKING_STATUS, KEYFRAME, KEYFRAME_END, KEYFRAME_POSES, MAP_UPDATE, OCTOMAP,
        OCCUPIED, GRID, MAP_END, RGBD_COMPRESSED, KEYFRAME_COMPRESSED, CAMERA_PROPERTIES, TF, TF_STATIC, TRAJECTORY,
-       MAP_MERGE, GRAVITY,
+       MAP_MERGE, GRAVITY, BACKEND_DEFERRED,
        *CONFIGS.values())
 # The camera frames: what stays on a robot when the log runs elsewhere (`octolog log --no-frames`)
 FRAMES = (RGBD, RGBD_COMPRESSED)

@@ -110,7 +110,8 @@ def cmd_track(args: argparse.Namespace) -> int:
                    rerun=args.rerun, recording_id=recording_id(args))
     print(f"tracker: {res.frames} frames, {res.tracked} tracked, {res.lost} lost, {res.skipped} skipped, "
           f"{res.rejected} rejected, {res.keyframes} keyframes, {res.loops} loops closed, "
-          f"{res.relocalisations} relocalisations")
+          f"{res.relocalisations} relocalisations"
+          + (f", {res.backend_deferred} keyframes without waiting for the back end" if res.backend_deferred else ""))
     for problem in res.problems[:5]:
         print(f"tracker: rejected {problem}")
     return 0

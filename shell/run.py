@@ -34,7 +34,7 @@ from octolog.kit.viz import parse_spec
 from octolog.mapper.config import MapperConfig
 from octolog.replay import gravity
 from octolog.replay.config import ReplayConfig
-from octolog.replay.sources import Source, open_source
+from octolog.replay.sources import Source, backend_deferred, open_source
 from octolog.schemas import codec
 from octolog.schemas import topics as T
 from octolog.schemas.topics import RGBD, RGBD_COMPRESSED, TRACKING_STATUS
@@ -545,6 +545,8 @@ def replay_session(session: Path, *, out: Path, stages: tuple[str, ...] = ("trac
     fixed = [f"replay.play={feed}", "tracker.live=false", "tracker.throttle_ms=0.0"]
     if feed == "camera":
         fixed.append("replay.only_consumed=true")
+        # where the live tracker's keyframes went in without waiting for the back end: the same here
+        fixed.append(f"tracker.backend_deferred={sorted(backend_deferred(log))}")
     return run_session(source=f"mcap:{log}", out=out, config=str(config), overrides=fixed + list(overrides or []),
                        rerun=rerun, recording_id=recording_id, quiet=quiet, overwrite=overwrite)
 

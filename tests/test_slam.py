@@ -17,9 +17,11 @@ from octolog.kit import metrics
 from octolog.kit.geometry import RgbdFrame, invert
 from octolog.replay.synthetic import SyntheticScene
 from octolog.replay.synthetic_trajectory import LOOP_S, camera_trajectory
+from octolog.tracker.backend import BackendResult, apply_result
 from octolog.tracker.bundle import BundleProblem, bundle_adjust
 from octolog.tracker.config import KeyframeParams, TrackerConfig
 from octolog.tracker.interface import TrackingState
+from octolog.tracker.keyframe_map import Keyframe, MapPoints
 from octolog.tracker.odometry import RgbdOdometry
 from octolog.kit.posegraph import optimize_pose_graph
 from octolog.tracker.places import BowIndex, rigid_ransac, verify, vote
@@ -259,6 +261,48 @@ def test_background_thread_changes_nothing(loop_frames, with_loops) -> None:
     odo, results = with_loops
     same = _run(loop_frames, background=False)
     assert _digest(*same) == _digest(odo, results)
+
+
+def test_a_live_tracker_goes_on_while_the_back_end_works_and_its_record_replays_exactly(room, loop_frames) -> None:
+    """Live, a keyframe goes in while the back end is still busy with the previous one (at most
+    `defer_backend` in a row, then the tracker waits); the result lands at a later keyframe with the
+    keyframes in between carried along. A back end that never reports done before it is waited
+    for makes the pattern fixed: defer, defer, wait. The frames where it deferred are the record a
+    replay follows: inline, without a worker, the same bytes."""
+    odo = RgbdOdometry(TrackerConfig().odometry_params(), background=True, defer_backend=2)
+    odo.worker.done = lambda: False  # the real worker computes; it only never answers early
+    results = [odo.track(f) for f in loop_frames]
+    odo.finish()
+    deferred = [r.seq for r in results if r.backend_deferred]
+    kf = [r.backend_deferred for r in results if r.is_keyframe][1:]  # the first has nothing pending
+    assert len(deferred) >= 10 and not any(kf[i] and kf[i + 1] and kf[i + 2] for i in range(len(kf) - 2))
+    assert _ate(room, odo) <= 0.005  # the accuracy held (test_synthetic_accuracy's bar)
+    replay = RgbdOdometry(TrackerConfig().odometry_params(), backend_deferred_at=frozenset(deferred))
+    again = [replay.track(f) for f in loop_frames]
+    replay.finish()
+    assert [r.seq for r in again if r.backend_deferred] == deferred
+    assert _digest(replay, again) == _digest(odo, results)
+    waited = _run(loop_frames)  # and the record is what made the difference
+    assert _digest(*waited) != _digest(odo, results)
+
+
+def test_a_late_loop_result_carries_the_keyframes_inserted_since_its_job() -> None:
+    """A result applied after more keyframes went in (live, the back end busy): those keyframes and
+    the points they made move rigidly with the job's newest keyframe, so a closed loop takes them along."""
+    points, keyframes = MapPoints(), []
+    for i in range(5):
+        ids = points.add(np.full((2, 3), float(i)), np.zeros((2, 32), np.uint8), np.ones(2), i)
+        keyframes.append(Keyframe(i, i, _pose([0, 0, 0], [0.1 * i, 0, 0]), ids, None, ids * 0, ids))
+    kf_pos, kf_axis = np.zeros((5, 3)), np.zeros((5, 3))
+    shift = _pose([0, 0, 0.1], [0, 0.05, 0])  # the loop's correction of keyframes 0..2
+    poses = {i: shift @ keyframes[i].world_from_camera for i in range(3)}
+    before = [kf.world_from_camera.copy() for kf in keyframes], points.xyz[: points.size].copy()
+    res = BackendResult(2, poses, np.arange(6), before[1][:6] @ shift[:3, :3].T + shift[:3, 3], loop=(2, 0))
+    delta, moved = apply_result(res, keyframes, points, kf_pos, kf_axis, max_point_move_m=0.5)
+    assert np.allclose(delta, shift) and sorted(moved) == [0, 1, 2, 3, 4]
+    for i in (3, 4):
+        assert np.allclose(keyframes[i].world_from_camera, shift @ before[0][i]) and np.allclose(kf_pos[i], moved[i][:3, 3])
+    assert np.allclose(points.xyz[6:10], before[1][6:10] @ shift[:3, :3].T + shift[:3, 3])
 
 
 def test_recovers_after_30_black_frames(room, loop_frames, with_loops) -> None:

@@ -166,6 +166,41 @@ def build_job(points: MapPoints, keyframes: list[Keyframe], params: OdometryPara
     )
 
 
+def apply_result(res: BackendResult, keyframes: list[Keyframe], points: MapPoints, kf_pos: np.ndarray,
+                 kf_axis: np.ndarray, max_point_move_m: float) -> tuple[np.ndarray, dict[int, np.ndarray]]:
+    """Write a back-end result into the front end's map; returns how the job's newest keyframe moved
+    (world_from_world) and every keyframe moved (id -> world_from_camera).
+
+    Keyframes inserted after the job was built (a live tracker that went on while the back end was
+    busy) and the points they made move rigidly with the job's newest keyframe: they were placed
+    relative to it, and a closed loop must carry them along."""
+    ref = keyframes[res.kf_id]
+    old_ref = ref.world_from_camera.copy()
+    moved = dict(res.poses)
+    for i, T in res.poses.items():
+        keyframes[i].world_from_camera = T
+    delta = ref.world_from_camera @ invert(old_ref)
+    for i in range(res.kf_id + 1, len(keyframes)):
+        moved[i] = keyframes[i].world_from_camera = delta @ keyframes[i].world_from_camera
+    for i, T in moved.items():
+        kf_pos[i] = T[:3, 3]
+        kf_axis[i] = T[:3, 2]
+    if res.loop is None and res.point_ids.size:
+        # a point that local BA moved far was badly observed: retire it rather than trust it
+        moved_m = np.linalg.norm(res.points - points.xyz[res.point_ids], axis=1)
+        jump = moved_m > max_point_move_m
+        points.bad[res.point_ids[jump]] = True
+        points.xyz[res.point_ids[~jump]] = res.points[~jump]
+    else:
+        points.xyz[res.point_ids] = res.points
+    if res.kf_id + 1 < len(keyframes):
+        later = points.ref_kf[: points.size] > res.kf_id
+        later[res.point_ids] = False
+        ids = np.flatnonzero(later)
+        points.xyz[ids] = points.xyz[ids] @ delta[:3, :3].T + delta[:3, 3]
+    return delta, moved
+
+
 def run_backend(job: BackendJob) -> BackendResult:
     """Local BA around the newest keyframe, then loop detection and pose-graph correction.
 

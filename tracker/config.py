@@ -143,6 +143,13 @@ class TrackerConfig:
     # live: when frames queue up, track the newest and skip the older ones (each skip is published
     # as a SKIPPED status, so the session log says exactly which frames were consumed)
     live: bool = False
+    # live: a keyframe goes in without waiting for a busy back end, at most this many in a row (its
+    # result lands at a later keyframe; each such keyframe is on record, tracker/backend_deferred,
+    # which `octolog replay` follows); 0: always wait, as a file replay does
+    live_backend_defer: int = 4
+    # frame numbers at which a replayed live run's keyframes went in without the back end (`octolog
+    # replay` sets it from the log's tracker/backend_deferred)
+    backend_deferred: tuple[int, ...] = ()
     # pad each frame's processing to at least this long: rehearse a slower machine (0: off)
     throttle_ms: float = 0.0
     # stages that must be up before this one announces itself (e.g. "mapper" when run by hand)
@@ -192,6 +199,7 @@ class TrackerConfig:
         """The one check of every tracker setting; ConfigError names the key."""
         _want(self.backend in BACKENDS, "backend", self.backend, f"want one of {', '.join(BACKENDS)}")
         _want(self.throttle_ms >= 0, "throttle_ms", self.throttle_ms, "want >= 0")
+        _want(self.live_backend_defer >= 0, "live_backend_defer", self.live_backend_defer, "want >= 0 (0: wait)")
         _want(self.wait_timeout_s > 0, "wait_timeout_s", self.wait_timeout_s, "want > 0")
         _want(self.n_features >= 100, "n_features", self.n_features, "want >= 100")
         _want(self.ba_window >= 1, "ba_window", self.ba_window, "want >= 1")

@@ -22,7 +22,9 @@ def make_odometry(cfg: TrackerConfig) -> Tracker:
     # native: with a vocabulary, loop and relocalisation candidates come from a bag-of-words index
     params = cfg.odometry_params()
     vocabulary = load_vocabulary(cfg.vocabulary) if cfg.vocabulary else None
-    return RgbdOdometry(params, vocabulary=vocabulary, background=cfg.background)
+    return RgbdOdometry(params, vocabulary=vocabulary, background=cfg.background,
+                        defer_backend=cfg.live_backend_defer if cfg.live else 0,
+                        backend_deferred_at=frozenset(int(s) for s in cfg.backend_deferred))
 
 
 def set_readout(odometry: Tracker, readout_s: float) -> None:

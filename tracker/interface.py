@@ -55,6 +55,9 @@ class TrackResult:
     # root mean square reprojection error of the inlier matches, in pixels of each keypoint's
     # pyramid level (a fit quality with no ground truth: ~1 for a model that explains the image)
     residual: float = float("nan")
+    # a keyframe inserted without the back end's pending result (live, the back end busy; see
+    # RgbdOdometry.defer_backend): the result is applied at a later keyframe
+    backend_deferred: bool = False
 
 
 @runtime_checkable

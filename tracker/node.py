@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import sys
 import time
 from dataclasses import dataclass, field
@@ -19,6 +20,7 @@ from octolog.kit.tftree import StaticTree
 from octolog.kit.viz import Viz
 from octolog.schemas import codec
 from octolog.schemas.topics import (
+    BACKEND_DEFERRED,
     CAMERA_PROPERTIES,
     CONFIGS,
     KEYFRAME,
@@ -50,6 +52,7 @@ class TrackerResult:
     tracked: int = 0
     lost: int = 0
     skipped: int = 0  # live mode: not processed, a newer frame was waiting
+    backend_deferred: int = 0  # live mode: keyframes that went in while the back end was busy
     rejected: int = 0  # undecodable or inconsistent frames
     problems: list[str] = field(default_factory=list)  # why each rejected frame was
     keyframes: int = 0
@@ -77,6 +80,7 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
     pub_kf = KeyframeOut(bus, cfg.wire_compression)
     pub_kf_end = bus.publisher(KEYFRAME_END)
     pub_poses = bus.publisher(KEYFRAME_POSES)
+    pub_deferred = bus.publisher(BACKEND_DEFERRED)
     # frames come raw or compressed, whichever the source publishes; decoding is the same call
     tree = StaticTree()  # the camera's own frames, from whoever knows the camera (recorder, replay)
     bus.listen(TF_STATIC, tree.add)
@@ -144,6 +148,10 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
             if res.is_keyframe:
                 pub_kf.put(res.keyframe_id, res.world_from_camera, frame)
                 result.keyframes += 1
+            if res.backend_deferred:  # on record: a replay of this run defers at the same frame
+                pub_deferred.put(codec.msgtype(BACKEND_DEFERRED.msgtype)(data=json.dumps(
+                    {"seq": frame.seq, "keyframe_id": res.keyframe_id, "stamp_ns": frame.stamp_ns})))
+                result.backend_deferred += 1
             pub_status.put(_status(frame.seq, frame.stamp_ns, res.state, res.is_keyframe, res.keyframe_id,
                                    res.n_matches, res.n_inliers, ms))
             if viz.enabled:

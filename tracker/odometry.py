@@ -7,7 +7,7 @@ inverse-depth residuals (tracker.pose), then match the local map again with the 
 refine once more. Keyframes add new map points and fuse repeated depth readings of existing ones,
 so drift is only accumulated when the camera leaves the area the local map covers. At every
 keyframe the back end (tracker.backend: local BA, loop closing) runs on a snapshot of the map, in a
-worker process or inline, and its result is applied at the next keyframe.
+worker process or inline, and its result is applied at the next keyframe (live: a later one if busy).
 
 The core sees only `RgbdFrame`s and one `OdometryParams` (no configuration tree, no I/O, no clock),
 and is deterministic: the same frames give byte-identical poses in any process.
@@ -24,7 +24,7 @@ import numpy as np
 
 from octolog.kit.errors import TrackingError
 from octolog.kit.geometry import Intrinsics, RgbdFrame, invert
-from octolog.tracker.backend import BackendJob, BackendResult, LoopState, build_job, run_backend
+from octolog.tracker.backend import BackendJob, BackendResult, LoopState, apply_result, build_job, run_backend
 from octolog.tracker.config import OdometryParams, TrackerConfig
 from octolog.tracker.features import (
     FrameFeatures,
@@ -91,7 +91,8 @@ class RgbdOdometry:
     """
 
     def __init__(self, params: OdometryParams | None = None, *, vocabulary: Vocabulary | None = None,
-                 background: bool = False) -> None:
+                 background: bool = False, defer_backend: int = 0,
+                 backend_deferred_at: frozenset[int] = frozenset()) -> None:
         self.params = params = params if params is not None else TrackerConfig().odometry_params()
         f = params.features
         make = partial(OrbExtractor, n_features=params.n_features, grid_cols=f.grid_cols, grid_rows=f.grid_rows,
@@ -99,12 +100,12 @@ class RgbdOdometry:
                        n_levels=f.n_levels, scale_factor=f.scale_factor)
         self._extractor, self._extractor_ahead = make(), make()  # the second for `prepare`'s thread
         self._bow = BowIndex(vocabulary) if vocabulary is not None else None
-        # The back end (local BA, loop closing) for keyframe k starts when k is inserted and its
-        # result is applied when keyframe k+1 is inserted (or at `finish`): a fixed point in the
-        # frame sequence, so running it in a worker process cannot change any output.
-        # A worker process (`worker`, None inline), not a thread: the back end holds the GIL most of a
-        # job, which stalled the tracking thread for tens of milliseconds at every keyframe.
+        # The back end (local BA, loop closing) for keyframe k starts when k is inserted and its result
+        # is applied when keyframe k+1 is inserted (or at `finish`), or at a later one where
+        # `_defer_backend` says (live; then on record): fixed points in the frame sequence, so a worker
+        # process (`worker`, None inline; not a thread: the back end holds the GIL) changes no output.
         self.worker = Worker() if background else None
+        self.defer_backend, self.backend_deferred_at, self._deferred_run = defer_backend, backend_deferred_at, 0
         self.worker_peak_rss_mb = self.worker_file_rss_mb = 0.0  # the worker's peak and file-backed MB (`finish`)
         self._pending: Worker | BackendResult | None = None
         self._loop_edges: list[tuple[int, int, np.ndarray]] = []
@@ -182,26 +183,29 @@ class RgbdOdometry:
             return TrackResult(frame.seq, frame.stamp_ns, predicted.copy(), TrackingState.LOST, False, -1, 0, 0)
         feats = tracked.feats
         pose = invert(tracked.camera_from_world)
-        kf_id, loop = -1, None
+        kf_id, loop, deferred = -1, None, False
         corrected: dict[int, np.ndarray] = {}
         # A frame without enough depth adds no map points, so it must not replace the reference.
         if int(feats.has_depth.sum()) >= self.params.tracking.min_init_points and self._need_keyframe(pose, tracked):
-            moved_map = self._pending is not None
-            corrected, loop, pose = self._sync_backend(pose)
+            deferred = self._defer_backend(frame.seq)
+            moved_map = self._pending is not None and not deferred
+            if not deferred:
+                corrected, loop, pose = self._sync_backend(pose)
             if moved_map:
                 # the map moved under this frame: re-fit its pose to the moved points it matched
                 sol = self._solve(feats, tracked.kp_idx, tracked.map_idx, invert(pose), use_ransac=False)
                 if sol is not None:
                     pose = invert(sol[0])
             kf_id = self._insert_keyframe(frame.seq, pose, feats, tracked)
-            self._submit_backend()
+            if self._pending is None:
+                self._submit_backend()
         ref = self._keyframes[-1]
         self._frames.append((frame.stamp_ns, ref.id, invert(ref.world_from_camera) @ pose))
         self._remember(frame.stamp_ns, pose, ok=True)
         return TrackResult(
             frame.seq, frame.stamp_ns, pose.copy(), TrackingState.OK, kf_id >= 0, kf_id, tracked.n_matches,
             tracked.n_inliers,
-            corrected, loop, relocalised, tracked.residual,
+            corrected, loop, relocalised, tracked.residual, deferred,
         )
 
     def trajectory(self) -> tuple[list[int], list[np.ndarray]]:
@@ -557,7 +561,7 @@ class RgbdOdometry:
         """A snapshot of the map for the back end of the newest keyframe (see backend.build_job)."""
         assert self._undistort is not None
         newest = self._keyframes[-1].id
-        candidate = self._loop_candidate[1] if self._loop_candidate[0] == newest - 1 else None
+        candidate = self._loop_candidate[1]  # the previous job's: one job at a time, its result is in
         loops = LoopState(edges=self._loop_edges, last_loop_kf=self._last_loop_kf, previous_candidate=candidate)
         return build_job(self._map, self._keyframes, self.params, K=self._undistort.K, bow=self._bow, loops=loops,
                          window_n=window_n, max_points=max_points, loop_closing=loop_closing, iterations=iterations)
@@ -571,22 +575,8 @@ class RgbdOdometry:
         self._pending = None
         if not isinstance(res, BackendResult):
             res = res.result()
-        ref = self._keyframes[res.kf_id]
-        old_ref = ref.world_from_camera.copy()
-        for i, T in res.poses.items():
-            kf = self._keyframes[i]
-            kf.world_from_camera = T
-            self._kf_pos[i] = T[:3, 3]
-            self._kf_axis[i] = T[:3, 2]
-        if res.loop is None and res.point_ids.size:
-            # a point that local BA moved far was badly observed: retire it rather than trust it
-            moved_m = np.linalg.norm(res.points - self._map.xyz[res.point_ids], axis=1)
-            jump = moved_m > self.params.bundle_adjustment.max_point_move_m
-            self._map.bad[res.point_ids[jump]] = True
-            self._map.xyz[res.point_ids[~jump]] = res.points[~jump]
-        else:
-            self._map.xyz[res.point_ids] = res.points
-        delta = ref.world_from_camera @ invert(old_ref)
+        delta, moved = apply_result(res, self._keyframes, self._map, self._kf_pos, self._kf_axis,
+                                    self.params.bundle_adjustment.max_point_move_m)
         for name in ("_last_pose", "_last_tracked_pose"):
             if getattr(self, name) is not None:
                 setattr(self, name, delta @ getattr(self, name))
@@ -596,5 +586,15 @@ class RgbdOdometry:
         self._loop_edges.append(res.loop_edge)
         self.loops.append(res.loop)
         self._last_loop_kf = res.loop[0]
-        return dict(res.poses), res.loop, delta @ pose
+        return moved, res.loop, delta @ pose
+
+    def _defer_backend(self, seq: int) -> bool:
+        """Whether the keyframe at frame `seq` goes in without the pending back-end result: where a
+        replayed live run's record says; live (`defer_backend` > 0), while the back end is at work, at
+        most that many keyframes in a row; else never (the tracker waits for it)."""
+        busy = self._pending is not None and not isinstance(self._pending, BackendResult) and not self._pending.done()
+        defer = self._pending is not None and (seq in self.backend_deferred_at if self.backend_deferred_at else
+                                               busy and self._deferred_run < self.defer_backend)
+        self._deferred_run = self._deferred_run + 1 if defer else 0
+        return defer
 

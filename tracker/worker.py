@@ -11,6 +11,7 @@ from __future__ import annotations
 import ctypes
 import os
 import pickle
+import select
 import signal
 import struct
 import subprocess
@@ -65,6 +66,14 @@ class Worker:
         self._writer = threading.Thread(target=_write, args=(self._proc.stdin, job), daemon=True)
         self._writer.start()
         return self
+
+    def done(self) -> bool:
+        """Whether `result()` would return without waiting for the job: sent in full, and the child
+        has begun to answer (it writes a result whole, once the job is done)."""
+        if self._writer is None or self._writer.is_alive():
+            return False
+        readable, _, _ = select.select([self._proc.stdout], [], [], 0)
+        return bool(readable)
 
     def result(self) -> Any:
         assert self._writer is not None
