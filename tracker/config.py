@@ -152,6 +152,8 @@ class TrackerConfig:
     backend_deferred: tuple[int, ...] = ()
     # pad each frame's processing to at least this long: rehearse a slower machine (0: off)
     throttle_ms: float = 0.0
+    # pad each back-end job (in its worker process) to at least this long: a slower back end (0: off)
+    backend_throttle_ms: float = 0.0
     # stages that must be up before this one announces itself (e.g. "mapper" when run by hand)
     wait_for: tuple[str, ...] = ()
     wait_timeout_s: float = 60.0
@@ -199,6 +201,7 @@ class TrackerConfig:
         """The one check of every tracker setting; ConfigError names the key."""
         _want(self.backend in BACKENDS, "backend", self.backend, f"want one of {', '.join(BACKENDS)}")
         _want(self.throttle_ms >= 0, "throttle_ms", self.throttle_ms, "want >= 0")
+        _want(self.backend_throttle_ms >= 0, "backend_throttle_ms", self.backend_throttle_ms, "want >= 0")
         _want(self.live_backend_defer >= 0, "live_backend_defer", self.live_backend_defer, "want >= 0 (0: wait)")
         _want(self.wait_timeout_s > 0, "wait_timeout_s", self.wait_timeout_s, "want > 0")
         _want(self.n_features >= 100, "n_features", self.n_features, "want >= 100")

@@ -12,6 +12,7 @@ from octolog.tracker.interface import Tracker
 from octolog.tracker.odometry import RgbdOdometry
 from octolog.tracker.orbslam3 import OrbSlam3Odometry
 from octolog.tracker.vocab import load as load_vocabulary
+from octolog.tracker.worker import Worker
 
 
 def make_odometry(cfg: TrackerConfig) -> Tracker:
@@ -22,7 +23,8 @@ def make_odometry(cfg: TrackerConfig) -> Tracker:
     # native: with a vocabulary, loop and relocalisation candidates come from a bag-of-words index
     params = cfg.odometry_params()
     vocabulary = load_vocabulary(cfg.vocabulary) if cfg.vocabulary else None
-    return RgbdOdometry(params, vocabulary=vocabulary, background=cfg.background,
+    background = Worker(min_job_s=cfg.backend_throttle_ms / 1e3) if cfg.background else False
+    return RgbdOdometry(params, vocabulary=vocabulary, background=background,
                         defer_backend=cfg.live_backend_defer if cfg.live else 0,
                         backend_deferred_at=frozenset(int(s) for s in cfg.backend_deferred))
 

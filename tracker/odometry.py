@@ -91,7 +91,7 @@ class RgbdOdometry:
     """
 
     def __init__(self, params: OdometryParams | None = None, *, vocabulary: Vocabulary | None = None,
-                 background: bool = False, defer_backend: int = 0,
+                 background: bool | Worker = False, defer_backend: int = 0,
                  backend_deferred_at: frozenset[int] = frozenset()) -> None:
         self.params = params = params if params is not None else TrackerConfig().odometry_params()
         f = params.features
@@ -104,7 +104,7 @@ class RgbdOdometry:
         # is applied when keyframe k+1 is inserted (or at `finish`), or at a later one where
         # `_defer_backend` says (live; then on record): fixed points in the frame sequence, so a worker
         # process (`worker`, None inline; not a thread: the back end holds the GIL) changes no output.
-        self.worker = Worker() if background else None
+        self.worker = background if isinstance(background, Worker) else Worker() if background else None
         self.defer_backend, self.backend_deferred_at, self._deferred_run = defer_backend, backend_deferred_at, 0
         self.worker_peak_rss_mb = self.worker_file_rss_mb = 0.0  # the worker's peak and file-backed MB (`finish`)
         self._pending: Worker | BackendResult | None = None

@@ -17,6 +17,7 @@ import struct
 import subprocess
 import sys
 import threading
+import time
 import weakref
 from typing import Any, BinaryIO
 
@@ -47,8 +48,9 @@ def _read(stream: BinaryIO) -> Any:
 class Worker:
     """One back-end job at a time in a child process: `submit(job)`, then `result()`."""
 
-    def __init__(self) -> None:
-        self._proc = subprocess.Popen([sys.executable, "-m", "octolog.tracker.worker", str(os.getpid())],
+    def __init__(self, *, min_job_s: float = 0.0) -> None:
+        """`min_job_s` pads each job to at least that long: rehearse a slower machine's back end."""
+        self._proc = subprocess.Popen([sys.executable, "-m", "octolog.tracker.worker", str(os.getpid()), str(min_job_s)],
                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE, close_fds=True)
         self._writer: threading.Thread | None = None
         self._busy = False
@@ -142,6 +144,7 @@ NICENESS = 5
 
 def main() -> None:
     _die_with(int(sys.argv[1]))
+    min_job_s = float(sys.argv[2]) if len(sys.argv) > 2 else 0.0
     os.nice(NICENESS)
     stdin, stdout = sys.stdin.buffer, sys.stdout.buffer
     while True:
@@ -149,10 +152,13 @@ def main() -> None:
             job = _read(stdin)
         except EOFError:
             return
+        t0 = time.monotonic()
         try:
             out = ("ok", None if job is None else run_backend(job))  # None: a ping (`Worker.ready`)
         except Exception as exc:  # the parent re-raises it where it waits for the result
             out = ("error", exc)
+        if job is not None and min_job_s > 0:
+            time.sleep(max(0.0, t0 + min_job_s - time.monotonic()))  # a slower back end, rehearsed
         _write(stdout, out)
 
 
