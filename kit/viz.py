@@ -195,7 +195,9 @@ class Viz:
         if self.rec is None:
             return
         if png is None:
-            png = _encode(np.ascontiguousarray(depth), ".png", [cv2().IMWRITE_PNG_COMPRESSION, 1])
+            from octolog.schemas.codec import depth_png  # cv2 only once an image is logged
+
+            png = depth_png(depth)
         self.rec.log(path, self._rr.EncodedDepthImage(blob=_blob(png), media_type="image/png",
                                                       meter=1.0 / depth_scale_m))
 

@@ -14,8 +14,6 @@ from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
-import cv2
-
 from octolog.kit.bus import Bus
 from octolog.kit.errors import DeviceLost, RecorderError
 from octolog.kit.geometry import EncodedRgbd, RgbdFrame
@@ -200,7 +198,7 @@ class BusPublisher:
                 depth = codec.decode(written[T.ALIGNED_DEPTH_PNG].data, T.ALIGNED_DEPTH_PNG.msgtype)
                 depth_png = bytes(depth.data)
             else:
-                depth_png = cv2.imencode(".png", d.array, [cv2.IMWRITE_PNG_COMPRESSION, 1])[1].tobytes()
+                depth_png = codec.depth_png(d.array).tobytes()
             self._rgbd.put(codec.encoded_rgbd_msg(EncodedRgbd(
                 c.frame_number, c.stamp_ns, bytes(colour.data), colour.format, depth_png, codec.DEPTH_PNG_FORMAT,
                 self._device.depth_scale_m, self._device.color, self._frame)))

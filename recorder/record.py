@@ -449,11 +449,8 @@ class Recorder:
             if v is None:
                 continue
             if e.depth_codec == "png":
-                # SUB filter + RLE: ~3x faster than OpenCV's default PNG settings at the same size
-                ok, buf = cv2.imencode(".png", v.array, [cv2.IMWRITE_PNG_COMPRESSION, e.png_level,
-                                                         cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_SUB,
-                                                         cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE])
-                msg = codec.compressed_image_msg(buf.tobytes(), PNG_FORMAT, v.stamp_ns, frame)
+                msg = codec.compressed_image_msg(codec.depth_png(v.array, e.png_level).tobytes(), PNG_FORMAT,
+                                                 v.stamp_ns, frame)
                 out.append(Encoded(png, codec.encode(msg, png.msgtype), v.stamp_ns))
             else:
                 msg = codec.image_msg(v.array, v.stamp_ns, frame)
