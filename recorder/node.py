@@ -194,13 +194,13 @@ class BusPublisher:
                 return
             written = {m.topic: m for m in msgs}
             colour = codec.decode(written[T.COLOR_JPEG].data, T.COLOR_JPEG.msgtype)
-            if T.ALIGNED_DEPTH_PNG in written:
+            if T.ALIGNED_DEPTH_PNG in written:  # the recording's PNG, as it is
                 depth = codec.decode(written[T.ALIGNED_DEPTH_PNG].data, T.ALIGNED_DEPTH_PNG.msgtype)
-                depth_png = bytes(depth.data)
-            else:
-                depth_png = codec.depth_png(d.array).tobytes()
+                depth_bytes, depth_format = bytes(depth.data), codec.DEPTH_PNG_FORMAT
+            else:  # zstd: less than half PNG's cost to encode here and to decode in the tracker
+                depth_bytes, depth_format = codec.depth_zstd(d.array), codec.DEPTH_ZSTD_FORMAT
             self._rgbd.put(codec.encoded_rgbd_msg(EncodedRgbd(
-                c.frame_number, c.stamp_ns, bytes(colour.data), colour.format, depth_png, codec.DEPTH_PNG_FORMAT,
+                c.frame_number, c.stamp_ns, bytes(colour.data), colour.format, depth_bytes, depth_format,
                 self._device.depth_scale_m, self._device.color, self._frame)))
 
     def end(self) -> None:

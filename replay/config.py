@@ -40,8 +40,8 @@ class ReplayConfig:
     remap: tuple[str, ...] = ()
     # frames on the wire: "source" (default): as the source encodes them (TUM PNGs, a log's
     # compressed frames) on camera/rgbd/compressed, never decoded on the way, else raw on camera/rgbd;
-    # "" or "raw": decoded, raw; COLOUR[,png] with COLOUR jpeg[:QUALITY] (lossy) or png[:LEVEL]:
-    # re-encoded on camera/rgbd/compressed; depth is always lossless PNG
+    # "" or "raw": decoded, raw; COLOUR[,DEPTH] with COLOUR jpeg[:QUALITY] (lossy) or png[:LEVEL]:
+    # re-encoded on camera/rgbd/compressed; DEPTH png (default) or zstd, both lossless
     wire_compression: str = "source"
     wait_for: tuple[str, ...] = ("tracker",)
     # the camera of a tum: source whose folder name does not say it (freiburg1, freiburg2, freiburg3),

@@ -65,7 +65,7 @@ def _check_frame(msg: Any) -> None:
             size = declared_size(image.data)
             if size is None:
                 raise InputError(f"{name} CompressedImage ({image.format!r}, {len(image.data)} bytes): "
-                                 f"not a PNG or JPEG image")
+                                 f"not a PNG, JPEG or zstd depth image")
         else:
             size = _raw_size(image)
         _check_size(f"{name} image", *size)

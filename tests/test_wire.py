@@ -1,4 +1,4 @@
-"""Per-topic compression on the wire: JPEG/PNG colour and PNG depth, chosen in the producers' config.
+"""Per-topic compression on the wire: JPEG/PNG colour and PNG/zstd depth, chosen in the producers' config.
 
 Lossless settings must change nothing downstream; lossy JPEG changes the results but stays
 deterministic (the same frames give the same bytes, run after run), and a session log recorded with
@@ -29,7 +29,7 @@ def frame():
     return next(SyntheticSource(2).frames())
 
 
-@pytest.mark.parametrize("spec", ["png", "png:6,png", "jpeg:90", "jpeg:50,png"])
+@pytest.mark.parametrize("spec", ["png", "png:6,png", "jpeg:90", "jpeg:50,png", "png,zstd", "jpeg:90,zstd"])
 def test_round_trip_keeps_depth_exact_and_colour_close(frame, spec):
     wire = codec.parse_wire_compression(spec)
     data = codec.encode(codec.compressed_rgbd_msg(frame, wire), topics.RGBD_COMPRESSED.msgtype)
@@ -56,7 +56,7 @@ def test_keyframe_round_trip(frame):
 
 
 @pytest.mark.parametrize(("spec", "message"), [
-    ("jpeg,jpeg", "depth can only be png"),
+    ("jpeg,jpeg", "depth can be png or zstd"),
     ("jpeg:0", "want raw, or jpeg"),
     ("png:x", "not an integer"),
     ("webp", "want raw, or jpeg"),
@@ -70,7 +70,7 @@ def test_bad_spec_on_the_command_line_is_one_line(tmp_path):
     proc = octolog("run", "--source", "synthetic:4", "--out", str(tmp_path), "--set",
                    "replay.wire_compression=jpeg,jpeg", check=False, timeout=120)
     assert proc.returncode == 1 and proc.stderr.count("\n") == 1
-    assert "replay.wire_compression: wire compression 'jpeg,jpeg': depth can only be png" in proc.stderr
+    assert "replay.wire_compression: wire compression 'jpeg,jpeg': depth can be png or zstd" in proc.stderr
 
 
 def test_garbled_compressed_image_is_an_input_error(frame):
@@ -78,6 +78,34 @@ def test_garbled_compressed_image_is_an_input_error(frame):
     msg.depth.data = msg.depth.data[:100]
     with pytest.raises(InputError, match="cannot decode"):
         codec.rgbd_from_msg(msg)
+
+
+def test_zstd_depth_is_exact_at_the_edges_of_its_range():
+    """Differences wrap modulo 2^16 (0 next to 65535), odd widths, one-pixel images."""
+    rng = np.random.default_rng(3)
+    for depth in (rng.integers(0, 65536, (5, 7), dtype=np.uint16), np.array([[0, 65535, 0, 1]], np.uint16),
+                  np.full((1, 1), 65535, np.uint16), np.zeros((3, 640), np.uint16)):
+        msg = codec.compressed_image_msg(codec.depth_zstd(depth), codec.DEPTH_ZSTD_FORMAT, 0, "f")
+        back = codec.wire_image_array(msg)
+        assert back.dtype == np.uint16 and np.array_equal(back, depth)
+
+
+def test_zstd_depth_that_lies_about_its_size_is_refused_before_decompressing(frame):
+    """A zstd frame may claim any content size: a 12-byte header saying 640x480 in front of a frame
+    of a gigabyte of zeros (a few kB compressed) must not be decompressed, nor a cut-off frame."""
+    import zstandard
+
+    good = codec.depth_zstd(frame.depth)
+    bomb = good[:12] + zstandard.ZstdCompressor().compress(bytes(2 * frame.depth.size + 2))
+    for data, message in ((bomb, "zstd frame is not"), (good[:-100], "cannot decode"), (good[:12], "cannot decode")):
+        msg = codec.compressed_image_msg(data, codec.DEPTH_ZSTD_FORMAT, 0, "f")
+        with pytest.raises(InputError, match=message):
+            codec.wire_image_array(msg)
+    # the header's own size is what the bus checks before any stage allocates
+    wire = codec.compressed_rgbd_msg(frame, codec.parse_wire_compression("jpeg,zstd"))
+    wire.depth.data = np.frombuffer(good[:4] + (1 << 20).to_bytes(4, "little") + good[8:], np.uint8)
+    with pytest.raises(InputError, match="image sizes disagree"):
+        codec.rgbd_from_msg(wire)
 
 
 # --- through the pipeline -------------------------------------------------------------------------
@@ -94,8 +122,9 @@ def raw(tmp_path_factory) -> Path:
     return _run(tmp_path_factory.mktemp("raw"))
 
 
-def test_lossless_compression_changes_no_output(raw, tmp_path):
-    png = _run(tmp_path / "png", "replay.wire_compression=png,png", "tracker.wire_compression=png")
+@pytest.mark.parametrize("depth", ["png", "zstd"])
+def test_lossless_compression_changes_no_output(raw, tmp_path, depth):
+    png = _run(tmp_path / "png", f"replay.wire_compression=png,{depth}", f"tracker.wire_compression=png,{depth}")
     for name in ("trajectory.txt", "map.bt", "map.ot", "cloud.ply"):
         assert (png / name).read_bytes() == (raw / name).read_bytes(), name
     frames = json.loads((png / "summary.json").read_text())["frames"]

@@ -159,7 +159,8 @@ class TrackerConfig:
     wait_timeout_s: float = 60.0
     # keyframes on the wire: "source" (default): with the images as the frame came (compressed frames
     # give tracker/keyframe/compressed, not re-encoded; raw ones tracker/keyframe); "" or "raw": raw;
-    # COLOUR[,png] with COLOUR jpeg[:QUALITY] or png[:LEVEL]: re-encoded (see replay.wire_compression)
+    # COLOUR[,DEPTH] with COLOUR jpeg[:QUALITY] or png[:LEVEL], DEPTH png or zstd: re-encoded (see
+    # replay.wire_compression)
     wire_compression: str = "source"
     # "native" (ours, deterministic) or "orbslam3" (pyorbslam3, an extra: for comparison)
     backend: str = "native"

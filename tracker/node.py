@@ -181,7 +181,9 @@ def warm_up() -> None:
     pose, wire = np.eye(4), codec.WireCompression("png")
     frame = RgbdFrame(0, 0, np.zeros((8, 8, 3), np.uint8), np.zeros((8, 8), np.uint16), 1e-3,
                       Intrinsics(8, 8, 8.0, 8.0, 4.0, 4.0))
-    for topic, msg in ((RGBD, codec.rgbd_msg(frame)), (RGBD_COMPRESSED, codec.compressed_rgbd_msg(frame, wire))):
+    zstd = codec.WireCompression("jpeg", depth="zstd")  # a live recorder's frames
+    for topic, msg in ((RGBD, codec.rgbd_msg(frame)), (RGBD_COMPRESSED, codec.compressed_rgbd_msg(frame, wire)),
+                       (RGBD_COMPRESSED, codec.compressed_rgbd_msg(frame, zstd))):
         codec.rgbd_from_msg(codec.decode(codec.encode(msg, topic.msgtype), topic.msgtype))
     for topic, msg in ((TRACKING_STATUS, _status(0, 0, TrackingState.OK, False, -1, 0, 0, 0.0)),
                        (POSE, codec.pose_stamped_msg(pose, 0)), (TF, codec.tf_msg([("world", "camera_link", pose)], 0)),
