@@ -68,6 +68,12 @@ class MapperConfig:
     # a robot silent this long (alive: its tracker answers) no longer holds the others back; its later
     # keyframes come late and the map is built again in the defined order at the end. 0: wait for it
     robot_stall_s: float = 30.0
+    # placed without start poses: a robot's keyframe once it has come this far (metres of its own
+    # path) since its last link is matched against the other robots' nearest map keyframes (robots
+    # that meet again are linked again, the joint graph settles them; mapper/placement.py). The
+    # default: at the joint graph's 1 % drift, 2 m make ~2 cm, as much as a link's own error; a link
+    # sooner would weigh its error against a robot's better own path. 0: links only while placing
+    relink_after_m: float = 2.0
 
     def validate(self) -> None:
         """The one check of every value; the core and the backends trust what passes it."""
@@ -82,6 +88,8 @@ class MapperConfig:
             raise ConfigError(f"mapper.backend {self.backend!r}: want numpy or octomap")
         if not (math.isfinite(self.robot_stall_s) and self.robot_stall_s >= 0):
             raise ConfigError(f"mapper.robot_stall_s {self.robot_stall_s}: want >= 0 (0: wait for every robot)")
+        if not (math.isfinite(self.relink_after_m) and self.relink_after_m >= 0):
+            raise ConfigError(f"mapper.relink_after_m {self.relink_after_m}: want >= 0 (0: off)")
         if self.publish_every < 0:
             raise ConfigError(f"mapper.publish_every {self.publish_every}: want >= 0")
         if self.pixel_stride < 1:

@@ -64,6 +64,7 @@ class MapperResult:
     problems: list[str] = field(default_factory=list)
     unmerged: list[str] = field(default_factory=list)  # robots never placed in the map (no shared place)
     merges: list[dict] = field(default_factory=list)  # robots placed by a shared place (merge_event)
+    links: dict[str, int] = field(default_factory=dict)  # verified matches between robots, by kind
     lost: list[str] = field(default_factory=list)  # robots gone mid-run (their tracker died)
 
 
@@ -155,7 +156,7 @@ def run_fleet(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: st
             per_robot[robot]["merged"] = robot not in result.unmerged
             per_robot[robot]["lost"] = robot in result.lost
         frame.from_first_robot(None)  # no keyframe came: announce the level frame
-        stats = {"robots": per_robot, "merges": result.merges, **({"map_frame": frame.found} if frame.found else {})}
+        stats = {"robots": per_robot, "merges": result.merges, "links": result.links, **({"map_frame": frame.found} if frame.found else {})}
         finish(mapper, result, bus, viz, publisher, out_dir, stats)
     return result
 
@@ -287,6 +288,7 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
     result.lost = [cfg.robots[r] for r in sorted(lost)]
     result.unmerged = [cfg.robots[r] for r in placement.unplaced()]
     result.merges = [merge_event(m, cfg.robots) for m in placement.merges]
+    result.links = {kind: placement.link_kinds.count(kind) for kind in ("place", "refine", "relink")}
     for r in placement.unplaced():
         waiting = placement.take(r)
         where = write_separate_map(cfg, waiting, out_dir / cfg.robots[r].strip("/").replace("/", "_"))
@@ -298,7 +300,7 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
 def _placement(cfg: MapperConfig) -> Placement:
     """Known start poses, or (none given, several robots) placing by shared places."""
     n = len(cfg.robots)
-    return Placement.known(cfg.start_pose_matrices()) if cfg.start_poses or n == 1 else Placement.by_place(n)
+    return Placement.known(cfg.start_pose_matrices()) if cfg.start_poses or n == 1 else Placement.by_place(n, cfg.relink_after_m)
 
 
 def write_separate_map(cfg: MapperConfig, waiting: list, out: Path) -> Path:

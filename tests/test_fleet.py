@@ -122,6 +122,56 @@ def test_the_joint_graph_closes_the_seam_a_rigid_placement_leaves():
     assert all(np.array_equal(poses[g], again[g]) for g in poses)
 
 
+def test_robots_that_meet_again_later_are_linked_again():
+    """Issue 18, inter-robot loop closure: r2 is placed where r1 started (X) and refined there, goes
+    where r1 never was, then comes past the place r1 saw at the end (Y): a new link between r2's
+    keyframe at Y and r1's, found among r1's nearest kept keyframes. Without relinking (as before)
+    the robots stay tied at X only; same keyframes, same links (the defined order)."""
+    from octolog.kit.geometry import RgbdFrame, invert
+    from octolog.mapper import placement as pl
+    from octolog.replay.synthetic import SyntheticScene
+
+    scene = SyntheticScene(n_frames=600)  # one loop round the room; X at frame 0, Y at 300, 1.8 m apart
+
+    def frame(i: int) -> RgbdFrame:
+        colour, depth = scene.render_pose(scene.pose(i))
+        return RgbdFrame(i, scene.stamp_ns(i), colour, depth, scene.depth_scale_m, scene.intrinsics)
+
+    r1 = [0, 3, 6, 9, 12, 15, 300, 303, 306]
+    after_m = MapperConfig().relink_after_m
+    r2 = [1, 4, 7, 10, 13, 16] + [150 + 3 * k for k in range(10)] + [301, 304]  # X to Y by way of 150: ~3.6 m
+    frames = {i: frame(i) for i in sorted(set(r1 + r2))}
+    r2_own = {i: invert(scene.pose(r2[0])) @ scene.pose(i) for i in r2}  # r2's world: its first camera
+
+    def run(relink: bool) -> pl.Placement:
+        p = pl.Placement.by_place(2, after_m if relink else 0.0)
+        for kid, i in enumerate(r1):  # r1's world is the map's (its first camera's, here the scene's)
+            p.remember(0, kid, kid, scene.pose(i), frames[i])
+        gid = len(r1)
+        for kid, i in enumerate(r2):
+            if not p.placed(1):
+                assert p.offer(1, kid, scene.stamp_ns(i), r2_own[i], frames[i]) is not None, "r2 placed at X"
+                assert [w.kf_id for w in p.take(1)] == [kid]
+            p.remember(1, kid, gid, p.world_from_robot[1] @ r2_own[i], frames[i])
+            gid += 1
+        return p
+
+    p = run(True)
+    assert p.link_kinds[:pl.REFINE_MATCHES] == ["place"] + ["refine"] * (pl.REFINE_MATCHES - 1)
+    pairs = [(r, k) for _, r, k, _ in p.links]
+    assert len(set(pairs)) == len(pairs), pairs  # one link per keyframe: the placing match is not counted twice
+    relinks = [lk for lk, kind in zip(p.links, p.link_kinds) if kind == "relink"]
+    assert relinks, p.link_kinds
+    at_y = {r1.index(i) for i in (300, 303, 306)}
+    assert all(r == 1 and r2[k] in (301, 304) and a in at_y for a, r, k, _ in relinks), relinks
+    gid, _, k, al = relinks[0]  # the link says where r2's keyframe is from r1's: as the scene does
+    truth = invert(scene.pose(r1[gid])) @ scene.pose(r2[k])
+    assert np.linalg.norm(al.a_from_b[:3, 3] - truth[:3, 3]) < 0.01
+    off = run(False)
+    assert "relink" not in off.link_kinds and len(off.links) == pl.REFINE_MATCHES
+    assert [(a, r, k) for a, r, k, _ in run(True).links] == [(a, r, k) for a, r, k, _ in p.links]
+
+
 def test_a_paused_robot_holds_the_others_back_no_longer_and_the_defined_order_stays():
     """Issue 18, the per-robot watermark: a robot paused for silence is not waited for; its item
     that comes later is taken late (out of the defined order, and the merge says so), and
@@ -154,6 +204,8 @@ def test_config_checks_robots_and_start_poses():
         MapperConfig(robots=("r1",), start_poses=((0, 0, 0, 0, 0, 0, 0),)).validate()
     with pytest.raises(ConfigError, match="listed twice"):
         MapperConfig(robots=("r1", "r1")).validate()
+    with pytest.raises(ConfigError, match="relink_after_m -1"):
+        MapperConfig(robots=("r1", "r2"), relink_after_m=-1).validate()
     proc = octolog("map", "--set", "robots=[\"a\", \"b*\"]", "--no-multicast", check=False, timeout=60)
     assert proc.returncode == 1 and proc.stderr.count("\n") == 1 and "mapper.robots 'b*'" in proc.stderr
 
