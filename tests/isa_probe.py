@@ -5,6 +5,7 @@ NPY_DISABLE_CPU_FEATURES, OPENBLAS_CORETYPE) and compared with an unrestricted r
 pytest (no test_ prefix).
 
 usage: python tests/isa_probe.py SOURCE FRAMES   (SOURCE: synthetic:N or tum:PATH)
+OCTOLOG_PROBE_CV_UNOPTIMIZED=1: with cv2.setUseOptimized(False) for the whole run.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import octolog  # noqa: F401  (before numpy: pins OpenBLAS's kernels, as in ever
 # isort: on
 import ctypes
 import hashlib
+import os
 import sys
 from pathlib import Path
 
@@ -26,6 +28,10 @@ from octolog.tracker.features import OrbExtractor, grey_image
 
 
 def main(source: str, n_frames: int) -> None:
+    if os.environ.get("OCTOLOG_PROBE_CV_UNOPTIMIZED"):
+        import cv2
+
+        cv2.setUseOptimized(False)
     src = open_source(source)
     cfg = for_source(TrackerConfig(background=False), src)
     f = cfg.odometry_params().features

@@ -113,6 +113,16 @@ def test_an_octolog_process_pins_numpy_and_openblas_before_numpy_loads():
     assert out[1].split() == ["X86_V3", "X86_V4", "AVX512_ICL", "AVX512_SPR"]
 
 
+def test_opencvs_optimisation_switch_changes_no_byte_of_the_tracker():
+    """kit/opencv.py's baseline_simd switches OpenCV's optimisations (IPP, dispatched kernels) off
+    process-wide while the intake's thread computes ORB descriptors; whatever the tracking thread
+    calls meanwhile must give the same bytes either way. A run with the switch off throughout gives
+    the default run's bytes (TUM: on its texture ORB's smoothing does differ, so the probe would see
+    a call that depends on the switch; it fails when ORB.compute runs outside baseline_simd)."""
+    source = f"tum:{tum_first300()}"
+    assert _probe(source, 40, {"OCTOLOG_PROBE_CV_UNOPTIMIZED": "1"}) == _probe(source, 40, {})
+
+
 def test_orb_features_same_bytes_on_tum_under_opencv_baseline():
     """TUM frames (real texture): ORB's descriptors were the part that differed before baseline_simd."""
     source = f"tum:{tum_first300()}"
