@@ -82,6 +82,10 @@ class RecorderConfig:
     # a frame beyond them is recorded but not published (nor encoded for the wire): a tracker that
     # far behind would skip it. 0: publish every frame (no tracker needed). `octolog run` live: 2
     publish_window: int = 0
+    # --publish with JPEG colour: the frames' depth on camera/rgbd/compressed, lossless either way:
+    # "zstd" (octolog's own, docs/formats.md: less than half PNG's CPU here and in the tracker; the
+    # session log's depth topic is then readable by octolog only) or "png" (any PNG reader, ROS tools)
+    wire_depth: str = "zstd"
     min_free_mb: float = 256.0  # stop cleanly before the disk is full
     frame_prefix: str = "camera"
     # --publish: stages that must be up before capture starts (e.g. "tracker"), so none misses frames
@@ -98,6 +102,7 @@ class RecorderConfig:
         one_of("color_codec", self.color_codec, COLOR_CODECS)
         one_of("depth_codec", self.depth_codec, DEPTH_CODECS)
         one_of("compression", self.compression, COMPRESSIONS)
+        one_of("wire_depth", self.wire_depth, ("zstd", "png"))
         one_of("emitter", self.emitter, EMITTER)
         one_of("visual_preset", self.visual_preset, PRESETS)
         one_of("color_auto_exposure", self.color_auto_exposure, ("", "on", "off"))

@@ -131,7 +131,7 @@ def open_sinks(stack: ExitStack, cfg: RecorderConfig, device: DeviceDescription,
     if bus_cfg is not None:
         bus = stack.enter_context(Bus(bus_cfg, "recorder"))
         pub = BusPublisher(bus, device, frame_names(cfg.frame_prefix), compressed=cfg.color_codec == "jpeg",
-                           window=cfg.publish_window)
+                           window=cfg.publish_window, wire_depth=cfg.wire_depth)
         bus.watch(cfg.wait_for)
         bus.wait_for(cfg.wait_for, cfg.wait_timeout_s)
         sink = LiveSink("bus", pub, size=cfg.live_queue_frames, on_close=pub.end)
@@ -149,7 +149,7 @@ class BusPublisher:
     """Publishes each written message on its topic, and colour + aligned depth as `camera/rgbd`."""
 
     def __init__(self, bus: Any, device: DeviceDescription, frames: dict[str, str], *, compressed: bool = False,
-                 window: int = 0) -> None:
+                 window: int = 0, wire_depth: str = "zstd") -> None:
         self._bus = bus
         self._device = device
         self._frames = frames
@@ -158,8 +158,9 @@ class BusPublisher:
         # session log's TF tree, and what the mapper rotates the accelerometer's up with
         self._tf_static = bus.publisher(T.TF_STATIC)
         self._pubs: dict[str, Any] = {}
-        # compressed: the recorded JPEG colour as it was written, depth as lossless PNG (the recorded
-        # PNG when depth is recorded so), on camera/rgbd/compressed: a tenth of the raw frame
+        # compressed: the recorded JPEG colour as it was written, depth lossless as `wire_depth` says
+        # (the recorded PNG when depth is recorded so), on camera/rgbd/compressed: a tenth of the raw frame
+        self.wire_depth = wire_depth
         self._rgbd = bus.publisher(T.RGBD_COMPRESSED if compressed else T.RGBD)
         self._rgbd_end = bus.publisher(T.RGBD_END)
         self._props = bus.publisher(T.CAMERA_PROPERTIES)
@@ -197,8 +198,10 @@ class BusPublisher:
             if T.ALIGNED_DEPTH_PNG in written:  # the recording's PNG, as it is
                 depth = codec.decode(written[T.ALIGNED_DEPTH_PNG].data, T.ALIGNED_DEPTH_PNG.msgtype)
                 depth_bytes, depth_format = bytes(depth.data), codec.DEPTH_PNG_FORMAT
-            else:  # zstd: less than half PNG's cost to encode here and to decode in the tracker
+            elif self.wire_depth == "zstd":  # less than half PNG's cost to encode here and to decode in the tracker
                 depth_bytes, depth_format = codec.depth_zstd(d.array), codec.DEPTH_ZSTD_FORMAT
+            else:
+                depth_bytes, depth_format = codec.depth_png(d.array).tobytes(), codec.DEPTH_PNG_FORMAT
             self._rgbd.put(codec.encoded_rgbd_msg(EncodedRgbd(
                 c.frame_number, c.stamp_ns, bytes(colour.data), colour.format, depth_bytes, depth_format,
                 self._device.depth_scale_m, self._device.color, self._frame)))

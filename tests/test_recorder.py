@@ -464,9 +464,10 @@ def _port() -> int:
         return s.getsockname()[1]
 
 
-def test_publishes_live_while_recording(tmp_path):
+@pytest.mark.parametrize("wire_depth", ["zstd", "png"])
+def test_publishes_live_while_recording(tmp_path, wire_depth):
     """Camera topics and camera/rgbd/compressed on Zenoh (the recorded JPEG colour as written, depth as
-    lossless PNG); what a slow consumer missed is counted as live drops."""
+    lossless zstd); what a slow consumer missed is counted as live drops."""
     from octolog.kit.bus import Bus, BusConfig
 
     ep = f"tcp/127.0.0.1:{_port()}"
@@ -476,7 +477,7 @@ def test_publishes_live_while_recording(tmp_path):
     rgbd = T.RGBD_COMPRESSED
     with Bus(sub_cfg, "tracker", inbox_size=64) as sub:
         sub.start([T.RGBD, rgbd, T.RGBD_END, T.COLOR_JPEG, T.GYRO])
-        cfg = dataclasses.replace(BASE, wait_for=("tracker",), wait_timeout_s=30.0)
+        cfg = dataclasses.replace(BASE, wait_for=("tracker",), wait_timeout_s=30.0, wire_depth=wire_depth)
         result: dict = {}
         t = threading.Thread(target=lambda: result.update(res=_run(tmp_path, cfg, frames=20, bus_cfg=pub_cfg)[1]))
         t.start()
@@ -499,6 +500,10 @@ def test_publishes_live_while_recording(tmp_path):
     assert got[T.COLOR_JPEG.name][0] == recorded[0].data  # the same bytes as in the file
     jpeg = codec.decode(recorded[0].data, T.COLOR_JPEG.msgtype)
     assert bytes(msg.color.data) == bytes(jpeg.data)  # the frame carries the recorded JPEG, not a re-encoding
+    # depth as recorder.wire_depth says, lossless: the recorded aligned depth exactly
+    assert msg.depth.format == codec.DEPTH_CODECS[wire_depth]
+    aligned = next(read_messages(res.paths[0], [T.ALIGNED_DEPTH.name]))
+    assert np.array_equal(frame.depth, codec.image_array(codec.decode(aligned.data, T.ALIGNED_DEPTH.msgtype)))
 
 
 def test_publish_window_holds_back_what_the_tracker_has_no_hand_for(tmp_path):
