@@ -76,3 +76,47 @@ def test_bad_frames_are_lost_and_tracking_goes_on(tmp_path):
 def test_state_codes_on_the_wire_are_the_messages_constants():
     """The enum's values name TrackingStatus's constants; their codes never change (logs keep them)."""
     assert [(str(s), status_code(s)) for s in TrackingState] == [("INIT", 0), ("OK", 1), ("LOST", 2), ("SKIPPED", 3)]
+
+
+def test_rerun_logging_runs_off_the_tracking_thread_in_frame_order(tmp_path):
+    """Issue 19: the tracker's Rerun log (images, keypoints, paths) is written by a thread of its own,
+    frame after frame in order, while the tracking thread goes on to the next frame; what the log
+    reads of the tracker is copied at hand-over. A logging error surfaces when the block ends."""
+    import threading
+
+    import pytest
+
+    from octolog.kit.viz import Viz
+    from octolog.tracker.config import TrackerConfig
+    from octolog.tracker.factory import make_odometry
+    from octolog.tracker.node import TrackerResult, VizLog
+
+    calls: list[tuple[str, int | None]] = []
+
+    class Watched(Viz):  # the real Rerun stream, saving to a file; it notes who logs which frame
+        def set_time(self, stamp_ns: int, frame: int | None = None) -> None:
+            calls.append((threading.current_thread().name, frame))
+            super().set_time(stamp_ns, frame)
+
+    frames = list(SyntheticScene(n_frames=6).frames())
+    odometry = make_odometry(TrackerConfig(background=False))
+    result = TrackerResult()
+    with Watched(f"save:{tmp_path}", "tracker", "t") as viz, VizLog(viz) as shown:
+        for f in frames:
+            res = odometry.track(f)
+            result.frames += 1
+            result.keyframes += res.is_keyframe
+            result.ms.append(1.0)
+            result.poses.append(res.world_from_camera)
+            shown.put(f, res, result, odometry)
+    assert [frame for _, frame in calls] == [f.seq for f in frames]
+    assert {name for name, _ in calls} == {"tracker-viz"}
+    assert (tmp_path / "tracker.rrd").stat().st_size > 10_000
+
+    class Broken(Viz):
+        def points2d(self, *args: object, **kwargs: object) -> None:
+            raise RuntimeError("viewer gone")
+
+    with pytest.raises(RuntimeError, match="viewer gone"), Broken(f"save:{tmp_path / 'b'}", "tracker", "t") as viz, \
+            VizLog(viz) as shown:
+        shown.put(frames[-1], res, result, odometry)

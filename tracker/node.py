@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import json
+import queue
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 import numpy as np
 
@@ -92,7 +94,7 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
     bus.watch(["mapper"], required=False)  # a mapper may restart: keep its keyframes until it is done
     result = TrackerResult()
     expected: int | None = None
-    with Intake(bus, odometry, viz=viz.enabled, live=cfg.live) as intake:
+    with Intake(bus, odometry, viz=viz.enabled, live=cfg.live) as intake, VizLog(viz) as shown:
         while expected is None or result.frames < expected:
             if (item := intake.get()) is None:
                 if expected is not None:
@@ -156,8 +158,7 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
                 result.backend_deferred += 1
             pub_status.put(_status(frame.seq, frame.stamp_ns, res.state, res.is_keyframe, res.keyframe_id,
                                    res.n_matches, res.n_inliers, ms))
-            if viz.enabled:
-                _log(viz, frame, res, result, odometry)
+            shown.put(frame, res, result, odometry)
     # the back end's last word: every keyframe at its final pose, so the map matches the
     # trajectory. Sent before the end messages, whose count for it the mapper waits for.
     moved = odometry.finish()
@@ -249,36 +250,92 @@ def _status(seq: int, stamp: int, state: TrackingState, is_kf: bool, kf_id: int,
 KP_COLOURS = np.array([[160, 160, 160], [230, 40, 40], [40, 220, 60], [40, 140, 255]], np.uint8)
 
 
-def _log(viz: Viz, frame, res: TrackResult, result: TrackerResult, odometry: Tracker) -> None:
+@dataclass(frozen=True)
+class _Shown:
+    """What one frame's Rerun log needs, taken on the tracking thread before the next frame changes it."""
+
+    frame: RgbdFrame
+    res: TrackResult
+    first: bool
+    first_keyframe: bool
+    ms: float
+    poses: list[np.ndarray] | None  # at keyframes: every tracked pose so far
+    keypoints: tuple[np.ndarray, np.ndarray] | None
+    local_map: np.ndarray | None  # at keyframes
+
+
+class VizLog:
+    """The tracker's Rerun logging off the tracking thread (issue 19): one thread logs the frames in
+    their order; the tracking thread hands each frame over with copies of what its log reads of the
+    tracker. A full queue holds the tracking thread back rather than lose a frame's log. An error in
+    logging is raised when the block ends, as it was raised where it happened before."""
+
+    QUEUE = 8
+
+    def __init__(self, viz: Viz) -> None:
+        self.viz = viz
+        self._q: queue.Queue[_Shown | None] = queue.Queue(self.QUEUE)
+        self._thread = threading.Thread(target=self._run, name="tracker-viz", daemon=True)
+        self.error: BaseException | None = None
+
+    def __enter__(self) -> Self:
+        if self.viz.enabled:
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._thread.is_alive():
+            self._q.put(None)
+            self._thread.join()
+        if self.error is not None and exc[0] is None:
+            raise self.error
+
+    def put(self, frame: RgbdFrame, res: TrackResult, result: TrackerResult, odometry: Tracker) -> None:
+        if not self.viz.enabled:
+            return
+        kp = odometry.keypoints()
+        self._q.put(_Shown(frame, res, result.frames == 1, res.is_keyframe and result.keyframes == 1, result.ms[-1],
+                           list(result.poses) if res.is_keyframe else None,
+                           None if kp is None else (kp[0].copy(), kp[1].copy()),
+                           odometry.local_map() if res.is_keyframe else None))
+
+    def _run(self) -> None:
+        while (item := self._q.get()) is not None:
+            try:
+                _log(self.viz, item)
+            except BaseException as exc:  # noqa: BLE001  (kept, raised on the tracking thread at the end)
+                self.error = self.error or exc
+
+
+def _log(viz: Viz, shown: _Shown) -> None:
+    frame, res = shown.frame, shown.res
     viz.set_time(frame.stamp_ns, frame.seq)
-    if result.frames == 1:
+    if shown.first:
         viz.camera("world/tracker/camera", frame.intrinsics)
     viz.pose("world/tracker/camera", res.world_from_camera)
     colour, depth = frame.extra.get("wire", (None, None))
     jpeg = colour.data if colour is not None and "jpeg" in colour.format else frame.extra.get("jpeg")
     viz.rgb("world/tracker/camera/image", frame.rgb, jpeg)  # the one place the images are logged
     viz.scalar("tracker/inliers", float(res.n_inliers))
-    keypoints = odometry.keypoints()
-    if keypoints is not None:
-        pts, state = keypoints
+    if shown.keypoints is not None:
+        pts, state = shown.keypoints
         viz.points2d("world/tracker/camera/image/keypoints", pts, KP_COLOURS[state])
-    viz.scalar("tracker/ms", result.ms[-1])
-    if res.is_keyframe:
+    viz.scalar("tracker/ms", shown.ms)
+    if shown.poses is not None:
         # the whole path, re-sent at keyframes only: per frame it would cost O(frames) each time
-        viz.path3d("world/tracker/trajectory", np.array([p[:3, 3] for p in result.poses]), color=[255, 160, 0])
+        viz.path3d("world/tracker/trajectory", np.array([p[:3, 3] for p in shown.poses]), color=[255, 160, 0])
         viz.points3d("world/tracker/keyframes", np.array([res.world_from_camera[:3, 3]]), [0, 200, 255],
                      radius=0.02)
         viz.text("tracker/events", f"keyframe {res.keyframe_id} at frame {frame.seq}")
         # the keyframe's depth at the keyframe's pose (per frame it would add 100 kB a frame and
         # nothing a keyframe does not show); its own entity, so it stays where it was taken
-        if result.keyframes == 1:
+        if shown.first_keyframe:
             viz.camera("world/tracker/keyframe", frame.intrinsics)
         viz.pose("world/tracker/keyframe", res.world_from_camera)
         png = depth.data if depth is not None and depth.format == codec.DEPTH_PNG_FORMAT else None
         viz.depth("world/tracker/keyframe/depth", frame.depth, frame.depth_scale_m, png)
-        local_map = odometry.local_map()
-        if local_map is not None:
-            viz.points3d("world/tracker/local_map", local_map, [255, 255, 255], radius=0.004)
+        if shown.local_map is not None:
+            viz.points3d("world/tracker/local_map", shown.local_map, [255, 255, 255], radius=0.004)
     if res.loop is not None:
         viz.text("tracker/events", f"loop closed: keyframe {res.loop[0]} with keyframe {res.loop[1]}, "
                                    f"{len(res.corrected)} keyframes moved")
