@@ -256,12 +256,16 @@ class DenseCloud:
     def __len__(self) -> int:
         return len(self._parts)
 
-    def preview(self, step: int) -> tuple[np.ndarray, np.ndarray]:
+    def preview(self, step: int, max_points: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """Every `step`-th point of each keyframe's contribution, ascending ids, not merged: a look at
-        the growing cloud for the viewer that costs a copy, not the merge (`cloud`) over every point."""
+        the growing cloud for the viewer that costs a copy, not the merge (`cloud`) over every point.
+        With `max_points`, the step grows with the cloud so that about that many points come out."""
         ids = sorted(self._parts)
         if not ids:
             return _EMPTY_POINTS.copy(), _EMPTY_COLOURS.copy()
+        if max_points:
+            total = sum(len(self._parts[i][0]) for i in ids)
+            step = max(step, -(-total // max_points))
         return (np.concatenate([self._parts[i][0][::step] for i in ids]),
                 np.concatenate([self._parts[i][1][::step] for i in ids]))
 

@@ -450,13 +450,16 @@ def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: Pu
 # The dense cloud of a snapshot while the map grows: every CLOUD_STRIDE-th point of each keyframe's
 # filtered cloud, not merged across keyframes (the voxels show the growing map; a full cloud per
 # snapshot made the mapper's recording grow with the square of the session, and merging every point
-# for it cost a second a snapshot at 3 M points). The last snapshot logs the merged cloud whole.
+# for it cost a second a snapshot at 3 M points), and at most PREVIEW_POINTS in all (the stride grows
+# with the map, so a snapshot's size stops growing with the session's length and the recording
+# grows linearly). The last snapshot logs the merged cloud whole.
 CLOUD_STRIDE = 8
+PREVIEW_POINTS = 100_000
 
 
 def _log_map(viz: Viz, mapper: Mapper, stamp: int, grid: Any = None, *, final: bool = False) -> None:
     viz.set_time(stamp)
-    pts, cols = mapper.cloud.cloud() if final else mapper.cloud.preview(CLOUD_STRIDE)
+    pts, cols = mapper.cloud.cloud() if final else mapper.cloud.preview(CLOUD_STRIDE, PREVIEW_POINTS)
     viz.points3d("map/cloud", pts, cols, radius=0.004 if final else 0.008)
     centres = mapper.octree.occupied_centres()
     if len(centres):

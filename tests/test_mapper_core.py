@@ -393,3 +393,20 @@ def test_outputs_are_byte_identical_across_processes(tmp_path):
         blobs = [(o / name).read_bytes() for o in outs]
         assert len(blobs[0]) > 1000
         assert blobs[0] == blobs[1] == blobs[2], f"{name} differs between runs"
+
+
+def test_snapshot_preview_stops_growing_with_the_session():
+    """The mapper's Rerun snapshots show a preview of the dense cloud: one point in 8 of each keyframe,
+    and at most about PREVIEW_POINTS in all, so a long session's recording grows linearly."""
+    from octolog.mapper.node import CLOUD_STRIDE, PREVIEW_POINTS
+
+    rng = np.random.default_rng(0)
+    cloud = DenseCloud()
+    sizes = []
+    for k in range(60):
+        cloud.add(k, rng.random((20_000, 3)), rng.integers(0, 255, (20_000, 3), dtype=np.uint8))
+        sizes.append(len(cloud.preview(CLOUD_STRIDE, PREVIEW_POINTS)[0]))
+    assert sizes[0] == 20_000 // CLOUD_STRIDE and sizes[9] == 10 * 20_000 // CLOUD_STRIDE  # small maps: 1 in 8
+    assert max(sizes) <= PREVIEW_POINTS + 60 and sizes[-1] > 0.8 * PREVIEW_POINTS  # then capped, not thinned out
+    pts, cols = cloud.preview(CLOUD_STRIDE, PREVIEW_POINTS)
+    assert np.array_equal(pts[0], cloud.preview(1)[0][0]) and len(cols) == len(pts)  # each keyframe's first point
