@@ -203,6 +203,8 @@ class Placement:
         self.links.append((best[0], robot, kf_id, best[2]))
         self.link_kinds.append("relink")
         self._since_link[robot] = self._since_link[best[1]] = 0.0
+        if self._refining(best[1]):  # a robot placed ahead of the others refines by their relinks too
+            self._matches[best[1]] += 1
         return True
 
     def _keep_place(self, robot: int, gid: int, world_from_camera: np.ndarray, f: Features) -> None:
