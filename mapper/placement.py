@@ -15,13 +15,13 @@ robots, up to REFINE_MATCHES verified matches in all; every match is kept as a l
 keyframes (`links`), and the mapper settles the links and the robots' own trajectories in one pose
 graph (mapper/joint.py).
 
-Robots that meet again later are linked again (`relink`, the inter-robot loop closure of
-multi-session SLAM): every map keyframe is kept, one per robot, 0.5 m cell of the world and viewing
-direction (the newest; PLACES in all, the oldest dropped first), and a placed robot's keyframe
-that comes once its robot has come `relink_after_m` along its path since its last link is matched against the nearest of the
-other robots' kept keyframes (within RELINK_NEAR_M and RELINK_ANGLE_DEG, in the common world as it
-stands). A verified match is one more link, and the joint graph settles again. With known start
-poses nothing is matched (as before).
+Robots that meet again later are linked again (`_relink`, the inter-robot loop closure of
+multi-session SLAM): map keyframes are kept, one per robot, 0.5 m cell of the world and viewing
+direction (the newest; PLACES in all, the oldest dropped first), and a placed robot's keyframe, once
+its robot has come `relink_after_m` along its path since its last link, is matched against the
+nearest of the other robots' kept keyframes (within RELINK_NEAR_M and RELINK_ANGLE_DEG, in the
+common world as it stands). A verified match is one more link, and the joint graph settles again.
+With known start poses nothing is matched (as before).
 """
 
 from __future__ import annotations
@@ -83,8 +83,8 @@ class Placement:
     relink_after_m: float = 0.0  # link placed robots again where they meet later, this far apart (0: never)
     _library: list[tuple[int, int, np.ndarray, Features]] = field(default_factory=list)  # (robot, gid, world_from_camera, f)
     _matches: dict[int, int] = field(default_factory=dict)  # robot -> verified matches that placed or refined it
-    # relink: kept keyframes by (robot, cell, direction) -> (robot, gid, world_from_camera, features),
-    # oldest first; each robot's keyframes since its last link
+    # relinking: kept keyframes by (robot, cell, direction) -> (robot, gid, world_from_camera, features),
+    # oldest first; each robot's path since its last link and its last keyframe's position
     _places: dict[tuple, tuple[int, int, np.ndarray, Features]] = field(default_factory=dict)
     _since_link: dict[int, float] = field(default_factory=dict)  # metres of path
     _last_at: dict[int, np.ndarray] = field(default_factory=dict)  # each robot's last keyframe position
