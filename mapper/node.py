@@ -21,7 +21,7 @@ from octolog.kit.metrics import write_tum
 from octolog.kit.viz import Viz
 from octolog.mapper.config import MapperConfig
 from octolog.mapper.core import Mapper, bt_payload, make_mapper
-from octolog.mapper.fleet import CorrectionItem, FleetMerge, KeyframeItem
+from octolog.mapper.fleet import CorrectionItem, FleetMerge, KeyframeItem, Watermark
 from octolog.mapper.fleetmap import FleetHooks, FleetMap
 from octolog.mapper.grid import OccupancyGrid2D, occupancy_grid_msg
 from octolog.mapper.mapframe import MapFrame
@@ -41,6 +41,7 @@ from octolog.schemas.topics import (
     MAP_UPDATE,
     OCCUPIED,
     OCTOMAP,
+    TRACKING_STATUS,
 )
 
 # Keyframes come in bursts (a new place: one every few frames) that the mapper, at ~0.1-0.5 s each,
@@ -174,8 +175,10 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
     bus.start([])
     bus.publisher(CONFIGS["mapper"]).put(codec.config_msg("mapper", to_dict(cfg)))
     for rb in robot_buses:
-        rb.start([KEYFRAME, KEYFRAME_COMPRESSED, KEYFRAME_POSES, KEYFRAME_END], wait_for=cfg.wait_for,
-                 timeout_s=cfg.wait_timeout_s)
+        # the tracker's statuses are the robot's watermark (mapper/fleet.py); in order with its
+        # keyframes, and those in a row collapse in the inbox, so they never hold the tracker back
+        rb.start([KEYFRAME, KEYFRAME_COMPRESSED, KEYFRAME_POSES, KEYFRAME_END, TRACKING_STATUS], wait_for=cfg.wait_for,
+                 timeout_s=cfg.wait_timeout_s, latest_only=[TRACKING_STATUS])
         rb.watch(["tracker"])
     merge = FleetMerge(cfg.robots)
     expected: list[int | None] = [None] * n
@@ -255,9 +258,12 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
                     expected[i] = int(end.count)
                     robot_buses[i].expect_count(KEYFRAME, received[i], expected[i])
                     robot_buses[i].unwatch("tracker")
+            elif r.topic == TRACKING_STATUS:
+                merge.push(i, Watermark(codec.stamp_ns(r.decode().header)))
             elif r.topic == KEYFRAME_POSES:
                 received_poses[i] += 1
-                merge.push(i, CorrectionItem(r.decode()))
+                msg = r.decode()
+                merge.push(i, CorrectionItem(codec.stamp_ns(msg.header), msg))
             else:
                 received[i] += 1
                 msg = r.decode()

@@ -68,6 +68,41 @@ def test_slow_consumer_gets_everything_in_order(endpoints):
     assert got == list(range(n))
 
 
+def test_a_progress_topic_collapses_in_the_inbox_and_never_fills_it():
+    """`latest_only` (the mapper takes a robot's tracker statuses so): statuses in a row collapse to
+    the newest, in place between the data samples; a status never blocks on a full inbox whose
+    last item is a status, while a data sample still does (back-pressure)."""
+    from octolog.kit.bus.inbox import Inbox, Received
+
+    def status(seq: int) -> Received:
+        return Received(topics.TRACKING_STATUS, bytes([seq]))
+
+    def data(name: str) -> Received:
+        return Received(topics.KEYFRAME_END, name.encode())
+
+    inbox = Inbox(4)
+    inbox.keep_latest(topics.TRACKING_STATUS)
+    for item in (status(1), status(2), data("a"), status(3), status(4), status(5), data("b")):
+        inbox.put(item)
+    got = []
+    while (r := inbox.get_nowait()) is not None:
+        got.append(r.payload)
+    assert got == [bytes([2]), b"a", bytes([5]), b"b"]
+    full = Inbox(2)
+    full.keep_latest(topics.TRACKING_STATUS)
+    full.put(data("a"))
+    full.put(status(1))
+    put = threading.Thread(target=full.put, args=(status(2),))
+    put.start()
+    put.join(timeout=30)  # a guard against a hang, not a synchronisation: the put returns at once
+    assert not put.is_alive()
+    blocked = threading.Thread(target=full.put, args=(data("b"),))
+    blocked.start()
+    assert full.get(1.0).payload == b"a"  # room: the blocked data sample goes in
+    blocked.join(timeout=30)
+    assert [full.get_nowait().payload, full.get_nowait().payload] == [bytes([2]), b"b"]
+
+
 def test_a_vanished_peer_is_reported(endpoints):
     server, client = endpoints
     with Bus(dataclasses.replace(server, peer_timeout_s=1.0), "mapper") as watcher:

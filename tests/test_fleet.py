@@ -1,4 +1,5 @@
-"""Several robots into one map: the merge order, the config, and two robots through real processes.
+"""Several robots into one map: the joint graph, the config, and robots through real processes
+(the merge order: test_fleet_order.py).
 
 The end-to-end test runs a router, one mapper for robots r1 and r2, and per robot a replay and a
 tracker (each its own process, each robot under its own namespace) on the two halves of the
@@ -13,7 +14,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import random
 import socket
 import subprocess
 import sys
@@ -25,59 +25,11 @@ from helpers import ROOT, kill_then_finish, octolog, read_until, stop_all, tum_f
 
 from octolog.kit.errors import ConfigError
 from octolog.mapper.config import MapperConfig
-from octolog.mapper.fleet import CorrectionItem, FleetMerge, KeyframeItem, merged_order
 
 FRAMES = 40
 HALF = FRAMES // 2
 SHIFT_S = (0.0, -0.65)  # replay.time_shift_s per robot: r2's half starts 17 ms after r1's
 ROBOTS = ("r1", "r2")
-
-
-# --- the merge order -------------------------------------------------------------------------------
-
-
-def _kf(stamp: int, kf_id: int) -> KeyframeItem:
-    return KeyframeItem(stamp, kf_id, None)
-
-
-def test_merge_is_by_stamp_then_robot_and_waits_for_every_stream():
-    streams = [[_kf(10, 0), _kf(30, 1), _kf(50, 2)], [_kf(10, 0), _kf(20, 1), _kf(60, 2)]]
-    order = [(i, it.stamp_ns) for i, it in merged_order(streams)]
-    assert order == [(0, 10), (1, 10), (1, 20), (0, 30), (0, 50), (1, 60)]
-    m = FleetMerge(ROBOTS)
-    m.push(0, _kf(10, 0))
-    assert m.pop() is None and m.waiting_on() == [1]  # r2 might still send something older
-    m.end(1)
-    assert m.pop() == (0, _kf(10, 0))
-
-
-def test_merge_order_does_not_depend_on_arrival_order():
-    """Whatever order the two robots' messages arrive in, the integration order is the same."""
-    streams = [[_kf(s, k) for k, s in enumerate((5, 17, 18, 40))],
-               [_kf(s, k) for k, s in enumerate((1, 17, 30))] + [CorrectionItem({0: "moved"}), _kf(41, 3)]]
-    orders = set()
-    rng = random.Random(7)
-    for _ in range(50):
-        m = FleetMerge(ROBOTS)
-        pending = [list(s) for s in streams]
-        out = []
-        while not m.done():
-            nxt = m.pop()
-            if nxt is not None:
-                out.append((nxt[0], repr(nxt[1])))
-                continue
-            # deliver the next message of a random robot the merge is waiting on (as a network might)
-            i = rng.choice(m.waiting_on())
-            if pending[i]:
-                m.push(i, pending[i].pop(0))
-            else:
-                m.end(i)
-        orders.add(tuple(out))
-    assert len(orders) == 1
-    (order,) = orders
-    kinds = [(i, r.split("(")[0]) for i, r in order]
-    # r2's correction came after its keyframe at 30 and is applied before anything later
-    assert kinds.index((1, "CorrectionItem")) == 6  # after 1, 5, 17, 17, 18, 30
 
 
 def _pose(x: float, y: float, yaw: float) -> np.ndarray:
@@ -120,29 +72,6 @@ def test_the_joint_graph_closes_the_seam_a_rigid_placement_leaves():
     # same inputs, same poses: the joint graph is part of the map's deterministic order
     again = joint_poses(robot_poses, [np.eye(4), W2], [first, second])
     assert all(np.array_equal(poses[g], again[g]) for g in poses)
-
-
-def test_a_paused_robot_holds_the_others_back_no_longer_and_the_defined_order_stays():
-    """Issue 18, the per-robot watermark: a robot paused for silence is not waited for; its item
-    that comes later is taken late (out of the defined order, and the merge says so), and
-    `canonical` gives every item in the order complete streams would have had."""
-    a0, a1, b0 = KeyframeItem(10, 0, "a0"), KeyframeItem(30, 1, "a1"), KeyframeItem(5, 0, "b0")
-    merge = FleetMerge(("a", "b"))
-    merge.push(0, a0)
-    merge.push(0, a1)
-    assert merge.pop() is None and merge.waiting_on() == [1]
-    merge.pause(1)
-    assert merge.waiting_on() == [] and merge.paused() == [1]
-    assert merge.pop() == (0, a0) and merge.jumped
-    merge.push(1, b0)  # older than what was taken: late
-    assert merge.paused() == [] and merge.pop() == (1, b0)
-    merge.end(1)
-    assert merge.pop() == (0, a1)
-    assert merge.canonical() == [(1, b0), (0, a0), (0, a1)]
-    steady = FleetMerge(("a", "b"))
-    for i, item in ((0, a0), (1, b0), (0, a1)):
-        steady.push(i, item)
-    assert steady.pop() == (1, b0) and not steady.jumped
 
 
 def test_config_checks_robots_and_start_poses():
@@ -371,7 +300,7 @@ def test_rerun_has_a_trajectory_per_robot(fleet):
     from helpers import rerun_cli
 
     rrd = procs / "rerun" / "mapper.rrd"
-    proc = subprocess.run([rerun_cli(), "rrd", "print", str(rrd)], capture_output=True, text=True, timeout=300,
+    proc = subprocess.run([rerun_cli(), "rrd", "print", str(rrd)], check=False, capture_output=True, text=True, timeout=300,
                           env={**os.environ, "RERUN_DISABLE_ANALYTICS": "1"})
     text = proc.stdout + proc.stderr
     for robot in ROBOTS:

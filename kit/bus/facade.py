@@ -89,9 +89,12 @@ class Bus:
         """A reliable, blocking publisher of `topic` (numbered, with a history, if history is on)."""
         return self._publishing.publisher(topic)
 
-    def subscribe(self, topics: Iterable[Topic]) -> None:
+    def subscribe(self, topics: Iterable[Topic], *, latest_only: Iterable[Topic] = ()) -> None:
         """Feed these topics into this stage's bounded inbox: per publisher exactly once and in
-        order (with history), as they arrive across topics."""
+        order (with history), as they arrive across topics. Samples of a `latest_only` topic in a
+        row collapse to the newest while they wait (progress signals: they never fill the inbox)."""
+        for topic in latest_only:
+            self._inbox.keep_latest(topic)
         self._delivery.subscribe(topics)
 
     def receive(self, timeout_s: float = 0.25) -> Received | None:
@@ -164,9 +167,10 @@ class Bus:
 
     # --- stages: readiness and liveness ------------------------------------------------------
 
-    def start(self, topics: Iterable[Topic], *, wait_for: Iterable[str] = (), timeout_s: float = 60.0) -> None:
+    def start(self, topics: Iterable[Topic], *, wait_for: Iterable[str] = (), timeout_s: float = 60.0,
+              latest_only: Iterable[Topic] = ()) -> None:
         """The usual stage start: subscribe, wait for the stages named, then announce readiness."""
-        self.subscribe(topics)
+        self.subscribe(topics, latest_only=latest_only)
         wait_for = tuple(wait_for)
         self.watch(wait_for)
         self.wait_for(wait_for, timeout_s)

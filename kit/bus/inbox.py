@@ -3,16 +3,16 @@
 Bounded, and filled with blocking puts from Zenoh's receive thread: a slow consumer slows its
 producers, nothing is dropped. A plain Zenoh callback subscriber would queue without bound.
 
-Locking: the queue's own. `closing` (an Event, set by `close`) releases a put blocked on a full
-inbox once the bus closes; `last_put` is written by whichever thread delivers and only read as a
-hint (is the bus idle?).
+Locking: one Condition over the queue. `closing` (an Event, set by `close`) releases a put
+blocked on a full inbox once the bus closes; `last_put` is written by whichever thread delivers and
+only read as a hint (is the bus idle?).
 """
 
 from __future__ import annotations
 
-import queue
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
@@ -39,44 +39,71 @@ class Received:
 
 
 class Inbox:
-    """The bounded queue a stage's loop takes its samples from."""
+    """The bounded queue a stage's loop takes its samples from.
+
+    A topic marked `keep_latest` is a progress signal, not data: a sample of it that arrives while
+    the inbox's last item is one of the same topic replaces that one (in place, keeping the order
+    with the other topics), so such samples never fill the inbox nor block their sender."""
 
     def __init__(self, size: int) -> None:
-        self._queue: queue.Queue[Received] = queue.Queue(maxsize=size)
+        self._items: deque[Received] = deque()
+        self._size = size
+        self._cond = threading.Condition(threading.Lock())
+        self._latest: set[Topic] = set()
         self.closing = threading.Event()
         self.last_put = time.monotonic()  # when something last went in
 
+    def keep_latest(self, topic: Topic) -> None:
+        """Samples of `topic` in a row collapse to the newest (see the class)."""
+        with self._cond:
+            self._latest.add(topic)
+
     def put(self, item: Received) -> None:
         """Into the inbox, blocking (back-pressure); gives up only when the bus closes."""
-        while not self.closing.is_set():
-            try:
-                self._queue.put(item, timeout=0.5)
-                self.last_put = time.monotonic()
-                return
-            except queue.Full:
-                continue
+        with self._cond:
+            while not self._replaces_last(item):
+                if len(self._items) < self._size:
+                    self._items.append(item)
+                    break
+                if self.closing.is_set():
+                    return
+                self._cond.wait(0.5)
+            self.last_put = time.monotonic()
+            self._cond.notify_all()
+
+    def _replaces_last(self, item: Received) -> bool:
+        if item.topic in self._latest and self._items and self._items[-1].topic == item.topic \
+                and self._items[-1].query is None:
+            self._items[-1] = item
+            return True
+        return False
 
     def close(self) -> None:
         """Release puts blocked on a full inbox, and refuse further ones (the bus is closing)."""
         self.closing.set()
+        with self._cond:
+            self._cond.notify_all()
 
     def put_request(self, item: Received) -> None:
         """A request into the inbox, waiting for room however long it takes."""
-        self._queue.put(item)
+        with self._cond:
+            self._cond.wait_for(lambda: len(self._items) < self._size)
+            self._items.append(item)
+            self._cond.notify_all()
 
     def get(self, timeout_s: float) -> Received | None:
         """The next item, or None after `timeout_s`."""
-        try:
-            return self._queue.get(timeout=timeout_s)
-        except queue.Empty:
-            return None
+        with self._cond:
+            if not self._cond.wait_for(lambda: self._items, timeout_s):
+                return None
+            item = self._items.popleft()
+            self._cond.notify_all()
+            return item
 
     def get_nowait(self) -> Received | None:
         """The next item if one is waiting, else None."""
-        try:
-            return self._queue.get_nowait()
-        except queue.Empty:
-            return None
+        return self.get(0.0)
 
     def empty(self) -> bool:
-        return self._queue.empty()
+        with self._cond:
+            return not self._items
