@@ -82,6 +82,10 @@ class RecorderConfig:
     # a frame beyond them is recorded but not published (nor encoded for the wire): a tracker that
     # far behind would skip it. 0: publish every frame (no tracker needed). `octolog run` live: 2
     publish_window: int = 0
+    # with publish_window: hold a frame back only if the oldest unanswered one is also more than this
+    # much sensor time older (a live tracker tracks a burst in order, tracker.live_lag_ms); 0: by
+    # count alone. `octolog run` live: the tracker's live_lag_ms
+    publish_lag_ms: float = 0.0
     # --publish with JPEG colour: the frames' depth on camera/rgbd/compressed, lossless either way:
     # "zstd" (octolog's own, docs/formats.md: less than half PNG's CPU here and in the tracker; the
     # session log's depth topic is then readable by octolog only) or "png" (any PNG reader, ROS tools)
@@ -120,8 +124,8 @@ class RecorderConfig:
         for key in ("chunk_size_mb",):
             if getattr(self, key) <= 0:
                 raise ConfigError(f"recorder.{key} {getattr(self, key)}: want > 0")
-        for key in ("split_size_mb", "split_duration_s", "min_free_mb", "publish_window", "depth_units_m",
-                    "color_exposure", "depth_exposure", "gyro_fps", "accel_fps"):
+        for key in ("split_size_mb", "split_duration_s", "min_free_mb", "publish_window", "publish_lag_ms",
+                    "depth_units_m", "color_exposure", "depth_exposure", "gyro_fps", "accel_fps"):
             if getattr(self, key) < 0:
                 raise ConfigError(f"recorder.{key} {getattr(self, key)}: want >= 0")
         for key in ("queue_frames", "encode_threads", "live_queue_frames"):

@@ -9,6 +9,7 @@ Rerun logging run on their own threads behind small queues, so neither can stall
 from __future__ import annotations
 
 import threading
+from collections import deque
 from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
@@ -131,7 +132,7 @@ def open_sinks(stack: ExitStack, cfg: RecorderConfig, device: DeviceDescription,
     if bus_cfg is not None:
         bus = stack.enter_context(Bus(bus_cfg, "recorder"))
         pub = BusPublisher(bus, device, frame_names(cfg.frame_prefix), compressed=cfg.color_codec == "jpeg",
-                           window=cfg.publish_window, wire_depth=cfg.wire_depth)
+                           window=cfg.publish_window, lag_ms=cfg.publish_lag_ms, wire_depth=cfg.wire_depth)
         bus.watch(cfg.wait_for)
         bus.wait_for(cfg.wait_for, cfg.wait_timeout_s)
         sink = LiveSink("bus", pub, size=cfg.live_queue_frames, on_close=pub.end)
@@ -149,7 +150,7 @@ class BusPublisher:
     """Publishes each written message on its topic, and colour + aligned depth as `camera/rgbd`."""
 
     def __init__(self, bus: Any, device: DeviceDescription, frames: dict[str, str], *, compressed: bool = False,
-                 window: int = 0, wire_depth: str = "zstd") -> None:
+                 window: int = 0, lag_ms: float = 0.0, wire_depth: str = "zstd") -> None:
         self._bus = bus
         self._device = device
         self._frames = frames
@@ -164,8 +165,11 @@ class BusPublisher:
         self._rgbd = bus.publisher(T.RGBD_COMPRESSED if compressed else T.RGBD)
         self._rgbd_end = bus.publisher(T.RGBD_END)
         self._props = bus.publisher(T.CAMERA_PROPERTIES)
-        # a live tracker's pace (RecorderConfig.publish_window): frames out, minus statuses back
+        # a live tracker's pace (RecorderConfig.publish_window, publish_lag_ms): frames out, minus
+        # statuses back; the stamps of the frames out that no status answered yet
         self.window, self.answered, self.held_back = window, 0, 0
+        self._lag_ns = round(lag_ms * 1e6)
+        self._unanswered: deque[int] = deque()
         if window:
             bus.listen(T.TRACKING_STATUS, self._answered)
         bus.announce()
@@ -186,9 +190,11 @@ class BusPublisher:
             c, d = cap.color, cap.aligned_depth
             if self._props.count == 0:  # before the first frame: the D455's colour camera has a global shutter
                 self._props.put(codec.camera_properties_msg(self._device.name, 0.0, c.stamp_ns))
-            if self.window and self._rgbd.count - self.answered >= self.window:
-                self.held_back += 1  # the tracker has `window` frames in hand: it would skip this one
+            if self._behind(c.stamp_ns):
+                self.held_back += 1  # the tracker would skip this one
                 return
+            if self.window:
+                self._unanswered.append(c.stamp_ns)
             if self._rgbd.topic is T.RGBD:
                 self._rgbd.put(codec.rgbd_msg(RgbdFrame(c.frame_number, c.stamp_ns, c.array, d.array,
                                                         self._device.depth_scale_m, self._device.color, self._frame)))
@@ -205,6 +211,18 @@ class BusPublisher:
             self._rgbd.put(codec.encoded_rgbd_msg(EncodedRgbd(
                 c.frame_number, c.stamp_ns, bytes(colour.data), colour.format, depth_bytes, depth_format,
                 self._device.depth_scale_m, self._device.color, self._frame)))
+
+    def _behind(self, stamp_ns: int) -> bool:
+        """Whether the tracker has `window` frames without a status, the oldest of them more than the
+        lag older than this one (a burst within the lag it tracks in order: publish)."""
+        if not self.window:
+            return False
+        waiting = self._rgbd.count - self.answered
+        while len(self._unanswered) > max(waiting, 0):
+            self._unanswered.popleft()
+        if waiting < self.window:
+            return False
+        return not self._lag_ns or not self._unanswered or stamp_ns - self._unanswered[0] > self._lag_ns
 
     def end(self) -> None:
         """Tell consumers how many RGB-D frames went out (the tracker's end-of-stream), then stay

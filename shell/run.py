@@ -308,6 +308,9 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
                                                       camera=replay_cfg.camera, every=replay_cfg.every,
                                                       keyframes_only=feed_tracker)
     cfgs["tracker"] = for_source(cfgs["tracker"], src)  # an unset rolling shutter: the source's camera
+    if live and not any(o.split("=", 1)[0].strip() == "recorder.publish_lag_ms" for o in overrides or []):
+        # the camera holds back only what the tracker would skip: a burst within its lag it tracks in order
+        cfgs["recorder"] = dataclasses.replace(cfgs["recorder"], publish_lag_ms=cfgs["tracker"].live_lag_ms)
     cfgs["mapper"], map_frame = _map_frame(cfgs["mapper"], src)
     prepare_out(out, overwrite=overwrite)
     marker = out / INCOMPLETE

@@ -10,6 +10,7 @@ the values measured on TUM fr1/xyz at 640x480, and changing one changes the outp
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 
 from octolog.kit.errors import ConfigError
@@ -143,6 +144,10 @@ class TrackerConfig:
     # live: when frames queue up, track the newest and skip the older ones (each skip is published
     # as a SKIPPED status, so the session log says exactly which frames were consumed)
     live: bool = False
+    # live: frames are tracked in order while the newest one waiting is at most this much sensor
+    # time ahead of the next (a burst: the camera's or the bus's jitter, a slow keyframe); beyond it
+    # the newest wins. 0: the newest always wins. The latency a live tracker may add to catch up
+    live_lag_ms: float = 150.0
     # live: a keyframe goes in without waiting for a busy back end, at most this many in a row (its
     # result lands at a later keyframe; each such keyframe is on record, tracker/backend_deferred,
     # which `octolog replay` follows); 0: always wait, as a file replay does
@@ -204,6 +209,8 @@ class TrackerConfig:
         _want(self.throttle_ms >= 0, "throttle_ms", self.throttle_ms, "want >= 0")
         _want(self.backend_throttle_ms >= 0, "backend_throttle_ms", self.backend_throttle_ms, "want >= 0")
         _want(self.live_backend_defer >= 0, "live_backend_defer", self.live_backend_defer, "want >= 0 (0: wait)")
+        _want(math.isfinite(self.live_lag_ms) and self.live_lag_ms >= 0, "live_lag_ms", self.live_lag_ms,
+              "want >= 0 (0: the newest frame always wins)")
         _want(self.wait_timeout_s > 0, "wait_timeout_s", self.wait_timeout_s, "want > 0")
         _want(self.n_features >= 100, "n_features", self.n_features, "want >= 100")
         _want(self.ba_window >= 1, "ba_window", self.ba_window, "want >= 1")

@@ -6,15 +6,17 @@ pixels; OpenCV releases the GIL) while the tracking thread works on an earlier o
 core prepares frame N+1 while frame N is tracked, whether the frames come in lockstep from a replay
 or live from a camera. Outputs do not depend on it: what is prepared is what `track` would compute.
 
-Live, the tracking thread takes the newest frame waiting and skips the older ones; a frame's
-preparation is cancelled, if it has not started, as soon as a newer frame arrives (the older one
-would be skipped anyway).
+Live, the tracking thread tracks the frames in order while the newest one waiting is at most
+`lag_ms` of sensor time ahead of the next (a burst: the camera's or the bus's jitter, a slow
+keyframe); further behind, it takes the newest and skips the older ones. A frame's preparation is
+cancelled, if it has not started, once a frame more than `lag_ms` newer arrives (it would be skipped).
 """
 
 from __future__ import annotations
 
 import queue
 import threading
+from collections import deque
 from concurrent.futures import CancelledError, Future, ThreadPoolExecutor
 from typing import Any
 
@@ -49,11 +51,17 @@ def is_frame(r: Received) -> bool:
     return r.topic in (RGBD, RGBD_COMPRESSED)
 
 
+def _stamp(r: Received) -> int:
+    return codec.stamp_ns(r.decode().header)
+
+
 class Intake:
     """Samples off `bus` in order, frames with their preparation under way. Use as a context manager."""
 
-    def __init__(self, bus: Bus, odometry: Tracker, *, viz: bool, live: bool, size: int = 8) -> None:
+    def __init__(self, bus: Bus, odometry: Tracker, *, viz: bool, live: bool, lag_ms: float = 0.0,
+                 size: int = 8) -> None:
         self.bus, self.odometry, self.viz, self.live = bus, odometry, viz, live
+        self._lag_ns = round(lag_ms * 1e6)
         self._q: queue.Queue[tuple[Received, Future | None] | BaseException] = queue.Queue(maxsize=size)
         self._held: list[tuple[Received, Future | None]] = []  # taken off the queue, not yet handed out
         self._decoder = ThreadPoolExecutor(1, thread_name_prefix="decode")
@@ -79,7 +87,7 @@ class Intake:
             pass
 
     def _read(self) -> None:
-        newest: Future | None = None
+        preparing: deque[tuple[int, Future]] = deque()  # live: (stamp, preparation) of recent frames
         try:
             while not self._stop.is_set():
                 r = self.bus.receive()
@@ -90,10 +98,11 @@ class Intake:
                         self.bus.unwatch(producer)
                 fut = self._decoder.submit(decode, r, self.odometry, self.viz) if is_frame(r) else None
                 self._put((r, fut))
-                if fut is not None:
-                    if self.live and newest is not None:
-                        newest.cancel()  # not started: a newer frame wins over it anyway
-                    newest = fut
+                if fut is not None and self.live:
+                    stamp = _stamp(r)
+                    while preparing and (preparing[0][1].done() or stamp - preparing[0][0] > self._lag_ns):
+                        preparing.popleft()[1].cancel()  # if not started: this newer frame wins over it
+                    preparing.append((stamp, fut))
         except BaseException as exc:  # noqa: BLE001 - the tracking thread raises it
             self._put(exc)
 
@@ -119,6 +128,21 @@ class Intake:
     def get(self, timeout_s: float = 0.25) -> tuple[Received, Future | None] | None:
         """The next sample and, for a frame, its preparation; None after `timeout_s`."""
         return self._take(timeout_s)
+
+    def behind(self, r: Received) -> bool:
+        """Live: whether a frame waiting is more than the lag newer than frame `r` (then the
+        newest wins); the samples waiting stay in line."""
+        while True:
+            try:
+                item = self._q.get_nowait()
+            except queue.Empty:
+                break
+            if isinstance(item, BaseException):
+                self._q.put(item)  # raised in its turn, after what came before it
+                break
+            self._held.append(item)
+        stamps = [_stamp(it[0]) for it in self._held if is_frame(it[0])]
+        return bool(stamps) and max(stamps) - _stamp(r) > self._lag_ns
 
     def newer_frame(self) -> tuple[Received, Future | None] | None:
         """Live: the next sample if it is a frame already waiting (then the one before it is to be

@@ -94,7 +94,8 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
     bus.watch(["mapper"], required=False)  # a mapper may restart: keep its keyframes until it is done
     result = TrackerResult()
     expected: int | None = None
-    with Intake(bus, odometry, viz=viz.enabled, live=cfg.live) as intake, VizLog(viz) as shown:
+    with Intake(bus, odometry, viz=viz.enabled, live=cfg.live, lag_ms=cfg.live_lag_ms) as intake, \
+            VizLog(viz) as shown:
         while expected is None or result.frames < expected:
             if (item := intake.get()) is None:
                 if expected is not None:
@@ -109,7 +110,7 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
                 bus.expect_count(RGBD, result.frames, expected)
                 continue
             result.frames += 1
-            if cfg.live:
+            if cfg.live and intake.behind(r):
                 # stay real-time: the newest waiting frame wins, the older ones are skipped, on record
                 while (newer := intake.newer_frame()) is not None:
                     old = r.decode()
