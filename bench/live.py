@@ -8,8 +8,8 @@ profile's rate (pyrealsense2's software device, as a camera would deliver), defa
 alone writes for the same frames) beside the session; the session's own outputs are `session.mcap`
 and the `.rrd` files. Prints one row per frame rate: frames the camera delivered / published /
 consumed / skipped (the tracker keeps up by skipping, each skip on record; the camera holds back a
-frame while the tracker has two in hand; how many in the first STARTUP_S seconds, while every stage
-still warms up), and the outputs' size against the recording's.
+frame while the tracker has two in hand and lags more than tracker.live_lag_ms; how many in the first
+STARTUP_S seconds, while every stage still warms up), and the outputs' size against the recording's.
 """
 
 from __future__ import annotations

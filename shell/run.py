@@ -295,7 +295,7 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     """
     live = source in LIVE_SOURCES
     # a live camera: the tracker keeps up by skipping frames (each skip on record), and the camera
-    # publishes no frame while the tracker has two in hand (it would skip it), unless told otherwise
+    # publishes no frame while the tracker has two in hand and lags (it would skip it), unless told otherwise
     live_sets = ["tracker.live=true", "recorder.publish_window=2"] if live else []
     cfgs = _resolve_configs(source, config, _split_overrides(live_sets + (overrides or []), live=live))
     replay_cfg = cfgs["replay"]
