@@ -1,19 +1,26 @@
 """A live session: the simulated D455 (pyrealsense2's software device, paced at its profile's rate)
-through tracker and mapper with `octolog run --source d455:software`, and its exact replay."""
+through tracker and mapper with `octolog run --source d455:software`, and its exact replay; the
+recorder holding back the frames a live tracker would skip."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import threading
 import tomllib
 
 import numpy as np
+import pytest
 from helpers import octolog
+from test_recorder import BASE, _port, _run
 
 from octolog.kit import metrics
 from octolog.kit.gravity import level_on_plane
 from octolog.kit.mcaplog import summarize
 from octolog.replay.gravity import recorded_up
 from octolog.replay.sources import open_source
+from octolog.schemas import codec
+from octolog.schemas import topics as T
 
 VGA = ("--set", "recorder.color.width=640", "--set", "recorder.color.height=480",
        "--set", "recorder.depth.width=640", "--set", "recorder.depth.height=480")
@@ -66,3 +73,44 @@ def test_duration_is_for_live_sources_only(tmp_path):
     proc = octolog("run", "--source", "synthetic:5", "--duration", "3", "--out", str(tmp_path / "o"), check=False)
     assert proc.returncode == 1
     assert "--duration 3.0: only for a live source" in proc.stderr and proc.stderr.count("\n") == 1
+
+
+@pytest.mark.parametrize("lag_ms", [0.0, 100.0])
+def test_publish_window_holds_back_what_the_tracker_has_no_hand_for(tmp_path, lag_ms):
+    """With recorder.publish_window = 1 and a consumer that answers no frame (no tracker/status),
+    exactly one frame goes out; every other one is recorded, not published, and counted. With
+    recorder.publish_lag_ms, the frames within that lag of the unanswered one go out too (a live
+    tracker tracks such a burst in order), and none later."""
+    from octolog.kit.bus import Bus, BusConfig
+
+    ep = f"tcp/127.0.0.1:{_port()}"
+    sub_cfg = BusConfig(listen=(ep,), multicast_scouting=False, namespace="win")
+    pub_cfg = BusConfig(connect=(ep,), multicast_scouting=False, namespace="win")
+    frames: list[bytes] = []
+    end = None
+    with Bus(sub_cfg, "tracker", inbox_size=64) as sub:
+        sub.start([T.RGBD_COMPRESSED, T.RGBD_END])
+        cfg = dataclasses.replace(BASE, wait_for=("tracker",), wait_timeout_s=30.0, publish_window=1,
+                                  publish_lag_ms=lag_ms)
+        result: dict = {}
+        t = threading.Thread(target=lambda: result.update(res=_run(tmp_path, cfg, frames=20, bus_cfg=pub_cfg)[1]))
+        t.start()
+        while end is None:
+            r = sub.receive(30.0)
+            assert r is not None, "no end message"
+            if r.topic is T.RGBD_END:
+                end = codec.decode(r.payload, T.RGBD_END.msgtype)
+            else:
+                frames.append(r.payload)
+    t.join(60)
+    res = result["res"]
+    stamps = [codec.stamp_ns(codec.decode(f, T.RGBD_COMPRESSED.msgtype).header) for f in frames]
+    assert int(end.count) == len(frames)
+    if lag_ms:  # the first frame and those within the lag after it (a slow sink may drop one, counted)
+        fps = cfg.color.fps
+        window = {stamps[0] + n * 10**9 // fps for n in range(fps) if n * 10**9 // fps <= lag_ms * 1e6}
+        assert len(frames) >= 2 and set(stamps) <= window, (stamps, window)
+    else:
+        assert len(frames) == 1
+    assert res.held_back + res.streams["color"].live_drops == 20 - len(frames)
+    assert res.streams["color"].frames == 20  # the file has them all

@@ -62,11 +62,11 @@ class Inbox:
         """Into the inbox, blocking (back-pressure); gives up only when the bus closes."""
         with self._cond:
             while not self._replaces_last(item):
+                if self.closing.is_set():
+                    return
                 if len(self._items) < self._size:
                     self._items.append(item)
                     break
-                if self.closing.is_set():
-                    return
                 self._cond.wait(0.5)
             self.last_put = time.monotonic()
             self._cond.notify_all()
