@@ -141,14 +141,25 @@ def _voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:
     return np.floor(points / voxel_m).astype(np.int64)
 
 
-def _linear_keys(keys: np.ndarray) -> np.ndarray:
-    """One int64 per (kx, ky, kz) whose order is the lexicographic order of the triples."""
-    lo = keys.min(axis=0)
-    span = keys.max(axis=0) - lo + 1
+def _linear_keys(parts: list[np.ndarray], voxel_m: float) -> np.ndarray:
+    """One int64 per point of the parts (in order) whose order is the lexicographic order of the
+    voxel triples (kx, ky, kz). Part by part, so the (N,3) keys of the whole cloud never exist at
+    once: the final merge of a long session's cloud needs a third of the memory it did."""
+    lo = np.full(3, np.iinfo(np.int64).max, dtype=np.int64)
+    hi = np.full(3, np.iinfo(np.int64).min, dtype=np.int64)
+    for points in parts:
+        keys = _voxel_keys(points, voxel_m)
+        lo, hi = np.minimum(lo, keys.min(axis=0)), np.maximum(hi, keys.max(axis=0))
+    span = hi - lo + 1
     if float(span[0]) * float(span[1]) * float(span[2]) >= 2.0**62:
         raise MapError("cloud extent too large for the voxel size (more than 2^62 voxels)")
-    k = keys - lo
-    return (k[:, 0] * span[1] + k[:, 1]) * span[2] + k[:, 2]
+    out = np.empty(sum(len(points) for points in parts), dtype=np.int64)
+    at = 0
+    for points in parts:
+        k = _voxel_keys(points, voxel_m) - lo
+        out[at:at + len(k)] = (k[:, 0] * span[1] + k[:, 1]) * span[2] + k[:, 2]
+        at += len(k)
+    return out
 
 
 def voxel_downsample(
@@ -162,20 +173,37 @@ def voxel_downsample(
     points, colours = _check_cloud(points, colours)
     if not (np.isfinite(voxel_m) and voxel_m > 0):
         raise MapError(f"voxel_m must be a positive number, got {voxel_m}")
-    if points.shape[0] == 0:
+    return _merge_voxels([(points, colours)], voxel_m)
+
+
+def _merge_voxels(parts: list[tuple[np.ndarray, np.ndarray]], voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """`voxel_downsample` of the parts' concatenation (checked clouds), the same bytes, without the
+    concatenation: a column at a time, so the sums run over the points in the same order."""
+    parts = [(p, c) for p, c in parts if len(p)]
+    if not parts:
         return _EMPTY_POINTS.copy(), _EMPTY_COLOURS.copy()
-    lin = _linear_keys(_voxel_keys(points, voxel_m))
-    _, inverse, counts = np.unique(lin, return_inverse=True, return_counts=True)
+    _, inverse, counts = np.unique(_linear_keys([p for p, _ in parts], voxel_m), return_inverse=True,
+                                   return_counts=True)
     m = counts.shape[0]
     out_p = np.empty((m, 3), dtype=np.float64)
     out_c = np.empty((m, 3), dtype=np.float64)
     for j in range(3):
-        out_p[:, j] = np.bincount(inverse, weights=points[:, j], minlength=m)
-        out_c[:, j] = np.bincount(inverse, weights=colours[:, j].astype(np.float64), minlength=m)
+        out_p[:, j] = np.bincount(inverse, weights=_column([p for p, _ in parts], j, np.float64), minlength=m)
+        out_c[:, j] = np.bincount(inverse, weights=_column([c for _, c in parts], j, np.float64), minlength=m)
     out_p /= counts[:, None]
     out_c /= counts[:, None]
     out_c = np.clip(np.rint(out_c), 0, 255).astype(np.uint8)
     return out_p, out_c
+
+
+def _column(arrays: list[np.ndarray], j: int, dtype: type) -> np.ndarray:
+    """Column j of the arrays, one after another, as `dtype`."""
+    out = np.empty(sum(len(a) for a in arrays), dtype=dtype)
+    at = 0
+    for a in arrays:
+        out[at:at + len(a)] = a[:, j]
+        at += len(a)
+    return out
 
 
 def transform(points: np.ndarray, world_from_camera: np.ndarray) -> np.ndarray:
@@ -276,9 +304,7 @@ class DenseCloud:
             if not ids:
                 self._cache = (_EMPTY_POINTS.copy(), _EMPTY_COLOURS.copy())
             else:
-                pts = np.concatenate([self._parts[i][0] for i in ids])
-                col = np.concatenate([self._parts[i][1] for i in ids])
-                self._cache = voxel_downsample(pts, col, self.voxel_m)
+                self._cache = _merge_voxels([self._parts[i] for i in ids], self.voxel_m)
         return self._cache[0].copy(), self._cache[1].copy()
 
 
