@@ -144,16 +144,13 @@ def _voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:
 def _linear_keys(parts: list[np.ndarray], voxel_m: float) -> np.ndarray:
     """One int64 per point of the parts (in order) whose order is the lexicographic order of the
     voxel triples (kx, ky, kz). Part by part, so the (N,3) keys of the whole cloud never exist at
-    once: the final merge of a long session's cloud needs a third of the memory it did."""
-    lo = np.full(3, np.iinfo(np.int64).max, dtype=np.int64)
-    hi = np.full(3, np.iinfo(np.int64).min, dtype=np.int64)
-    for points in parts:
-        keys = _voxel_keys(points, voxel_m)
-        lo, hi = np.minimum(lo, keys.min(axis=0)), np.maximum(hi, keys.max(axis=0))
+    once. The bounds come from the points' own: floor(p / voxel_m) is monotone in p."""
+    lo = np.floor(np.min([p.min(axis=0) for p in parts], axis=0) / voxel_m).astype(np.int64)
+    hi = np.floor(np.max([p.max(axis=0) for p in parts], axis=0) / voxel_m).astype(np.int64)
     span = hi - lo + 1
     if float(span[0]) * float(span[1]) * float(span[2]) >= 2.0**62:
         raise MapError("cloud extent too large for the voxel size (more than 2^62 voxels)")
-    out = np.empty(sum(len(points) for points in parts), dtype=np.int64)
+    out = np.empty(sum(len(p) for p in parts), dtype=np.int64)
     at = 0
     for points in parts:
         k = _voxel_keys(points, voxel_m) - lo
@@ -177,33 +174,24 @@ def voxel_downsample(
 
 
 def _merge_voxels(parts: list[tuple[np.ndarray, np.ndarray]], voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """`voxel_downsample` of the parts' concatenation (checked clouds), the same bytes, without the
-    concatenation: a column at a time, so the sums run over the points in the same order."""
-    parts = [(p, c) for p, c in parts if len(p)]
-    if not parts:
+    """`voxel_downsample` of the parts' concatenation (checked clouds), the same bytes, without
+    concatenating the clouds: a column at a time, so the sums run over the points in the same order."""
+    points = [p for p, _ in parts if len(p)]
+    colours = [c for _, c in parts if len(c)]
+    if not points:
         return _EMPTY_POINTS.copy(), _EMPTY_COLOURS.copy()
-    _, inverse, counts = np.unique(_linear_keys([p for p, _ in parts], voxel_m), return_inverse=True,
-                                   return_counts=True)
+    _, inverse, counts = np.unique(_linear_keys(points, voxel_m), return_inverse=True, return_counts=True)
     m = counts.shape[0]
     out_p = np.empty((m, 3), dtype=np.float64)
     out_c = np.empty((m, 3), dtype=np.float64)
     for j in range(3):
-        out_p[:, j] = np.bincount(inverse, weights=_column([p for p, _ in parts], j, np.float64), minlength=m)
-        out_c[:, j] = np.bincount(inverse, weights=_column([c for _, c in parts], j, np.float64), minlength=m)
+        out_p[:, j] = np.bincount(inverse, weights=np.concatenate([p[:, j] for p in points]), minlength=m)
+        out_c[:, j] = np.bincount(inverse, weights=np.concatenate([c[:, j] for c in colours], dtype=np.float64),
+                                  minlength=m)
     out_p /= counts[:, None]
     out_c /= counts[:, None]
     out_c = np.clip(np.rint(out_c), 0, 255).astype(np.uint8)
     return out_p, out_c
-
-
-def _column(arrays: list[np.ndarray], j: int, dtype: type) -> np.ndarray:
-    """Column j of the arrays, one after another, as `dtype`."""
-    out = np.empty(sum(len(a) for a in arrays), dtype=dtype)
-    at = 0
-    for a in arrays:
-        out[at:at + len(a)] = a[:, j]
-        at += len(a)
-    return out
 
 
 def transform(points: np.ndarray, world_from_camera: np.ndarray) -> np.ndarray:
