@@ -7,10 +7,14 @@ as they are read, no transport, no logging) as the reference. Prints one table p
 
     python bench/pipeline.py [--source tum:PATH] [--every 1,3] [--repeat 3] [--live N]
 
-`--live N`: also N runs of first300 as a live camera would deliver it: paced at the sequence's own
-rate (`replay.rate=1`) with the live tracker (`tracker.live=true`: the newest frame wins, older
-ones are skipped, on record): frames skipped, and the frame->pose latency a camera sees, without
-the frame the lockstep replay keeps queued on purpose (`replay.window=2`).
+`--live N` (default 1): also N runs of first300 as a live camera would deliver it: paced at the
+sequence's own rate (`replay.rate=1`) with the live tracker (`tracker.live=true`: the newest frame
+wins, older ones are skipped, on record): frames skipped, and the frame->pose latency a camera
+sees. That is the latency the issue's target (p90 <= 66 ms, two frames at 30 fps) is about: the
+lockstep runs play frames as fast as the pipeline takes them with one queued on purpose
+(`replay.window=2`, so the decode thread prepares it while the one before is tracked), so their
+latency is about two frame periods of the saturated pipeline by construction, and is printed as
+a throughput figure, not against the target.
 
 Figures:
 - real-time factor: sequence seconds / wall seconds. "streaming" counts from the first frame on
@@ -18,7 +22,7 @@ Figures:
   imports, vocabulary) and the end of stream (final bundle adjustment, map files, summary);
 - tracker ms/frame: the tracking thread's time per frame (TrackingStatus.processing_ms);
 - frame->pose latency: wall time from the session logger receiving a frame to it receiving that
-  frame's status (transport + queueing + tracking);
+  frame's status (transport + queueing + decoding and features + tracking);
 - mapper ms/keyframe: MapUpdate.processing_ms;
 - output size: session.mcap plus every .rrd, against the size of the source images it played.
 """
@@ -158,7 +162,7 @@ def table(source: str, every: int, runs: list[dict], ref: dict, src_bytes: int) 
          f"- / {ref['stream']:.1f} / {ref['wall'] - ref['stream']:.1f}", ""),
         ("tracker ms/frame median / p90", f"{pct(track, 50):.1f} / {pct(track, 90):.1f}",
          f"{pct(ref['track_ms'], 50):.1f} / {pct(ref['track_ms'], 90):.1f}", ""),
-        ("frame->pose latency ms median / p90", f"{pct(lat, 50):.1f} / {pct(lat, 90):.1f}", "-", ""),
+        ("frame->pose latency ms median / p90, lockstep", f"{pct(lat, 50):.1f} / {pct(lat, 90):.1f}", "-", ""),
         ("mapper ms/keyframe median / p90", f"{pct(mp, 50):.1f} / {pct(mp, 90):.1f}",
          f"{pct(ref['map_ms'], 50):.1f} / {pct(ref['map_ms'], 90):.1f}", ""),
         ("keyframes", f"{runs[0]['keyframes']}", f"{ref['keyframes']}", ""),
@@ -174,7 +178,7 @@ def main() -> None:
     ap.add_argument("--source", default=None)
     ap.add_argument("--every", default="1,3", help="cases: play every N-th frame (3: the fast-motion case)")
     ap.add_argument("--repeat", type=int, default=3, help="pipeline runs per case (medians over runs)")
-    ap.add_argument("--live", type=int, default=0, help="runs paced at the camera's rate with the live tracker")
+    ap.add_argument("--live", type=int, default=1, help="runs paced at the camera's rate with the live tracker (0: none)")
     args = ap.parse_args()
     source = args.source or default_source()
     load = os.getloadavg()[0]
@@ -190,7 +194,7 @@ def main() -> None:
                 runs.append(run_pipeline(source, every, Path(tmp) / f"run{i}"))
         ref = run_in_process(source, every)
         rows = table(source, every, runs, ref, source_bytes(source, every))
-        label = "as recorded" if every == 1 else f"every {every}th frame ({every}x the motion per frame)"
+        label = "as recorded" if every == 1 else f"one frame in {every} ({every}x the motion per frame)"
         print(f"\n{label}: load average {os.getloadavg()[0]:.1f} after")
         w = max(len(r[0]) for r in rows)
         print(f"{'':<{w}}  {'pipeline':>18}  {'in-process':>18}  {'ratio':>9}")
@@ -207,7 +211,7 @@ def main() -> None:
             n = r["skipped"] + len(r["track_ms"])
             print(f"  {n} frames, {len(r['track_ms'])} tracked, {r['skipped']} skipped "
                   f"({r['skipped'] / max(n, 1):.0%}), ATE {r['ate_cm']:.2f} cm, keyframes {r['keyframes']}")
-        print(f"  frame->pose latency ms median / p90: {pct(lat, 50):.1f} / {pct(lat, 90):.1f}; "
+        print(f"  frame->pose latency ms median / p90: {pct(lat, 50):.1f} / {pct(lat, 90):.1f} (target p90 <= 66); "
               f"tracker ms/frame median / p90: {pct(track, 50):.1f} / {pct(track, 90):.1f}")
 
 
