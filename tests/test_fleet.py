@@ -12,6 +12,7 @@ sorted by (stamp, robot index) with `sorted`, integrated one after the other.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 import os
 import socket
@@ -386,12 +387,21 @@ def _cells(path: Path) -> dict[tuple[int, int, int], bool]:
     return cells
 
 
-def occupied_disagreement(a: Path, b: Path) -> tuple[float, int]:
+def occupied_disagreement(a: Path | dict, b: Path | dict, tolerance: int = 0) -> tuple[float, int]:
     """Of the voxels both maps know and at least one calls occupied, the share they disagree on
-    (occupied in one, free in the other); and how many such voxels there are."""
-    ca, cb = _cells(a), _cells(b)
+    (occupied in one, free in the other); and how many such voxels there are. With `tolerance` t, a
+    voxel occupied in one map is not counted when the other has an occupied voxel within t voxels
+    (the 3D neighbourhood): a surface one voxel over agrees."""
+    ca, cb = (_cells(m) if isinstance(m, Path) else m for m in (a, b))
     both = [c for c in ca.keys() & cb.keys() if ca[c] or cb[c]]
-    return sum(ca[c] != cb[c] for c in both) / max(len(both), 1), len(both)
+    occupied = ({c for c, v in ca.items() if v}, {c for c, v in cb.items() if v})
+    near = list(itertools.product(range(-tolerance, tolerance + 1), repeat=3))
+
+    def missing(c: tuple[int, int, int], occ: set) -> bool:
+        return not any((c[0] + i, c[1] + j, c[2] + k) in occ for i, j, k in near)
+
+    wrong = sum((ca[c] and missing(c, occupied[1])) or (cb[c] and missing(c, occupied[0])) for c in both)
+    return wrong / max(len(both), 1), len(both)
 
 
 def test_two_halves_merge_without_start_poses(tmp_path):
@@ -428,9 +438,18 @@ def test_two_halves_merge_without_start_poses(tmp_path):
     floor, _ = occupied_disagreement(tmp_path / "known" / "map.bt", single / "map.bt")
     vs_single, _ = occupied_disagreement(out / "map.bt", single / "map.bt")
     # issue 18 asks <= 2 %; at 5 cm voxels two trackers' maps differ by a voxel along most surfaces
-    # (12.9 % even with ground-truth start poses): printed, not asserted (docs/results.md)
+    # (13.5 % even with ground-truth start poses): printed, not asserted (docs/results.md)
     print(f"occupied voxels known to both maps: {n_cells}; merged vs known start poses {disagree:.1%}; "
           f"vs one robot: merged {vs_single:.1%}, known start poses {floor:.1%}")
+    # a voxel's tolerance (5 cm, the keyframes' bound): the merged map's surfaces are where one
+    # robot's are; the same measure fails a merge 10 cm off along any axis
+    merged = _cells(out / "map.bt")
+    near_single, _ = occupied_disagreement(merged, single / "map.bt", tolerance=1)
+    off = [occupied_disagreement({tuple(np.add(c, d)): v for c, v in merged.items()}, single / "map.bt", 1)[0]
+           for d in ((2, 0, 0), (0, 2, 0), (0, 0, 2))]
+    print(f"within one voxel: merged vs one robot {near_single:.2%}; merged shifted 10 cm: "
+          + ", ".join(f"{x:.1%}" for x in off))
+    assert near_single <= 0.02 < min(off), (near_single, off)
     assert [m["robot"] for m in stats["merges"]] == ["r2"] and stats["merges"][0]["inliers"] >= 60
     # placing happens at defined points of the merge order: another run (other arrival timing)
     # places r2 at the same keyframes and gives the same map, byte for byte
