@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from octolog.kit.errors import InputError
-from octolog.schemas.codec import IMAGE_ENCODINGS, decode, pose_matrix
+from octolog.schemas.codec import IMAGE_ENCODINGS, check_pose_msg, decode
 from octolog.schemas.imageheaders import declared_size
 
 MAX_SIDE = 8192  # pixels: no RGB-D camera a stage takes has a wider or taller image
@@ -41,14 +41,14 @@ def check(msg: Any, typename: str) -> None:
     if typename in _FRAMES:
         _check_frame(msg)
         if hasattr(msg, "world_from_camera"):  # a keyframe
-            pose_matrix(msg.world_from_camera)
+            check_pose_msg(msg.world_from_camera)
     elif typename == "octolog_msgs/msg/KeyframePoses":
         if len(msg.ids) != len(msg.world_from_camera):
             raise InputError(f"keyframe_poses: {len(msg.ids)} ids but {len(msg.world_from_camera)} poses")
         for pose in msg.world_from_camera:
-            pose_matrix(pose)
+            check_pose_msg(pose)
     elif typename == "geometry_msgs/msg/PoseStamped":
-        pose_matrix(msg.pose)
+        check_pose_msg(msg.pose)
     elif typename == "octolog_msgs/msg/CameraProperties":
         if not (math.isfinite(msg.readout_s) and 0.0 <= msg.readout_s <= 0.1):
             raise InputError(f"camera properties: readout_s {msg.readout_s} (want 0..0.1 s)")

@@ -148,10 +148,20 @@ def pose_msg(T: np.ndarray) -> Any:
 
 
 def pose_matrix(msg: Any) -> np.ndarray:
-    p, o = msg.position, msg.orientation
-    t, q = np.array([p.x, p.y, p.z]), np.array([o.x, o.y, o.z, o.w])
+    t, q = _pose_arrays(msg)
     check_pose(t, q)
     return pose_to_matrix(t, q)
+
+
+def check_pose_msg(msg: Any) -> None:
+    """InputError where pose_matrix(msg) would raise one, without building the matrix (a check on
+    every message of a log's hot path: scipy's rotation costs more than the check)."""
+    check_pose(*_pose_arrays(msg))
+
+
+def _pose_arrays(msg: Any) -> tuple[np.ndarray, np.ndarray]:
+    p, o = msg.position, msg.orientation
+    return np.array([p.x, p.y, p.z]), np.array([o.x, o.y, o.z, o.w])
 
 
 def check_pose(t: np.ndarray, q: np.ndarray) -> None:

@@ -59,3 +59,28 @@ def test_keys_follow_zenoh_bridge_convention():
     assert topics.RGBD.key() == "camera/rgbd"
     assert topics.RGBD.key("/robot1/") == "robot1/camera/rgbd"
     assert topics.POSE.ros_name("robot1") == "/robot1/tracker/pose"
+
+
+@pytest.mark.parametrize("t, q", [((np.nan, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)), ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0)),
+                                  ((0.0, 0.0, 0.0), (0.0, np.inf, 0.0, 1.0))], ids=["nan", "zero", "inf"])
+def test_a_pose_that_is_not_rigid_is_screened_out_of_every_message_that_carries_one(t, q):
+    """The stages' checks (schemas/checks.py) refuse a non-finite translation or a zero or
+    non-finite quaternion on a pose, a keyframe and a keyframe-poses message, as decoding it would."""
+    from octolog.schemas.checks import checked
+
+    good = np.eye(4)
+    bad = codec.pose_stamped_msg(good, 0)
+    bad.pose.position.x, bad.pose.position.y, bad.pose.position.z = t
+    o = bad.pose.orientation
+    o.x, o.y, o.z, o.w = q
+    kf = codec.keyframe_msg(1, good, _frame())
+    kf.world_from_camera = bad.pose
+    poses = codec.keyframe_poses_msg({1: good, 2: good})
+    poses.world_from_camera[1] = bad.pose
+    for topic, msg in ((topics.POSE, bad), (topics.KEYFRAME, kf), (topics.KEYFRAME_POSES, poses)):
+        data = codec.encode(msg, topic.msgtype)
+        with pytest.raises(InputError, match="not a rigid transform"):
+            checked(data, topic.msgtype)
+        with pytest.raises(InputError, match="not a rigid transform"):
+            codec.pose_matrix(bad.pose)
+    assert checked(codec.encode(codec.pose_stamped_msg(good, 0), topics.POSE.msgtype), topics.POSE.msgtype)
