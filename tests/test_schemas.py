@@ -81,6 +81,6 @@ def test_a_pose_that_is_not_rigid_is_screened_out_of_every_message_that_carries_
         data = codec.encode(msg, topic.msgtype)
         with pytest.raises(InputError, match="not a rigid transform"):
             checked(data, topic.msgtype)
-        with pytest.raises(InputError, match="not a rigid transform"):
-            codec.pose_matrix(bad.pose)
+    with pytest.raises(InputError, match="not a rigid transform"):
+        codec.pose_matrix(bad.pose)
     assert checked(codec.encode(codec.pose_stamped_msg(good, 0), topics.POSE.msgtype), topics.POSE.msgtype)
