@@ -4,7 +4,7 @@ OUT ?= out/demo
 # Real data for the tests that use it (they skip without it).
 OCTOLOG_DATA ?= $(abspath $(firstword $(wildcard ../shared/data)))
 
-.PHONY: setup demo test bench bench-transport
+.PHONY: setup demo test test-quick bench bench-transport
 setup: $(VENV)/.installed
 
 $(VENV)/.installed: pyproject.toml requirements.lock .ci/setup.sh
@@ -15,6 +15,10 @@ demo: setup
 
 test: setup
 	OCTOLOG_DATA=$(OCTOLOG_DATA) $(VENV)/bin/python -m pytest -q
+
+# The quick tier while working: everything but the `slow` and `netns` tests (tests/conftest.py).
+test-quick: setup
+	OCTOLOG_DATA=$(OCTOLOG_DATA) $(VENV)/bin/python -m pytest -q -m "not slow and not netns"
 
 bench: setup
 	OCTOLOG_DATA=$(OCTOLOG_DATA) $(VENV)/bin/python bench/pipeline.py

@@ -1,4 +1,12 @@
+"""Fixtures every test module may use: loopback ports, small frames, the shared end-to-end runs.
+
+Markers (registered in pyproject.toml): `slow` for tests that run the real processes over a whole
+sequence or a matrix of them, `netns` for those that need root and network namespaces. `make
+test-quick` runs the rest; `make test` and CI run everything.
+"""
+
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 # octolog before numpy: its __init__ pins OpenBLAS's kernels for this process as for every octolog
@@ -6,6 +14,10 @@ from pathlib import Path
 import octolog  # noqa: F401
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import pytest  # noqa: E402
+from helpers import free_port, tum_first300
+from helpers import octolog as octolog_cli  # noqa: E402
 
 
 def _free_gib() -> tuple[float, Path]:
@@ -25,3 +37,37 @@ def pytest_terminal_summary(terminalreporter) -> None:
     if free < 8:
         terminalreporter.write_line(f"disk: only {free:.1f} GiB was free under {base} when the tests began; "
                                     "the suite needs about 8 GiB", yellow=True)
+
+
+@pytest.fixture
+def endpoint() -> str:
+    """A Zenoh TCP endpoint on a loopback port nobody holds now."""
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+RunFn = Callable[..., tuple[Path, str]]
+
+
+@pytest.fixture(scope="session")
+def octolog_run(tmp_path_factory) -> RunFn:
+    """`octolog run --source SOURCE --quiet --rerun off ARGS...` made once per distinct call in a test
+    run and shared: the end-to-end runs that several modules read (first300, the synthetic room) cost
+    one run each. Returns (output folder, stdout). The folder is read-only for its readers: a test
+    that changes a run's files makes its own run."""
+    runs: dict[tuple[str, tuple[str, ...]], tuple[Path, str]] = {}
+
+    def run(source: str, *args: str) -> tuple[Path, str]:
+        key = (source, args)
+        if key not in runs:
+            out = tmp_path_factory.mktemp("shared-run") / "out"
+            proc = octolog_cli("run", "--source", source, "--out", str(out), "--quiet", "--rerun", "off", *args)
+            runs[key] = (out, proc.stdout)
+        return runs[key]
+
+    return run
+
+
+@pytest.fixture(scope="session")
+def first300_run(octolog_run: RunFn) -> tuple[Path, str]:
+    """The whole pipeline on TUM fr1/xyz first300 with the default config (skips without the data)."""
+    return octolog_run(f"tum:{tum_first300()}")

@@ -70,3 +70,27 @@ def stop_all(procs: dict[str, subprocess.Popen]) -> None:
         if p.poll() is None:
             p.terminate()
             p.wait(timeout=30)
+
+
+def free_port() -> int:
+    """A loopback TCP port nobody holds now (the OS picks it)."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def random_frame(seq: int = 0, w: int = 16, h: int = 12, *, stamp_ns: int | None = None, depth_scale_m: float = 0.001,
+                 intrinsics=None):
+    """A small RgbdFrame of colour and depth (1..3999 units) drawn from a generator seeded with `seq`:
+    input for codec, wire and hostile-input tests, where the picture's content does not matter
+    (`intrinsics`: default a pinhole of 9 px focal length, centred)."""
+    import numpy as np
+
+    from octolog.kit.geometry import Intrinsics, RgbdFrame
+
+    rng = np.random.default_rng(seq)
+    return RgbdFrame(seq, 1000 + seq if stamp_ns is None else stamp_ns, rng.integers(0, 255, (h, w, 3), dtype=np.uint8),
+                     rng.integers(1, 4000, (h, w), dtype=np.uint16), depth_scale_m,
+                     intrinsics or Intrinsics(w, h, 9.0, 9.0, w / 2, h / 2))

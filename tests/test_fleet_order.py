@@ -124,10 +124,12 @@ def test_a_paused_robot_holds_the_others_back_no_longer_and_the_defined_order_st
 
 def test_a_robot_that_tracks_without_keyframes_holds_the_others_back_no_longer(tmp_path):
     """Issue 18, the watermark through the real processes: r2's camera stands still (one synthetic
-    frame played 600 times), so after its first keyframe its tracker makes none for ~10 s, while
-    r1 maps the room. With `mapper.robot_stall_s` 2 s, a mapper that heard nothing from r2 would pause
-    it and build the map again at the end; its tracker's statuses tell the mapper r2 is alive and
-    how far it got, so r1's keyframes go in as they come, in the defined order."""
+    frame played 600 times at the camera's rate: 20 s of wall time however fast the machine), so after
+    its first keyframe its tracker makes none for 20 s, while r1 maps the room. With
+    `mapper.robot_stall_s` 10 s, a mapper that heard nothing from r2 would pause it and build the map
+    again at the end; its tracker's statuses tell the mapper r2 is alive and how far it got, so r1's
+    keyframes go in as they come, in the defined order. (10 s of silence is far beyond what a loaded
+    machine's scheduling gives either tracker between two statuses; a tighter stall is a timing margin.)"""
     out = tmp_path / "fleet"
     out.mkdir()
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
@@ -137,12 +139,12 @@ def test_a_robot_that_tracks_without_keyframes_holds_the_others_back_no_longer(t
     still = 600
     try:
         procs["mapper"] = _start(None, "map", *bus, "--out", str(out), "--rerun", "off",
-                                 "--set", 'robots=["r1", "r2"]', "--set", "robot_stall_s=2.0",
+                                 "--set", 'robots=["r1", "r2"]', "--set", "robot_stall_s=10.0",
                                  "--set", "start_poses=[[0, 0, 0, 0, 0, 0, 1], [0, 0, 0, 0, 0, 0, 1]]")
         for robot in ROBOTS:
             procs[f"tracker-{robot}"] = _start(out / f"tracker-{robot}.log", "track", *bus, "--namespace", robot)
         window = {"r1": ("--set", "start=0", "--set", f"end={frames}"),
-                  "r2": ("--set", "start=0", "--set", "end=1", "--set", f"loop={still}")}
+                  "r2": ("--set", "start=0", "--set", "end=1", "--set", f"loop={still}", "--set", "rate=1.0")}
         for robot in ROBOTS:
             procs[f"replay-{robot}"] = _start(out / f"replay-{robot}.log", "replay", *bus, "--namespace", robot,
                                               "--quiet", "--source", f"synthetic:{frames}", *window[robot],
