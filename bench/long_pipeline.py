@@ -33,7 +33,7 @@ from pipeline import pct  # noqa: E402
 from octolog.kit.mcaplog import McapWriter, read_wire
 from octolog.kit.metrics import format_tum
 from octolog.replay.synthetic_trajectory import LOOP_S
-from octolog.schemas import codec, topics
+from octolog.schemas import codec, rgbdmsgs, topics, wirecompression
 
 ROOT = Path(__file__).resolve().parents[1]
 STAGES = ("replay", "track", "map", "log")
@@ -58,8 +58,8 @@ def render_loop_mcap(path: Path, n_loop: int, loops: int) -> None:
             colour = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_PNG_COMPRESSION, 1])[1]
             dpng = cv2.imencode(".png", depth, [cv2.IMWRITE_PNG_COMPRESSION, 1])[1]
             frame = EncodedRgbd(k, stamps[k], colour.tobytes(), "rgb8; png compressed bgr8", dpng.tobytes(),
-                                codec.DEPTH_PNG_FORMAT, scene.depth_scale_m, scene.intrinsics)
-            data = codec.encode(codec.encoded_rgbd_msg(frame), topics.RGBD_COMPRESSED.msgtype)
+                                wirecompression.DEPTH_PNG_FORMAT, scene.depth_scale_m, scene.intrinsics)
+            data = codec.encode(rgbdmsgs.encoded_rgbd_msg(frame), topics.RGBD_COMPRESSED.msgtype)
             mcap.write(topics.RGBD_COMPRESSED.name, topics.RGBD_COMPRESSED.msgtype, data, log_time_ns=stamps[k],
                        publish_time_ns=stamps[k])
 

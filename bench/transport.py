@@ -16,7 +16,7 @@ Publisher and subscriber are separate processes using octolog.kit.bus.Bus (relia
 BLOCK, bounded inbox), as the stages do. Throughput: the publisher sends back to back, the subscriber
 times first to last arrival. Latency: one message at a time (the next goes after the subscriber's
 ack), one-way = arrival - send on the shared monotonic clock. With `--wire` a second table gives bytes
-per frame and encode/decode cost for each wire compression setting (schemas.codec), and the frame
+per frame and encode/decode cost for each wire compression setting (schemas.rgbdmsgs), and the frame
 rate over TCP with it.
 """
 
@@ -56,12 +56,12 @@ def frame_source():
 
 
 def payloads() -> tuple[str, dict[str, bytes]]:
-    from octolog.schemas import codec, topics
+    from octolog.schemas import codec, posemsgs, rgbdmsgs, topics
 
     spec, src = frame_source()
     frame = next(src.frames(0, 1))
-    pose = codec.pose_stamped_msg(np.eye(4), frame.stamp_ns)
-    return spec, {"rgbd": codec.encode(codec.rgbd_msg(frame), topics.RGBD.msgtype),
+    pose = posemsgs.pose_stamped_msg(np.eye(4), frame.stamp_ns)
+    return spec, {"rgbd": codec.encode(rgbdmsgs.rgbd_msg(frame), topics.RGBD.msgtype),
                   "small": codec.encode(pose, topics.POSE.msgtype)}
 
 
@@ -230,7 +230,7 @@ def memcpy(body: bytes, n: int, *, fresh: bool = False) -> dict:
 def wire_table(n: int, link_mbit: float, netns_ok: bool, n_thr: int) -> list[str]:
     """Bytes per frame and codec cost per wire compression setting, on 640x480 frames, and the frame
     rate through the Bus between two namespaces over a link shaped to `link_mbit`."""
-    from octolog.schemas import codec, topics
+    from octolog.schemas import codec, rgbdmsgs, topics, wirecompression
 
     spec, src = frame_source()
     frames = list(src.frames(0, n))
@@ -239,15 +239,15 @@ def wire_table(n: int, link_mbit: float, netns_ok: bool, n_thr: int) -> list[str
             "|---|---:|---:|---:|---:|---:|---:|"]
     raw_size = None
     for setting in ("raw", "png,png", "jpeg:95,png", "jpeg:90,png", "jpeg:75,png"):
-        wire = codec.parse_wire_compression(setting)
+        wire = wirecompression.parse_wire_compression(setting)
         sizes, enc, dec, sample = [], [], [], b""
         for f in frames:
             t0 = time.perf_counter()
-            msg = codec.rgbd_msg(f) if wire is None else codec.compressed_rgbd_msg(f, wire)
+            msg = rgbdmsgs.rgbd_msg(f) if wire is None else rgbdmsgs.compressed_rgbd_msg(f, wire)
             topic = topics.RGBD if wire is None else topics.RGBD_COMPRESSED
             data = codec.encode(msg, topic.msgtype)
             t1 = time.perf_counter()
-            codec.rgbd_from_msg(codec.decode(data, topic.msgtype))
+            rgbdmsgs.rgbd_from_msg(codec.decode(data, topic.msgtype))
             t2 = time.perf_counter()
             sizes.append(len(data))
             sample = sample or data

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from octolog.schemas import codec
+from octolog.schemas import posemsgs
 
 # camera_link (x forward, y left, z up) from an optical frame (x right, y down, z forward): REP 103
 LINK_FROM_OPTICAL = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0, 0, 0, 1.0]])
@@ -30,7 +30,7 @@ class StaticTree:
         self._parent: dict[str, tuple[str, np.ndarray]] = {}
 
     def add(self, msg: Any) -> None:
-        for parent, child, T in codec.tf_transforms(msg):
+        for parent, child, T in posemsgs.tf_transforms(msg):
             with self._lock:
                 self._parent[child] = (parent, T)
 

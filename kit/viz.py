@@ -205,7 +205,7 @@ class Viz:
         if self.rec is None:
             return
         if png is None:
-            from octolog.schemas.codec import depth_png  # cv2 only once an image is logged
+            from octolog.schemas.imagecodec import depth_png  # cv2 only once an image is logged
 
             png = depth_png(depth)
         self.rec.log(path, self._rr.EncodedDepthImage(blob=_blob(png), media_type="image/png",

@@ -23,7 +23,7 @@ from octolog.mapper.core import Mapper
 from octolog.mapper.fleet import CorrectionItem, KeyframeItem
 from octolog.mapper.joint import Link, joint_poses, needs_graph
 from octolog.mapper.placement import Merge, Placement
-from octolog.schemas import codec
+from octolog.schemas import posemsgs, rgbdmsgs
 
 
 def _nothing(*_: Any) -> None:
@@ -80,7 +80,7 @@ class FleetMap:
 
     def _correct(self, i: int, item: CorrectionItem) -> None:
         try:
-            poses = codec.keyframe_poses_from_msg(item.poses)
+            poses = posemsgs.keyframe_poses_from_msg(item.poses)
             W = self.placement.world_from_robot[i]
             if W is None:  # not in the map yet: its waiting keyframes move
                 self.placement.correct(i, poses)
@@ -99,7 +99,7 @@ class FleetMap:
         try:
             if item.kf_id in self.map_id[i]:
                 raise InputError(f"keyframe {item.kf_id}: already integrated")
-            kf_id, pose, frame = codec.keyframe_from_msg(item.payload)
+            kf_id, pose, frame = rgbdmsgs.keyframe_from_msg(item.payload)
         except InputError as exc:
             self.skipped += 1
             self.problems.append(f"{self.robots[i]}: {exc}")

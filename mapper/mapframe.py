@@ -28,7 +28,7 @@ from octolog.kit.gravity import LiveUp, level_on_plane
 from octolog.kit.viz import Viz
 from octolog.mapper.core import Mapper
 from octolog.mapper.grid import DEFAULT_UP
-from octolog.schemas import codec
+from octolog.schemas import codec, posemsgs
 from octolog.schemas.topics import ACCEL, GRAVITY, TF_STATIC
 
 
@@ -107,7 +107,7 @@ class MapFrame:
 
     def _announce(self) -> None:
         T = self.mapper.map_from_world
-        self.bus.publisher(TF_STATIC).put(codec.tf_msg([("map", "world", T)], 0))
+        self.bus.publisher(TF_STATIC).put(posemsgs.tf_msg([("map", "world", T)], 0))
         self.viz.map_frame(T)
         self._announced = True
 
@@ -118,5 +118,5 @@ class MapFrame:
 
     def _on_tf(self, msg: object) -> None:
         assert self._live is not None
-        for parent, child, T in codec.tf_transforms(msg):
+        for parent, child, T in posemsgs.tf_transforms(msg):
             self._live.add_transform(parent, child, T[:3, :3])

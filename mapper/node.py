@@ -26,7 +26,7 @@ from octolog.mapper.fleetmap import FleetHooks, FleetMap
 from octolog.mapper.grid import OccupancyGrid2D, occupancy_grid_msg
 from octolog.mapper.mapframe import MapFrame
 from octolog.mapper.placement import Merge, Placement
-from octolog.schemas import codec
+from octolog.schemas import codec, mapmsgs, posemsgs, rgbdmsgs, streammsgs
 from octolog.schemas.topics import (
     CONFIGS,
     GRID,
@@ -92,9 +92,9 @@ class Publisher:
         if self.frame is not None:
             self.frame.resolve()  # may move the map into the gravity-aligned frame: before publishing it
         octree = self.mapper.octree
-        msg = codec.octomap_msg(bt_payload(octree.bt_bytes()), self.mapper.resolution_m, stamp)
+        msg = mapmsgs.octomap_msg(bt_payload(octree.bt_bytes()), self.mapper.resolution_m, stamp)
         self.latest = self.pub_octomap.put(msg)
-        self.pub_occupied.put(codec.point_cloud_msg(octree.occupied_centres(), stamp))
+        self.pub_occupied.put(mapmsgs.point_cloud_msg(octree.occupied_centres(), stamp))
         self.grid = self.mapper.project_grid()
         if self.grid is not None:
             self.pub_grid.put(occupancy_grid_msg(self.grid, stamp))
@@ -130,7 +130,7 @@ def finish(mapper: Mapper, result: MapperResult, bus: Bus, viz: Viz, publisher: 
          "corrections": result.corrections, **(extra_stats or {})}, indent=2, sort_keys=True) + "\n")
     if viz.enabled:
         _log_map(viz, mapper, last_stamp, publisher.grid, final=True)
-    bus.publisher(MAP_END).put(codec.stream_end_msg(MAP_UPDATE.name, result.keyframes + result.skipped))
+    bus.publisher(MAP_END).put(streammsgs.stream_end_msg(MAP_UPDATE.name, result.keyframes + result.skipped))
 
 
 # --- several robots, one map ---------------------------------------------------------------------
@@ -173,7 +173,7 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
     pub_update, pub_merge = bus.publisher(MAP_UPDATE), bus.publisher(MAP_MERGE)
     bus.accept(MAP_SAVE)
     bus.start([])
-    bus.publisher(CONFIGS["mapper"]).put(codec.config_msg("mapper", to_dict(cfg)))
+    bus.publisher(CONFIGS["mapper"]).put(streammsgs.config_msg("mapper", to_dict(cfg)))
     for rb in robot_buses:
         # the tracker's statuses are the robot's watermark (mapper/fleet.py); in order with its
         # keyframes, and those in a row collapse in the inbox, so they never hold the tracker back
@@ -382,7 +382,7 @@ def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: Pu
     bus.accept(MAP_SAVE)
     bus.start([KEYFRAME, KEYFRAME_COMPRESSED, KEYFRAME_POSES, KEYFRAME_END], wait_for=cfg.wait_for,
               timeout_s=cfg.wait_timeout_s)
-    bus.publisher(CONFIGS["mapper"]).put(codec.config_msg("mapper", to_dict(cfg)))
+    bus.publisher(CONFIGS["mapper"]).put(streammsgs.config_msg("mapper", to_dict(cfg)))
     bus.watch(["tracker"])
     result = MapperResult()
     expected: int | None = None
@@ -417,7 +417,7 @@ def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: Pu
         if r.topic == KEYFRAME_POSES:
             received_poses += 1
             try:
-                result.corrections += mapper.correct(codec.keyframe_poses_from_msg(r.decode()))
+                result.corrections += mapper.correct(posemsgs.keyframe_poses_from_msg(r.decode()))
             except InputError as exc:  # the whole correction is refused; the map is unchanged
                 result.problems.append(str(exc))
             continue
@@ -426,7 +426,7 @@ def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: Pu
         msg = r.decode()
         stamp = codec.stamp_ns(msg.header)
         try:
-            kf_id, pose, frame = codec.keyframe_from_msg(msg)
+            kf_id, pose, frame = rgbdmsgs.keyframe_from_msg(msg)
             if publisher.frame is not None:
                 publisher.frame.first_keyframe(frame)
             n = mapper.integrate(kf_id, pose, frame)

@@ -41,7 +41,7 @@ from octolog.recorder.bag_messages import (
 )
 from octolog.recorder.import_output import DEFAULT_DEPTH_SCALE_M, ImportResult, ImportSink, detect_kind, open_output
 from octolog.recorder.realsense_bag import RS_TOPIC, RealSenseBagPlan
-from octolog.schemas import codec
+from octolog.schemas import sensormsgs
 from octolog.schemas.topics import ALIGNED_DEPTH, CAMERA_TOPICS, COLOR
 
 # rosbags raises these (and plain struct/sqlite/zstd errors) for damaged or unreadable bags.
@@ -167,7 +167,7 @@ class _GenericPlan(BagPlan):
             elif conn.msgtype == COMPRESSED:
                 want = LAYOUT_BY_NAME[dst].msgtype if dst in LAYOUT_BY_NAME else COMPRESSED
                 if want == IMAGE:
-                    out, typ = codec.image_msg(pixels(msg, conn.topic), stamp, msg.header.frame_id), IMAGE
+                    out, typ = sensormsgs.image_msg(pixels(msg, conn.topic), stamp, msg.header.frame_id), IMAGE
                 else:
                     out, typ = copy_compressed(msg, stamp), COMPRESSED
             elif conn.msgtype == CAMERA_INFO:

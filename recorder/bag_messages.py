@@ -9,7 +9,7 @@ import numpy as np
 
 from octolog.kit.errors import InputError
 from octolog.recorder.import_output import DEFAULT_DEPTH_SCALE_M, ImportSink
-from octolog.schemas import codec
+from octolog.schemas import codec, imagecodec, sensormsgs
 from octolog.schemas.topics import ALIGNED_DEPTH, CAMERA_TOPICS, COLOR, DEPTH
 
 IMAGE = "sensor_msgs/msg/Image"
@@ -63,14 +63,14 @@ def pixels(msg: Any, topic: str) -> np.ndarray:
     """Pixels of a decoded Image or CompressedImage (RGB order for colour)."""
     try:
         if msg.__msgtype__ == COMPRESSED:
-            return codec.decode_compressed_image(msg)
+            return imagecodec.decode_compressed_image(msg)
         if msg.encoding in ("rgba8", "bgra8"):
             raw = np.asarray(msg.data, dtype=np.uint8)
             if msg.step != msg.width * 4 or raw.size != msg.height * msg.step:
                 raise InputError(f"image {msg.width}x{msg.height} {msg.encoding}: {raw.size} bytes")
             arr = raw.reshape(msg.height, msg.width, 4)[..., :3]
             return arr[..., ::-1] if msg.encoding == "bgra8" else arr
-        return codec.image_array(msg)
+        return sensormsgs.image_array(msg)
     except InputError as exc:
         raise InputError(f"{topic}: {exc}") from None
 
@@ -83,7 +83,7 @@ def layout_image(msg: Any, source_topic: str, target: str, stamp: int, frame_id:
     if target in DEPTH_TOPICS and not (arr.ndim == 2 and arr.dtype == np.uint16):
         raise InputError(f"{source_topic}: depth {encoding_of(msg)} is not 16-bit integer units; /{target} wants "
                          "16UC1 (float metres would lose the sensor's units)")
-    return codec.image_msg(np.ascontiguousarray(arr), stamp, frame_id)
+    return sensormsgs.image_msg(np.ascontiguousarray(arr), stamp, frame_id)
 
 
 def encoding_of(msg: Any) -> str:

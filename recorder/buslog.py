@@ -24,7 +24,7 @@ from octolog.kit.config import to_toml
 from octolog.kit.errors import StageError
 from octolog.kit.mcaplog import McapWriter
 from octolog.kit.metrics import write_tum
-from octolog.schemas import codec, logview
+from octolog.schemas import logview, posemsgs
 from octolog.schemas import topics as T
 
 # end message -> (producing stage, the data topics it may close: the one its `topic` field names,
@@ -142,6 +142,6 @@ def _leave_session(folder: Path, configs: dict[str, dict], trajectory: object, r
         (folder / "config.toml").write_text(to_toml(configs))
         result.files.append("config.toml")
     if trajectory is not None:
-        stamps, rows = codec.path_rows(trajectory)
+        stamps, rows = posemsgs.path_rows(trajectory)
         write_tum(folder / "trajectory.txt", np.asarray(stamps, dtype=np.int64), rows)
         result.files.append("trajectory.txt")

@@ -32,7 +32,7 @@ from octolog.recorder.record import (
     frame_names,
     output_paths,
 )
-from octolog.schemas import codec
+from octolog.schemas import codec, imagecodec, posemsgs, rgbdmsgs, streammsgs, wirecompression
 from octolog.schemas import topics as T
 
 
@@ -180,7 +180,7 @@ class BusPublisher:
 
     def __call__(self, cap: Capture, msgs: list[Encoded]) -> None:
         if self._tf_static.count == 0:
-            self._tf_static.put(codec.tf_msg(camera_transforms(self._device, self._frames), cap.stamp_ns))
+            self._tf_static.put(posemsgs.tf_msg(camera_transforms(self._device, self._frames), cap.stamp_ns))
         for m in msgs:
             if m.topic.name not in self._pubs:
                 self._pubs[m.topic.name] = self._bus.publisher(m.topic)
@@ -189,26 +189,26 @@ class BusPublisher:
             assert self._device.color is not None
             c, d = cap.color, cap.aligned_depth
             if self._props.count == 0:  # before the first frame: the D455's colour camera has a global shutter
-                self._props.put(codec.camera_properties_msg(self._device.name, 0.0, c.stamp_ns))
+                self._props.put(streammsgs.camera_properties_msg(self._device.name, 0.0, c.stamp_ns))
             if self._behind(c.stamp_ns):
                 self.held_back += 1  # the tracker would skip this one
                 return
             if self.window:
                 self._unanswered.append(c.stamp_ns)
             if self._rgbd.topic is T.RGBD:
-                self._rgbd.put(codec.rgbd_msg(RgbdFrame(c.frame_number, c.stamp_ns, c.array, d.array,
+                self._rgbd.put(rgbdmsgs.rgbd_msg(RgbdFrame(c.frame_number, c.stamp_ns, c.array, d.array,
                                                         self._device.depth_scale_m, self._device.color, self._frame)))
                 return
             written = {m.topic: m for m in msgs}
             colour = codec.decode(written[T.COLOR_JPEG].data, T.COLOR_JPEG.msgtype)
             if T.ALIGNED_DEPTH_PNG in written:  # the recording's PNG, as it is
                 depth = codec.decode(written[T.ALIGNED_DEPTH_PNG].data, T.ALIGNED_DEPTH_PNG.msgtype)
-                depth_bytes, depth_format = bytes(depth.data), codec.DEPTH_PNG_FORMAT
+                depth_bytes, depth_format = bytes(depth.data), wirecompression.DEPTH_PNG_FORMAT
             elif self.wire_depth == "zstd":  # less than half PNG's cost to encode here and to decode in the tracker
-                depth_bytes, depth_format = codec.depth_zstd(d.array), codec.DEPTH_ZSTD_FORMAT
+                depth_bytes, depth_format = imagecodec.depth_zstd(d.array), wirecompression.DEPTH_ZSTD_FORMAT
             else:
-                depth_bytes, depth_format = codec.depth_png(d.array).tobytes(), codec.DEPTH_PNG_FORMAT
-            self._rgbd.put(codec.encoded_rgbd_msg(EncodedRgbd(
+                depth_bytes, depth_format = imagecodec.depth_png(d.array).tobytes(), wirecompression.DEPTH_PNG_FORMAT
+            self._rgbd.put(rgbdmsgs.encoded_rgbd_msg(EncodedRgbd(
                 c.frame_number, c.stamp_ns, bytes(colour.data), colour.format, depth_bytes, depth_format,
                 self._device.depth_scale_m, self._device.color, self._frame)))
 
@@ -228,7 +228,7 @@ class BusPublisher:
         """Tell consumers how many RGB-D frames went out (the tracker's end-of-stream), then stay
         until the tracker has taken them: a live tracker may be far behind, and a producer gone
         before its consumer reached the end would be taken for a dead one."""
-        self._rgbd_end.put(codec.stream_end_msg(self._rgbd.topic.name, self._rgbd.count))
+        self._rgbd_end.put(streammsgs.stream_end_msg(self._rgbd.topic.name, self._rgbd.count))
         self._bus.linger("tracker")
 
 

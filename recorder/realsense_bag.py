@@ -34,7 +34,7 @@ from octolog.recorder.import_output import (
     ImportSink,
     intrinsics_fields,
 )
-from octolog.schemas import codec
+from octolog.schemas import posemsgs, sensormsgs
 from octolog.schemas.topics import (
     ACCEL,
     ALIGNED_DEPTH,
@@ -141,7 +141,7 @@ class RealSenseBagPlan(BagPlan):
                 msg = r.deserialize(raw, c.msgtype)
                 if stream in self.intrinsics:
                     break
-                self.intrinsics[stream] = (codec.intrinsics_from(_CameraInfoView(msg)), str(msg.distortion_model))
+                self.intrinsics[stream] = (sensormsgs.intrinsics_from(_CameraInfoView(msg)), str(msg.distortion_model))
         self.depth_units: float | None = None
         for c in self.option_conns:
             name = _RS_OPTION.match(c.topic)["name"].replace("_", " ")  # type: ignore[index]
@@ -218,7 +218,7 @@ class RealSenseBagPlan(BagPlan):
             if dst in COLOR_TOPICS or dst in DEPTH_TOPICS:
                 out = layout_image(msg, c.topic, dst, stamp, frame_id)
             else:
-                out = codec.image_msg(np.ascontiguousarray(pixels(msg, c.topic)), stamp, frame_id)
+                out = sensormsgs.image_msg(np.ascontiguousarray(pixels(msg, c.topic)), stamp, frame_id)
             sink.put(dst, IMAGE, out, stamp)
             info = _INFO_FOR.get(dst)
             if stream in self.intrinsics and info is not None:
@@ -228,11 +228,11 @@ class RealSenseBagPlan(BagPlan):
                 raise InputError(f"{self.path}: {c.topic}: no camera_info for stream {stream} (missing calibration)")
         tfs = self._tf_static()
         if tfs and first is not None:
-            sink.put(TF_STATIC.name, TF_STATIC.msgtype, codec.tf_msg(tfs, first), first)
+            sink.put(TF_STATIC.name, TF_STATIC.msgtype, posemsgs.tf_msg(tfs, first), first)
 
     @staticmethod
     def _info_msg(intr: Intrinsics, model: str, stamp: int, frame_id: str) -> Any:
-        msg = codec.camera_info_msg(intr, stamp, frame_id)
+        msg = sensormsgs.camera_info_msg(intr, stamp, frame_id)
         # Brown-Conrady is ROS's plumb_bob; keep other librealsense models' names (their coefficients differ).
         if model and model not in ("Brown Conrady", "plumb_bob", "None"):
             msg.distortion_model = model
@@ -288,7 +288,7 @@ class RealSenseBagPlan(BagPlan):
 
 
 class _CameraInfoView:
-    """ROS 1 and ROS 2 CameraInfo alike for codec.intrinsics_from (k, d lower-case)."""
+    """ROS 1 and ROS 2 CameraInfo alike for sensormsgs.intrinsics_from (k, d lower-case)."""
 
     def __init__(self, msg: Any) -> None:
         self.width, self.height = msg.width, msg.height

@@ -31,7 +31,7 @@ from octolog.kit.geometry import Intrinsics, invert
 from octolog.kit.mcaplog import McapWriter
 from octolog.kit.tftree import LINK_FROM_OPTICAL
 from octolog.recorder.capture import Capture, DeviceDescription, blank_capture
-from octolog.schemas import codec
+from octolog.schemas import codec, imagecodec, posemsgs, sensormsgs
 from octolog.schemas import topics as T
 from octolog.schemas.topics import Topic
 
@@ -258,7 +258,7 @@ class Recorder:
         self._depth_info = device.depth
         # the lazy set-up (type store, each type's CDR code and schema, the codecs) now, not on the first
         # frame: the camera is streaming by then, and a late first frame holds back the live ones behind it
-        tf = Encoded(T.TF_STATIC, codec.encode(codec.tf_msg(self._transforms(), 0), T.TF_STATIC.msgtype), 0)
+        tf = Encoded(T.TF_STATIC, codec.encode(posemsgs.tf_msg(self._transforms(), 0), T.TF_STATIC.msgtype), 0)
         for m in [*self._encode(blank_capture(device)), tf]:
             codec.msgdef(m.topic.msgtype)
         self._thread = threading.Thread(target=self._write_loop, name="recorder-writer", daemon=True)
@@ -436,10 +436,10 @@ class Recorder:
             if e.color_codec == "jpeg":
                 ok, buf = cv2.imencode(".jpg", cv2.cvtColor(c.array, cv2.COLOR_RGB2BGR),
                                        [cv2.IMWRITE_JPEG_QUALITY, e.jpeg_quality])
-                msg = codec.compressed_image_msg(buf.tobytes(), JPEG_FORMAT, c.stamp_ns, self.frames["color"])
+                msg = sensormsgs.compressed_image_msg(buf.tobytes(), JPEG_FORMAT, c.stamp_ns, self.frames["color"])
                 out.append(Encoded(T.COLOR_JPEG, codec.encode(msg, T.COLOR_JPEG.msgtype), c.stamp_ns))
             else:
-                msg = codec.image_msg(c.array, c.stamp_ns, self.frames["color"])
+                msg = sensormsgs.image_msg(c.array, c.stamp_ns, self.frames["color"])
                 out.append(Encoded(T.COLOR, codec.encode(msg, T.COLOR.msgtype), c.stamp_ns))
             out.append(self._info(T.COLOR_INFO, self._color_info, c.stamp_ns, self.frames["color"]))
         for v, raw, png, info, intr, frame in (
@@ -449,24 +449,24 @@ class Recorder:
             if v is None:
                 continue
             if e.depth_codec == "png":
-                msg = codec.compressed_image_msg(codec.depth_png(v.array, e.png_level).tobytes(), PNG_FORMAT,
+                msg = sensormsgs.compressed_image_msg(imagecodec.depth_png(v.array, e.png_level).tobytes(), PNG_FORMAT,
                                                  v.stamp_ns, frame)
                 out.append(Encoded(png, codec.encode(msg, png.msgtype), v.stamp_ns))
             else:
-                msg = codec.image_msg(v.array, v.stamp_ns, frame)
+                msg = sensormsgs.image_msg(v.array, v.stamp_ns, frame)
                 out.append(Encoded(raw, codec.encode(msg, raw.msgtype), v.stamp_ns))
             out.append(self._info(info, intr, v.stamp_ns, frame))
         for m in cap.motion:
             topic = T.GYRO if m.stream == "gyro" else T.ACCEL
             kw = {"angular_velocity" if m.stream == "gyro" else "linear_acceleration": m.xyz}
-            msg = codec.imu_msg(m.stamp_ns, self.frames[m.stream], **kw)
+            msg = sensormsgs.imu_msg(m.stamp_ns, self.frames[m.stream], **kw)
             out.append(Encoded(topic, codec.encode(msg, topic.msgtype), m.stamp_ns))
         return out
 
     @staticmethod
     def _info(topic: Topic, intr: Intrinsics | None, stamp: int, frame: str) -> Encoded:
         assert intr is not None
-        return Encoded(topic, codec.encode(codec.camera_info_msg(intr, stamp, frame), topic.msgtype), stamp)
+        return Encoded(topic, codec.encode(sensormsgs.camera_info_msg(intr, stamp, frame), topic.msgtype), stamp)
 
     def _write(self, cap: Capture, msgs: list[Encoded]) -> None:
         video = cap.color is not None or cap.depth is not None or cap.aligned_depth is not None
@@ -537,7 +537,7 @@ class Recorder:
             self._file_first_ns = stamp_ns
             self._file_messages = {}
             self.result.paths.append(path)
-            tf = codec.tf_msg(self._transforms(), stamp_ns)
+            tf = posemsgs.tf_msg(self._transforms(), stamp_ns)
             w.write(T.TF_STATIC.name, T.TF_STATIC.msgtype, codec.encode(tf, T.TF_STATIC.msgtype),
                     log_time_ns=stamp_ns, publish_time_ns=stamp_ns)
             self._file_messages[T.TF_STATIC.name] = 1

@@ -17,7 +17,7 @@ from octolog.kit.errors import InputError
 from octolog.kit.geometry import Intrinsics
 from octolog.kit.tum import TUM_DEPTH_SCALE_M, open_tum, read_list, read_png, read_rows, readout_for, seconds_to_ns
 from octolog.recorder.import_output import ACCEL_FRAME, COLOR_FRAME, ImportResult, intrinsics_fields, open_output
-from octolog.schemas import codec
+from octolog.schemas import posemsgs, sensormsgs
 from octolog.schemas.topics import ACCEL, ALIGNED_DEPTH, ALIGNED_DEPTH_INFO, COLOR, COLOR_INFO, TF_STATIC
 
 # The Kinect's accelerometer axes in the colour camera's optical frame (x left, y up, z forward:
@@ -46,28 +46,30 @@ def import_tum(folder: Path, output: Path, *, overwrite: bool = False, compressi
         if accel:  # where the samples' axes lie, as realsense-ros says it for its IMU
             first = events[0][0]
             sink.put(TF_STATIC.name, TF_STATIC.msgtype,
-                     codec.tf_msg([(COLOR_FRAME, ACCEL_FRAME, COLOR_FROM_KINECT_ACCEL)], first), first)
+                     posemsgs.tf_msg([(COLOR_FRAME, ACCEL_FRAME, COLOR_FROM_KINECT_ACCEL)], first), first)
         for stamp, what, i in events:
             if what == 0:
                 img = read_png(folder / rgb[i][1], cv2.IMREAD_COLOR)
                 if img.ndim != 3 or img.shape[2] != 3:
                     raise InputError(f"{folder / rgb[i][1]}: not a 3-channel colour image")
                 _check_size(folder / rgb[i][1], img, intr)
-                sink.put(COLOR.name, COLOR.msgtype, codec.image_msg(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), stamp,
+                sink.put(COLOR.name, COLOR.msgtype, sensormsgs.image_msg(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), stamp,
                                                                     COLOR_FRAME), stamp)
-                sink.put(COLOR_INFO.name, COLOR_INFO.msgtype, codec.camera_info_msg(intr, stamp, COLOR_FRAME), stamp)
+                sink.put(COLOR_INFO.name, COLOR_INFO.msgtype, sensormsgs.camera_info_msg(intr, stamp, COLOR_FRAME),
+                         stamp)
             elif what == 1:
                 img = read_png(folder / depth[i][1], cv2.IMREAD_ANYDEPTH)
                 if img.dtype != np.uint16 or img.ndim != 2:
                     raise InputError(f"{folder / depth[i][1]}: depth must be a 16-bit single-channel PNG")
                 _check_size(folder / depth[i][1], img, intr)
                 # Registered depth: realsense-ros stamps it in the colour optical frame.
-                sink.put(ALIGNED_DEPTH.name, ALIGNED_DEPTH.msgtype, codec.image_msg(img, stamp, COLOR_FRAME), stamp)
-                sink.put(ALIGNED_DEPTH_INFO.name, ALIGNED_DEPTH_INFO.msgtype,
-                         codec.camera_info_msg(intr, stamp, COLOR_FRAME), stamp)
-            else:
-                sink.put(ACCEL.name, ACCEL.msgtype, codec.imu_msg(stamp, ACCEL_FRAME, linear_acceleration=accel[i][1]),
+                sink.put(ALIGNED_DEPTH.name, ALIGNED_DEPTH.msgtype, sensormsgs.image_msg(img, stamp, COLOR_FRAME),
                          stamp)
+                sink.put(ALIGNED_DEPTH_INFO.name, ALIGNED_DEPTH_INFO.msgtype,
+                         sensormsgs.camera_info_msg(intr, stamp, COLOR_FRAME), stamp)
+            else:
+                sink.put(ACCEL.name, ACCEL.msgtype,
+                         sensormsgs.imu_msg(stamp, ACCEL_FRAME, linear_acceleration=accel[i][1]), stamp)
         sink.metadata("calibration", {
             "depth_scale_m": repr(TUM_DEPTH_SCALE_M),
             "depth_scale_source": "TUM RGB-D: 5000 depth units per metre",

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from octolog.kit.calibration import is_calibration_file
 from octolog.kit.errors import ConfigError
 from octolog.kit.tum import TUM_CAMERAS
-from octolog.schemas.codec import parse_wire_compression
+from octolog.schemas.wirecompression import parse_wire_compression
 from octolog.schemas.topics import Topic
 
 

@@ -118,14 +118,14 @@ def recorded_up(path: Path, first_stamp_ns: int, color_frame: str) -> np.ndarray
     transform from the accelerometer's frame to the colour frame, the two are taken as aligned:
     RealSense IMU optical frames share the cameras' axes."""
     from octolog.kit.mcaplog import read_messages
-    from octolog.schemas import codec
+    from octolog.schemas import codec, posemsgs
     from octolog.schemas.topics import ACCEL, TF_STATIC
 
     samples, accel_frame, parent_from_child = [], "", {}
     for m in read_messages(path, [ACCEL.name, TF_STATIC.name]):
         msg = codec.decode(m.data, TF_STATIC.msgtype if m.topic == TF_STATIC.name else ACCEL.msgtype)
         if m.topic == TF_STATIC.name:
-            for parent, child, T in codec.tf_transforms(msg):
+            for parent, child, T in posemsgs.tf_transforms(msg):
                 parent_from_child[child] = (parent, T[:3, :3])
             continue
         t = codec.stamp_ns(msg.header)

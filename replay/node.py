@@ -19,7 +19,7 @@ from octolog.kit.viz import Viz
 from octolog.replay import gravity
 from octolog.replay.config import ReplayConfig, remapped
 from octolog.replay.sources import McapSource, Source, open_source
-from octolog.schemas import checks, codec
+from octolog.schemas import checks, codec, posemsgs, rgbdmsgs, streammsgs, wirecompression
 from octolog.schemas.topics import (
     CAMERA_PROPERTIES,
     GRAVITY,
@@ -161,9 +161,9 @@ def looped(source: Source, cfg: ReplayConfig, *, encoded: bool = False) -> Itera
 
 
 def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Progress | None) -> ReplayResult:
-    wire = codec.parse_wire_compression(cfg.wire_compression)
+    wire = wirecompression.parse_wire_compression(cfg.wire_compression)
     # as the source has them: encoded images go out untouched (the tracker decodes them once)
-    passthrough = cfg.wire_compression == codec.SOURCE and source.encoded
+    passthrough = cfg.wire_compression == wirecompression.SOURCE and source.encoded
     compressed = passthrough or wire is not None
     frames_pub = bus.publisher(remapped(RGBD_COMPRESSED if compressed else RGBD, cfg.remap))
     end_pub = bus.publisher(remapped(RGBD_END, cfg.remap))
@@ -172,9 +172,9 @@ def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Pro
     watched = ([TRACKING_STATUS] if cfg.rate == 0 else []) + ([TRACKING_STATUS, MAP_UPDATE] if progress else [])
     bus.start(list(dict.fromkeys(watched)), wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
     bus.watch(["tracker"], required=False)  # see the end
-    bus.publisher(CONFIGS["replay"]).put(codec.config_msg("replay", to_dict(cfg)))
+    bus.publisher(CONFIGS["replay"]).put(streammsgs.config_msg("replay", to_dict(cfg)))
     # before the first frame, which depends on it (wire numbering): a tracker anywhere knows the camera
-    props_pub.put(codec.camera_properties_msg(source.name, source.readout_s))
+    props_pub.put(streammsgs.camera_properties_msg(source.name, source.readout_s))
     end = None if cfg.end < 0 else cfg.end
     total = max(0, min(len(source), end if end is not None else len(source)) - cfg.start) * cfg.loop
     status = Status(total=total)
@@ -190,19 +190,19 @@ def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Pro
     for frame in looped(source, cfg, encoded=passthrough):
         pacer.wait(frames_pub.count, frame.stamp_ns)
         if frames_pub.count == 0:  # the camera's own frames, before its first image (the tracker hangs world on their root)
-            bus.publisher(TF_STATIC).put(codec.tf_msg(camera_tree(source, frame.frame_id), frame.stamp_ns))
+            bus.publisher(TF_STATIC).put(posemsgs.tf_msg(camera_tree(source, frame.frame_id), frame.stamp_ns))
             if up is not None:
-                up_bytes.append(bus.publisher(GRAVITY).put(codec.vector3_stamped_msg(up[0], frame.stamp_ns,
+                up_bytes.append(bus.publisher(GRAVITY).put(posemsgs.vector3_stamped_msg(up[0], frame.stamp_ns,
                                                                                     frame.frame_id)))
         if passthrough:  # as the source stored them: checked as every receiver will (a bad one would be dropped)
-            msg = codec.encoded_rgbd_msg(frame)
+            msg = rgbdmsgs.encoded_rgbd_msg(frame)
             try:
                 checks.check(msg, frames_pub.topic.msgtype)
             except InputError as exc:
                 raise InputError(f"{source.name}: frame {frame.seq}: {exc}") from None
             frames_pub.put(msg)
         else:
-            frames_pub.put(codec.rgbd_msg(frame) if wire is None else codec.compressed_rgbd_msg(frame, wire))
+            frames_pub.put(rgbdmsgs.rgbd_msg(frame) if wire is None else rgbdmsgs.compressed_rgbd_msg(frame, wire))
         first_stamp = frame.stamp_ns if first_stamp is None else first_stamp
         last_stamp = frame.stamp_ns
         if progress is not None:
@@ -210,7 +210,7 @@ def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Pro
             status.sensor_s = (last_stamp - first_stamp) * 1e-9
             progress(status)
     pacer.finish(frames_pub.count)
-    end_pub.put(codec.stream_end_msg(frames_pub.topic.name, frames_pub.count, last_stamp or 0))
+    end_pub.put(streammsgs.stream_end_msg(frames_pub.topic.name, frames_pub.count, last_stamp or 0))
     wall_s = time.monotonic() - t0
     # stay (histories and all) until the tracker has taken every frame: a tracker far behind would
     # otherwise see its source gone before the end and, after peer_timeout_s, take it for dead
@@ -250,7 +250,7 @@ def play_tracker_log(cfg: ReplayConfig, bus_cfg: BusConfig) -> ReplayResult:
             except InputError as exc:
                 raise InputError(f"{path}: message {i} on /{m.topic}: {exc}") from None
             pubs[m.topic].put_raw(m.data)
-        end_pub.put(codec.stream_end_msg(KEYFRAME_POSES.name, pubs[KEYFRAME_POSES.name].count))
-        end_pub.put(codec.stream_end_msg(kf_topic.name, pubs[kf_topic.name].count))
+        end_pub.put(streammsgs.stream_end_msg(KEYFRAME_POSES.name, pubs[KEYFRAME_POSES.name].count))
+        end_pub.put(streammsgs.stream_end_msg(kf_topic.name, pubs[kf_topic.name].count))
         bus.linger("mapper")
     return ReplayResult(pubs[kf_topic.name].count, time.monotonic() - t0, 0.0)

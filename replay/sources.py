@@ -23,7 +23,7 @@ from octolog.kit.tum import open_tum, readout_for
 from octolog.replay import gravity
 from octolog.replay.standard import has_standard_frames, open_standard
 from octolog.replay.synthetic import SyntheticScene
-from octolog.schemas import codec
+from octolog.schemas import codec, posemsgs, rgbdmsgs
 from octolog.schemas.topics import (
     BACKEND_DEFERRED,
     KEYFRAME,
@@ -194,12 +194,12 @@ class McapSource:
         if self._standard is not None:
             yield from self._standard.frames(start, end)
             return
-        yield from self._logged(start, end, codec.rgbd_from_msg)
+        yield from self._logged(start, end, rgbdmsgs.rgbd_from_msg)
 
     def encoded_frames(self, start: int = 0, end: int | None = None) -> Iterator[EncodedRgbd]:
         if not self.encoded:
             yield from _not_encoded(self)
-        yield from self._logged(start, end, codec.encoded_rgbd_from_msg)
+        yield from self._logged(start, end, rgbdmsgs.encoded_rgbd_from_msg)
 
     def _logged(self, start: int, end: int | None, convert: Callable[[Any], T]) -> Iterator[T]:
         i = 0
@@ -224,7 +224,7 @@ class McapSource:
         """The camera's static frames as the file has them (/tf_static; `world`, which a mapper
         hangs under `map`, left out)."""
         return [tf for m in read_wire(self.path, [TF_STATIC.name])
-                for tf in codec.tf_transforms(codec.decode(m.data, TF_STATIC.msgtype)) if tf[1] != "world"]
+                for tf in posemsgs.tf_transforms(codec.decode(m.data, TF_STATIC.msgtype)) if tf[1] != "world"]
 
     def gravity_up(self) -> np.ndarray | None:
         """A recording's accelerometer at its first frame; the up vector the session that wrote a

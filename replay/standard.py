@@ -22,7 +22,7 @@ from octolog.kit.errors import InputError
 from octolog.kit.geometry import Intrinsics, RgbdFrame
 from octolog.kit.mcaplog import read_messages, summarize
 from octolog.kit.tum import associate
-from octolog.schemas import codec
+from octolog.schemas import codec, imagecodec, sensormsgs
 from octolog.schemas.topics import (
     ALIGNED_DEPTH,
     ALIGNED_DEPTH_INFO,
@@ -125,8 +125,8 @@ class StandardSequence:
 
 def _pixels(msg: Any, topic: Topic) -> np.ndarray:
     if topic.msgtype == "sensor_msgs/msg/CompressedImage":
-        return codec.decode_compressed_image(msg)
-    return codec.image_array(msg)
+        return imagecodec.decode_compressed_image(msg)
+    return sensormsgs.image_array(msg)
 
 
 def _header_stamp(data: bytes) -> int:
@@ -173,7 +173,7 @@ def open_standard(path: str | Path, calibration: Calibration | None = None) -> S
             elif m.topic == depth.name:
                 d_stamps.append(_header_stamp(m.data))
             elif info is None:
-                info = codec.intrinsics_from(codec.decode(m.data, info_topic.msgtype))
+                info = sensormsgs.intrinsics_from(codec.decode(m.data, info_topic.msgtype))
         except InputError as exc:
             raise InputError(f"{path}: /{m.topic}: {exc}") from None
     if info is None:

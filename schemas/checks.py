@@ -8,7 +8,7 @@ sides and pixel counts of images and calibration within what any RGB-D camera ha
 What is left to the stage on purpose: whether a frame agrees with its camera (image sizes against the
 calibration, depth type, a depth scale > 0). Such a frame is still a frame of its producer's stream:
 the tracker consumes it and reports it LOST (a lockstep replay waits for that status), where a
-sample dropped here was never a message at all. codec compares a compressed image's declared size
+sample dropped here was never a message at all. rgbdmsgs compares a compressed image's declared size
 with the calibration before decoding it, so no frame makes a stage allocate past its calibration.
 """
 
@@ -20,8 +20,10 @@ from typing import Any
 import numpy as np
 
 from octolog.kit.errors import InputError
-from octolog.schemas.codec import IMAGE_ENCODINGS, check_pose_msg, decode
+from octolog.schemas.codec import decode
 from octolog.schemas.imageheaders import declared_size
+from octolog.schemas.msgtypes import Image, Pose
+from octolog.schemas.sensormsgs import IMAGE_ENCODINGS
 
 MAX_SIDE = 8192  # pixels: no RGB-D camera a stage takes has a wider or taller image
 MAX_PIXELS = 1 << 25  # 33.5 Mpx: 100 MB of RGB, the most one frame may make a stage allocate
@@ -79,7 +81,7 @@ def _check_size(what: str, w: int, h: int, *, allow_empty: bool = False) -> None
         raise InputError(f"{what}: {w}x{h} pixels (want 1..{MAX_SIDE} a side, at most {MAX_PIXELS} pixels)")
 
 
-def _raw_size(image: Any) -> tuple[int, int]:
+def _raw_size(image: Image) -> tuple[int, int]:
     w, h, enc = int(image.width), int(image.height), image.encoding
     if enc not in IMAGE_ENCODINGS:
         raise InputError(f"unsupported image encoding {enc!r}")
@@ -91,3 +93,22 @@ def _raw_size(image: Any) -> tuple[int, int]:
     return w, h
 
 
+
+
+def check_pose(t: np.ndarray, q: np.ndarray) -> None:
+    """InputError unless the translation is finite and the quaternion finite and not zero."""
+    norm = float(np.linalg.norm(q))
+    if not (np.all(np.isfinite(t)) and np.isfinite(norm) and norm > 1e-9):
+        raise InputError(f"pose: translation {t.tolist()} / quaternion {q.tolist()} is not a rigid transform")
+
+
+def check_pose_msg(msg: Pose) -> None:
+    """InputError where posemsgs.pose_matrix(msg) would raise one, without building the matrix (a
+    check on every message of a log's hot path: scipy's rotation costs more than the check)."""
+    check_pose(*pose_arrays(msg))
+
+
+def pose_arrays(msg: Pose) -> tuple[np.ndarray, np.ndarray]:
+    """Translation and quaternion (x, y, z, w) of a geometry_msgs/Pose."""
+    p, o = msg.position, msg.orientation
+    return np.array([p.x, p.y, p.z]), np.array([o.x, o.y, o.z, o.w])

@@ -2,7 +2,7 @@
 decoding the image.
 
 A PNG or JPEG can claim a 10^9-pixel image in 30 bytes, and decoding it would allocate gigabytes:
-readers ask here first (schemas.checks at the bus, codec before decoding a frame's images).
+readers ask here first (schemas.checks at the bus, rgbdmsgs before decoding a frame's images).
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from __future__ import annotations
 import struct
 
 _PNG = b"\x89PNG\r\n\x1a\n"
-# octolog's zstd depth (schemas.codec.depth_zstd): the magic, then width and height as little-endian uint32
+# octolog's zstd depth (schemas.imagecodec.depth_zstd): the magic, then width and height as little-endian uint32
 ZSTD_DEPTH_MAGIC = b"ZSUB"
 ZSTD_DEPTH_HEADER = 12
 _JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}

@@ -15,7 +15,7 @@ import pytest
 from octolog.kit.bus import Bus, BusConfig, wire
 from octolog.kit.bus.publishing import History
 from octolog.kit.errors import BusError, StageError
-from octolog.schemas import codec, topics
+from octolog.schemas import codec, streammsgs, topics
 
 
 def _port() -> int:
@@ -53,7 +53,7 @@ def test_slow_consumer_gets_everything_in_order(endpoints):
         def produce() -> None:
             for i in range(n):
                 # the topic's `count` field carries the sequence number; the padding makes it big
-                p.put(codec.stream_end_msg("x" * len(payload) if i % 10 == 0 else "x", i))
+                p.put(streammsgs.stream_end_msg("x" * len(payload) if i % 10 == 0 else "x", i))
 
         t = threading.Thread(target=produce)
         t.start()
@@ -189,7 +189,7 @@ NUMBERED = topics.Topic("test/numbered", "octolog_msgs/msg/StreamEnd")  # `count
 
 def _lose(p, i: int) -> None:
     """Sample `i` lost on the wire: numbered and kept in the publisher's history, never sent."""
-    p._number(codec.encode(codec.stream_end_msg("x", i), p.topic.msgtype))
+    p._number(codec.encode(streammsgs.stream_end_msg("x", i), p.topic.msgtype))
 
 
 def _numbers(bus: Bus, n: int, timeout_s: float = 30.0) -> list[int]:
@@ -219,7 +219,7 @@ def test_lost_samples_are_recovered_once_and_in_order(endpoints):
             if i in (3, 4, 11):  # a gap in the middle (seen when 5 arrives) and a lost tail
                 _lose(p, i)
             else:
-                p.put(codec.stream_end_msg("x", i))
+                p.put(streammsgs.stream_end_msg("x", i))
         got = _numbers(sub, 12)
         assert got == list(range(12))
         assert sub.recovered == 3
@@ -233,11 +233,11 @@ def test_topics_of_one_publisher_keep_their_order_across_a_recovery(endpoints):
         sub.subscribe([other])
         _connected(sub, pub)
         pa, pb = pub.publisher(NUMBERED), pub.publisher(other)
-        pa.put(codec.stream_end_msg("x", 0))
-        pb.put(codec.stream_end_msg("x", 0))
+        pa.put(streammsgs.stream_end_msg("x", 0))
+        pb.put(streammsgs.stream_end_msg("x", 0))
         _lose(pa, 1)
-        pb.put(codec.stream_end_msg("x", 1))  # sent after a1: must not overtake it
-        pa.put(codec.stream_end_msg("x", 2))
+        pb.put(streammsgs.stream_end_msg("x", 1))  # sent after a1: must not overtake it
+        pa.put(streammsgs.stream_end_msg("x", 2))
         got = []
         deadline = time.monotonic() + 30
         while len(got) < 5 and time.monotonic() < deadline:
@@ -252,11 +252,11 @@ def test_late_subscriber_gets_the_history_then_live_exactly_once(endpoints):
     with Bus(server, "tracker") as pub:
         p = pub.publisher(topics.KEYFRAME_END)  # a keep-all stream: a late joiner gets it from 0
         for i in range(10):
-            p.put(codec.stream_end_msg("x", i))
+            p.put(streammsgs.stream_end_msg("x", i))
         with Bus(client, "mapper") as sub:
             _connected(sub, pub, topics.KEYFRAME_END)
             for i in range(10, 20):
-                p.put(codec.stream_end_msg("x", i))
+                p.put(streammsgs.stream_end_msg("x", i))
             assert _numbers(sub, 20) == list(range(20))
             assert _numbers(sub, 1, timeout_s=2.5) == []
 
@@ -266,7 +266,7 @@ def test_late_subscriber_starts_at_the_oldest_kept_sample(endpoints):
     with Bus(dataclasses.replace(server, history=4), "tracker") as pub:
         p = pub.publisher(NUMBERED)
         for i in range(10):
-            p.put(codec.stream_end_msg("x", i))
+            p.put(streammsgs.stream_end_msg("x", i))
         with Bus(client, "mapper") as sub:
             sub.subscribe([NUMBERED])
             assert _numbers(sub, 4) == [6, 7, 8, 9]
@@ -277,11 +277,11 @@ def test_samples_older_than_the_history_are_reported_lost(endpoints):
     with Bus(server, "mapper") as sub, Bus(dataclasses.replace(client, history=1), "tracker") as pub:
         _connected(sub, pub)
         p = pub.publisher(NUMBERED)
-        p.put(codec.stream_end_msg("x", 0))
+        p.put(streammsgs.stream_end_msg("x", 0))
         assert _numbers(sub, 1) == [0]
         for i in range(1, 6):
             _lose(p, i)
-        p.put(codec.stream_end_msg("x", 6))  # the history keeps 6 only
+        p.put(streammsgs.stream_end_msg("x", 6))  # the history keeps 6 only
         with pytest.raises(StageError, match="5 samples on t/test/numbered were lost for good"):
             _numbers(sub, 6)
 

@@ -119,13 +119,13 @@ def _reference(out: Path, start_poses: list[list[float]], *, source: str = f"syn
     from octolog.mapper.core import make_mapper
     from octolog.replay import gravity
     from octolog.replay.sources import open_source
-    from octolog.schemas import codec
+    from octolog.schemas import posemsgs
     from octolog.tracker.config import TrackerConfig, for_source
     from octolog.tracker.factory import make_odometry
 
     src = open_source(source)
     def wire(T: np.ndarray) -> np.ndarray:  # a pose as the messages carry it (position + quaternion)
-        return codec.pose_matrix(codec.pose_msg(T))
+        return posemsgs.pose_matrix(posemsgs.pose_msg(T))
 
     keyframes = []  # (stamp, robot index, robot keyframe id, frame)
     latest: list[dict[int, np.ndarray]] = []  # per robot: keyframe id -> the last pose sent for it

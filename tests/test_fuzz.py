@@ -26,7 +26,7 @@ from hypothesis import strategies as st
 
 from octolog.kit.errors import OctologError
 from octolog.kit.geometry import Intrinsics, RgbdFrame
-from octolog.schemas import codec, topics
+from octolog.schemas import codec, mapmsgs, posemsgs, rgbdmsgs, streammsgs, topics, wirecompression
 
 EXAMPLES = int(os.environ.get("OCTOLOG_FUZZ_EXAMPLES", "60"))
 settings.register_profile("octolog", max_examples=EXAMPLES, deadline=None, database=None,
@@ -69,17 +69,17 @@ def _frame(w: int = 16, h: int = 12) -> RgbdFrame:
 
 def _wire_samples() -> dict[topics.Topic, bytes]:
     f, pose = _frame(), np.eye(4)
-    png = codec.parse_wire_compression("png")
-    jpeg = codec.parse_wire_compression("jpeg")
+    png = wirecompression.parse_wire_compression("png")
+    jpeg = wirecompression.parse_wire_compression("jpeg")
     msgs = {
-        topics.RGBD: codec.rgbd_msg(f),
-        topics.RGBD_COMPRESSED: codec.compressed_rgbd_msg(f, jpeg),
-        topics.KEYFRAME: codec.keyframe_msg(1, pose, f),
-        topics.KEYFRAME_COMPRESSED: codec.compressed_keyframe_msg(1, pose, f, png),
-        topics.KEYFRAME_POSES: codec.keyframe_poses_msg({1: pose, 2: pose}, 7),
-        topics.RGBD_END: codec.stream_end_msg(topics.RGBD.name, 3),
-        topics.POSE: codec.pose_stamped_msg(pose, 7),
-        topics.OCCUPIED: codec.point_cloud_msg(np.ones((5, 3), np.float32), 7),
+        topics.RGBD: rgbdmsgs.rgbd_msg(f),
+        topics.RGBD_COMPRESSED: rgbdmsgs.compressed_rgbd_msg(f, jpeg),
+        topics.KEYFRAME: rgbdmsgs.keyframe_msg(1, pose, f),
+        topics.KEYFRAME_COMPRESSED: rgbdmsgs.compressed_keyframe_msg(1, pose, f, png),
+        topics.KEYFRAME_POSES: posemsgs.keyframe_poses_msg({1: pose, 2: pose}, 7),
+        topics.RGBD_END: streammsgs.stream_end_msg(topics.RGBD.name, 3),
+        topics.POSE: posemsgs.pose_stamped_msg(pose, 7),
+        topics.OCCUPIED: mapmsgs.point_cloud_msg(np.ones((5, 3), np.float32), 7),
     }
     return {t: codec.encode(m, t.msgtype) for t, m in msgs.items()}
 
@@ -90,21 +90,21 @@ WIRE = _wire_samples()
 def _consume(topic: topics.Topic, msg) -> None:
     """What the stages do with an admitted message of `topic`."""
     if topic in (topics.RGBD, topics.RGBD_COMPRESSED):
-        codec.rgbd_from_msg(msg)
+        rgbdmsgs.rgbd_from_msg(msg)
     elif topic in (topics.KEYFRAME, topics.KEYFRAME_COMPRESSED):
-        codec.keyframe_from_msg(msg)
+        rgbdmsgs.keyframe_from_msg(msg)
     elif topic == topics.KEYFRAME_POSES:
-        codec.keyframe_poses_from_msg(msg)
+        posemsgs.keyframe_poses_from_msg(msg)
     elif topic == topics.RGBD_END:
         int(msg.count), str(msg.topic)
     elif topic == topics.POSE:
-        codec.pose_matrix(msg.pose)
+        posemsgs.pose_matrix(msg.pose)
     elif topic == topics.OCCUPIED:
-        codec.point_cloud_xyz(msg)
+        mapmsgs.point_cloud_xyz(msg)
 
 
 def _zero_quaternion() -> bytes:
-    msg = codec.keyframe_poses_msg({1: np.eye(4)}, 7)
+    msg = posemsgs.keyframe_poses_msg({1: np.eye(4)}, 7)
     msg.world_from_camera[0].orientation.w = 0.0
     return codec.encode(msg, topics.KEYFRAME_POSES.msgtype)
 

@@ -168,7 +168,7 @@ def test_a_live_cameras_up_is_levelled_on_the_first_keyframes_floor(tmp_path: Pa
     from octolog.mapper.config import MapperConfig
     from octolog.mapper.core import make_mapper
     from octolog.mapper.mapframe import MapFrame
-    from octolog.schemas import codec
+    from octolog.schemas import sensormsgs
 
     def live_up(source: str) -> tuple[dict, np.ndarray]:
         src = open_source(source)
@@ -181,7 +181,8 @@ def test_a_live_cameras_up_is_levelled_on_the_first_keyframes_floor(tmp_path: Pa
             live = MapFrame(mapper, bus, viz, from_imu=True)
             for k in range(-40, 41):
                 a = tuple(float(v) for v in 9.80665 * biased)
-                live._on_accel(codec.imu_msg(frame.stamp_ns + k * 5_000_000, frame.frame_id, linear_acceleration=a))
+                live._on_accel(sensormsgs.imu_msg(frame.stamp_ns + k * 5_000_000, frame.frame_id,
+                                                  linear_acceleration=a))
             live.first_keyframe(frame)
             live.resolve()
         assert live.found is not None

@@ -25,7 +25,7 @@ from helpers import ROOT, octolog, tum_first300
 from octolog.kit.bus import Bus, BusConfig, wire
 from octolog.kit.errors import StageError
 from octolog.kit.geometry import Intrinsics, RgbdFrame
-from octolog.schemas import codec, topics
+from octolog.schemas import codec, rgbdmsgs, streammsgs, topics, wirecompression
 
 BLOCK = zenoh.CongestionControl.BLOCK  # the hostile peer's samples all arrive (the default drops them when busy)
 
@@ -47,11 +47,11 @@ def malformed_samples(n: int) -> list[tuple[bytes, bytes | None]]:
     a valid message cut short, a raw image whose header claims 10^9 pixels, a raw image with fewer
     bytes than its header says, and each with an attachment that is not octolog's numbering."""
     rng = np.random.default_rng(7)
-    good = codec.encode(codec.rgbd_msg(_frame()), topics.RGBD.msgtype)
-    huge = codec.rgbd_msg(_frame())
+    good = codec.encode(rgbdmsgs.rgbd_msg(_frame()), topics.RGBD.msgtype)
+    huge = rgbdmsgs.rgbd_msg(_frame())
     huge.color.width, huge.color.height, huge.color.step = 40_000, 25_000, 120_000  # 10^9 pixels, 144 bytes
     huge.camera_info.width, huge.camera_info.height = 40_000, 25_000
-    short = codec.rgbd_msg(_frame())
+    short = rgbdmsgs.rgbd_msg(_frame())
     short.depth.data = short.depth.data[:50]  # fewer bytes than its header says
     kinds = [
         lambda i: rng.bytes(int(rng.integers(0, 3000))),
@@ -76,15 +76,15 @@ def test_malformed_samples_are_dropped_counted_and_named_once(capfd):
         pub.wait_for(["tracker"], timeout_s=20)
         good = pub.publisher(topics.RGBD)
         key = topics.RGBD.key("t")
-        good.put(codec.rgbd_msg(_frame(1)))
+        good.put(rgbdmsgs.rgbd_msg(_frame(1)))
         for data, att in bad:
             pub.session.put(key, data, attachment=att, congestion_control=BLOCK)
-        good.put(codec.rgbd_msg(_frame(2)))
+        good.put(rgbdmsgs.rgbd_msg(_frame(2)))
         got = []
         while len(got) < 2:
             r = sub.receive(timeout_s=10)
             assert r is not None, "the well-formed frames did not arrive"
-            got.append(codec.rgbd_from_msg(r.decode()))
+            got.append(rgbdmsgs.rgbd_from_msg(r.decode()))
         assert sub.receive_nowait() is None
         assert sub.malformed == {topics.RGBD.name: len(bad)}
     assert [f.seq for f in got] == [1, 2]
@@ -100,14 +100,14 @@ def test_a_png_header_claiming_a_billion_pixels_is_refused_before_decoding():
     from octolog.kit.bus.inbox import Received
     from octolog.kit.bus.screening import Screening
 
-    msg = codec.compressed_rgbd_msg(_frame(), codec.parse_wire_compression("png"))
+    msg = rgbdmsgs.compressed_rgbd_msg(_frame(), wirecompression.parse_wire_compression("png"))
     data = bytearray(msg.color.data)
     data[16:24] = struct.pack(">II", 40_000, 25_000)
     msg.color.data = np.frombuffer(bytes(data), np.uint8)
     payload = codec.encode(msg, topics.RGBD_COMPRESSED.msgtype)
     screen = Screening("tracker", "")
     assert screen.admit(Received(topics.RGBD_COMPRESSED, payload)) is None
-    ok = codec.encode(codec.compressed_rgbd_msg(_frame(), codec.parse_wire_compression("jpeg")),
+    ok = codec.encode(rgbdmsgs.compressed_rgbd_msg(_frame(), wirecompression.parse_wire_compression("jpeg")),
                       topics.RGBD_COMPRESSED.msgtype)
     assert screen.admit(Received(topics.RGBD_COMPRESSED, ok)) is not None  # a JPEG's size is read too
     assert screen.dropped == {topics.RGBD_COMPRESSED.name: 1}
@@ -120,7 +120,7 @@ def test_a_gap_that_never_fills_ends_the_stage_naming_the_publisher_within_the_b
     ep = f"tcp/127.0.0.1:{_port()}"
     bound_mb = 2
     source = wire.publisher_id("evil", bytes(range(16)))
-    payload = codec.encode(codec.stream_end_msg("x" * 100_000, 0), topics.RGBD_END.msgtype)
+    payload = codec.encode(streammsgs.stream_end_msg("x" * 100_000, 0), topics.RGBD_END.msgtype)
     key = topics.RGBD_END.key("t")
     with Bus(BusConfig(listen=(ep,), multicast_scouting=False, namespace="t", max_held_mb=bound_mb),
              "tracker") as sub, Bus(BusConfig(connect=(ep,), multicast_scouting=False, namespace="t"), "replay") as pub:
@@ -128,7 +128,7 @@ def test_a_gap_that_never_fills_ends_the_stage_naming_the_publisher_within_the_b
         sub.announce()
         pub.watch(["tracker"])
         pub.wait_for(["tracker"], timeout_s=20)
-        pub.publisher(topics.RGBD_END).put(codec.stream_end_msg("honest", 1))
+        pub.publisher(topics.RGBD_END).put(streammsgs.stream_end_msg("honest", 1))
         r = sub.receive(timeout_s=10)
         assert r is not None and r.decode().topic == "honest"
         n = 3 * (bound_mb << 20) // len(payload)  # three times the bound
@@ -206,7 +206,7 @@ def test_a_run_ends_in_one_line_naming_a_publisher_whose_gap_never_fills(router,
     marked INCOMPLETE."""
     out = tmp_path / "s"
     source = wire.publisher_id("evil", bytes(range(16)))
-    payload = codec.encode(codec.stream_end_msg("x" * (1 << 20), 0), topics.RGBD_END.msgtype)
+    payload = codec.encode(streammsgs.stream_end_msg("x" * (1 << 20), 0), topics.RGBD_END.msgtype)
     # a source far longer than the test (2 minutes of camera, rendered as it plays): the run cannot
     # end on its own before the bound is reached (with 5 s it did, in CI, once the tracker got faster)
     proc = _run_on(router, "synthetic:3600", out)

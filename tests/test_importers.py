@@ -16,7 +16,7 @@ from octolog.kit.tum import TUM_DEPTH_SCALE_M, open_tum
 from octolog.recorder.importers import import_source, parse_topic_map
 from octolog.recorder.tum_import import import_tum
 from octolog.replay.standard import count_standard_frames, open_standard, read_standard_frames
-from octolog.schemas import codec, topics
+from octolog.schemas import codec, sensormsgs, topics
 
 SMALL = Intrinsics(64, 48, 50.0, 51.0, 31.5, 23.5, (0.1, -0.2, 0.001, 0.002, 0.05))
 REALSENSE_BAGS = ("d435_single_depth_color_640x480.bag", "d435_1280x720_color1920x1080.bag")
@@ -225,12 +225,12 @@ def test_librealsense_259_db3(tmp_path):
     result = import_source(db3, out)
     assert result.kind == "realsense-db3" and result.depth_scale_m == 0.0001
     for key, topic in (("depth", topics.DEPTH), ("color", topics.COLOR)):
-        got = [(m.log_time_ns, codec.image_array(codec.decode(m.data, topic.msgtype)))
+        got = [(m.log_time_ns, sensormsgs.image_array(codec.decode(m.data, topic.msgtype)))
                for m in read_messages(out, [topic.name])]
         assert [s for s, _ in got] == [s for s, _ in pushed[key]]  # the frames' own timestamps, not record time
         assert all(np.array_equal(a, b) for (_, a), (_, b) in zip(got, pushed[key], strict=True))
     info = codec.decode(next(read_messages(out, [topics.COLOR_INFO.name])).data, topics.COLOR_INFO.msgtype)
-    assert codec.intrinsics_from(info) == Intrinsics(64, 48, 60.0, 61.0, 31.0, 23.0, (0.25, 0.0, 0.0, 0.0, 0.0))
+    assert sensormsgs.intrinsics_from(info) == Intrinsics(64, 48, 60.0, 61.0, 31.0, 23.0, (0.25, 0.0, 0.0, 0.0, 0.0))
     calib = summarize(out).metadata["calibration"]
     got = np.array([float(x) for x in calib["color_from_depth"].split()]).reshape(3, 4)
     assert np.allclose(got, [[0, -1, 0, 0.015], [1, 0, 0, 0.001], [0, 0, 1, 0.002]], atol=1e-6)
@@ -438,16 +438,16 @@ def _layout_mcap(path: Path, *, color: topics.Topic = topics.COLOR, depth: topic
             rgb = rng.integers(0, 255, (48, 64, 3), dtype=np.uint8)
             d = rng.integers(0, 65535, (48, 64), dtype=np.uint16)
             frames.append((t, rgb, d))
-            cm = (codec.compressed_image_msg(_png(rgb[..., ::-1]), "rgb8; png compressed bgr8", t, "c")
-                  if color.msgtype.endswith("CompressedImage") else codec.image_msg(rgb, t, "c"))
+            cm = (sensormsgs.compressed_image_msg(_png(rgb[..., ::-1]), "rgb8; png compressed bgr8", t, "c")
+                  if color.msgtype.endswith("CompressedImage") else sensormsgs.image_msg(rgb, t, "c"))
             w.write(color.name, color.msgtype, codec.encode(cm, color.msgtype), log_time_ns=t, publish_time_ns=t)
             if info:
                 w.write(topics.COLOR_INFO.name, topics.COLOR_INFO.msgtype,
-                        codec.encode(codec.camera_info_msg(SMALL, t, "c"), topics.COLOR_INFO.msgtype),
+                        codec.encode(sensormsgs.camera_info_msg(SMALL, t, "c"), topics.COLOR_INFO.msgtype),
                         log_time_ns=t, publish_time_ns=t)
             if depth is not None:
-                dm = (codec.compressed_image_msg(_png(d), "16UC1; png compressed", t + 1, "c")
-                      if depth.msgtype.endswith("CompressedImage") else codec.image_msg(d, t + 1, "c"))
+                dm = (sensormsgs.compressed_image_msg(_png(d), "16UC1; png compressed", t + 1, "c")
+                      if depth.msgtype.endswith("CompressedImage") else sensormsgs.image_msg(d, t + 1, "c"))
                 w.write(depth.name, depth.msgtype, codec.encode(dm, depth.msgtype), log_time_ns=t + 1,
                         publish_time_ns=t + 1)
     return frames

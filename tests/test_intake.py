@@ -11,7 +11,7 @@ import pytest
 
 from octolog.kit.bus import Bus, BusConfig
 from octolog.kit.geometry import Intrinsics, RgbdFrame
-from octolog.schemas import codec, topics
+from octolog.schemas import codec, rgbdmsgs, streammsgs, topics
 from octolog.tracker.intake import Intake
 
 FRAME_MS = 1000 / 30  # a burst of frames at 30 fps
@@ -45,8 +45,8 @@ def test_a_tracker_behind_by_less_than_the_lag_tracks_the_burst_in_order(lag_ms)
         pub.wait_for(["tracker"], timeout_s=20)
         frames, end = pub.publisher(topics.RGBD), pub.publisher(topics.RGBD_END)
         for k in range(n):
-            frames.put(codec.rgbd_msg(_frame(k)))
-        end.put(codec.stream_end_msg(topics.RGBD.name, n))
+            frames.put(rgbdmsgs.rgbd_msg(_frame(k)))
+        end.put(streammsgs.stream_end_msg(topics.RGBD.name, n))
         with Intake(sub, None, viz=False, live=True, lag_ms=lag_ms) as intake:
             first = intake.get(30.0)
             assert first is not None and _stamp_ms(first[0]) == 0.0

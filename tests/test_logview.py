@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from octolog.kit.errors import InputError
 from octolog.kit.mcaplog import McapWriter, read_messages, read_wire, summarize
 from octolog.replay.sources import SyntheticSource
-from octolog.schemas import codec, logview, topics
+from octolog.schemas import codec, logview, posemsgs, rgbdmsgs, streammsgs, topics, wirecompression
 
 
 def _round_trip(topic: topics.Topic, msg: object) -> list[tuple[str, str, bytes]]:
@@ -31,21 +31,21 @@ def frame():
 
 
 def test_frames_and_keyframes_keep_their_bytes(frame):
-    jpeg = codec.parse_wire_compression("jpeg:80,png")
-    parts = _round_trip(topics.RGBD, codec.rgbd_msg(frame))
+    jpeg = wirecompression.parse_wire_compression("jpeg:80,png")
+    parts = _round_trip(topics.RGBD, rgbdmsgs.rgbd_msg(frame))
     assert [(n, t) for n, t, _ in parts[:-1]] == [
         ("camera/color/image_raw", "sensor_msgs/msg/Image"),
         ("camera/aligned_depth_to_color/image_raw", "sensor_msgs/msg/Image"),
         ("camera/color/camera_info", "sensor_msgs/msg/CameraInfo")]
-    parts = _round_trip(topics.RGBD_COMPRESSED, codec.compressed_rgbd_msg(frame, jpeg))
+    parts = _round_trip(topics.RGBD_COMPRESSED, rgbdmsgs.compressed_rgbd_msg(frame, jpeg))
     colour = codec.decode(parts[0][2], "sensor_msgs/msg/CompressedImage")
     assert parts[0][0] == "camera/color/image_raw/compressed" and "jpeg" in colour.format
     T = np.eye(4)
     T[:3, 3] = (0.1, -2.5, 1e-9)
-    parts = _round_trip(topics.KEYFRAME, codec.keyframe_msg(2**63 + 5, T, frame))
+    parts = _round_trip(topics.KEYFRAME, rgbdmsgs.keyframe_msg(2**63 + 5, T, frame))
     pose = codec.decode(next(d for n, _, d in parts if n == "tracker/keyframe/pose"), logview.POSE_STAMPED)
-    assert pose.header.frame_id == "world" and np.allclose(codec.pose_matrix(pose.pose), T)
-    _round_trip(topics.KEYFRAME_COMPRESSED, codec.compressed_keyframe_msg(7, T, frame, jpeg))
+    assert pose.header.frame_id == "world" and np.allclose(posemsgs.pose_matrix(pose.pose), T)
+    _round_trip(topics.KEYFRAME_COMPRESSED, rgbdmsgs.compressed_keyframe_msg(7, T, frame, jpeg))
 
 
 def test_bookkeeping_messages_become_diagnostics():
@@ -57,11 +57,11 @@ def test_bookkeeping_messages_become_diagnostics():
         diag = codec.decode(part[2], logview.DIAGNOSTICS)
         assert diag.status[0].level == level and diag.status[0].message == topics.TRACKING_STATUS.msgtype
         assert {kv.key: kv.value for kv in diag.status[0].values}["seq"] == str(2**64 - 1)
-    _round_trip(topics.RGBD_END, codec.stream_end_msg("camera/rgbd/ümlaut \"quoted\"", 300, 5))
-    _round_trip(topics.CAMERA_PROPERTIES, codec.camera_properties_msg("D455", 1 / 3))
-    parts = _round_trip(topics.KEYFRAME_POSES, codec.keyframe_poses_msg({3: np.eye(4), 1: np.eye(4)}))
+    _round_trip(topics.RGBD_END, streammsgs.stream_end_msg("camera/rgbd/ümlaut \"quoted\"", 300, 5))
+    _round_trip(topics.CAMERA_PROPERTIES, streammsgs.camera_properties_msg("D455", 1 / 3))
+    parts = _round_trip(topics.KEYFRAME_POSES, posemsgs.keyframe_poses_msg({3: np.eye(4), 1: np.eye(4)}))
     assert parts[0][:2] == ("tracker/keyframe_poses/poses", logview.POSE_ARRAY)
-    _round_trip(topics.KEYFRAME_POSES, codec.keyframe_poses_msg({}))
+    _round_trip(topics.KEYFRAME_POSES, posemsgs.keyframe_poses_msg({}))
 
 
 @given(st.floats(allow_nan=True, allow_infinity=True), st.integers(0, 2**64 - 1), st.integers(0, 2**32 - 1))
@@ -86,18 +86,18 @@ def test_every_own_type_on_the_bus_has_a_standard_form():
 
 
 def test_standard_types_pass_through():
-    data = codec.encode(codec.pose_stamped_msg(np.eye(4), 1), topics.POSE.msgtype)
+    data = codec.encode(posemsgs.pose_stamped_msg(np.eye(4), 1), topics.POSE.msgtype)
     assert logview.split(topics.POSE.name, topics.POSE.msgtype, data) == [(topics.POSE.name, topics.POSE.msgtype, data)]
 
 
 def _log(path, frames, *, drop: str | None = None) -> None:
     with McapWriter(path) as w:
         for f in frames:
-            data = codec.encode(codec.rgbd_msg(f), topics.RGBD.msgtype)
+            data = codec.encode(rgbdmsgs.rgbd_msg(f), topics.RGBD.msgtype)
             for name, msgtype, part in logview.split(topics.RGBD.name, topics.RGBD.msgtype, data):
                 if name != drop:
                     w.write(name, msgtype, part, log_time_ns=f.stamp_ns, publish_time_ns=f.stamp_ns)
-            pose = codec.encode(codec.pose_stamped_msg(np.eye(4), f.stamp_ns), topics.POSE.msgtype)
+            pose = codec.encode(posemsgs.pose_stamped_msg(np.eye(4), f.stamp_ns), topics.POSE.msgtype)
             w.write(topics.POSE.name, topics.POSE.msgtype, pose, log_time_ns=f.stamp_ns, publish_time_ns=f.stamp_ns)
 
 
@@ -105,7 +105,7 @@ def test_the_wire_view_of_a_log(tmp_path):
     frames = list(SyntheticSource(3).frames())
     _log(tmp_path / "s.mcap", frames)
     wire = list(read_wire(tmp_path / "s.mcap", [topics.RGBD.name]))
-    assert [m.data for m in wire] == [codec.encode(codec.rgbd_msg(f), topics.RGBD.msgtype) for f in frames]
+    assert [m.data for m in wire] == [codec.encode(rgbdmsgs.rgbd_msg(f), topics.RGBD.msgtype) for f in frames]
     assert {m.msgtype for m in wire} == {topics.RGBD.msgtype}
     assert [m.topic for m in read_wire(tmp_path / "s.mcap")] == [topics.RGBD.name, topics.POSE.name] * 3
     # a part asked for by name is still given (a recording's images are read the same way)
@@ -125,7 +125,7 @@ def test_a_log_missing_a_part_is_named(tmp_path):
 def test_a_log_of_the_old_layout_reads_the_same(tmp_path):
     """Before the standard view the logger stored octolog types as they were: still read as wire."""
     frames = list(SyntheticSource(2).frames())
-    payloads = [codec.encode(codec.rgbd_msg(f), topics.RGBD.msgtype) for f in frames]
+    payloads = [codec.encode(rgbdmsgs.rgbd_msg(f), topics.RGBD.msgtype) for f in frames]
     with McapWriter(tmp_path / "old.mcap") as w:
         for f, data in zip(frames, payloads, strict=True):
             w.write(topics.RGBD.name, topics.RGBD.msgtype, data, log_time_ns=f.stamp_ns, publish_time_ns=f.stamp_ns)

@@ -24,7 +24,7 @@ from octolog.mapper.core import make_mapper
 from octolog.mapper.evaluate import ObservedVoxels, cloud_to_surface, observed_voxels, voxel_accuracy
 from octolog.mapper.grid import FREE, OCCUPIED, map_from_world_for_up, write_map_server
 from octolog.replay.synthetic import SyntheticScene
-from octolog.schemas import codec
+from octolog.schemas import codec, rgbdmsgs
 
 KEYFRAMES = list(range(0, 150, 10))
 
@@ -44,8 +44,8 @@ def build(run: Run, cfg: MapperConfig):
     m = make_mapper(dataclasses.replace(cfg, **run.gravity))
     np.testing.assert_allclose(m.map_from_world @ run.world_from_scene, run.map_from_scene, atol=1e-12)
     for i in KEYFRAMES:
-        msg = codec.keyframe_msg(i, run.world_from_scene @ run.scene.pose(i), run.frames[i])
-        kf_id, pose, frame = codec.keyframe_from_msg(codec.decode(codec.encode(msg, "octolog_msgs/msg/Keyframe"),
+        msg = rgbdmsgs.keyframe_msg(i, run.world_from_scene @ run.scene.pose(i), run.frames[i])
+        kf_id, pose, frame = rgbdmsgs.keyframe_from_msg(codec.decode(codec.encode(msg, "octolog_msgs/msg/Keyframe"),
                                                                   "octolog_msgs/msg/Keyframe"))
         m.integrate(kf_id, pose, frame)
     return m

@@ -103,7 +103,7 @@ def _port() -> int:
 def test_mapper_process_follows_corrections_and_serves_late_joiners(scene, tmp_path):
     """The real `octolog map` process; this test plays the tracker over a real Zenoh link."""
     from octolog.kit.bus import Bus, BusConfig
-    from octolog.schemas import codec
+    from octolog.schemas import posemsgs, rgbdmsgs, streammsgs
     from octolog.schemas.topics import KEYFRAME, KEYFRAME_END, KEYFRAME_POSES, MAP_UPDATE, OCTOMAP
 
     ep = f"tcp/127.0.0.1:{_port()}"
@@ -119,7 +119,7 @@ def test_mapper_process_follows_corrections_and_serves_late_joiners(scene, tmp_p
             bus.wait_for(["mapper"], timeout_s=60)
             pub_kf, pub_poses, pub_end = bus.publisher(KEYFRAME), bus.publisher(KEYFRAME_POSES), bus.publisher(KEYFRAME_END)
             for k, T, f in kfs:
-                pub_kf.put(codec.keyframe_msg(k, _drifted(T, k), f))
+                pub_kf.put(rgbdmsgs.keyframe_msg(k, _drifted(T, k), f))
             updates = octomaps = 0
             deadline = time.monotonic() + 120
             while (updates < len(kfs) or octomaps < len(kfs)) and time.monotonic() < deadline:
@@ -138,8 +138,8 @@ def test_mapper_process_follows_corrections_and_serves_late_joiners(scene, tmp_p
             assert got is not None and got.binary and got.resolution == pytest.approx(0.05) and len(got.data) > 100
             assert saved is not None and (tmp_path / "map" / "map.bt").exists()
             assert json.loads(saved.data)["bt"] == str(tmp_path / "map" / "map.bt")
-            pub_poses.put(codec.keyframe_poses_msg({k: T for k, T, _ in kfs}))
-            pub_end.put(codec.stream_end_msg(KEYFRAME.name, pub_kf.count))
+            pub_poses.put(posemsgs.keyframe_poses_msg({k: T for k, T, _ in kfs}))
+            pub_end.put(streammsgs.stream_end_msg(KEYFRAME.name, pub_kf.count))
             out, err = proc.communicate(timeout=120)
             assert proc.returncode == 0, err
     finally:

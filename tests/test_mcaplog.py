@@ -8,7 +8,7 @@ import pytest
 from octolog.kit.errors import McapError
 from octolog.kit.geometry import pose_to_matrix
 from octolog.kit.mcaplog import McapWriter, read_messages, summarize
-from octolog.schemas import codec, topics
+from octolog.schemas import codec, posemsgs, topics
 
 
 def _write(path: Path, n: int, compression: str) -> list[bytes]:
@@ -17,7 +17,7 @@ def _write(path: Path, n: int, compression: str) -> list[bytes]:
         w.add_metadata("config", {"tracker": '{"n_features": 1000}'})
         for i in range(n):
             T = pose_to_matrix(np.array([i * 0.1, 0.0, 0.0]), np.array([0.0, 0.0, 0.0, 1.0]))
-            data = codec.encode(codec.pose_stamped_msg(T, 1_000 + i), topics.POSE.msgtype)
+            data = codec.encode(posemsgs.pose_stamped_msg(T, 1_000 + i), topics.POSE.msgtype)
             payloads.append(data)
             w.write(topics.POSE.name, topics.POSE.msgtype, data, log_time_ns=1_000 + i, publish_time_ns=1_000 + i)
     return payloads

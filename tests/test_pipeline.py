@@ -15,7 +15,7 @@ import pytest
 from helpers import ROOT, octolog, rerun_cli, tum_first300
 from test_tum import make_tum
 
-from octolog.schemas import codec
+from octolog.schemas import codec, posemsgs
 
 N_FRAMES = 30
 
@@ -76,7 +76,7 @@ def test_bt_opens_in_octomap_and_lies_on_the_scene(runs):
     centres = np.array([it.getCoordinate() for it in tree.begin_leafs() if tree.isNodeOccupied(it)])
     assert len(centres) > 100
     statics = [tf for m in read_messages(runs[0] / "session.mcap", ["tf_static"])
-               for tf in codec.tf_transforms(codec.decode(m.data, "tf2_msgs/msg/TFMessage"))]
+               for tf in posemsgs.tf_transforms(codec.decode(m.data, "tf2_msgs/msg/TFMessage"))]
     map_from_world = next(T for parent, child, T in statics if (parent, child) == ("map", "world"))
     scene = SyntheticScene(n_frames=N_FRAMES)
     # the tracker's world is its first camera frame; the scene's ground truth says where that is
@@ -148,7 +148,7 @@ def test_the_session_log_holds_one_tf_tree(runs):
     a = runs[0]
     parents: dict[str, set[str]] = {}
     tree = StaticTree()
-    poses = [codec.pose_matrix(codec.decode(m.data, "geometry_msgs/msg/PoseStamped").pose)
+    poses = [posemsgs.pose_matrix(codec.decode(m.data, "geometry_msgs/msg/PoseStamped").pose)
              for m in read_messages(a / "session.mcap", ["tracker/pose"])]
     moving = []
     for m in read_messages(a / "session.mcap", ["tf_static", "tf"]):
@@ -166,7 +166,7 @@ def test_the_session_log_holds_one_tf_tree(runs):
     assert root == "camera_link" and len(moving) == len(poses) == N_FRAMES
     for tf, pose in zip(moving, poses, strict=True):
         t, q = tf.transform.translation, tf.transform.rotation
-        world_from_link = codec.pose_matrix(codec.msgtype("geometry_msgs/msg/Pose")(
+        world_from_link = posemsgs.pose_matrix(codec.msgtype("geometry_msgs/msg/Pose")(
             position=codec.msgtype("geometry_msgs/msg/Point")(x=t.x, y=t.y, z=t.z), orientation=q))
         assert np.allclose(world_from_link @ link_from_optical, pose, atol=1e-9)
 

@@ -28,7 +28,7 @@ from octolog.recorder.realsense_camera import RealSenseBackend
 from octolog.recorder.record import JPEG_FORMAT, PNG_FORMAT, output_paths
 from octolog.recorder.recover import recover
 from octolog.recorder.software_d455 import SoftwareDeviceBackend, SyntheticPattern
-from octolog.schemas import codec
+from octolog.schemas import codec, imagecodec, rgbdmsgs, sensormsgs, wirecompression
 from octolog.schemas import topics as T
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -71,8 +71,8 @@ def _check_file(path: Path, backend: SoftwareDeviceBackend, cfg: RecorderConfig,
         assert m.log_time_ns == codec.stamp_ns(msg.header) == m.publish_time_ns
         if topic.msgtype.endswith("CompressedImage"):
             assert msg.format in (JPEG_FORMAT, PNG_FORMAT)
-            return codec.stamp_ns(msg.header), codec.compressed_image_array(msg)
-        return codec.stamp_ns(msg.header), codec.image_array(msg)
+            return codec.stamp_ns(msg.header), imagecodec.compressed_image_array(msg)
+        return codec.stamp_ns(msg.header), sensormsgs.image_array(msg)
 
     # colour: every frame, in order, with its time; raw bit-exact, JPEG close
     colors = msgs[color_topic.name]
@@ -102,7 +102,7 @@ def _check_file(path: Path, backend: SoftwareDeviceBackend, cfg: RecorderConfig,
     # calibration with every colour frame
     infos = [codec.decode(m.data, T.COLOR_INFO.msgtype) for m in msgs[T.COLOR_INFO.name]]
     assert [codec.stamp_ns(i.header) for i in infos] == [p.stamp_ns for p in pushed["color"]]
-    intr = codec.intrinsics_from(infos[0])
+    intr = sensormsgs.intrinsics_from(infos[0])
     assert (intr.width, intr.height, intr.fx) == (cfg.color.width, cfg.color.height, pytest.approx(640.0))
     # IMU: every sample, its time and its float32 values
     for stream, topic in (("gyro", T.GYRO), ("accel", T.ACCEL)):
@@ -493,7 +493,7 @@ def test_publishes_live_while_recording(tmp_path, wire_depth):
     end = codec.decode(got[T.RGBD_END.name][0], T.RGBD_END.msgtype)
     assert end.topic == rgbd.name and int(end.count) == len(got[rgbd.name])
     msg = codec.decode(got[rgbd.name][0], rgbd.msgtype)
-    frame = codec.rgbd_from_msg(msg)
+    frame = rgbdmsgs.rgbd_from_msg(msg)
     recorded = [m for m in read_messages(res.paths[0], [T.COLOR_JPEG.name])]
     assert frame.stamp_ns == recorded[0].log_time_ns and frame.depth.shape == (720, 1280)
     assert frame.depth_scale_m == pytest.approx(0.001) and frame.intrinsics.fx == pytest.approx(640.0)
@@ -501,9 +501,9 @@ def test_publishes_live_while_recording(tmp_path, wire_depth):
     jpeg = codec.decode(recorded[0].data, T.COLOR_JPEG.msgtype)
     assert bytes(msg.color.data) == bytes(jpeg.data)  # the frame carries the recorded JPEG, not a re-encoding
     # depth as recorder.wire_depth says, lossless: the recorded aligned depth exactly
-    assert msg.depth.format == codec.DEPTH_CODECS[wire_depth]
+    assert msg.depth.format == wirecompression.DEPTH_CODECS[wire_depth]
     aligned = next(read_messages(res.paths[0], [T.ALIGNED_DEPTH.name]))
-    assert np.array_equal(frame.depth, codec.image_array(codec.decode(aligned.data, T.ALIGNED_DEPTH.msgtype)))
+    assert np.array_equal(frame.depth, sensormsgs.image_array(codec.decode(aligned.data, T.ALIGNED_DEPTH.msgtype)))
 
 
 def test_rerun_logs_what_is_recorded(tmp_path):

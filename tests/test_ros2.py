@@ -134,7 +134,7 @@ def test_tf_static_is_latched_for_a_ros2_node_that_joins_late(router) -> None:  
     import zenoh.ext
 
     from octolog.kit.bus import Bus
-    from octolog.schemas import codec
+    from octolog.schemas import posemsgs
     from octolog.schemas.topics import POSE, TF_STATIC
 
     T = np.eye(4)
@@ -144,8 +144,8 @@ def test_tf_static_is_latched_for_a_ros2_node_that_joins_late(router) -> None:  
     cfg = BusConfig(mode="client", connect=(router,), multicast_scouting=False, ros2_domain=0)
     got: queue.Queue = queue.Queue()
     with Bus(cfg, "mapper") as bus:
-        bus.publisher(TF_STATIC).put(codec.tf_msg([("map", "world", T)], 0))
-        bus.publisher(POSE).put(codec.pose_stamped_msg(T, 7))  # volatile: a late subscription gets none
+        bus.publisher(TF_STATIC).put(posemsgs.tf_msg([("map", "world", T)], 0))
+        bus.publisher(POSE).put(posemsgs.pose_stamped_msg(T, 7))  # volatile: a late subscription gets none
         conf = zenoh.Config()
         conf.insert_json5("mode", '"client"')
         conf.insert_json5("connect/endpoints", f'["{router}"]')

@@ -1,11 +1,13 @@
 from __future__ import annotations
 
+import typing
+
 import numpy as np
 import pytest
 
 from octolog.kit.errors import InputError
 from octolog.kit.geometry import Intrinsics, RgbdFrame, pose_to_matrix
-from octolog.schemas import codec, topics
+from octolog.schemas import codec, msgtypes, posemsgs, rgbdmsgs, topics
 
 
 def _frame(seq: int = 3) -> RgbdFrame:
@@ -17,7 +19,8 @@ def _frame(seq: int = 3) -> RgbdFrame:
 
 def test_rgbd_round_trip_is_exact():
     f = _frame()
-    g = codec.rgbd_from_msg(codec.decode(codec.encode(codec.rgbd_msg(f), topics.RGBD.msgtype), topics.RGBD.msgtype))
+    data = codec.encode(rgbdmsgs.rgbd_msg(f), topics.RGBD.msgtype)
+    g = rgbdmsgs.rgbd_from_msg(codec.decode(data, topics.RGBD.msgtype))
     assert (g.seq, g.stamp_ns, g.depth_scale_m, g.intrinsics) == (f.seq, f.stamp_ns, f.depth_scale_m, f.intrinsics)
     assert np.array_equal(g.rgb, f.rgb) and np.array_equal(g.depth, f.depth)
 
@@ -25,8 +28,8 @@ def test_rgbd_round_trip_is_exact():
 def test_keyframe_round_trip_keeps_pose():
     f = _frame()
     T = pose_to_matrix(np.array([1.0, -2.0, 0.5]), np.array([0.1, 0.2, 0.3, 0.9]) / np.linalg.norm([0.1, 0.2, 0.3, 0.9]))
-    data = codec.encode(codec.keyframe_msg(7, T, f), topics.KEYFRAME.msgtype)
-    kf_id, T2, g = codec.keyframe_from_msg(codec.decode(data, topics.KEYFRAME.msgtype))
+    data = codec.encode(rgbdmsgs.keyframe_msg(7, T, f), topics.KEYFRAME.msgtype)
+    kf_id, T2, g = rgbdmsgs.keyframe_from_msg(codec.decode(data, topics.KEYFRAME.msgtype))
     assert kf_id == 7 and g.seq == f.seq
     np.testing.assert_allclose(T2, T, atol=1e-12)
 
@@ -44,10 +47,10 @@ def test_every_topic_type_has_a_schema_for_mcap(topic):
 
 def test_size_mismatch_is_an_input_error():
     f = _frame()
-    msg = codec.rgbd_msg(f)
+    msg = rgbdmsgs.rgbd_msg(f)
     msg.camera_info.width = 64
     with pytest.raises(InputError, match="image sizes disagree"):
-        codec.rgbd_from_msg(msg)
+        rgbdmsgs.rgbd_from_msg(msg)
 
 
 def test_garbage_payload_is_an_input_error():
@@ -69,18 +72,48 @@ def test_a_pose_that_is_not_rigid_is_screened_out_of_every_message_that_carries_
     from octolog.schemas.checks import checked
 
     good = np.eye(4)
-    bad = codec.pose_stamped_msg(good, 0)
+    bad = posemsgs.pose_stamped_msg(good, 0)
     bad.pose.position.x, bad.pose.position.y, bad.pose.position.z = t
     o = bad.pose.orientation
     o.x, o.y, o.z, o.w = q
-    kf = codec.keyframe_msg(1, good, _frame())
+    kf = rgbdmsgs.keyframe_msg(1, good, _frame())
     kf.world_from_camera = bad.pose
-    poses = codec.keyframe_poses_msg({1: good, 2: good})
+    poses = posemsgs.keyframe_poses_msg({1: good, 2: good})
     poses.world_from_camera[1] = bad.pose
     for topic, msg in ((topics.POSE, bad), (topics.KEYFRAME, kf), (topics.KEYFRAME_POSES, poses)):
         data = codec.encode(msg, topic.msgtype)
         with pytest.raises(InputError, match="not a rigid transform"):
             checked(data, topic.msgtype)
     with pytest.raises(InputError, match="not a rigid transform"):
-        codec.pose_matrix(bad.pose)
-    assert checked(codec.encode(codec.pose_stamped_msg(good, 0), topics.POSE.msgtype), topics.POSE.msgtype)
+        posemsgs.pose_matrix(bad.pose)
+    assert checked(codec.encode(posemsgs.pose_stamped_msg(good, 0), topics.POSE.msgtype), topics.POSE.msgtype)
+
+
+def _store_hints(cls: type) -> dict[str, object]:
+    """A generated message class's annotations, resolved against rosbags' Jazzy classes."""
+    from rosbags.typesys.stores import ros2_jazzy
+
+    names = {**vars(ros2_jazzy), "np": np, "ClassVar": typing.ClassVar}
+    return {k: eval(v, names) for k, v in cls.__annotations__.items() if k != "__msgtype__"}  # noqa: S307
+
+
+@pytest.mark.parametrize("typename", sorted(msgtypes.OWN))
+def test_own_message_classes_agree_field_by_field_with_the_type_store(typename):
+    """The Protocols the builders and readers are typed with name the generated class's fields, in
+    its order, with its types, and its constants."""
+    generated = codec.msgtype(typename)
+    protocol = msgtypes.OWN[typename]
+    want = _store_hints(generated)
+    have = typing.get_type_hints(protocol)
+    fields = [name for name, _ in codec.typestore().fielddefs[typename][1]]
+    assert [k for k in have if typing.get_origin(have[k]) is not typing.ClassVar] == fields
+    assert have == want
+
+
+def test_every_own_type_has_its_message_class_and_stock_classes_are_the_stores():
+    store = codec.typestore()
+    own = {name for name in store.types if name.startswith((codec.OWN_PACKAGE + "/", *(
+        f"{pkg}/msg/{stem}" for stem, pkg in codec.VENDORED.items())))}
+    assert own == set(msgtypes.OWN)
+    for cls in msgtypes.STOCK:
+        assert store.types[cls.__msgtype__] is cls

@@ -23,7 +23,7 @@ from helpers import ROOT, octolog
 
 from octolog.kit.bus import Bus, BusConfig
 from octolog.kit.errors import BusError
-from octolog.schemas import codec
+from octolog.schemas import codec, rgbdmsgs, streammsgs
 from octolog.schemas.topics import MAP_UPDATE, RGBD, Topic
 
 EXAMPLES = ROOT / "docs" / "examples"
@@ -152,13 +152,13 @@ def test_certified_nodes_join_and_access_control_limits_what_they_get(pki, route
         # until both have seen a fence, their subscriptions may not have reached the router yet;
         # once they have, the camera subscriptions (declared before) are in place too
         while not (got_server.hello.wait(0.2) and got_viewer.hello.wait(0.2)):
-            fence.put(codec.stream_end_msg(RGBD.name, 0))
+            fence.put(streammsgs.stream_end_msg(RGBD.name, 0))
         hellos = fence.count
         frame = RgbdFrame(0, 1, np.zeros((4, 4, 3), np.uint8), np.ones((4, 4), np.uint16), 0.001,
                           Intrinsics(4, 4, 2.0, 2.0, 2.0, 2.0))
         for _ in range(N):
-            pub.put(codec.rgbd_msg(frame))
-        fence.put(codec.stream_end_msg(RGBD.name, N))
+            pub.put(rgbdmsgs.rgbd_msg(frame))
+        fence.put(streammsgs.stream_end_msg(RGBD.name, N))
         assert got_server.done.wait(60) and got_viewer.done.wait(60)
     assert got_server.counts[RGBD.name] == N
     # the end message went through the same router link after the frames: had the viewer been
@@ -283,7 +283,7 @@ def _hello(counter: Counter, bus: Bus, fence: Topic = FENCE) -> None:
     """Until `counter` has seen a fence, its subscriptions may not have reached the router yet."""
     pub = bus.publisher(fence)
     while not counter.hello.wait(0.2):
-        pub.put(codec.stream_end_msg(RGBD.name, 0))
+        pub.put(streammsgs.stream_end_msg(RGBD.name, 0))
 
 
 def test_a_viewer_cannot_publish_anything(pki, router):
@@ -299,7 +299,7 @@ def test_a_viewer_cannot_publish_anything(pki, router):
         asked = threading.Event()
         server.session.declare_queryable("robot1/mapper/probe", lambda q: (asked.set(), q.reply(q.key_expr, b"ok")))
         _hello(got, robot)
-        payload = codec.encode(codec.stream_end_msg("x", 1), FENCE.msgtype)
+        payload = codec.encode(streammsgs.stream_end_msg("x", 1), FENCE.msgtype)
         for _ in range(N):
             viewer.session.put(RGBD.key("robot1"), payload, congestion_control=BLOCK)
             viewer.session.put(MAP_UPDATE.key("robot1"), payload, congestion_control=BLOCK)
@@ -309,7 +309,7 @@ def test_a_viewer_cannot_publish_anything(pki, router):
         for _ in range(N):  # control: robot1 may
             robot.session.put(RGBD.key("robot1"), payload, congestion_control=BLOCK)
             robot.session.put(MAP_UPDATE.key("robot1"), payload, congestion_control=BLOCK)
-        robot.publisher(FENCE).put(codec.stream_end_msg(RGBD.name, N))
+        robot.publisher(FENCE).put(streammsgs.stream_end_msg(RGBD.name, N))
         assert got.done.wait(60)
     assert got.counts[RGBD.name] == N and got.counts[MAP_UPDATE.name] == N
 
@@ -324,7 +324,7 @@ def test_a_robot_cannot_write_into_or_read_from_another_robots_namespace(pki, ro
     r2_cfg = _config(pki, "zenoh-tls-client.json5", "robot2", cert="robot2")
     with _bus(router, server_cfg, "mapper") as server, _bus(router, r1_cfg, "replay") as robot1, \
             _bus(router, r2_cfg, "replay") as robot2, _bus(router, r2_cfg, "mapper") as robot2_listener:
-        frame = codec.encode(codec.stream_end_msg("frame", 0), FENCE.msgtype)
+        frame = codec.encode(streammsgs.stream_end_msg("frame", 0), FENCE.msgtype)
         got, got2 = Counter(server, [RGBD, FENCE]), _Keys(server, ["robot2/camera/rgbd", "robot2/fence"])
         stolen = _Keys(robot2_listener, ["robot1/camera/rgbd", "robot2/server-fence"])
         _hello(got, robot1)
@@ -425,7 +425,7 @@ def test_a_late_joiner_recovers_the_history_only_where_access_control_allows_it(
         with _bus(endpoint, robot_cfg, "replay") as robot:
             pub = robot.publisher(RGBD)
             for _ in range(5):
-                pub.put(codec.rgbd_msg(frame))
+                pub.put(rgbdmsgs.rgbd_msg(frame))
             with _bus(endpoint, server_cfg, "mapper") as late:
                 late.subscribe([RGBD])
                 got = 0

@@ -13,7 +13,7 @@ from helpers import ROOT
 from octolog.kit.bus import Bus, BusConfig
 from octolog.kit.geometry import Intrinsics
 from octolog.replay.synthetic import SyntheticScene
-from octolog.schemas import codec
+from octolog.schemas import rgbdmsgs, streammsgs
 from octolog.schemas.topics import RGBD, RGBD_END, TRACKING_STATUS
 from octolog.tracker.interface import TrackingState
 from octolog.tracker.node import status_code
@@ -50,8 +50,8 @@ def test_bad_frames_are_lost_and_tracking_goes_on(tmp_path):
             bus.wait_for(["tracker"], timeout_s=60)
             pub, end = bus.publisher(RGBD), bus.publisher(RGBD_END)
             for k, f in enumerate(frames):
-                pub.put(codec.rgbd_msg(bad.get(k, f)))
-            end.put(codec.stream_end_msg(RGBD.name, pub.count))
+                pub.put(rgbdmsgs.rgbd_msg(bad.get(k, f)))
+            end.put(streammsgs.stream_end_msg(RGBD.name, pub.count))
             while len(states) < len(frames):
                 r = bus.receive(timeout_s=1.0)
                 if r is not None and r.topic == TRACKING_STATUS:

@@ -19,7 +19,7 @@ from octolog.kit.errors import ConfigError, InputError
 from octolog.kit.mcaplog import read_messages, read_wire
 from octolog.kit.tum import open_tum
 from octolog.replay.sources import SyntheticSource
-from octolog.schemas import codec, topics
+from octolog.schemas import codec, imagecodec, rgbdmsgs, sensormsgs, topics, wirecompression
 
 N_FRAMES = 30
 
@@ -31,10 +31,10 @@ def frame():
 
 @pytest.mark.parametrize("spec", ["png", "png:6,png", "jpeg:90", "jpeg:50,png", "png,zstd", "jpeg:90,zstd"])
 def test_round_trip_keeps_depth_exact_and_colour_close(frame, spec):
-    wire = codec.parse_wire_compression(spec)
-    data = codec.encode(codec.compressed_rgbd_msg(frame, wire), topics.RGBD_COMPRESSED.msgtype)
-    assert data == codec.encode(codec.compressed_rgbd_msg(frame, wire), topics.RGBD_COMPRESSED.msgtype)
-    back = codec.rgbd_from_msg(codec.decode(data, topics.RGBD_COMPRESSED.msgtype))
+    wire = wirecompression.parse_wire_compression(spec)
+    data = codec.encode(rgbdmsgs.compressed_rgbd_msg(frame, wire), topics.RGBD_COMPRESSED.msgtype)
+    assert data == codec.encode(rgbdmsgs.compressed_rgbd_msg(frame, wire), topics.RGBD_COMPRESSED.msgtype)
+    back = rgbdmsgs.rgbd_from_msg(codec.decode(data, topics.RGBD_COMPRESSED.msgtype))
     assert back.depth.dtype == np.uint16 and np.array_equal(back.depth, frame.depth)
     assert back.intrinsics == frame.intrinsics and back.stamp_ns == frame.stamp_ns and back.seq == frame.seq
     err = np.abs(back.rgb.astype(int) - frame.rgb.astype(int))
@@ -42,16 +42,16 @@ def test_round_trip_keeps_depth_exact_and_colour_close(frame, spec):
         assert err.max() == 0
     else:
         assert 0 < err.mean() < 12  # the synthetic texture is high-frequency: JPEG q90 is off by ~5 levels
-    raw = len(codec.encode(codec.rgbd_msg(frame), topics.RGBD.msgtype))
+    raw = len(codec.encode(rgbdmsgs.rgbd_msg(frame), topics.RGBD.msgtype))
     assert len(data) < raw
 
 
 def test_keyframe_round_trip(frame):
     T = np.eye(4)
     T[:3, 3] = (1.0, 2.0, 3.0)
-    wire = codec.parse_wire_compression("jpeg:80")
-    data = codec.encode(codec.compressed_keyframe_msg(4, T, frame, wire), topics.KEYFRAME_COMPRESSED.msgtype)
-    kf_id, T2, back = codec.keyframe_from_msg(codec.decode(data, topics.KEYFRAME_COMPRESSED.msgtype))
+    wire = wirecompression.parse_wire_compression("jpeg:80")
+    data = codec.encode(rgbdmsgs.compressed_keyframe_msg(4, T, frame, wire), topics.KEYFRAME_COMPRESSED.msgtype)
+    kf_id, T2, back = rgbdmsgs.keyframe_from_msg(codec.decode(data, topics.KEYFRAME_COMPRESSED.msgtype))
     assert kf_id == 4 and np.allclose(T2, T) and np.array_equal(back.depth, frame.depth)
 
 
@@ -63,7 +63,7 @@ def test_keyframe_round_trip(frame):
 ])
 def test_bad_specs_are_config_errors(spec, message):
     with pytest.raises(ConfigError, match=message):
-        codec.parse_wire_compression(spec)
+        wirecompression.parse_wire_compression(spec)
 
 
 def test_bad_spec_on_the_command_line_is_one_line(tmp_path):
@@ -74,10 +74,10 @@ def test_bad_spec_on_the_command_line_is_one_line(tmp_path):
 
 
 def test_garbled_compressed_image_is_an_input_error(frame):
-    msg = codec.compressed_rgbd_msg(frame, codec.parse_wire_compression("png"))
+    msg = rgbdmsgs.compressed_rgbd_msg(frame, wirecompression.parse_wire_compression("png"))
     msg.depth.data = msg.depth.data[:100]
     with pytest.raises(InputError, match="cannot decode"):
-        codec.rgbd_from_msg(msg)
+        rgbdmsgs.rgbd_from_msg(msg)
 
 
 def test_zstd_depth_is_exact_at_the_edges_of_its_range():
@@ -85,8 +85,8 @@ def test_zstd_depth_is_exact_at_the_edges_of_its_range():
     rng = np.random.default_rng(3)
     for depth in (rng.integers(0, 65536, (5, 7), dtype=np.uint16), np.array([[0, 65535, 0, 1]], np.uint16),
                   np.full((1, 1), 65535, np.uint16), np.zeros((3, 640), np.uint16)):
-        msg = codec.compressed_image_msg(codec.depth_zstd(depth), codec.DEPTH_ZSTD_FORMAT, 0, "f")
-        back = codec.wire_image_array(msg)
+        msg = sensormsgs.compressed_image_msg(imagecodec.depth_zstd(depth), wirecompression.DEPTH_ZSTD_FORMAT, 0, "f")
+        back = imagecodec.wire_image_array(msg)
         assert back.dtype == np.uint16 and np.array_equal(back, depth)
 
 
@@ -95,17 +95,17 @@ def test_zstd_depth_that_lies_about_its_size_is_refused_before_decompressing(fra
     of a gigabyte of zeros (a few kB compressed) must not be decompressed, nor a cut-off frame."""
     import zstandard
 
-    good = codec.depth_zstd(frame.depth)
+    good = imagecodec.depth_zstd(frame.depth)
     bomb = good[:12] + zstandard.ZstdCompressor().compress(bytes(2 * frame.depth.size + 2))
     for data, message in ((bomb, "zstd frame is not"), (good[:-100], "cannot decode"), (good[:12], "cannot decode")):
-        msg = codec.compressed_image_msg(data, codec.DEPTH_ZSTD_FORMAT, 0, "f")
+        msg = sensormsgs.compressed_image_msg(data, wirecompression.DEPTH_ZSTD_FORMAT, 0, "f")
         with pytest.raises(InputError, match=message):
-            codec.wire_image_array(msg)
+            imagecodec.wire_image_array(msg)
     # the header's own size is what the bus checks before any stage allocates
-    wire = codec.compressed_rgbd_msg(frame, codec.parse_wire_compression("jpeg,zstd"))
+    wire = rgbdmsgs.compressed_rgbd_msg(frame, wirecompression.parse_wire_compression("jpeg,zstd"))
     wire.depth.data = np.frombuffer(good[:4] + (1 << 20).to_bytes(4, "little") + good[8:], np.uint8)
     with pytest.raises(InputError, match="image sizes disagree"):
-        codec.rgbd_from_msg(wire)
+        rgbdmsgs.rgbd_from_msg(wire)
 
 
 # --- through the pipeline -------------------------------------------------------------------------

@@ -220,7 +220,7 @@ class TrackerConfig:
             _want(0.0 <= self.rolling_shutter_ms <= 100.0, "rolling_shutter_ms", self.rolling_shutter_ms,
                   "want 0 to 100 (0 = global shutter)")
         try:
-            from octolog.schemas.codec import parse_wire_compression  # rosbags: not in the back-end worker
+            from octolog.schemas.wirecompression import parse_wire_compression  # rosbags: not in the back-end worker
 
             parse_wire_compression(self.wire_compression)
         except ConfigError as exc:

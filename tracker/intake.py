@@ -24,7 +24,7 @@ from octolog.kit.bus import Bus, Received
 from octolog.kit.errors import InputError
 from octolog.kit.geometry import RgbdFrame
 from octolog.kit.viz import encode_jpeg
-from octolog.schemas import codec
+from octolog.schemas import codec, rgbdmsgs
 from octolog.schemas.topics import RGBD, RGBD_COMPRESSED, RGBD_END
 from octolog.tracker.interface import Tracker
 
@@ -38,7 +38,7 @@ def decode(r: Received, odometry: Tracker | None = None, viz: bool = False) -> D
     colour as the JPEG the recording logs (`extra["jpeg"]`), unless it came as one."""
     msg = r.decode()
     try:
-        frame = codec.rgbd_from_msg(msg)
+        frame = rgbdmsgs.rgbd_from_msg(msg)
     except InputError as exc:
         return msg, exc, None
     colour = frame.extra.get("wire", (None,))[0]

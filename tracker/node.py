@@ -20,7 +20,7 @@ from octolog.kit.geometry import Intrinsics, RgbdFrame, invert
 from octolog.kit.metrics import write_tum
 from octolog.kit.tftree import StaticTree
 from octolog.kit.viz import Viz
-from octolog.schemas import codec
+from octolog.schemas import codec, posemsgs, rgbdmsgs, streammsgs, wirecompression
 from octolog.schemas.topics import (
     BACKEND_DEFERRED,
     CAMERA_PROPERTIES,
@@ -89,7 +89,7 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
     tree = StaticTree()  # the camera's own frames, from whoever knows the camera (recorder, replay)
     bus.listen(TF_STATIC, tree.add)
     bus.start([RGBD, RGBD_COMPRESSED, RGBD_END, CAMERA_PROPERTIES], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
-    bus.publisher(CONFIGS["tracker"]).put(codec.config_msg("tracker", to_dict(cfg)))
+    bus.publisher(CONFIGS["tracker"]).put(streammsgs.config_msg("tracker", to_dict(cfg)))
     bus.watch(FRAME_PRODUCERS)  # whichever sends the frames: a replay, or a recorder publishing live
     bus.watch(["mapper"], required=False)  # a mapper may restart: keep its keyframes until it is done
     result = TrackerResult()
@@ -141,13 +141,13 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
             result.poses.append(res.world_from_camera)
             result.tracked += res.state == TrackingState.OK
             result.lost += res.state == TrackingState.LOST
-            pub_pose.put(codec.pose_stamped_msg(res.world_from_camera, frame.stamp_ns))
+            pub_pose.put(posemsgs.pose_stamped_msg(res.world_from_camera, frame.stamp_ns))
             # world -> the camera tree's root (camera_link), so each frame keeps one parent (REP 105)
             root, root_from_camera = tree.root_from(frame.frame_id)
             world_from_root = res.world_from_camera @ invert(root_from_camera)
-            pub_tf.put(codec.tf_msg([("world", root, world_from_root)], frame.stamp_ns))
+            pub_tf.put(posemsgs.tf_msg([("world", root, world_from_root)], frame.stamp_ns))
             if res.corrected:  # a loop closed: the mapper moves those keyframes
-                pub_poses.put(codec.keyframe_poses_msg(res.corrected, frame.stamp_ns))
+                pub_poses.put(posemsgs.keyframe_poses_msg(res.corrected, frame.stamp_ns))
             result.loops += res.loop is not None
             result.relocalisations += res.relocalised
             if res.is_keyframe:
@@ -164,13 +164,13 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
     # trajectory. Sent before the end messages, whose count for it the mapper waits for.
     moved = odometry.finish()
     if moved:
-        pub_poses.put(codec.keyframe_poses_msg(odometry.keyframe_poses(), result.stamps_ns[-1]))
+        pub_poses.put(posemsgs.keyframe_poses_msg(odometry.keyframe_poses(), result.stamps_ns[-1]))
     # the whole trajectory at its final poses, for a log on another machine (the file is local)
     stamps, poses = odometry.trajectory()
-    bus.publisher(TRAJECTORY).put(codec.path_msg(stamps, poses))
-    pub_kf_end.put(codec.stream_end_msg(TRAJECTORY.name, 1))
-    pub_kf_end.put(codec.stream_end_msg(KEYFRAME_POSES.name, pub_poses.count))
-    pub_kf_end.put(codec.stream_end_msg(pub_kf.topic_name, pub_kf.count))
+    bus.publisher(TRAJECTORY).put(posemsgs.path_msg(stamps, poses))
+    pub_kf_end.put(streammsgs.stream_end_msg(TRAJECTORY.name, 1))
+    pub_kf_end.put(streammsgs.stream_end_msg(KEYFRAME_POSES.name, pub_poses.count))
+    pub_kf_end.put(streammsgs.stream_end_msg(pub_kf.topic_name, pub_kf.count))
     bus.linger("mapper")
     return result
 
@@ -180,19 +180,21 @@ def warm_up() -> None:
     lazy set-up (each type's CDR code, the pose conversions' imports) then happens before the stream,
     not on the first frames. Live, a first frame that took half a second (this machine: 450 ms)
     held back the camera's next frames at every start."""
-    pose, wire = np.eye(4), codec.WireCompression("png")
+    pose, wire = np.eye(4), wirecompression.WireCompression("png")
     frame = RgbdFrame(0, 0, np.zeros((8, 8, 3), np.uint8), np.zeros((8, 8), np.uint16), 1e-3,
                       Intrinsics(8, 8, 8.0, 8.0, 4.0, 4.0))
-    zstd = codec.WireCompression("jpeg", depth="zstd")  # a live recorder's frames
-    for topic, msg in ((RGBD, codec.rgbd_msg(frame)), (RGBD_COMPRESSED, codec.compressed_rgbd_msg(frame, wire)),
-                       (RGBD_COMPRESSED, codec.compressed_rgbd_msg(frame, zstd))):
-        codec.rgbd_from_msg(codec.decode(codec.encode(msg, topic.msgtype), topic.msgtype))
+    zstd = wirecompression.WireCompression("jpeg", depth="zstd")  # a live recorder's frames
+    for topic, msg in ((RGBD, rgbdmsgs.rgbd_msg(frame)), (RGBD_COMPRESSED, rgbdmsgs.compressed_rgbd_msg(frame, wire)),
+                       (RGBD_COMPRESSED, rgbdmsgs.compressed_rgbd_msg(frame, zstd))):
+        rgbdmsgs.rgbd_from_msg(codec.decode(codec.encode(msg, topic.msgtype), topic.msgtype))
     for topic, msg in ((TRACKING_STATUS, _status(0, 0, TrackingState.OK, False, -1, 0, 0, 0.0)),
-                       (POSE, codec.pose_stamped_msg(pose, 0)), (TF, codec.tf_msg([("world", "camera_link", pose)], 0)),
-                       (KEYFRAME, codec.keyframe_msg(0, pose, frame)),
-                       (KEYFRAME_COMPRESSED, codec.compressed_keyframe_msg(0, pose, frame, wire)),
-                       (KEYFRAME_POSES, codec.keyframe_poses_msg({0: pose})), (TRAJECTORY, codec.path_msg([0], [pose])),
-                       (KEYFRAME_END, codec.stream_end_msg(TRAJECTORY.name, 0)),
+                       (POSE, posemsgs.pose_stamped_msg(pose, 0)),
+                       (TF, posemsgs.tf_msg([("world", "camera_link", pose)], 0)),
+                       (KEYFRAME, rgbdmsgs.keyframe_msg(0, pose, frame)),
+                       (KEYFRAME_COMPRESSED, rgbdmsgs.compressed_keyframe_msg(0, pose, frame, wire)),
+                       (KEYFRAME_POSES, posemsgs.keyframe_poses_msg({0: pose})),
+                       (TRAJECTORY, posemsgs.path_msg([0], [pose])),
+                       (KEYFRAME_END, streammsgs.stream_end_msg(TRAJECTORY.name, 0)),
                        (BACKEND_DEFERRED, codec.msgtype(BACKEND_DEFERRED.msgtype)(data=""))):
         codec.encode(msg, topic.msgtype)
 
@@ -211,12 +213,12 @@ def use_camera(odometry: Tracker, cfg: TrackerConfig, props: Any) -> None:
 class KeyframeOut:
     """Keyframes onto the bus, raw or compressed. `wire_compression` "source": with the images the
     frame came with (compressed frames give compressed keyframes, not re-encoded; raw give raw);
-    else as codec.parse_wire_compression says. The topic is fixed by the first keyframe."""
+    else as wirecompression.parse_wire_compression says. The topic is fixed by the first keyframe."""
 
     def __init__(self, bus: Bus, wire_compression: str) -> None:
         self.bus = bus
-        self.forward = wire_compression == codec.SOURCE
-        self.wire = codec.parse_wire_compression(wire_compression)
+        self.forward = wire_compression == wirecompression.SOURCE
+        self.wire = wirecompression.parse_wire_compression(wire_compression)
         self.pub: Any = None
 
     @property
@@ -232,12 +234,12 @@ class KeyframeOut:
         if self.pub is None:
             self.pub = self.bus.publisher(KEYFRAME_COMPRESSED if forwarded or self.wire else KEYFRAME)
         if forwarded and self.pub.topic is KEYFRAME_COMPRESSED:
-            self.pub.put(codec.forwarded_keyframe_msg(kf_id, world_from_camera, frame))
+            self.pub.put(rgbdmsgs.forwarded_keyframe_msg(kf_id, world_from_camera, frame))
         elif self.pub.topic is KEYFRAME_COMPRESSED:  # a raw frame among compressed ones: lossless
-            wire = self.wire or codec.WireCompression("png")
-            self.pub.put(codec.compressed_keyframe_msg(kf_id, world_from_camera, frame, wire))
+            wire = self.wire or wirecompression.WireCompression("png")
+            self.pub.put(rgbdmsgs.compressed_keyframe_msg(kf_id, world_from_camera, frame, wire))
         else:
-            self.pub.put(codec.keyframe_msg(kf_id, world_from_camera, frame))
+            self.pub.put(rgbdmsgs.keyframe_msg(kf_id, world_from_camera, frame))
 
 
 def _status(seq: int, stamp: int, state: TrackingState, is_kf: bool, kf_id: int, n_matches: int, n_inliers: int,
@@ -333,7 +335,7 @@ def _log(viz: Viz, shown: _Shown) -> None:
         if shown.first_keyframe:
             viz.camera("world/tracker/keyframe", frame.intrinsics)
         viz.pose("world/tracker/keyframe", res.world_from_camera)
-        png = depth.data if depth is not None and depth.format == codec.DEPTH_PNG_FORMAT else None
+        png = depth.data if depth is not None and depth.format == wirecompression.DEPTH_PNG_FORMAT else None
         viz.depth("world/tracker/keyframe/depth", frame.depth, frame.depth_scale_m, png)
         if shown.local_map is not None:
             viz.points3d("world/tracker/local_map", shown.local_map, [255, 255, 255], radius=0.004)
