@@ -23,6 +23,7 @@ from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 from zstandard import ZstdError
 
 from octolog.kit.errors import InputError, McapError
+from octolog.kit.recordfile import RecordFile
 from octolog.schemas import codec, logview
 from octolog.schemas.topics import BY_NAME
 
@@ -45,53 +46,6 @@ class LoggedMessage:
     sequence: int
 
 
-def _write_all(fd: int, data: bytes | memoryview) -> None:
-    """os.write until done (a regular file may take a write in parts)."""
-    view = memoryview(data)
-    while view:
-        n = os.write(fd, view)
-        view = view[n:]
-
-
-class _RecordFile:
-    """An unbuffered output file whose writes are all-or-nothing.
-
-    mcap's Writer hands over each record group (a whole chunk, a metadata record) in one write().
-    A failed write (disk full) is cut back off the file, so the file always ends on a record
-    boundary: a streaming reader reads everything before the failure, and a minimal end can
-    still be written after it.
-    """
-
-    def __init__(self, path: Path) -> None:
-        self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
-        self._pos = 0
-
-    def write(self, data: bytes | memoryview) -> int:
-        n = len(data)
-        try:
-            _write_all(self._fd, data)
-        except OSError:
-            try:
-                os.ftruncate(self._fd, self._pos)
-                os.lseek(self._fd, self._pos, os.SEEK_SET)
-            except OSError:
-                pass
-            raise
-        self._pos += n
-        return n
-
-    def tell(self) -> int:
-        return self._pos
-
-    def flush(self) -> None:
-        pass
-
-    def close(self) -> None:
-        if self._fd >= 0:
-            fd, self._fd = self._fd, -1
-            os.close(fd)
-
-
 class McapWriter:
     """Append CDR messages to an MCAP file. Use as a context manager; finishes on exit.
 
@@ -107,7 +61,7 @@ class McapWriter:
         self.path = Path(path)
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._file = _RecordFile(self.path)
+            self._file = RecordFile(self.path)
         except OSError as exc:
             raise McapError(f"{self.path}: cannot create: {exc.strerror}") from None
         self._writer = Writer(self._file, chunk_size=chunk_size,  # type: ignore[arg-type]
@@ -421,6 +375,66 @@ class SalvageResult:
     source_bytes: int = 0
 
 
+class _SalvageCopy:
+    """A source's intact records streamed into `dst`, which opens at the first message, compressed
+    as asked or else as the source's first chunk."""
+
+    def __init__(self, dst: str | Path, res: SalvageResult, compression: str | None, chunk_size: int) -> None:
+        self.dst, self.res, self.compression, self.chunk_size = dst, res, compression, chunk_size
+        self.schemas: dict[int, Schema] = {}
+        self.channels: dict[int, Channel] = {}
+        self.out_cid: dict[int, int] = {}
+        self.metadata: list[Metadata] = []
+        self.writer: McapWriter | None = None
+
+    def out(self) -> McapWriter:
+        if self.writer is None:
+            self.writer = McapWriter(self.dst, compression=self.compression or "zstd", chunk_size=self.chunk_size)
+        return self.writer
+
+    def copy(self, f: BinaryIO) -> None:
+        """Every record of `f` up to its end or its first damage; `res` says which."""
+        res, seen_footer = self.res, False
+        try:
+            for rec in StreamReader(_Clamped(f), emit_chunks=True).records:
+                if isinstance(rec, Chunk):
+                    if self.compression is None:
+                        self.compression = {"": "none", "lz4": "lz4", "zstd": "zstd"}.get(rec.compression, "zstd")
+                    inner = breakup_chunk(rec, validate_crc=True)  # all or nothing per chunk
+                    for r in inner:
+                        self.take(r)
+                    res.chunks += 1
+                elif isinstance(rec, Footer):
+                    seen_footer = True
+                else:
+                    self.take(rec)
+                res.bytes_read = f.tell()
+        except (*_DAMAGE, OSError) as exc:
+            res.complete = False
+            res.problem = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+        if res.complete and not seen_footer:
+            res.complete = False
+            res.problem = "no footer (recording did not finish)"
+
+    def take(self, rec: Any) -> None:
+        if isinstance(rec, Schema):
+            self.schemas[rec.id] = rec
+        elif isinstance(rec, Channel):
+            self.channels[rec.id] = rec
+        elif isinstance(rec, Message):
+            if rec.channel_id not in self.out_cid:
+                ch = self.channels[rec.channel_id]
+                sc = self.schemas.get(ch.schema_id)
+                self.out_cid[rec.channel_id] = self.out().register_raw(
+                    ch.topic, schema_name=sc.name if sc else "", schema_encoding=sc.encoding if sc else "",
+                    schema_data=sc.data if sc else b"", message_encoding=ch.message_encoding)
+            self.out().write_channel(self.out_cid[rec.channel_id], rec.data, log_time_ns=rec.log_time,
+                                     publish_time_ns=rec.publish_time, sequence=rec.sequence)
+            self.res.messages += 1
+        elif isinstance(rec, Metadata):
+            self.metadata.append(rec)
+
+
 def salvage(src: str | Path, dst: str | Path, *, compression: str | None = None,
             chunk_size: int = 4 * 1024 * 1024,
             extra_metadata: Callable[[SalvageResult], dict[str, dict[str, str]]] | None = None) -> SalvageResult:
@@ -435,62 +449,13 @@ def salvage(src: str | Path, dst: str | Path, *, compression: str | None = None,
     with _open(p) as f:
         _require_magic(f, p)
         res.source_bytes = p.stat().st_size
-        schemas: dict[int, Schema] = {}
-        channels: dict[int, Channel] = {}
-        out_cid: dict[int, int] = {}
-        writer: McapWriter | None = None
-        metadata: list[Metadata] = []
-
-        def out() -> McapWriter:
-            nonlocal writer
-            if writer is None:
-                writer = McapWriter(dst, compression=compression or "zstd", chunk_size=chunk_size)
-            return writer
-
-        def take(rec: Any) -> None:
-            if isinstance(rec, Schema):
-                schemas[rec.id] = rec
-            elif isinstance(rec, Channel):
-                channels[rec.id] = rec
-            elif isinstance(rec, Message):
-                if rec.channel_id not in out_cid:
-                    ch = channels[rec.channel_id]
-                    sc = schemas.get(ch.schema_id)
-                    out_cid[rec.channel_id] = out().register_raw(
-                        ch.topic, schema_name=sc.name if sc else "", schema_encoding=sc.encoding if sc else "",
-                        schema_data=sc.data if sc else b"", message_encoding=ch.message_encoding)
-                out().write_channel(out_cid[rec.channel_id], rec.data, log_time_ns=rec.log_time,
-                                    publish_time_ns=rec.publish_time, sequence=rec.sequence)
-                res.messages += 1
-            elif isinstance(rec, Metadata):
-                metadata.append(rec)
-
-        seen_footer = False
+        copy = _SalvageCopy(dst, res, compression, chunk_size)
+        copy.copy(f)
+        w = copy.out()
         try:
-            for rec in StreamReader(_Clamped(f), emit_chunks=True).records:
-                if isinstance(rec, Chunk):
-                    if compression is None:
-                        compression = {"": "none", "lz4": "lz4", "zstd": "zstd"}.get(rec.compression, "zstd")
-                    inner = breakup_chunk(rec, validate_crc=True)  # all or nothing per chunk
-                    for r in inner:
-                        take(r)
-                    res.chunks += 1
-                elif isinstance(rec, Footer):
-                    seen_footer = True
-                else:
-                    take(rec)
-                res.bytes_read = f.tell()
-        except (*_DAMAGE, OSError) as exc:
-            res.complete = False
-            res.problem = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
-        if res.complete and not seen_footer:
-            res.complete = False
-            res.problem = "no footer (recording did not finish)"
-        w = out()
-        try:
-            for m in metadata:
+            for m in copy.metadata:
                 w.add_metadata(m.name, dict(m.metadata))
-            res.metadata = len(metadata)
+            res.metadata = len(copy.metadata)
             for name, data in (extra_metadata(res) if extra_metadata else {}).items():
                 w.add_metadata(name, data)
         finally:

@@ -7,7 +7,7 @@ import pytest
 
 from octolog.kit.errors import McapError
 from octolog.kit.geometry import pose_to_matrix
-from octolog.kit.mcaplog import McapWriter, read_messages, summarize
+from octolog.kit.mcaplog import McapWriter, read_messages, salvage, summarize
 from octolog.schemas import codec, posemsgs, topics
 
 
@@ -71,3 +71,25 @@ def test_missing_and_non_mcap_files(tmp_path):
     # random bytes are no recording, not a damaged one: nothing to summarise or recover (issue 13)
     with pytest.raises(McapError, match=r"junk\.mcap: not an MCAP file \(no MCAP magic at its start\)"):
         summarize(junk)
+
+
+@pytest.mark.parametrize("compression", ["none", "lz4", "zstd"])
+def test_salvage_keeps_every_whole_chunk_of_a_cut_file(tmp_path, compression):
+    """A file cut mid-chunk: every message of its whole chunks, its metadata and the caller's, in a
+    complete file; the uncut file comes through whole."""
+    src = tmp_path / "a.mcap"
+    payloads = _write(src, 400, compression)
+    whole = salvage(src, tmp_path / "whole.mcap")
+    assert (whole.complete, whole.messages, whole.metadata) == (True, 400, 1)
+    assert [m.data for m in read_messages(tmp_path / "whole.mcap")] == payloads
+    data = src.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) // 2])
+    res = salvage(cut, tmp_path / "out.mcap", extra_metadata=lambda r: {"recovery": {"messages": str(r.messages)}})
+    assert not res.complete and res.problem and 0 < res.chunks and 0 < res.messages < 400
+    assert res.bytes_read <= res.source_bytes == len(data) // 2
+    got = list(read_messages(tmp_path / "out.mcap"))
+    assert [m.data for m in got] == payloads[: res.messages]
+    s = summarize(tmp_path / "out.mcap")
+    assert s.complete and s.metadata["recovery"] == {"messages": str(res.messages)}
+    assert s.metadata["config"] == {"tracker": '{"n_features": 1000}'}

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from octolog.kit import mcaplog
+from octolog.kit import mcaplog, recordfile
 from octolog.kit.config import to_json
 from octolog.kit.errors import ConfigError, McapError, RecorderError
 from octolog.kit.mcaplog import read_messages, summarize
@@ -308,7 +308,7 @@ class _FullDisk:
         self.budget = budget
         self.stays_full = stays_full
         self.failed = 0
-        self.real = mcaplog._write_all
+        self.real = recordfile.write_all
 
     def __call__(self, fd: int, data) -> None:
         if len(data) <= self.budget and not (self.failed and self.stays_full):
@@ -323,7 +323,7 @@ class _FullDisk:
 @pytest.mark.parametrize("stays_full", [False, True])
 def test_disk_full_stops_cleanly(tmp_path, monkeypatch, stays_full):
     full = _FullDisk(12_000_000, stays_full=stays_full)
-    monkeypatch.setattr(mcaplog, "_write_all", full)
+    monkeypatch.setattr(recordfile, "write_all", full)
     cfg = dataclasses.replace(BASE, chunk_size_mb=1.0)
     out = tmp_path / "full.mcap"
     with pytest.raises(RecorderError) as info:
