@@ -159,3 +159,28 @@ def test_the_check_catches_what_it_should(tmp_path):
                      "-k 'three_robots' matches no test", "a development session", "a commit-hash-like token",
                      "a must-show", "an issue number", "a commit (", "a was/now story"):
         assert expected in problems, f"{expected!r} not reported in:\n{problems}"
+
+
+# The other docs describe the code, so they may show ids and hashes (a publisher id, a probe's
+# output) and tell a reader to commit; the story words are out everywhere. Code spans are quoted
+# text (an error message may say "this session"), so they are left out.
+STORY = {what: DIARY[what] for what in ("a development session or round", "a numbered session", "a must-show",
+                                        "an issue number", "a was/now story")}
+
+
+def story_problems(text: str, where: str) -> list[str]:
+    problems = []
+    for i, line in enumerate(text.splitlines(), 1):
+        prose = re.sub(r"`[^`]*`", "``", line)
+        for what, pattern in STORY.items():
+            problems += [f"{where}:{i}: {what} ({m[0]!r})" for m in pattern.finditer(prose)]
+    return problems
+
+
+def test_no_development_story_in_the_other_docs():
+    docs = [p for p in sorted((ROOT / "docs").glob("*.md")) if p != RESULTS_MD] + [ROOT / "README.md"]
+    problems = [p for doc in docs for p in story_problems(doc.read_text(), str(doc.relative_to(ROOT)))]
+    assert len(story_problems("In the ninth session (issue 18, must-show 2) it was slow, now fast.", "x")) == 4
+    assert story_problems("It prints `this session ...` when killed.", "x") == []
+    if problems:
+        pytest.fail("docs that say what happened instead of what is:\n" + "\n".join(problems), pytrace=False)
