@@ -22,7 +22,7 @@ import numpy as np
 from octolog.kit.errors import InputError
 from octolog.schemas.codec import decode
 from octolog.schemas.imageheaders import declared_size
-from octolog.schemas.msgtypes import Image, Pose
+from octolog.schemas.msgtypes import FrameMsg, Image, Pose
 from octolog.schemas.sensormsgs import IMAGE_ENCODINGS
 
 MAX_SIDE = 8192  # pixels: no RGB-D camera a stage takes has a wider or taller image
@@ -59,7 +59,7 @@ def check(msg: Any, typename: str) -> None:
             raise InputError(f"tracking status: processing_ms {msg.processing_ms}")
 
 
-def _check_frame(msg: Any) -> None:
+def _check_frame(msg: FrameMsg) -> None:
     info = msg.camera_info
     _check_size("camera_info", int(info.width), int(info.height), allow_empty=True)
     for name, image in (("colour", msg.color), ("depth", msg.depth)):

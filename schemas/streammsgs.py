@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import json
+from typing import Any
 
 from octolog.schemas.codec import header, msgtype
 from octolog.schemas.msgtypes import CAMERA_PROPERTIES, STREAM_END, CameraPropertiesMsg, StreamEndMsg, String
 
 
-def config_msg(stage: str, config: dict) -> String:
+def config_msg(stage: str, config: dict[str, Any]) -> String:
     return String(data=json.dumps({"stage": stage, "config": config}, sort_keys=True))
 
 
