@@ -115,10 +115,8 @@ def _distributed_run(names: dict, addr: dict, out: Path, *, cut_s: float = 0.0, 
 
 
 @pytest.fixture(scope="module")
-def single_host(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("single")
-    octolog("run", "--source", f"synthetic:{FRAMES}", "--out", str(out), "--quiet", "--rerun", "off")
-    return out
+def single_host(octolog_run) -> Path:
+    return octolog_run(f"synthetic:{FRAMES}")[0]
 
 
 def test_stages_on_four_hosts_match_one_host(hosts, single_host, tmp_path):
@@ -204,7 +202,7 @@ def _link_bytes(ns: str, dev: str) -> int:
     return int(proc.stdout)
 
 
-def test_deployment_doc_robot_and_server_give_the_run_bytes(hosts, tmp_path):
+def test_deployment_doc_robot_and_server_give_the_run_bytes(hosts, tmp_path, first300_run):
     """docs/deployment.md as written, with TLS: the server (router, mapper, log) on one host, robot1
     (its own router, replay + `octolog track`, frames from TUM fr1 first300) on another. No
     rolling-shutter setting anywhere: the readout comes with the frames (`camera/rgbd/properties`),
@@ -262,8 +260,7 @@ def test_deployment_doc_robot_and_server_give_the_run_bytes(hosts, tmp_path):
         crossed = _link_bytes(names["d"], link) - before
     finally:
         stop_all(procs)
-    single = tmp_path / "single"
-    octolog("run", "--source", source, "--out", str(single), "--quiet", "--rerun", "off")
+    single = first300_run[0]
     assert "warning" not in (out / "tracker.log").read_text()
     assert (out / "traj.txt").read_bytes() == (single / "trajectory.txt").read_bytes()
     # map.bt: occupancy comes from depth (lossless PNG either way); the JPEG colour only tints the cloud

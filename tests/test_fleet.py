@@ -179,7 +179,7 @@ def _start(log: Path | None, *args: str) -> subprocess.Popen:
 def run_fleet(out: Path, start_poses: list[list[float]], *, rerun: str = "off", source: str = f"synthetic:{FRAMES}",
               windows: tuple[tuple[int, int], ...] = ((0, HALF), (HALF, FRAMES)),
               shifts: tuple[float, ...] = SHIFT_S, sources: tuple[str, ...] = (),
-              mapper_sets: tuple[str, ...] = ()) -> dict[str, str]:
+              mapper_sets: tuple[str, ...] = (), replay_sets: tuple[str, ...] = ()) -> dict[str, str]:
     """Router, mapper for r1+r2, and per robot a tracker and a replay: six processes over Zenoh
     (`sources`: one per robot, else `source` for both)."""
     out.mkdir(parents=True)
@@ -197,7 +197,8 @@ def run_fleet(out: Path, start_poses: list[list[float]], *, rerun: str = "off", 
             procs[f"replay-{robot}"] = _start(out / f"replay-{robot}.log", "replay", *bus, *ns, "--quiet",
                                               "--source", src, "--set", f"start={start}", "--set", f"end={end}",
                                               "--set", f"time_shift_s={shift!r}",
-                                              "--set", 'wait_for=["tracker", "mapper"]')
+                                              "--set", 'wait_for=["tracker", "mapper"]',
+                                              *(a for s in replay_sets for a in ("--set", s)))
         for name in ("replay-r1", "replay-r2", "tracker-r1", "tracker-r2", "mapper"):
             code = procs[name].wait(timeout=600)
             assert code == 0, (name, (out / f"{name}.log").read_text())
@@ -404,7 +405,7 @@ def occupied_disagreement(a: Path | dict, b: Path | dict, tolerance: int = 0) ->
     return wrong / max(len(both), 1), len(both)
 
 
-def test_two_halves_merge_without_start_poses(tmp_path):
+def test_two_halves_merge_without_start_poses(tmp_path, first300_run):
     """Issue 18, must-show 1: r1 the first half of first300, r2 the second, no start poses. The mapper
     places r2 from a place both saw; every keyframe of both lies within 5 cm of the ground truth
     after one rigid alignment of the merged trajectory, and the map agrees with one robot's."""
@@ -432,8 +433,7 @@ def test_two_halves_merge_without_start_poses(tmp_path):
     # should reproduce), and, for the record, against one robot tracking the whole sequence (two
     # trackers choose other keyframes: surfaces move by a voxel here and there whatever the merge)
     run_fleet(tmp_path / "known", h.start_poses, source=source, windows=windows, shifts=shifts)
-    single = tmp_path / "single"
-    octolog("run", "--source", source, "--out", str(single), "--quiet", "--rerun", "off")
+    single = first300_run[0]
     disagree, n_cells = occupied_disagreement(out / "map.bt", tmp_path / "known" / "map.bt")
     floor, _ = occupied_disagreement(tmp_path / "known" / "map.bt", single / "map.bt")
     merged = _cells(out / "map.bt")

@@ -231,10 +231,8 @@ def test_replaying_the_session_mcap_gives_the_same_trajectory(runs, tmp_path):
 
 
 @pytest.fixture(scope="module")
-def tum_run(tmp_path_factory) -> tuple[Path, str]:
-    folder = tum_first300()
-    out = tmp_path_factory.mktemp("tum")
-    return out, octolog("run", "--source", f"tum:{folder}", "--out", str(out), "--quiet", "--rerun", "off").stdout
+def tum_run(first300_run) -> tuple[Path, str]:
+    return first300_run
 
 
 def test_tum_first300_end_to_end(tum_run):

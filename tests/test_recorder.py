@@ -131,17 +131,21 @@ COMBOS = [(c, d, z) for c in ("jpeg", "raw") for d in ("png", "raw") for z in ("
 
 @pytest.mark.parametrize("color_codec,depth_codec,compression", COMBOS)
 def test_every_pushed_sample_is_recorded(tmp_path, color_codec, depth_codec, compression):
-    """Every combination for 10 s of sensor time at the D455 default profile (300 frame pairs,
-    2000 gyro, 1000 accel samples); the non-default ones also record raw depth."""
+    """Every combination at the D455 default profile; the default one for 10 s of sensor time (300
+    frame pairs, 2000 gyro, 1000 accel samples), the others, which also record raw depth, for 1 s
+    (what a codec does to a frame it does to the 30th as to the 300th)."""
     default = (color_codec, depth_codec, compression) == (BASE.color_codec, BASE.depth_codec, BASE.compression)
-    frames = 300
+    frames = 300 if default else 30
     cfg = dataclasses.replace(BASE, color_codec=color_codec, depth_codec=depth_codec, compression=compression,
                               raw_depth=not default)
     backend, res = _run(tmp_path, cfg, frames=frames)
     assert res.stop_reason == "end of stream" and res.dropped == 0
     assert res.streams["color"].frames == frames == len([p for p in backend.pushed if p.stream == "color"])
-    assert (res.last_stamp_ns - res.first_stamp_ns) >= 9.9e9
-    assert res.streams["gyro"].frames >= 1990 and res.streams["accel"].frames >= 990
+    seconds = frames / BASE.color.fps
+    assert (res.last_stamp_ns - res.first_stamp_ns) >= (seconds - 0.1) * 1e9
+    gyro_hz, accel_hz = 200, 100
+    assert res.streams["gyro"].frames >= (seconds - 0.05) * gyro_hz
+    assert res.streams["accel"].frames >= (seconds - 0.1) * accel_hz
     _check_file(res.paths[0], backend, cfg, exact_images=5)
 
 
@@ -185,7 +189,8 @@ def test_writer_behind_drops_are_counted_not_silent(tmp_path, monkeypatch):
     real_encode = Recorder._encode
 
     def stalled(self, cap):
-        gate.wait(30)
+        if threading.current_thread() is not threading.main_thread():  # not the set-up's warm-up encode
+            gate.wait(30)
         return real_encode(self, cap)
 
     monkeypatch.setattr(Recorder, "_encode", stalled)
@@ -195,7 +200,7 @@ def test_writer_behind_drops_are_counted_not_silent(tmp_path, monkeypatch):
 
     def wait(timeout_s):
         out = real_wait(timeout_s)
-        if out is None:
+        if backend._done:  # the camera has given its last frame: the writer may go on
             gate.set()
         return out
 
