@@ -1,4 +1,5 @@
-"""The architecture, checked from the source: one `octolog` namespace, three floors, no import circles.
+"""The architecture, checked from the source: one `octolog` namespace, three floors, no import
+circles, modules and functions a reader can take in.
 
 Every .py file is read with `ast` (never imported): all imports count, at module level, inside
 functions and under `if TYPE_CHECKING:`, plus `importlib.import_module("...")`/`__import__("...")`
@@ -36,7 +37,7 @@ SHELL = ("octolog.shell",)
 # `python -m octolog` runs the shell; it sits on the shell floor and nothing may import it.
 ENTRY_POINTS = ("octolog.__main__",)
 
-MAX_LINES = 600
+MAX_LINES = 500
 # module -> why it may be longer than MAX_LINES. Keep it short: a long module is a missing seam.
 LONG_MODULES: dict[str, str] = {}
 
@@ -418,3 +419,57 @@ def test_module_size():
             problems.append(f"tests/test_architecture.py: [size] LONG_MODULES lists {module}, which is "
                             f"{MAX_LINES} lines or fewer now: remove the entry")
     _fail(problems, "modules too long")
+
+
+# A function a reader takes in as one page; up to MAX_FUNCTION_LINES when a comment says why it stays
+# whole (a line starting with "# whole:" just above its `def` or among the first lines of its body).
+PAGE_LINES = 60
+MAX_FUNCTION_LINES = 80
+WHOLE = "# whole:"
+
+
+def _says_why_whole(lines: list[str], node: ast.FunctionDef | ast.AsyncFunctionDef) -> bool:
+    first = min([node.lineno, *(d.lineno for d in node.decorator_list)])
+    above = lines[max(0, first - 4):first - 1]
+    body = lines[node.lineno:node.lineno + 12]
+    return any(line.strip().startswith(WHOLE) and line.strip()[len(WHOLE):].strip() for line in above + body)
+
+
+def long_functions(path: Path) -> list[tuple[int, str, int, bool]]:
+    """(line, name, length, says why) for each function of `path` longer than PAGE_LINES."""
+    lines = path.read_text().splitlines()
+    found = []
+    for node in ast.walk(parse(path)):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            length = node.end_lineno - node.lineno + 1
+            if length > PAGE_LINES:
+                found.append((node.lineno, node.name, length, _says_why_whole(lines, node)))
+    return found
+
+
+def test_long_functions_are_found_and_excused_only_by_a_reason(tmp_path):
+    body = "\n".join(f"    x{i} = {i}" for i in range(PAGE_LINES + 5))
+    plain = tmp_path / "plain.py"
+    plain.write_text(f"def f():\n{body}\n")
+    excused = tmp_path / "excused.py"
+    excused.write_text(f"def f():\n    {WHOLE} one state machine, its cases read together\n{body}\n")
+    empty = tmp_path / "empty.py"
+    empty.write_text(f"def f():\n    {WHOLE}\n{body}\n")
+    assert [(n, why) for _, n, _, why in long_functions(plain)] == [("f", False)]
+    assert [why for *_, why in long_functions(excused)] == [True]
+    assert [why for *_, why in long_functions(empty)] == [False]
+
+
+def test_function_size():
+    """(e) Every function of the package is a page (<= PAGE_LINES lines), or says why it stays whole
+    and is still at most MAX_FUNCTION_LINES."""
+    problems = []
+    for module, src in sorted(package_sources().items()):
+        for line, name, length, why in long_functions(src.path):
+            if length > MAX_FUNCTION_LINES:
+                problems.append(f"{src.rel}:{line}: [function] {name} has {length} lines (> {MAX_FUNCTION_LINES}): "
+                                f"split it into steps a reader can name")
+            elif not why:
+                problems.append(f"{src.rel}:{line}: [function] {name} has {length} lines (> {PAGE_LINES}): split it, "
+                                f"or say why it stays whole in a comment starting with {WHOLE!r}")
+    _fail(problems, "functions too long")
