@@ -16,9 +16,9 @@ demo: setup
 test: setup
 	OCTOLOG_DATA=$(OCTOLOG_DATA) $(VENV)/bin/python -m pytest -q
 
-# The quick tier while working: everything but the `slow` and `netns` tests (tests/conftest.py).
+# The quick tier while working: everything but the `slow` and `root` tests (tests/conftest.py).
 test-quick: setup
-	OCTOLOG_DATA=$(OCTOLOG_DATA) $(VENV)/bin/python -m pytest -q -m "not slow and not netns"
+	OCTOLOG_DATA=$(OCTOLOG_DATA) $(VENV)/bin/python -m pytest -q -m "not slow and not root"
 
 bench: setup
 	OCTOLOG_DATA=$(OCTOLOG_DATA) $(VENV)/bin/python bench/pipeline.py

@@ -1,8 +1,8 @@
 """Fixtures every test module may use: loopback ports, small frames, the shared end-to-end runs.
 
 Markers (registered in pyproject.toml): `slow` for tests that run the real processes over a whole
-sequence or a matrix of them, `netns` for those that need root and network namespaces. `make
-test-quick` runs the rest; `make test` and CI run everything.
+sequence or a matrix of them, `root` for those that need root (network namespaces, a tmpfs mount).
+`make test-quick` runs the rest; `make test` and CI run everything.
 """
 
 import sys
@@ -52,17 +52,28 @@ RunFn = Callable[..., tuple[Path, str]]
 def octolog_run(tmp_path_factory) -> RunFn:
     """`octolog run --source SOURCE --quiet --rerun off ARGS...` made once per distinct call in a test
     run and shared: the end-to-end runs that several modules read (first300, the synthetic room) cost
-    one run each. Returns (output folder, stdout). The folder is read-only for its readers: a test
-    that changes a run's files makes its own run."""
-    runs: dict[tuple[str, tuple[str, ...]], tuple[Path, str]] = {}
+    one run each, also across pytest-xdist workers (the first to ask makes it, under a file lock, the
+    others wait for it and read it). Returns (output folder, stdout). The folder is read-only for its
+    readers: a test that changes a run's files makes its own run."""
+    import fcntl
+    import hashlib
+    import os
+
+    base = tmp_path_factory.getbasetemp()
+    shared = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
 
     def run(source: str, *args: str) -> tuple[Path, str]:
-        key = (source, args)
-        if key not in runs:
-            out = tmp_path_factory.mktemp("shared-run") / "out"
-            proc = octolog_cli("run", "--source", source, "--out", str(out), "--quiet", "--rerun", "off", *args)
-            runs[key] = (out, proc.stdout)
-        return runs[key]
+        key = hashlib.sha256(repr((source, args)).encode()).hexdigest()[:16]
+        folder = shared / f"shared-run-{key}"
+        folder.mkdir(exist_ok=True)
+        out, said = folder / "out", folder / "stdout.txt"
+        with open(folder / "lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            if not said.exists():
+                proc = octolog_cli("run", "--source", source, "--out", str(out), "--overwrite", "--quiet", "--rerun", "off",
+                                   *args)
+                said.write_text(proc.stdout)
+        return out, said.read_text()
 
     return run
 
