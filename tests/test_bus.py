@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import socket
 import subprocess
 import sys
 import threading
 import time
 
 import pytest
+from helpers import free_port
 
 from octolog.kit.bus import Bus, BusConfig, wire
 from octolog.kit.bus.publishing import History
@@ -18,15 +18,9 @@ from octolog.kit.errors import BusError, StageError
 from octolog.schemas import codec, streammsgs, topics
 
 
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture
 def endpoints():
-    ep = f"tcp/127.0.0.1:{_port()}"
+    ep = f"tcp/127.0.0.1:{free_port()}"
     server = BusConfig(listen=(ep,), multicast_scouting=False, namespace="t")
     client = BusConfig(connect=(ep,), multicast_scouting=False, namespace="t")
     return server, client
@@ -351,7 +345,7 @@ def test_router_stops_when_sigterm_lands_on_a_zenoh_thread():
 
     from helpers import ROOT
 
-    ep = f"tcp/127.0.0.1:{_port()}"
+    ep = f"tcp/127.0.0.1:{free_port()}"
     proc = subprocess.Popen([sys.executable, "-m", "octolog", "router", "--listen", ep], cwd=ROOT,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})

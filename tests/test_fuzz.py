@@ -21,11 +21,11 @@ from functools import cache
 from pathlib import Path
 
 import numpy as np
+from helpers import random_frame
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from octolog.kit.errors import OctologError
-from octolog.kit.geometry import Intrinsics, RgbdFrame
 from octolog.schemas import codec, mapmsgs, posemsgs, rgbdmsgs, streammsgs, topics, wirecompression
 
 EXAMPLES = int(os.environ.get("OCTOLOG_FUZZ_EXAMPLES", "60"))
@@ -61,14 +61,8 @@ def hostile(base: bytes, *, max_random: int = 4096) -> st.SearchStrategy[bytes]:
     return st.one_of(mutated(base), st.binary(max_size=max_random))
 
 
-def _frame(w: int = 16, h: int = 12) -> RgbdFrame:
-    rng = np.random.default_rng(3)
-    return RgbdFrame(4, 5_000_000_000, rng.integers(0, 255, (h, w, 3), dtype=np.uint8),
-                     rng.integers(1, 4000, (h, w), dtype=np.uint16), 0.001, Intrinsics(w, h, 9.0, 9.0, w / 2, h / 2))
-
-
 def _wire_samples() -> dict[topics.Topic, bytes]:
-    f, pose = _frame(), np.eye(4)
+    f, pose = random_frame(4, stamp_ns=5_000_000_000), np.eye(4)
     png = wirecompression.parse_wire_compression("png")
     jpeg = wirecompression.parse_wire_compression("jpeg")
     msgs = {

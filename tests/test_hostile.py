@@ -7,7 +7,6 @@ making, with or without an attachment that imitates octolog's numbering.
 from __future__ import annotations
 
 import json
-import socket
 import struct
 import subprocess
 import sys
@@ -20,26 +19,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
-from helpers import ROOT, octolog, tum_first300
+from helpers import ROOT, free_port, octolog, random_frame, tum_first300
 
 from octolog.kit.bus import Bus, BusConfig, wire
 from octolog.kit.errors import StageError
-from octolog.kit.geometry import Intrinsics, RgbdFrame
+from octolog.kit.geometry import RgbdFrame
 from octolog.schemas import codec, rgbdmsgs, streammsgs, topics, wirecompression
 
 BLOCK = zenoh.CongestionControl.BLOCK  # the hostile peer's samples all arrive (the default drops them when busy)
 
 
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
-
-def _frame(seq: int = 0, w: int = 8, h: int = 6) -> RgbdFrame:
-    rng = np.random.default_rng(seq)
-    return RgbdFrame(seq, 1000 + seq, rng.integers(0, 255, (h, w, 3), dtype=np.uint8),
-                     rng.integers(1, 4000, (h, w), dtype=np.uint16), 0.001, Intrinsics(w, h, 5.0, 5.0, w / 2, h / 2))
+def _frame(seq: int = 0) -> RgbdFrame:
+    return random_frame(seq, 8, 6)
 
 
 def malformed_samples(n: int) -> list[tuple[bytes, bytes | None]]:
@@ -66,7 +58,7 @@ def malformed_samples(n: int) -> list[tuple[bytes, bytes | None]]:
 def test_malformed_samples_are_dropped_counted_and_named_once(capfd):
     """Every malformed sample is dropped before the stage sees it, counted per topic, and the first
     one per publisher is named on stderr; the well-formed frames around them arrive intact."""
-    ep = f"tcp/127.0.0.1:{_port()}"
+    ep = f"tcp/127.0.0.1:{free_port()}"
     bad = malformed_samples(200)
     with Bus(BusConfig(listen=(ep,), multicast_scouting=False, namespace="t"), "tracker") as sub, \
             Bus(BusConfig(connect=(ep,), multicast_scouting=False, namespace="t"), "replay") as pub:
@@ -117,7 +109,7 @@ def test_a_gap_that_never_fills_ends_the_stage_naming_the_publisher_within_the_b
     """A peer numbers its samples like octolog but starts at 5 and serves no history: the subscriber
     holds what comes after the gap up to `max_held_mb`, then refuses that publisher, frees what it
     held and ends with one line naming it."""
-    ep = f"tcp/127.0.0.1:{_port()}"
+    ep = f"tcp/127.0.0.1:{free_port()}"
     bound_mb = 2
     source = wire.publisher_id("evil", bytes(range(16)))
     payload = codec.encode(streammsgs.stream_end_msg("x" * 100_000, 0), topics.RGBD_END.msgtype)
@@ -149,7 +141,7 @@ def router():
     """A Zenoh router in this process for `octolog run --router`, so a test peer can join the run."""
     from octolog.kit.bus import serve_router
 
-    endpoint = f"tcp/127.0.0.1:{_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     stop, ready = threading.Event(), threading.Event()
     thread = threading.Thread(target=serve_router, args=((endpoint,),), kwargs={"stop": stop, "ready": ready.set},
                               daemon=True)

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import socket
 import subprocess
 import sys
 import threading
@@ -19,7 +18,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from helpers import ROOT, octolog
+from helpers import ROOT, free_port, octolog
 
 from octolog.kit.bus import Bus, BusConfig
 from octolog.kit.errors import BusError
@@ -31,11 +30,6 @@ N = 20
 FENCE = Topic("mapper/end", "octolog_msgs/msg/StreamEnd")  # allowed to viewers: marks the end of the data
 BLOCK = zenoh.CongestionControl.BLOCK  # every sample sent arrives, or is refused: none dropped for speed
 
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @pytest.fixture(scope="module")
@@ -85,7 +79,7 @@ def _config(pki: Path, example: str, name: str, *, cert: str | None = None, ca: 
 
 @pytest.fixture(scope="module")
 def router(pki):
-    endpoint = f"tls/localhost:{_free_port()}"
+    endpoint = f"tls/localhost:{free_port()}"
     cfg = _config(pki, "zenoh-tls-router.json5", "router")
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen([sys.executable, "-m", "octolog", "router", "--zenoh-config", cfg, "--listen", endpoint],
@@ -186,7 +180,7 @@ def _router_config(pki: Path, name: str, *, mtls: bool = True, trust: str = "cer
 
 @contextmanager
 def _router(config: str, scheme: str = "tls"):
-    endpoint = f"{scheme}/localhost:{_free_port()}" if scheme == "tls" else f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"{scheme}/localhost:{free_port()}" if scheme == "tls" else f"tcp/127.0.0.1:{free_port()}"
     proc = subprocess.Popen([sys.executable, "-m", "octolog", "router", "--zenoh-config", config, "--listen", endpoint],
                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
@@ -272,7 +266,7 @@ def test_plain_tcp_is_refused_by_the_router(pki, router):
 def test_a_router_that_is_not_there_is_told_from_a_refused_certificate(pki, router):
     """Nothing listening, a name that does not resolve: each says so, unlike a refusal above."""
     cfg = _config(pki, "zenoh-tls-client.json5", "robot1-quick", cert="robot1", extra=QUICK)
-    port = _free_port()
+    port = free_port()
     assert f"tls/localhost:{port}: connection refused" in _refusal(f"tls/localhost:{port}", cfg)
     assert "cannot resolve 'no-such-host.invalid'" in _refusal("tls/no-such-host.invalid:7447", cfg)
 
@@ -412,7 +406,7 @@ def test_a_late_joiner_recovers_the_history_only_where_access_control_allows_it(
     if not history_rule:
         text = text.replace('"robot1/**", "robot1/**/@history/*"', '"robot1/**"')
     (tmp_path / "router.json5").write_text(text)
-    endpoint = f"tls/localhost:{_free_port()}"
+    endpoint = f"tls/localhost:{free_port()}"
     proc = subprocess.Popen([sys.executable, "-m", "octolog", "router", "--zenoh-config", str(tmp_path / "router.json5"),
                              "--listen", endpoint], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
