@@ -1,4 +1,4 @@
-"""The synthetic depth sensors (replay/depth_noise.py) and the tracker's scale under them (issue 17).
+"""The synthetic depth sensors (replay/depth_noise.py) and the tracker's scale under them.
 
 The noise models are checked against their own specification (sigma_z growing with z^2, disparity
 steps, invalid bands at discontinuities); the tracker is then run on the synthetic room with each

@@ -283,7 +283,7 @@ def test_deployment_doc_robot_and_server_give_the_run_bytes(hosts, tmp_path, fir
 
 
 def test_three_robots_on_three_hosts_merge_without_start_poses(hosts, tmp_path):
-    """Issue 18, must-show 2: three robots, each a replay + tracker on its own namespace host, walk
+    """Three robots, each a replay + tracker on its own namespace host, walk
     three stretches of the synthetic room (frames 0-29, 30-59, 60-89, shifted to run at once); the
     router and the mapper on a fourth; no start poses. r3 is killed once 10 of its frames went out.
     r1 and r2 finish; r2 is placed from a place r1 saw; each placed robot's keyframes follow the

@@ -68,7 +68,7 @@ def test_missing_and_non_mcap_files(tmp_path):
     junk.write_bytes(b"not an mcap file at all")
     with pytest.raises(McapError, match="junk.mcap"):
         list(read_messages(junk))
-    # random bytes are no recording, not a damaged one: nothing to summarise or recover (issue 13)
+    # random bytes are no recording, not a damaged one: nothing to summarise or recover
     with pytest.raises(McapError, match=r"junk\.mcap: not an MCAP file \(no MCAP magic at its start\)"):
         summarize(junk)
 

@@ -37,7 +37,7 @@ def test_session_leaves_every_output(runs):
     summary = json.loads((a / "summary.json").read_text())
     assert summary["tracked_frames"] == N_FRAMES
     assert summary["frames"] == {"published": N_FRAMES, "consumed": N_FRAMES, "skipped": 0}
-    assert summary["ate"]["rmse_m"] <= 0.005  # synthetic scene, exact depth: issue 4 asks <= 0.5 cm
+    assert summary["ate"]["rmse_m"] <= 0.005  # synthetic scene, exact depth: the target is <= 0.5 cm
     assert summary["map"]["occupied_voxels"] > 1000 and summary["map"]["keyframes"] >= 2
 
 
@@ -90,7 +90,7 @@ def test_bt_opens_in_octomap_and_lies_on_the_scene(runs):
 
 
 def test_session_mcap_reads_back_everywhere(runs):
-    """Issue 14, must-show 1: the session log holds standard ROS 2 types only (octolog's own messages
+    """The session log holds standard ROS 2 types only (octolog's own messages
     stored as standard parts, octolog.schemas.logview); rosbags reads every message with its stock
     Jazzy types, Rerun's MCAP loader turns camera, pose and map topics into its archetypes, and the
     wire view joins the parts back (the counts the run reported)."""
@@ -239,7 +239,7 @@ def test_tum_first300_end_to_end(tum_run):
     tmp_path, out = tum_run
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["tracked_frames"] == 294  # every colour/depth pair within 20 ms
-    # issue 4 asks <= 1 cm (measured 0.76 cm: final trajectory, rolling-shutter model from the source)
+    # the target is <= 1 cm (measured 0.76 cm: final trajectory, rolling-shutter model from the source)
     assert summary["ate"]["rmse_m"] <= 0.010, out
     assert summary["map"]["occupied_voxels"] > 1000
 
