@@ -13,12 +13,18 @@ $(VENV)/.installed: pyproject.toml requirements.lock .ci/setup.sh
 demo: setup
 	$(VENV)/bin/octolog demo --out $(OUT) --overwrite  # a demo folder is disposable: re-running replaces it
 
+# Two pytest-xdist workers, a test module each at a time (module fixtures made once; the shared
+# end-to-end runs once across workers): much of the suite waits on processes, links and timeouts.
+# TEST_WORKERS=0 runs in one process.
+TEST_WORKERS ?= 2
+PYTEST = OCTOLOG_DATA=$(OCTOLOG_DATA) $(VENV)/bin/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile
+
 test: setup
-	OCTOLOG_DATA=$(OCTOLOG_DATA) $(VENV)/bin/python -m pytest -q
+	$(PYTEST)
 
 # The quick tier while working: everything but the `slow` and `root` tests (tests/conftest.py).
 test-quick: setup
-	OCTOLOG_DATA=$(OCTOLOG_DATA) $(VENV)/bin/python -m pytest -q -m "not slow and not root"
+	$(PYTEST) -m "not slow and not root"
 
 bench: setup
 	OCTOLOG_DATA=$(OCTOLOG_DATA) $(VENV)/bin/python bench/pipeline.py
