@@ -67,6 +67,7 @@ def test_noisy_frames_are_deterministic_and_differ_from_exact_ones():
         SyntheticScene(depth_noise="lidar")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("every", [1, 3], ids=["slow", "fast"])
 @pytest.mark.parametrize("noise", ["kinect", "d455"])
 def test_the_tracker_has_no_scale_bias_under_sensor_noise(noise, every):

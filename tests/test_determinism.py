@@ -91,6 +91,7 @@ def _probe(source: str, frames: int, env: dict[str, str]) -> str:
     return proc.stdout
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("restriction", [*LEVELS, *ALONE])
 def test_tracker_core_same_bytes_under_restricted_instruction_sets(restriction):
     """Rendered synthetic frames, ORB features and poses: the restricted run gives the same bytes."""
@@ -144,6 +145,7 @@ def _source(key: str) -> str:
     return f"tum:{tum_first300()}" if key == "tum-first300" else key
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("key", list(GOLDEN))
 @pytest.mark.parametrize("level", ["default", *LEVELS])
 def test_run_outputs_match_golden_hashes(key, level, tmp_path, octolog_run):

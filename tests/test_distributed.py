@@ -119,6 +119,8 @@ def single_host(octolog_run) -> Path:
     return octolog_run(f"synthetic:{FRAMES}")[0]
 
 
+@pytest.mark.root
+@pytest.mark.slow
 def test_stages_on_four_hosts_match_one_host(hosts, single_host, tmp_path):
     names, addr = hosts
     _distributed_run(names, addr, tmp_path / "multi")
@@ -143,6 +145,8 @@ def _same_result(run: Path, single: Path) -> None:
 
 # 6 s: the session survives (Zenoh's lease is 10 s) and only the data in flight is at stake;
 # 12 s: the lease expires, the session closes and the mapper's client reconnects
+@pytest.mark.root
+@pytest.mark.slow
 @pytest.mark.parametrize("cut_s", [6.0, 12.0], ids=["within-lease", "session-closed"])
 def test_mapper_link_cut_and_restored_loses_nothing(hosts, single_host, tmp_path, cut_s):
     names, addr = hosts
@@ -150,6 +154,8 @@ def test_mapper_link_cut_and_restored_loses_nothing(hosts, single_host, tmp_path
     _same_result(tmp_path / "cut", single_host)
 
 
+@pytest.mark.root
+@pytest.mark.slow
 def test_mapper_killed_and_restarted_ends_with_the_same_map(hosts, single_host, tmp_path):
     names, addr = hosts
     _distributed_run(names, addr, tmp_path / "restart", kill_mapper=True)
@@ -169,6 +175,7 @@ def _pid(*words: str) -> int | None:
     return None
 
 
+@pytest.mark.slow
 def test_run_starts_a_killed_mapper_again(single_host, tmp_path):
     """`octolog run` on one host: the mapper SIGKILLed mid-run is started again, same map."""
     out = tmp_path / "run"
@@ -202,6 +209,8 @@ def _link_bytes(ns: str, dev: str) -> int:
     return int(proc.stdout)
 
 
+@pytest.mark.root
+@pytest.mark.slow
 def test_deployment_doc_robot_and_server_give_the_run_bytes(hosts, tmp_path, first300_run):
     """docs/deployment.md as written, with TLS: the server (router, mapper, log) on one host, robot1
     (its own router, replay + `octolog track`, frames from TUM fr1 first300) on another. No
@@ -282,6 +291,8 @@ def test_deployment_doc_robot_and_server_give_the_run_bytes(hosts, tmp_path, fir
     assert (again / "map.bt").read_bytes() == (out / "maps" / "robot1" / "map.bt").read_bytes()
 
 
+@pytest.mark.root
+@pytest.mark.slow
 def test_three_robots_on_three_hosts_merge_without_start_poses(hosts, tmp_path):
     """Three robots, each a replay + tracker on its own namespace host, walk
     three stretches of the synthetic room (frames 0-29, 30-59, 60-89, shifted to run at once); the

@@ -33,6 +33,8 @@ def small_disk(tmp_path):
         subprocess.run(["umount", "-l", str(disk)], check=False)
 
 
+@pytest.mark.root
+@pytest.mark.slow
 @pytest.mark.parametrize("rerun", ["save", "off"])
 def test_a_full_disk_is_one_line_naming_the_disk_and_the_file(small_disk, rerun):
     out = small_disk / "s"
@@ -56,6 +58,7 @@ def test_out_that_is_a_file_is_one_line(tmp_path):
     assert f.read_text() == "mine"
 
 
+@pytest.mark.slow
 def test_an_existing_session_is_replaced_only_with_overwrite_and_then_whole(tmp_path):
     out = tmp_path / "s"
     octolog("run", "--source", "synthetic:10", "--out", str(out), "--quiet")  # with rerun/*.rrd

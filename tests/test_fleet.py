@@ -216,6 +216,7 @@ def fleet(tmp_path_factory) -> tuple[Path, Path]:
     return tmp / "reference", tmp / "processes"
 
 
+@pytest.mark.slow
 def test_two_robots_fuse_into_the_map_built_on_one_host(fleet):
     ref, procs = fleet
     for name in ("map.bt", "map.ot", "cloud.ply", "keyframes_r1.txt", "keyframes_r2.txt"):
@@ -231,6 +232,7 @@ def test_two_robots_fuse_into_the_map_built_on_one_host(fleet):
     assert stats["skipped_keyframes"] == 0
 
 
+@pytest.mark.slow
 def test_a_silent_robot_no_longer_stalls_the_others_and_the_map_is_the_same(fleet, tmp_path):
     """Issue 18: r2's tracker is up but its camera sends nothing; after mapper.robot_stall_s the
     mapper goes on with r1 (it says so at once), and r2's keyframes, when its replay starts, come
@@ -347,6 +349,7 @@ def _tum_halves() -> _Halves:
     return h
 
 
+@pytest.mark.slow
 def test_two_halves_of_a_tum_sequence_fuse_like_on_one_host(tmp_path):
     """Two robots on real frames: r1 the first half, r2 the second, shifted to run alongside; r2's
     start pose from the TUM ground truth. Byte-identical to the in-process reference, and each
@@ -405,6 +408,7 @@ def occupied_disagreement(a: Path | dict, b: Path | dict, tolerance: int = 0) ->
     return wrong / max(len(both), 1), len(both)
 
 
+@pytest.mark.slow
 def test_two_halves_merge_without_start_poses(tmp_path, first300_run):
     """Issue 18, must-show 1: r1 the first half of first300, r2 the second, no start poses. The mapper
     places r2 from a place both saw; every keyframe of both lies within 5 cm of the ground truth
@@ -481,6 +485,7 @@ def test_a_shared_place_aligns_and_another_room_does_not():
     assert align(a, features(next(SyntheticSource(2).frames()))) is None
 
 
+@pytest.mark.slow
 def test_a_robot_that_shares_no_place_stays_out_with_a_map_of_its_own(tmp_path):
     """Issue 18, must-show 3: r1 in the synthetic room, r2 at the TUM desk, no start poses. No merge;
     r2 is reported unmerged with a map of its own; the fused map is r1's alone, byte for byte the
@@ -501,6 +506,7 @@ def test_a_robot_that_shares_no_place_stays_out_with_a_map_of_its_own(tmp_path):
     assert (out / "map.bt").read_bytes() == (single / "map.bt").read_bytes()
 
 
+@pytest.mark.slow
 def test_a_robot_killed_mid_run_leaves_the_others_to_finish(tmp_path):
     """Issue 18: r2's tracker and replay are killed once 10 of its 20 frames went out; the mapper
     takes r2 for gone after the peer timeout, keeps what arrived, and finishes r1's map (no start

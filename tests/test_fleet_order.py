@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import random
 
+import pytest
 from helpers import stop_all
 from test_fleet import ROBOTS, _free_port, _start
 
@@ -122,6 +123,7 @@ def test_a_paused_robot_holds_the_others_back_no_longer_and_the_defined_order_st
     assert steady.pop() == (1, b0) and not steady.jumped
 
 
+@pytest.mark.slow
 def test_a_robot_that_tracks_without_keyframes_holds_the_others_back_no_longer(tmp_path):
     """Issue 18, the watermark through the real processes: r2's camera stands still (one synthetic
     frame played 600 times at the camera's rate: 20 s of wall time however fast the machine), so after

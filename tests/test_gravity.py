@@ -133,6 +133,7 @@ def _grid_cells(session: Path) -> dict[tuple[int, int], int]:
     return {(c0 + c, r0 + r): int(grid.data[r, c]) for r, c in zip(rows.tolist(), cols.tolist())}
 
 
+@pytest.mark.slow
 def test_the_grid_does_not_depend_on_how_the_camera_was_held_at_the_start(tmp_path: Path) -> None:
     """The synthetic room, the same path twice: once from a (nearly) level start, once starting 30
     degrees further down and levelling out over one second. With up from the simulated IMU, the two

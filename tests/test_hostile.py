@@ -105,6 +105,7 @@ def test_a_png_header_claiming_a_billion_pixels_is_refused_before_decoding():
     assert screen.dropped == {topics.RGBD_COMPRESSED.name: 1}
 
 
+@pytest.mark.slow
 def test_a_gap_that_never_fills_ends_the_stage_naming_the_publisher_within_the_bound():
     """A peer numbers its samples like octolog but starts at 5 and serves no history: the subscriber
     holds what comes after the gap up to `max_held_mb`, then refuses that publisher, frees what it
@@ -168,6 +169,7 @@ def _intruder(endpoint: str) -> Iterator[Bus]:
         yield bus
 
 
+@pytest.mark.slow
 def test_a_run_under_a_stream_of_malformed_samples_gives_the_undisturbed_trajectory(router, tmp_path):
     """1,000 malformed samples on camera/rgbd during `octolog run` on first300: the trajectory is
     byte-identical to an undisturbed run's, and summary.json counts the 1,000 for each stage that
@@ -191,6 +193,7 @@ def test_a_run_under_a_stream_of_malformed_samples_gives_the_undisturbed_traject
     assert log.count("dropped a malformed sample") == 1
 
 
+@pytest.mark.slow
 def test_a_run_ends_in_one_line_naming_a_publisher_whose_gap_never_fills(router, tmp_path):
     """During `octolog run` on the synthetic room, a peer sends numbered samples on camera/rgbd/end
     from seq 5 on and serves no history: the stages that take the topic hold them up to the bound

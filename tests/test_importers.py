@@ -85,6 +85,7 @@ def test_tum_round_trip_is_byte_identical(tmp_path):
     assert imu[0].orientation_covariance[0] == -1 and imu[0].angular_velocity_covariance[0] == -1
 
 
+@pytest.mark.slow
 def test_tum_first300_replays_identically(tmp_path):
     folder = tum_first300()
     out = tmp_path / "first300.mcap"

@@ -26,6 +26,7 @@ VGA = ("--set", "recorder.color.width=640", "--set", "recorder.color.height=480"
        "--set", "recorder.depth.width=640", "--set", "recorder.depth.height=480")
 
 
+@pytest.mark.slow
 def test_a_live_session_counts_its_skips_and_its_log_replays_to_the_same_bytes(tmp_path):
     live = tmp_path / "live"
     # a back end slower than the keyframes come (each job padded to 1 s): the live tracker lets

@@ -359,6 +359,7 @@ def _ate_rmse(gt_path: Path, stamps_ns: list[int], poses: list[np.ndarray]) -> f
     return float(np.sqrt(((aligned - Q) ** 2).sum(1).mean()))
 
 
+@pytest.mark.slow
 def test_tum_fr1_xyz_first300_accuracy() -> None:
     from octolog.replay.sources import open_source
 

@@ -117,6 +117,7 @@ def test_inconsistent_frames_are_tracking_errors(scene, synthetic_vocabulary):
             odom.track(dataclasses.replace(frames[1], intrinsics=other))
 
 
+@pytest.mark.slow
 @needs_orbslam3
 def test_the_pipeline_runs_the_orbslam3_backend(synthetic_vocabulary, tmp_path):
     out = tmp_path / "session"

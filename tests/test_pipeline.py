@@ -29,6 +29,7 @@ def runs(tmp_path_factory) -> tuple[Path, Path]:
     return a, b
 
 
+@pytest.mark.slow
 def test_session_leaves_every_output(runs):
     a, _ = runs
     for name in ("trajectory.txt", "map.bt", "cloud.ply", "session.mcap", "summary.json", "groundtruth.txt"):
@@ -223,6 +224,7 @@ def test_eval_and_info_commands(runs):
     assert "complete" in info and f"/camera/rgbd" in info and "metadata config" in info
 
 
+@pytest.mark.slow
 def test_replaying_the_session_mcap_gives_the_same_trajectory(runs, tmp_path):
     a = runs[0]
     octolog("run", "--source", f"mcap:{a / 'session.mcap'}", "--out", str(tmp_path), "--quiet", "--rerun", "off")
@@ -235,6 +237,7 @@ def tum_run(first300_run) -> tuple[Path, str]:
     return first300_run
 
 
+@pytest.mark.slow
 def test_tum_first300_end_to_end(tum_run):
     tmp_path, out = tum_run
     summary = json.loads((tmp_path / "summary.json").read_text())
@@ -273,6 +276,7 @@ def test_tum_first300_map_frame_is_gravity_aligned(tum_run) -> None:
     assert _z_tilt(out, np.eye(4)) > 90.0  # the optical frame: y down, not up
 
 
+@pytest.mark.slow
 def test_imported_tum_replays_to_the_same_trajectory(tum_run, tmp_path):
     """`octolog import` of the folder, then the pipeline on the MCAP: byte-identical to the folder's run."""
     octolog("import", str(tum_first300()), str(tmp_path / "fr1.mcap"), "--compression", "lz4")
@@ -304,6 +308,7 @@ def _read_until(stream, marker: str, limit: int = 1_000_000) -> str:
     return seen
 
 
+@pytest.mark.slow
 def test_a_dead_stage_stops_the_session_with_a_clear_message(tmp_path):
     import psutil
 
@@ -358,6 +363,7 @@ def test_truncated_mcap_is_refused_and_described(runs, tmp_path):
     assert "INCOMPLETE" in info and "readable before the damage" in info
 
 
+@pytest.mark.slow
 def test_octomap_backend_gives_the_same_bt(runs, tmp_path):
     """Our NumPy occupancy map and OctoMap itself, through the whole pipeline: the same .bt bytes."""
     octolog("run", "--source", f"synthetic:{N_FRAMES}", "--out", str(tmp_path), "--quiet", "--rerun", "off",

@@ -129,6 +129,7 @@ def _check_file(path: Path, backend: SoftwareDeviceBackend, cfg: RecorderConfig,
 COMBOS = [(c, d, z) for c in ("jpeg", "raw") for d in ("png", "raw") for z in ("lz4", "zstd", "none")]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("color_codec,depth_codec,compression", COMBOS)
 def test_every_pushed_sample_is_recorded(tmp_path, color_codec, depth_codec, compression):
     """Every combination at the D455 default profile; the default one for 10 s of sensor time (300
@@ -361,6 +362,7 @@ def tiny_disk(tmp_path):
     subprocess.run(["umount", str(mnt)], check=False)
 
 
+@pytest.mark.root
 def test_real_full_disk(tiny_disk):
     """A 24 MB tmpfs: with the free-space reserve off, ENOSPC itself; with it, a stop before."""
     with pytest.raises(RecorderError, match="^disk full") as info:

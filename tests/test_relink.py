@@ -7,11 +7,13 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 from test_fleet import ROBOTS, run_fleet
 
 from octolog.mapper.config import MapperConfig
 
 
+@pytest.mark.slow
 def test_robots_that_meet_again_later_are_linked_again():
     """Issue 18, inter-robot loop closure: r2 is placed where r1 started (X) and refined there, goes
     where r1 never was, then comes past the place r1 saw at the end (Y): a new link between r2's
@@ -62,6 +64,7 @@ def test_robots_that_meet_again_later_are_linked_again():
     assert [(a, r, k) for a, r, k, _ in run(True).links] == [(a, r, k) for a, r, k, _ in p.links]
 
 
+@pytest.mark.slow
 def test_robots_linked_again_through_the_real_processes(tmp_path):
     """Issue 18, inter-robot loop closure end to end: r1 walks frames 0-299 of a 600-frame loop round
     the synthetic room, r2 frames 150-449 (every second frame of each), both at once, no start poses. r2 starts ahead of r1, waits,

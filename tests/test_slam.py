@@ -151,6 +151,7 @@ def _features(frame):
     return odo._features(frame, odo._extractor.extract(gray)), odo._undistort.K
 
 
+@pytest.mark.slow
 def test_place_recognition_finds_the_revisited_place_and_only_it(room, loop_frames) -> None:
     # keyframes every 10th frame of the first loop; queries: a revisit of frame 0 (frame 180 is one
     # 18 s loop later, the same place) and frame 95, whose view no keyframe below 90 shares
@@ -238,6 +239,7 @@ def with_loops(loop_frames):
     return _run(loop_frames, background=True)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("with_bow", [False, True], ids=["all-candidates", "bow-candidates"])
 def test_loop_closing_halves_the_error_of_a_loop(room, loop_frames, vocabulary, with_bow) -> None:
     # visual odometry alone (no local BA) accumulates drift over the loop; closing it must halve the ATE.
@@ -257,12 +259,14 @@ def test_loop_closing_halves_the_error_of_a_loop(room, loop_frames, vocabulary, 
     assert a_loop * 2 <= a_none, (a_loop, a_none)
 
 
+@pytest.mark.slow
 def test_background_thread_changes_nothing(loop_frames, with_loops) -> None:
     odo, results = with_loops
     same = _run(loop_frames, background=False)
     assert _digest(*same) == _digest(odo, results)
 
 
+@pytest.mark.slow
 def test_a_live_tracker_goes_on_while_the_back_end_works_and_its_record_replays_exactly(room, loop_frames) -> None:
     """Live, a keyframe goes in while the back end is still busy with the previous one (at most
     `defer_backend` in a row, then the tracker waits); the result lands at a later keyframe with the
@@ -305,6 +309,7 @@ def test_a_late_loop_result_carries_the_keyframes_inserted_since_its_job() -> No
     assert np.allclose(points.xyz[6:10], before[1][6:10] @ shift[:3, :3].T + shift[:3, 3])
 
 
+@pytest.mark.slow
 def test_recovers_after_30_black_frames(room, loop_frames, with_loops) -> None:
     half = 100
     dt = room.stamp_ns(1) - room.stamp_ns(0)
@@ -362,6 +367,7 @@ def test_back_end_worker_process_returns_results_and_errors() -> None:
     assert not child.is_running() or child.status() == psutil.STATUS_ZOMBIE
 
 
+@pytest.mark.slow
 def test_a_room_revisited_adds_no_keyframes() -> None:
     """Keyframes are measured against the keyframe that holds the frame's points, not the newest:
     lap after lap around the same room (the periodic path, 10 fps), the map stops growing."""

@@ -225,6 +225,7 @@ def test_a_client_without_a_certificate_is_refused_by_the_router(pki, router):
     assert proc.stderr.count("\n") == 1 and "octolog track: error: cannot open Zenoh session (client)" in proc.stderr
 
 
+@pytest.mark.slow
 def test_a_certificate_from_another_authority_is_refused_by_the_router(pki, router):
     """A robot1 certificate signed by another CA, the client trusting the real CA (so it accepts the
     router's certificate): a router that trusts the other CA lets it in, the real router refuses it."""

@@ -98,6 +98,7 @@ def test_a_folder_whose_name_says_no_camera_needs_one(tmp_path):
         open_tum(folder, camera="kinect2")
 
 
+@pytest.mark.slow
 def test_run_on_a_renamed_folder_is_one_line_unless_the_camera_is_named(tmp_path):
     """TUM fr1/xyz under a neutral name (a symlink): refused in one line; with the camera named it runs,
     and the session's config says which camera it was."""

@@ -122,6 +122,7 @@ def raw(tmp_path_factory) -> Path:
     return _run(tmp_path_factory.mktemp("raw"))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("depth", ["png", "zstd"])
 def test_lossless_compression_changes_no_output(raw, tmp_path, depth):
     png = _run(tmp_path / "png", f"replay.wire_compression=png,{depth}", f"tracker.wire_compression=png,{depth}")
@@ -134,6 +135,7 @@ def test_lossless_compression_changes_no_output(raw, tmp_path, depth):
     assert "/camera/rgbd " not in info
 
 
+@pytest.mark.slow
 def test_jpeg_is_deterministic_close_to_raw_and_its_log_replays(raw, tmp_path):
     sets = ("replay.wire_compression=jpeg:90,png", "tracker.wire_compression=jpeg:90")
     a, b = _run(tmp_path / "a", *sets), _run(tmp_path / "b", *sets)
@@ -148,6 +150,7 @@ def test_jpeg_is_deterministic_close_to_raw_and_its_log_replays(raw, tmp_path):
     assert (tmp_path / "r" / "trajectory.txt").read_bytes() == (a / "trajectory.txt").read_bytes()
 
 
+@pytest.mark.slow
 def test_tum_frames_travel_and_are_logged_as_their_png_files(tmp_path):
     """The default (`source`) publishes a TUM folder's PNG files untouched: the session log holds
     their bytes, keyframes carry them on to the mapper, and every output equals a raw run's."""
