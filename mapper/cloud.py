@@ -8,12 +8,12 @@ sums are sequential (`np.bincount`), never thread- or hash-order dependent.
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from octolog.kit.errors import MapError
+from octolog.kit.files import write_bytes_atomic
 from octolog.kit.geometry import Intrinsics
 
 __all__ = [
@@ -24,7 +24,6 @@ __all__ = [
     "statistical_outlier_removal",
     "transform",
     "voxel_downsample",
-    "write_bytes_atomic",
     "write_ply",
 ]
 
@@ -327,22 +326,6 @@ def write_ply(path: str | os.PathLike[str], points: np.ndarray, colours: np.ndar
     """Write a binary PLY atomically (temporary file then rename), so readers never see half a file."""
     data = ply_bytes(points, colours)
     write_bytes_atomic(path, data)
-
-
-def write_bytes_atomic(path: str | os.PathLike[str], data: bytes) -> None:
-    """Write bytes to `path` via a sibling temporary file; OSError becomes a one-line MapError."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        with open(tmp, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except OSError as e:
-        try:
-            tmp.unlink()
-        except OSError:
-            pass
-        raise MapError(f"cannot write {path}: {e.strerror or e}") from None
 
 
 def pcd_bytes(points: np.ndarray, colours: np.ndarray) -> bytes:

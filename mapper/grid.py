@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from octolog.kit.errors import MapError
-from octolog.mapper.cloud import write_bytes_atomic
+from octolog.kit.files import write_bytes_atomic
 from octolog.schemas import codec
 
 __all__ = [

@@ -27,7 +27,7 @@ import numpy as np
 import pyoctomap
 
 from octolog.kit.errors import MapError
-from octolog.mapper.cloud import write_bytes_atomic
+from octolog.kit.files import write_bytes_atomic
 from octolog.mapper.octokeys import TREE_MAX_VAL, scan_voxel_colours
 from octolog.mapper.sensor_model import SensorModel
 

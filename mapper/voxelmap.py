@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from octolog.kit.errors import MapError
-from octolog.mapper.cloud import write_bytes_atomic
+from octolog.kit.files import write_bytes_atomic
 from octolog.mapper.octokeys import TREE_DEPTH, TREE_MAX_VAL, key_to_coord, norm32, pack, to_key, unpack
 from octolog.mapper.sensor_model import SensorModel
 
