@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from octolog.kit.errors import ConfigError
-from octolog.mapper.fleet import start_pose_matrix
+from octolog.mapper.fleet.order import start_pose_matrix
 from octolog.mapper.grid import DEFAULT_UP
 from octolog.mapper.params import BACKENDS, CloudParams, GridParams, MapperParams, OccupancyParams
 from octolog.mapper.sensor_model import PROBABILITIES, SensorModel
@@ -60,7 +60,7 @@ class MapperConfig:
     wait_for: tuple[str, ...] = ()  # stages that must be up before the mapper starts listening
     wait_timeout_s: float = 60.0  # how long to wait for them
     # several robots into one map: the robots' namespaces (each a replay/recorder + tracker pair);
-    # empty: one robot, in the mapper's own namespace. See mapper/fleet.py for the integration order.
+    # empty: one robot, in the mapper's own namespace. See mapper/fleet/order.py for the integration order.
     robots: tuple[str, ...] = ()
     # per robot, its start frame (its tracker's world) in the common world: x y z qx qy qz qw;
     # empty: every robot starts at the world origin
@@ -70,7 +70,7 @@ class MapperConfig:
     robot_stall_s: float = 30.0
     # placed without start poses: a robot's keyframe once it has come this far (metres of its own
     # path) since its last link is matched against the other robots' nearest map keyframes (robots
-    # that meet again are linked again, the joint graph settles them; mapper/placement.py). The
+    # that meet again are linked again, the joint graph settles them; mapper/fleet/placement.py). The
     # default: at the joint graph's 1 % drift, 2 m make ~2 cm, as much as a link's own error; a link
     # sooner would weigh its error against a robot's better own path. 0: links only while placing
     relink_after_m: float = 2.0

@@ -66,7 +66,7 @@ OCCUPIED = Topic("mapper/occupied", "sensor_msgs/msg/PointCloud2")
 GRID = Topic("mapper/grid", "nav_msgs/msg/OccupancyGrid")
 MAP_END = Topic("mapper/end", "octolog_msgs/msg/StreamEnd")
 # Several robots without start poses: a robot placed in the map (JSON in a String: which keyframes
-# matched, the evidence, world_from_robot), once per robot (mapper/placement.py)
+# matched, the evidence, world_from_robot), once per robot (mapper/fleet/placement.py)
 MAP_MERGE = Topic("mapper/merge", "std_msgs/msg/String")
 
 # The frames (docs/formats.md "Frames"): the tracker's camera in `world` on every frame; the

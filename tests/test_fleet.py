@@ -47,7 +47,7 @@ def test_the_joint_graph_closes_the_seam_a_rigid_placement_leaves():
     one rigid placement. The joint pose graph moves r2's keyframes (and r1's, a little) so both
     links hold and r2's end comes back towards the truth; one link alone asks for no graph."""
     from octolog.kit.geometry import invert
-    from octolog.mapper.joint import Link, joint_poses, needs_graph
+    from octolog.mapper.fleet.joint_graph import Link, joint_poses, needs_graph
 
     n = 12
     truth1 = [_pose(0.1 * k, 0.0, 0.0) for k in range(n)]  # r1: along x
@@ -108,7 +108,7 @@ def _start_poses() -> list[list[float]]:
 def _reference(out: Path, start_poses: list[list[float]], *, source: str = f"synthetic:{FRAMES}",
                windows: tuple[tuple[int, int], ...] = ((0, HALF), (HALF, FRAMES)),
                shifts: tuple[float, ...] = SHIFT_S) -> None:
-    """The map built from both inputs on one host, in one process, without mapper/fleet.py.
+    """The map built from both inputs on one host, in one process, without mapper/fleet/order.py.
 
     The tracker's back end moves keyframes after they were sent (bundle adjustment, loop closing, its
     final poses), and the mapper's map always equals the map built from scratch, in integration order,
@@ -462,13 +462,13 @@ def test_two_halves_merge_without_start_poses(tmp_path, first300_run):
         assert (tmp_path / "again" / name).read_bytes() == (out / name).read_bytes(), name
 
 
-# --- placing by place: the verification (mapper/align.py) ------------------------------------------
+# --- placing by place: the verification (mapper/fleet/align.py) ------------------------------------------
 
 
 def test_a_shared_place_aligns_and_another_room_does_not():
     """Two first300 frames 80 apart align to the tracker's relative pose; a different room does not."""
     from octolog.kit.geometry import invert
-    from octolog.mapper.align import align, features
+    from octolog.mapper.fleet.align import align, features
     from octolog.replay.sources import SyntheticSource, open_source
     from octolog.tracker.config import TrackerConfig, for_source
     from octolog.tracker.factory import make_odometry
@@ -541,7 +541,7 @@ def test_a_photo_of_a_place_is_not_that_place(source):
     """Issue 18, must-show 3's look-alike: the same image on a flat poster (the frame's colour, its
     depth flattened to a wall at the median distance) matches descriptor for descriptor, but no
     rigid motion takes the room's 3D points onto it: refused, in the room and at the TUM desk."""
-    from octolog.mapper.align import align, features
+    from octolog.mapper.fleet.align import align, features
     from octolog.replay.sources import open_source
 
     spec = f"tum:{tum_first300()}" if source == "tum" else source

@@ -1,4 +1,4 @@
-"""Several robots into one map: the order the mapper integrates their items in (mapper/fleet.py),
+"""Several robots into one map: the order the mapper integrates their items in (mapper/fleet/order.py),
 the watermarks that let it decide sooner, and a robot that tracks without making keyframes
 through the real processes."""
 
@@ -11,7 +11,7 @@ import pytest
 from helpers import stop_all
 from test_fleet import ROBOTS, _free_port, _start
 
-from octolog.mapper.fleet import CorrectionItem, FleetMerge, KeyframeItem, Watermark, merged_order
+from octolog.mapper.fleet.order import CorrectionItem, FleetMerge, KeyframeItem, Watermark, merged_order
 
 
 def _kf(stamp: int, kf_id: int) -> KeyframeItem:

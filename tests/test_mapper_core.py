@@ -398,7 +398,7 @@ def test_outputs_are_byte_identical_across_processes(tmp_path):
 def test_snapshot_preview_stops_growing_with_the_session():
     """The mapper's Rerun snapshots show a preview of the dense cloud: one point in 8 of each keyframe,
     and at most about PREVIEW_POINTS in all, so a long session's recording grows linearly."""
-    from octolog.mapper.node import CLOUD_STRIDE, PREVIEW_POINTS
+    from octolog.mapper.process import CLOUD_STRIDE, PREVIEW_POINTS
 
     rng = np.random.default_rng(0)
     cloud = DenseCloud()

@@ -1,4 +1,4 @@
-"""Robots that meet again are linked again (issue 18's inter-robot loop closure, mapper/placement.py:
+"""Robots that meet again are linked again (issue 18's inter-robot loop closure, mapper/fleet/placement.py:
 relinking): in process on rendered views of the synthetic room, and through the real processes
 (tests/test_fleet.py's `run_fleet`: a router, a mapper for r1+r2, and per robot a replay and a tracker)."""
 
@@ -20,7 +20,7 @@ def test_robots_that_meet_again_later_are_linked_again():
     keyframe at Y and r1's, found among r1's nearest kept keyframes. Without relinking (as before)
     the robots stay tied at X only; same keyframes, same links (the defined order)."""
     from octolog.kit.geometry import RgbdFrame, invert
-    from octolog.mapper import placement as pl
+    from octolog.mapper.fleet import placement as pl
     from octolog.replay.synthetic import SyntheticScene
 
     scene = SyntheticScene(n_frames=600)  # one loop round the room; X at frame 0, Y at 300, 1.8 m apart

@@ -1,9 +1,9 @@
-"""The map of several robots: the fleet merge's items (mapper/fleet.py) applied, one at a time.
+"""The map of several robots: the fleet merge's items (mapper/fleet/order.py) applied, one at a time.
 
 A keyframe of a placed robot is integrated at `world_from_robot @ robot_from_camera`; an unplaced
-robot's keyframe is offered to the placement (mapper/placement.py) and waits; a placed keyframe is
+robot's keyframe is offered to the placement (mapper/fleet/placement.py) and waits; a placed keyframe is
 remembered for matching; a new link between robots lets the joint pose graph settle every placed
-robot's keyframes (mapper/joint.py); a correction from a robot's tracker moves its keyframes. No
+robot's keyframes (mapper/fleet/joint_graph.py); a correction from a robot's tracker moves its keyframes. No
 transport and no clock: what goes out (merge events, map updates, Rerun) goes through `FleetHooks`,
 so the same items in the same order give the same map, and the mapper can build it again from its
 history in the defined order (`FleetMerge.canonical`) with no hooks at all.
@@ -20,9 +20,9 @@ import numpy as np
 from octolog.kit.errors import InputError, MapError
 from octolog.kit.geometry import RgbdFrame, invert
 from octolog.mapper.core import Mapper
-from octolog.mapper.fleet import CorrectionItem, KeyframeItem
-from octolog.mapper.joint import Link, joint_poses, needs_graph
-from octolog.mapper.placement import Merge, Placement
+from octolog.mapper.fleet.joint_graph import Link, joint_poses, needs_graph
+from octolog.mapper.fleet.order import CorrectionItem, KeyframeItem
+from octolog.mapper.fleet.placement import Merge, Placement
 from octolog.schemas import posemsgs, rgbdmsgs
 
 
@@ -65,7 +65,7 @@ class FleetMap:
 
     def settle(self) -> int | None:
         """With more links between robots than placing them took, one pose graph over every placed
-        robot's keyframes (mapper/joint.py) moves them; later keyframes follow their robot's newest.
+        robot's keyframes (mapper/fleet/joint_graph.py) moves them; later keyframes follow their robot's newest.
         Returns how many keyframes moved; None without a graph to solve."""
         p = self.placement
         links = [Link(a, self.map_id[r][k], al.a_from_b, al.rmse_m) for a, r, k, al in p.links if k in self.map_id[r]]

@@ -1,8 +1,8 @@
 """Placing robots in the common world without start poses: the first robot's world is the map's;
 every other robot is placed when one of its keyframes verifiably sees a place already in the map
-(mapper/align.py), and until then its keyframes wait in its own frame.
+(mapper/fleet/align.py), and until then its keyframes wait in its own frame.
 
-Everything happens at defined points of the fleet merge's order (mapper/fleet.py): a keyframe of an
+Everything happens at defined points of the fleet merge's order (mapper/fleet/order.py): a keyframe of an
 unplaced robot is tried against the placed keyframes when the merge pops it; a placed keyframe,
 once integrated, is tried against the waiting keyframes of the unplaced robots (in robot order,
 then in their order). So the same streams place the same robots at the same keyframes, and the
@@ -13,7 +13,7 @@ One match places a robot with that match's error (1-2 cm, about a degree on TUM)
 not stay at that, the robot's next keyframes are matched too, against map keyframes of the other
 robots, up to REFINE_MATCHES verified matches in all; every match is kept as a link between two
 keyframes (`links`), and the mapper settles the links and the robots' own trajectories in one pose
-graph (mapper/joint.py).
+graph (mapper/fleet/joint_graph.py).
 
 Robots that meet again later are linked again (`_relink`, the inter-robot loop closure of
 multi-session SLAM): map keyframes are kept, one per robot, 0.5 m cell of the world and viewing
@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from octolog.kit.geometry import RgbdFrame, invert
-from octolog.mapper.align import Alignment, Features, align, features
+from octolog.mapper.fleet.align import Alignment, Features, align, features
 
 REFINE_MATCHES = 5  # verified matches whose mean places a robot (the first one places it at once)
 # Bounds, so that a robot that never meets the others costs the same per keyframe in minute ten as in

@@ -1,6 +1,6 @@
 """After a merge, one pose graph over every placed robot's keyframes, so the seam does not stay.
 
-Placing a robot (mapper/placement.py) puts its whole trajectory where one match says; each match is
+Placing a robot (mapper/fleet/placement.py) puts its whole trajectory where one match says; each match is
 a few centimetres and a degree off, and a robot's own trajectory drifts, so where two robots meet
 again the second match disagrees with the first. Each verified match between two robots' keyframes
 is a `Link` (the relative pose the depth-verified alignment measured); with more links than it takes
