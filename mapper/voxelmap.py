@@ -36,34 +36,20 @@ import numpy as np
 
 from octolog.kit.errors import MapError
 from octolog.kit.files import write_bytes_atomic
-from octolog.mapper.octokeys import TREE_DEPTH, TREE_MAX_VAL, key_to_coord, norm32, pack, to_key, unpack
+from octolog.mapper.octokeys import TREE_MAX_VAL, key_to_coord, norm32, pack, to_key, unpack
 from octolog.mapper.sensor_model import SensorModel
+from octolog.mapper.treebuild import WHITE as _WHITE
+from octolog.mapper.treebuild import build_tree
 
 __all__ = ["VoxelOccupancyMap"]
 
 _DBL_MAX = float(np.finfo(np.float64).max)
 _DENSE_MAX_CELLS = 1 << 26  # per-scan scratch grid limit (64 MiB of uint8), beyond it use np.unique
 _RAY_CHUNK = 65536  # rays per DDA batch: caps its working arrays (~100 bytes a ray) at a few MB
-_WHITE = 255
 
 BT_HEADER = "# Octomap OcTree binary file"
 OT_HEADER = "# Octomap OcTree file"
 _COMMENT = "\n# (feel free to add / change comments, but leave the first line as it is!)\n#\n"
-
-
-def _spread3(v: np.ndarray) -> np.ndarray:
-    """Spread the 16 low bits of v to every third bit (Morton interleave helper), uint64."""
-    x = v.astype(np.uint64) & np.uint64(0xFFFF)
-    x = (x | (x << np.uint64(16))) & np.uint64(0x0000FF0000FF)
-    x = (x | (x << np.uint64(8))) & np.uint64(0x00F00F00F00F)
-    x = (x | (x << np.uint64(4))) & np.uint64(0x0C30C30C30C3)
-    x = (x | (x << np.uint64(2))) & np.uint64(0x249249249249)
-    return x
-
-
-def _morton(keys: np.ndarray) -> np.ndarray:
-    """Depth-first order code: at every level the child index is x_bit + 2 y_bit + 4 z_bit."""
-    return _spread3(keys[:, 0]) | (_spread3(keys[:, 1]) << np.uint64(1)) | (_spread3(keys[:, 2]) << np.uint64(2))
 
 
 class _ScanGrid:
@@ -110,17 +96,8 @@ class _ScanGrid:
         return ((x + self.lo[0]) << 32) | ((y + self.lo[1]) << 16) | (z + self.lo[2])
 
 
-def _cast_rays(grid: _ScanGrid, origin32: np.ndarray, ends32: np.ndarray, res: float) -> None:
-    """OctoMap `computeRayKeys(origin, end)` for all rays at once; marks the ray voxels in `grid`."""
-    rf = 1.0 / res
-    ko = to_key(origin32[None, :], rf)[0]
-    ke = to_key(ends32, rf)
-    moving = np.any(ke != ko, axis=1)  # same cell: OctoMap adds nothing, not even the origin
-    if not moving.any():
-        return
-    ends32, ke = ends32[moving], ke[moving]
-    grid.mark_free(grid.lin(ko[None, :]))
-
+def _dda_start(origin32: np.ndarray, ends32: np.ndarray, ko: np.ndarray, res: float) -> tuple[np.ndarray, ...]:
+    """Each ray's length, voxel step and first boundary distances (`tMax`, `tDelta`), as computeRayKeys."""
     direction = ends32 - origin32  # float32
     length = norm32(direction).astype(np.float32)
     direction = direction / length[:, None]  # float32 division, as Vector3::operator/=
@@ -132,6 +109,21 @@ def _cast_rays(grid: _ScanGrid, origin32: np.ndarray, ends32: np.ndarray, res: f
     with np.errstate(divide="ignore", invalid="ignore"):
         t_max = np.where(step != 0, (border - origin32.astype(np.float64)[None, :]) / dir64, _DBL_MAX)
         t_delta = np.where(step != 0, res / np.abs(dir64), _DBL_MAX)
+    return length, step, t_max, t_delta
+
+
+def _cast_rays(grid: _ScanGrid, origin32: np.ndarray, ends32: np.ndarray, res: float) -> None:
+    """OctoMap `computeRayKeys(origin, end)` for all rays at once; marks the ray voxels in `grid`."""
+    rf = 1.0 / res
+    ko = to_key(origin32[None, :], rf)[0]
+    ke = to_key(ends32, rf)
+    moving = np.any(ke != ko, axis=1)  # same cell: OctoMap adds nothing, not even the origin
+    if not moving.any():
+        return
+    ends32, ke = ends32[moving], ke[moving]
+    grid.mark_free(grid.lin(ko[None, :]))
+
+    length, step, t_max, t_delta = _dda_start(origin32, ends32, ko, res)
 
     # Longest rays first, so finished rays are mostly a suffix and the live set is a slice.
     n_steps = np.abs(ke - ko).sum(axis=1)
@@ -175,6 +167,24 @@ def _cast_rays(grid: _ScanGrid, origin32: np.ndarray, ends32: np.ndarray, res: f
         grid.mark_free(lin)
     else:
         raise MapError("ray casting did not terminate (inconsistent ray geometry)")
+
+
+def _endpoint_voxels(box: _ScanGrid, keys: np.ndarray, with_inverse: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """Sorted unique linear indices of the end-point voxels, and each point's index among them."""
+    plin = box.lin(keys)
+    if box.dense:
+        mark = np.zeros(box.cells, dtype=bool)
+        mark[plin] = True
+        ulin = np.flatnonzero(mark)
+        inverse = None
+        if with_inverse:
+            lookup = np.empty(box.cells, dtype=np.int64)
+            lookup[ulin] = np.arange(ulin.shape[0])
+            inverse = lookup[plin]
+        del mark
+    else:
+        ulin, inverse = np.unique(plin, return_inverse=True)
+    return ulin, inverse
 
 
 class VoxelOccupancyMap:
@@ -258,19 +268,7 @@ class VoxelOccupancyMap:
 
         # Unique end-point voxels (and each point's voxel, for colour).
         box = _ScanGrid(lo, hi, alloc=False)
-        plin = box.lin(keys)
-        if box.dense:
-            mark = np.zeros(box.cells, dtype=bool)
-            mark[plin] = True
-            ulin = np.flatnonzero(mark)
-            inverse = None
-            if colours is not None:
-                lookup = np.empty(box.cells, dtype=np.int64)
-                lookup[ulin] = np.arange(ulin.shape[0])
-                inverse = lookup[plin]
-            del mark
-        else:
-            ulin, inverse = np.unique(plin, return_inverse=True)
+        ulin, inverse = _endpoint_voxels(box, keys, colours is not None)
         ukeys = unpack(box._to_packed(ulin))
 
         if discretize:
@@ -301,7 +299,13 @@ class VoxelOccupancyMap:
             _cast_rays(grid, o32, ends[s:s + _RAY_CHUNK], res)
         free, occ = grid.result(grid.lin(occ_keys))
 
-        # Merge: free cells get the miss update, occupied cells the hit update (once per scan).
+        self._apply_updates(free, occ)
+
+        if colours is not None and occ.shape[0]:
+            self._integrate_colour(colours, inverse, ulin, in_range, box, keys, discretize)
+
+    def _apply_updates(self, free: np.ndarray, occ: np.ndarray) -> None:
+        """Free cells get the miss update, occupied cells the hit update (once per scan), clamped."""
         upd_keys = np.concatenate([free, occ])
         upd = np.concatenate([np.full(free.shape[0], self._miss, np.float32),
                               np.full(occ.shape[0], self._hit, np.float32)])
@@ -321,9 +325,6 @@ class VoxelOccupancyMap:
             self._keys = np.insert(self._keys, at, upd_keys[ins])
             self._logodds = np.insert(self._logodds, at, new[ins])
             self._rgb = np.insert(self._rgb, at, np.full((int(ins.sum()), 3), _WHITE, np.uint8), axis=0)
-
-        if colours is not None and occ.shape[0]:
-            self._integrate_colour(colours, inverse, ulin, in_range, box, keys, discretize)
 
     def _integrate_colour(self, colours: np.ndarray, inverse: np.ndarray, ulin: np.ndarray,
                           in_range: np.ndarray, box: _ScanGrid, keys: np.ndarray, discretize: bool) -> None:
@@ -425,7 +426,7 @@ class VoxelOccupancyMap:
     def bt_bytes(self) -> bytes:
         """OctoMap binary `.bt`: max-likelihood, pruned, 2 bits per child, depth first."""
         occ = self.occupied_mask()
-        tree = _build_tree(self.keys(), occ.astype(np.int64), self._logodds, occ, None)
+        tree = build_tree(self.keys(), occ.astype(np.int64), self._logodds, occ, None)
         head = self._header(BT_HEADER, "OcTree", tree.size)
         if tree.size == 0:
             return head
@@ -440,9 +441,9 @@ class VoxelOccupancyMap:
         if colour:
             rgb = self._rgb.astype(np.int64)
             prune_key = (bits << 24) | (rgb[:, 0] << 16) | (rgb[:, 1] << 8) | rgb[:, 2]
-            tree = _build_tree(self.keys(), prune_key, vals, self.occupied_mask(), self._rgb)
+            tree = build_tree(self.keys(), prune_key, vals, self.occupied_mask(), self._rgb)
         else:
-            tree = _build_tree(self.keys(), bits, vals, self.occupied_mask(), None)
+            tree = build_tree(self.keys(), bits, vals, self.occupied_mask(), None)
         head = self._header(OT_HEADER, "ColorOcTree" if colour else "OcTree", tree.size)
         if tree.size == 0:
             return head
@@ -462,88 +463,3 @@ class VoxelOccupancyMap:
     def write_ot(self, path: str | os.PathLike[str], *, colour: bool | None = None) -> None:
         """Write the `.ot` file atomically; ColorOcTree when the map keeps colour."""
         write_bytes_atomic(Path(path), self.ot_bytes(colour=colour))
-
-
-class _Tree:
-    """A pruned octree in depth-first (pre-)order: one row per node."""
-
-    def __init__(self, n: int, with_rgb: bool) -> None:
-        self.size = n
-        self.leaf = np.zeros(n, dtype=bool)
-        self.value = np.zeros(n, dtype=np.float32)
-        self.child_mask = np.zeros(n, dtype=np.uint8)
-        self.bt_bits = np.zeros(n, dtype=np.int64)
-        self.rgb = np.zeros((n, 3), dtype=np.uint8) if with_rgb else None
-
-
-def _build_tree(keys: np.ndarray, prune_key: np.ndarray, value: np.ndarray, occupied: np.ndarray,
-                rgb: np.ndarray | None) -> _Tree:
-    """Bottom-up octree over full-resolution voxels, pruned where 8 leaf siblings share `prune_key`.
-
-    Inner values are the max of the children (OctoMap's updateOccupancyChildren); inner colours
-    the truncated mean of the children's set colours, white if none (getAverageChildColor).
-    The root (depth 0) is never pruned, as in OctoMap's `prune()`.
-    """
-    n = keys.shape[0]
-    if n == 0:
-        return _Tree(0, rgb is not None)
-    code = _morton(keys).astype(np.int64)
-    order = np.argsort(code, kind="stable")
-    code = code[order]
-    pk = prune_key[order]
-    val = value[order].astype(np.float32)
-    col = rgb[order].astype(np.int64) if rgb is not None else None
-    leaf = np.ones(n, dtype=bool)
-    occ = occupied[order]  # leaf state, for the .bt bits
-    cmask = np.zeros(n, dtype=np.int64)
-    bits = np.zeros(n, dtype=np.int64)
-
-    parts: list[tuple] = []
-    for level in range(1, TREE_DEPTH + 1):
-        parent = code >> 3
-        pos = code & 7
-        starts = np.flatnonzero(np.concatenate(([True], parent[1:] != parent[:-1])))
-        counts = np.diff(np.append(starts, parent.shape[0]))
-        gid = np.repeat(np.arange(starts.shape[0]), counts)
-        all_leaf = np.logical_and.reduceat(leaf, starts)
-        same = np.minimum.reduceat(pk, starts) == np.maximum.reduceat(pk, starts)
-        collapse = (counts == 8) & all_leaf & same & (level < TREE_DEPTH)
-        # children's .bt codes: 01 occupied leaf, 10 free leaf, 11 inner (bit 2i is "free").
-        child_code = np.where(leaf, np.where(occ, 2, 1), 3) << (2 * pos)
-        p_bits = np.bitwise_or.reduceat(child_code, starts)
-        p_mask = np.bitwise_or.reduceat(np.int64(1) << pos, starts)
-        p_val = np.maximum.reduceat(val, starts)
-        p_col = None
-        if col is not None:
-            is_set = np.any(col != _WHITE, axis=1)
-            n_set = np.add.reduceat(is_set.astype(np.int64), starts)
-            sums = np.add.reduceat(col * is_set[:, None], starts, axis=0)
-            p_col = np.where(n_set[:, None] > 0, sums // np.maximum(n_set, 1)[:, None], _WHITE)
-        keep = ~collapse[gid]
-        parts.append((code[keep], level - 1, leaf[keep], val[keep], cmask[keep], bits[keep],
-                      col[keep] if col is not None else None))
-        # Next level: collapsed groups become leaves with their children's data.
-        first = starts
-        code = parent[starts]
-        leaf = collapse
-        pk = np.where(collapse, pk[first], np.int64(-1))
-        occ = np.where(collapse, occ[first], False)
-        val = np.where(collapse, val[first], p_val).astype(np.float32)
-        cmask = np.where(collapse, 0, p_mask)
-        bits = np.where(collapse, 0, p_bits)
-        if col is not None:
-            col = np.where(collapse[:, None], col[first], p_col)
-    parts.append((code, TREE_DEPTH, leaf, val, cmask, bits, col))
-
-    all_code = np.concatenate([p[0] << (3 * p[1]) for p in parts])
-    all_level = np.concatenate([np.full(p[0].shape[0], p[1], np.int64) for p in parts])
-    # Pre-order: by prefix code, parents (higher level) before their first descendant.
-    order = np.lexsort((-all_level, all_code))
-    tree = _Tree(all_code.shape[0], rgb is not None)
-    tree.leaf = np.concatenate([p[2] for p in parts])[order]
-    tree.value = np.concatenate([p[3] for p in parts])[order]
-    tree.child_mask = np.concatenate([p[4] for p in parts])[order].astype(np.uint8)
-    tree.bt_bits = np.concatenate([p[5] for p in parts])[order]
-    if rgb is not None:
-        tree.rgb = np.concatenate([p[6] for p in parts])[order].astype(np.uint8)
-    return tree
