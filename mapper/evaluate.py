@@ -185,26 +185,10 @@ def observed_voxels(
     touched_parts: list[np.ndarray] = []
     free_parts: list[np.ndarray] = []
     for T, frame in views:
-        T = np.asarray(T, dtype=np.float64)
-        if T.shape != (4, 4) or not np.isfinite(T).all():
-            raise MapError("view pose must be a finite 4x4 transform")
-        K = frame.intrinsics
-        depth = np.asarray(frame.depth)
-        if depth.shape != (K.height, K.width):
-            raise MapError(f"depth is {depth.shape[1]}x{depth.shape[0]}, intrinsics {K.width}x{K.height}")
-        v, u = np.nonzero(depth > 0)
-        z = depth[v, u].astype(np.float64) * float(frame.depth_scale_m)
-        cam = np.stack([(u - K.cx) * z / K.fx, (v - K.cy) * z / K.fy, z], axis=1)
-        keep = np.linalg.norm(cam, axis=1) <= max_range_m
-        cam, u, v = cam[keep], u[keep], v[keep]
-        R, t = T[:3, :3], T[:3, 3]
-        world = cam @ R.T + t
-        keys = np.floor(world / res).astype(np.int64)
-        core = np.linalg.norm(world - (keys + 0.5) * res, axis=1) <= core_radius * res
-        surf_parts.append(np.unique(_pack(keys[core])))
-        touched_parts.append(np.unique(_pack(keys)))
-        ray = (u % ray_stride == 0) & (v % ray_stride == 0)
-        free_parts.append(_ray_voxels(t, world[ray], res, step))
+        surf, touched, free = _view_voxels(T, frame, res, max_range_m, core_radius, ray_stride, step)
+        surf_parts.append(surf)
+        touched_parts.append(touched)
+        free_parts.append(free)
     if not surf_parts:
         raise MapError("observed_voxels needs at least one view")
     surface = np.unique(np.concatenate(surf_parts))
@@ -216,6 +200,29 @@ def observed_voxels(
     dil = np.unique(_pack((_unpack(near_keys)[:, None, :] + _NEIGHBOURS[None]).reshape(-1, 3)))
     free = free[~np.isin(free, dil, assume_unique=True)]
     return ObservedVoxels(resolution_m=res, surface_keys=_unpack(surface), free_keys=_unpack(free))
+
+
+def _view_voxels(T: Any, frame: Any, res: float, max_range_m: float, core_radius: float, ray_stride: int,
+                 step: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One view's packed keys: its surface-core voxels, every voxel a point falls in, the voxels its rays cross."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise MapError("view pose must be a finite 4x4 transform")
+    K = frame.intrinsics
+    depth = np.asarray(frame.depth)
+    if depth.shape != (K.height, K.width):
+        raise MapError(f"depth is {depth.shape[1]}x{depth.shape[0]}, intrinsics {K.width}x{K.height}")
+    v, u = np.nonzero(depth > 0)
+    z = depth[v, u].astype(np.float64) * float(frame.depth_scale_m)
+    cam = np.stack([(u - K.cx) * z / K.fx, (v - K.cy) * z / K.fy, z], axis=1)
+    keep = np.linalg.norm(cam, axis=1) <= max_range_m
+    cam, u, v = cam[keep], u[keep], v[keep]
+    R, t = T[:3, :3], T[:3, 3]
+    world = cam @ R.T + t
+    keys = np.floor(world / res).astype(np.int64)
+    core = np.linalg.norm(world - (keys + 0.5) * res, axis=1) <= core_radius * res
+    ray = (u % ray_stride == 0) & (v % ray_stride == 0)
+    return np.unique(_pack(keys[core])), np.unique(_pack(keys)), _ray_voxels(t, world[ray], res, step)
 
 
 def _ray_voxels(origin: np.ndarray, ends: np.ndarray, res: float, step: float) -> np.ndarray:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 from typing import Any
@@ -15,7 +14,7 @@ from octolog.mapper.config import MapperConfig
 from octolog.mapper.core import Mapper, make_mapper
 from octolog.mapper.fleet.node import run_fleet
 from octolog.mapper.mapframe import MapFrame
-from octolog.mapper.process import INBOX_KEYFRAMES, MapperResult, MapSnapshots, finish, log_map
+from octolog.mapper.process import INBOX_KEYFRAMES, MapperResult, MapSnapshots, answer_save, finish, log_map
 from octolog.schemas import codec, posemsgs, rgbdmsgs, streammsgs
 from octolog.schemas.topics import (
     CONFIGS,
@@ -78,11 +77,7 @@ def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: Ma
             bus.unwatch("tracker")
             continue
         if r.topic == MAP_SAVE:
-            try:
-                files = mapper.write(out_dir)
-            except MapError as exc:
-                files = {"error": str(exc)}
-            r.reply(codec.msgtype(MAP_SAVE.msgtype)(data=json.dumps(files, sort_keys=True)), MAP_SAVE)
+            answer_save(r, mapper, out_dir)
             continue
         if r.topic == KEYFRAME_POSES:
             received_poses += 1
@@ -92,35 +87,41 @@ def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: Ma
                 result.problems.append(str(exc))
             continue
         received += 1
-        t0 = time.perf_counter()
-        msg = r.decode()
-        stamp = codec.stamp_ns(msg.header)
-        try:
-            kf_id, pose, frame = rgbdmsgs.keyframe_from_msg(msg)
-            if publisher.frame is not None:
-                publisher.frame.first_keyframe(frame)
-            n = mapper.integrate(kf_id, pose, frame)
-            result.keyframes += 1
-        except (InputError, MapError) as exc:
-            # a bad keyframe is counted, reported and skipped; the map is never touched by it
-            result.skipped += 1
-            result.problems.append(str(exc))
-            kf_id, n, frame = int(msg.id), 0, None
-        ms = (time.perf_counter() - t0) * 1e3
-        result.ms.append(ms)
-        pub_update.put(codec.msgtype(MAP_UPDATE.msgtype)(
-            header=codec.header(stamp, "world"), keyframe_id=kf_id, n_points=n,
-            # voxel counts as of the last snapshot: counting every keyframe costs more than integrating it
-            n_occupied=publisher.stats.get("occupied_voxels", 0), n_free=publisher.stats.get("free_voxels", 0),
-            processing_ms=ms))
-        if frame is not None:
-            publisher.maybe(result.keyframes, stamp)
-            if viz.enabled:
-                viz.set_time(stamp, frame.seq)
-                viz.scalar("mapper/ms", ms)
-                if publisher.every and result.keyframes % publisher.every == 0:
-                    log_map(viz, mapper, stamp, publisher.grid)
+        _integrate_keyframe(r, mapper, result, viz, publisher, pub_update)
     return result
+
+
+def _integrate_keyframe(r: Any, mapper: Mapper, result: MapperResult, viz: Viz, publisher: MapSnapshots,
+                        pub_update: Any) -> None:
+    """One keyframe into the map (a bad one counted and skipped), its map update out, a snapshot when due."""
+    t0 = time.perf_counter()
+    msg = r.decode()
+    stamp = codec.stamp_ns(msg.header)
+    try:
+        kf_id, pose, frame = rgbdmsgs.keyframe_from_msg(msg)
+        if publisher.frame is not None:
+            publisher.frame.first_keyframe(frame)
+        n = mapper.integrate(kf_id, pose, frame)
+        result.keyframes += 1
+    except (InputError, MapError) as exc:
+        # a bad keyframe is counted, reported and skipped; the map is never touched by it
+        result.skipped += 1
+        result.problems.append(str(exc))
+        kf_id, n, frame = int(msg.id), 0, None
+    ms = (time.perf_counter() - t0) * 1e3
+    result.ms.append(ms)
+    pub_update.put(codec.msgtype(MAP_UPDATE.msgtype)(
+        header=codec.header(stamp, "world"), keyframe_id=kf_id, n_points=n,
+        # voxel counts as of the last snapshot: counting every keyframe costs more than integrating it
+        n_occupied=publisher.stats.get("occupied_voxels", 0), n_free=publisher.stats.get("free_voxels", 0),
+        processing_ms=ms))
+    if frame is not None:
+        publisher.maybe(result.keyframes, stamp)
+        if viz.enabled:
+            viz.set_time(stamp, frame.seq)
+            viz.scalar("mapper/ms", ms)
+            if publisher.every and result.keyframes % publisher.every == 0:
+                log_map(viz, mapper, stamp, publisher.grid)
 
 
 def fetch_map(bus: Bus, timeout_s: float = 10.0) -> Any | None:
