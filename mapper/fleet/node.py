@@ -83,6 +83,29 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
     the defined order meanwhile, the map is built again in that order at the end (mapper/fleet/order.py)."""
     n = len(cfg.robots)
     pub_update, pub_merge = bus.publisher(MAP_UPDATE), bus.publisher(MAP_MERGE)
+    _start_buses(cfg, bus, robot_buses)
+    streams = _RobotStreams(cfg, robot_buses, FleetMerge(cfg.robots), MapperResult(), n)
+    merge = streams.merge
+    fm = _live_map(mapper, cfg, viz, publisher, pub_update, pub_merge, frame_of_map)
+    while not merge.done():
+        while (q := bus.receive_nowait()) is not None:  # "save the map now", between keyframes
+            answer_save(q, mapper, out_dir)
+        nxt = merge.pop()
+        if nxt is None:
+            streams.take_next(viz)
+            continue
+        i, item = nxt
+        streams.heard = [time.monotonic()] * n  # the merge moved: every robot's silence counts from now
+        fm.apply(i, item)
+        for k in range(n):  # a stream whose last item was just taken has ended
+            if k not in streams.lost and streams.expected[k] is not None and streams.received[k] >= streams.expected[k] \
+                    and not merge.has_items(k):
+                merge.end(k)
+    return _settle(mapper, cfg, streams, fm, out_dir)
+
+
+def _start_buses(cfg: MapperConfig, bus: Bus, robot_buses: list[Bus]) -> None:
+    """The mapper's own session takes saves and announces its config; each robot's session subscribes."""
     bus.accept(MAP_SAVE)
     bus.start([])
     bus.publisher(CONFIGS["mapper"]).put(streammsgs.config_msg("mapper", to_dict(cfg)))
@@ -92,14 +115,11 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
         rb.start([KEYFRAME, KEYFRAME_COMPRESSED, KEYFRAME_POSES, KEYFRAME_END, TRACKING_STATUS], wait_for=cfg.wait_for,
                  timeout_s=cfg.wait_timeout_s, latest_only=[TRACKING_STATUS])
         rb.watch(["tracker"])
-    merge = FleetMerge(cfg.robots)
-    expected: list[int | None] = [None] * n
-    received = [0] * n
-    expected_poses, received_poses = [0] * n, [0] * n
-    result = MapperResult()
-    lost: set[int] = set()
-    heard = [time.monotonic()] * n  # when each robot last sent something (or the wait began)
-    turn = 0
+
+
+def _live_map(mapper: Mapper, cfg: MapperConfig, viz: Viz, publisher: MapSnapshots, pub_update: Any,
+              pub_merge: Any, frame_of_map: MapFrame | None) -> FleetMap:
+    """The fleet map whose hooks publish as it grows: merge events, map updates, snapshots, Rerun."""
 
     def integrated(r: int, stamp: int, gid: int, pts: int, ms: float, frame: RgbdFrame) -> None:
         publish_update(pub_update, publisher, stamp, gid, pts, ms)
@@ -116,94 +136,115 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
         integrated=integrated,
         refused=lambda stamp, kid, ms: publish_update(pub_update, publisher, stamp, kid, 0, ms))
     fm = FleetMap(mapper, cfg.robots, _placement(cfg), hooks)
+    return fm
 
-    def lose(k: int, exc: StageError) -> None:
+
+class _RobotStreams:
+    """Every robot's stream as it arrives: what its tracker announced, what came, when it was last heard."""
+
+    def __init__(self, cfg: MapperConfig, robot_buses: list[Bus], merge: FleetMerge, result: MapperResult,
+                 n: int) -> None:
+        self.cfg, self.robot_buses, self.merge, self.result, self.n = cfg, robot_buses, merge, result, n
+        self.expected: list[int | None] = [None] * n
+        self.received = [0] * n
+        self.expected_poses, self.received_poses = [0] * n, [0] * n
+        self.lost: set[int] = set()
+        self.heard = [time.monotonic()] * n  # when each robot last sent something (or the wait began)
+        self.turn = 0
+
+    def lose(self, k: int, exc: StageError) -> None:
         """Robot k is gone (its tracker died, or its data was lost for good): its stream ends with
         what arrived, and the other robots go on."""
-        lost.add(k)
-        robot_buses[k].unwatch("tracker")
-        merge.end(k)
-        result.problems.append(f"{cfg.robots[k]}: lost mid-run after {received[k]} keyframes ({exc}); "
-                               f"what arrived is in the map")
+        self.lost.add(k)
+        self.robot_buses[k].unwatch("tracker")
+        self.merge.end(k)
+        self.result.problems.append(f"{self.cfg.robots[k]}: lost mid-run after {self.received[k]} keyframes ({exc}); "
+                                    f"what arrived is in the map")
 
-    while not merge.done():
-        while (q := bus.receive_nowait()) is not None:  # "save the map now", between keyframes
-            answer_save(q, mapper, out_dir)
-        nxt = merge.pop()
-        if nxt is None:
-            # the order is not decided yet: take the next message of a robot whose stream is empty
-            # (the paused ones in turn when nobody else is awaited)
-            candidates = merge.waiting_on() or merge.paused()
-            i = candidates[turn % len(candidates)]
-            turn += 1
-            try:
-                r = robot_buses[i].receive()
-                if r is None and expected[i] is not None:
-                    robot_buses[i].expect_count(KEYFRAME, received[i], expected[i])
-            except StageError as exc:
-                lose(i, exc)
-                continue
-            if r is None:
-                for k, rb in enumerate(robot_buses):
-                    if k not in lost:
-                        try:
-                            rb.check_peers()
-                        except StageError as exc:
-                            lose(k, exc)
-                silent = time.monotonic() - heard[i]
-                if cfg.robot_stall_s and silent > cfg.robot_stall_s and i in merge.waiting_on() \
-                        and any(merge.has_items(k) for k in range(n)):
-                    merge.pause(i)  # alive but silent: the others go on (its later items come late)
-                    note = (f"{cfg.robots[i]}: silent for {silent:.0f} s (mapper.robot_stall_s {cfg.robot_stall_s:g}): "
-                            f"the others went on without it")
-                    result.problems.append(note)
-                    # now, not at the end: an operator is waiting (stderr, as the tracker's warnings; Rerun)
-                    print(f"mapper: warning: {note}", file=sys.stderr, flush=True)
-                    viz.text("mapper/events", note)
-                continue
-            heard[i] = time.monotonic()
-            if r.topic == KEYFRAME_END:
-                end = r.decode()
-                if end.topic == KEYFRAME_POSES.name:  # corrections end before keyframes, on one publisher
-                    expected_poses[i] = int(end.count)
-                elif end.topic in (KEYFRAME.name, KEYFRAME_COMPRESSED.name):
-                    expected[i] = int(end.count)
-                    robot_buses[i].expect_count(KEYFRAME, received[i], expected[i])
-                    robot_buses[i].unwatch("tracker")
-            elif r.topic == TRACKING_STATUS:
-                merge.push(i, Watermark(codec.stamp_ns(r.decode().header)))
-            elif r.topic == KEYFRAME_POSES:
-                received_poses[i] += 1
-                msg = r.decode()
-                merge.push(i, CorrectionItem(codec.stamp_ns(msg.header), msg))
-            else:
-                received[i] += 1
-                msg = r.decode()
-                merge.push(i, KeyframeItem(codec.stamp_ns(msg.header), int(msg.id), msg))
-            if expected[i] is not None and received[i] >= expected[i] and received_poses[i] >= expected_poses[i] \
-                    and not merge.has_items(i):
-                merge.end(i)
-            continue
-        i, item = nxt
-        heard = [time.monotonic()] * n  # the merge moved: every robot's silence counts from now
-        fm.apply(i, item)
-        for k in range(n):  # a stream whose last item was just taken has ended
-            if k not in lost and expected[k] is not None and received[k] >= expected[k] and not merge.has_items(k):
-                merge.end(k)
-    live = fm
-    if merge.jumped:
+    def take_next(self, viz: Viz) -> None:
+        """The order is not decided yet: take the next message of a robot whose stream is empty
+        (the paused ones in turn when nobody else is awaited)."""
+        merge, expected, received = self.merge, self.expected, self.received
+        candidates = merge.waiting_on() or merge.paused()
+        i = candidates[self.turn % len(candidates)]
+        self.turn += 1
+        try:
+            r = self.robot_buses[i].receive()
+            if r is None and expected[i] is not None:
+                self.robot_buses[i].expect_count(KEYFRAME, received[i], expected[i])
+        except StageError as exc:
+            self.lose(i, exc)
+            return
+        if r is None:
+            self._silent(i, viz)
+            return
+        self.heard[i] = time.monotonic()
+        self._push(i, r)
+        if expected[i] is not None and received[i] >= expected[i] and self.received_poses[i] >= self.expected_poses[i] \
+                and not merge.has_items(i):
+            merge.end(i)
+
+    def _silent(self, i: int, viz: Viz) -> None:
+        """Nothing from robot i: check every robot's link, and pause robot i if it stalls the others."""
+        cfg, merge = self.cfg, self.merge
+        for k, rb in enumerate(self.robot_buses):
+            if k not in self.lost:
+                try:
+                    rb.check_peers()
+                except StageError as exc:
+                    self.lose(k, exc)
+        silent = time.monotonic() - self.heard[i]
+        if cfg.robot_stall_s and silent > cfg.robot_stall_s and i in merge.waiting_on() \
+                and any(merge.has_items(k) for k in range(self.n)):
+            merge.pause(i)  # alive but silent: the others go on (its later items come late)
+            note = (f"{cfg.robots[i]}: silent for {silent:.0f} s (mapper.robot_stall_s {cfg.robot_stall_s:g}): "
+                    f"the others went on without it")
+            self.result.problems.append(note)
+            # now, not at the end: an operator is waiting (stderr, as the tracker's warnings; Rerun)
+            print(f"mapper: warning: {note}", file=sys.stderr, flush=True)
+            viz.text("mapper/events", note)
+
+    def _push(self, i: int, r: Any) -> None:
+        """Robot i's message into its stream: a stream end, a watermark, a correction or a keyframe."""
+        merge = self.merge
+        if r.topic == KEYFRAME_END:
+            end = r.decode()
+            if end.topic == KEYFRAME_POSES.name:  # corrections end before keyframes, on one publisher
+                self.expected_poses[i] = int(end.count)
+            elif end.topic in (KEYFRAME.name, KEYFRAME_COMPRESSED.name):
+                self.expected[i] = int(end.count)
+                self.robot_buses[i].expect_count(KEYFRAME, self.received[i], self.expected[i])
+                self.robot_buses[i].unwatch("tracker")
+        elif r.topic == TRACKING_STATUS:
+            merge.push(i, Watermark(codec.stamp_ns(r.decode().header)))
+        elif r.topic == KEYFRAME_POSES:
+            self.received_poses[i] += 1
+            msg = r.decode()
+            merge.push(i, CorrectionItem(codec.stamp_ns(msg.header), msg))
+        else:
+            self.received[i] += 1
+            msg = r.decode()
+            merge.push(i, KeyframeItem(codec.stamp_ns(msg.header), int(msg.id), msg))
+
+
+def _settle(mapper: Mapper, cfg: MapperConfig, streams: _RobotStreams, live: FleetMap,
+            out_dir: Path) -> tuple[MapperResult, list[list[tuple[int, int]]]]:
+    """The result once every stream has ended: the map built again in the defined order if a pause let
+    items through out of it, the robots lost, placed and never placed (each of those a map of its own)."""
+    result, fm = streams.result, live
+    if streams.merge.jumped:
         # a pause let items through out of the defined order: the map, the placements and the joint
         # graph are built again from every item in that order, so the result does not depend on timing
         mapper.clear()
         fm = FleetMap(mapper, cfg.robots, _placement(cfg))
-        for i, item in merge.canonical():
+        for i, item in streams.merge.canonical():
             fm.apply(i, item)
         result.problems.append("the map was built again in the defined order (a silent robot's items came late)")
     result.keyframes, result.skipped, result.corrections = fm.keyframes, fm.skipped, fm.corrections
     result.ms = live.ms
     result.problems = live.problems + result.problems + (fm.problems if fm is not live else [])
     placement = fm.placement
-    result.lost = [cfg.robots[r] for r in sorted(lost)]
+    result.lost = [cfg.robots[r] for r in sorted(streams.lost)]
     result.unmerged = [cfg.robots[r] for r in placement.unplaced()]
     result.merges = [merge_event(m, cfg.robots) for m in placement.merges]
     result.links = {kind: placement.link_kinds.count(kind) for kind in ("place", "refine", "relink")}
