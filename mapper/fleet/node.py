@@ -58,8 +58,11 @@ def run_fleet(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: st
     mapper = make_mapper(cfg)
     with contextlib.ExitStack() as stack:
         bus = stack.enter_context(Bus(bus_cfg, "mapper", inbox_size=INBOX_KEYFRAMES))
-        robot_buses = [stack.enter_context(Bus(dataclasses.replace(bus_cfg, namespace=r), "mapper"))
-                       for r in cfg.robots]
+        # each robot's inbox as deep as the mapper's own: the merge waits on one robot while another
+        # runs ahead, and a full inbox blocks Zenoh's shared receive threads, so the awaited robot's
+        # samples would never arrive (and the router behind them would stall every stage)
+        robot_buses = [stack.enter_context(Bus(dataclasses.replace(bus_cfg, namespace=r), "mapper",
+                                               inbox_size=INBOX_KEYFRAMES)) for r in cfg.robots]
         viz = stack.enter_context(Viz(rerun, "mapper", recording_id))
         frame = MapFrame(mapper, bus, viz, from_imu=False, ask=None if cfg.grid_up else robot_buses[0])
         publisher = MapSnapshots(bus, mapper, cfg.publish_every)
