@@ -21,13 +21,13 @@ import numpy as np
 from octolog.kit import metrics
 from octolog.replay.synthetic import SyntheticScene
 from octolog.tracker.config import TrackerConfig
-from octolog.tracker.odometry import RgbdOdometry
+from octolog.tracker.odometry import RgbdSlam
 
 
 def track_scene(noise: str, frames: int, every: int, *, seed: int = 0) -> dict:
     """Track the synthetic room with `noise`; ATE (SE(3), Sim(3)) in metres, the scale, timing."""
     scene = SyntheticScene(n_frames=frames, seed=seed, depth_noise=noise)
-    odo = RgbdOdometry(TrackerConfig().odometry_params(), background=False)
+    odo = RgbdSlam(TrackerConfig().odometry_params(), background=False)
     idx = list(range(0, frames, every))
     t0 = time.perf_counter()
     for i in idx:

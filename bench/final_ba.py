@@ -25,7 +25,7 @@ import numpy as np
 from octolog.kit import metrics
 from octolog.replay.synthetic import SyntheticScene
 from octolog.tracker.config import TrackerConfig
-from octolog.tracker.odometry import RgbdOdometry
+from octolog.tracker.odometry import RgbdSlam
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -37,7 +37,7 @@ def _vm(key: str) -> float:
 
 def worker(frames: int, fps: float, cap: int) -> dict:
     room = SyntheticScene(n_frames=frames, fps=fps)
-    odo = RgbdOdometry(TrackerConfig(global_ba_keyframes=cap).odometry_params(), background=False)
+    odo = RgbdSlam(TrackerConfig(global_ba_keyframes=cap).odometry_params(), background=False)
     for f in room.frames():
         odo.track(f)
     odo._sync_backend(np.eye(4))  # the last local BA lands first, outside the timed part

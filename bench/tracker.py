@@ -37,7 +37,7 @@ from octolog.replay.sources import open_source
 from octolog.tracker.config import TrackerConfig, for_source
 from octolog.tracker.factory import make_odometry
 from octolog.tracker.interface import TrackingState
-from octolog.tracker.odometry import RgbdOdometry
+from octolog.tracker.odometry import RgbdSlam
 from octolog.tracker.orbslam3 import OrbSlam3Odometry
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -87,7 +87,7 @@ def worker(backend: str, source: str, every: int, vocabulary: str, result_path: 
         frame = next(frames, None)
     final_tum = None
     odom.finish()  # native: waits for the back end; ORB-SLAM3: nothing (close() below stops it)
-    if isinstance(odom, RgbdOdometry):  # the trajectory the back end corrected
+    if isinstance(odom, RgbdSlam):  # the trajectory the back end corrected
         fs, fp = odom.trajectory()
         final_tum = metrics.format_tum(np.array(fs), np.array(fp))
     n_keyframes = odom.n_keyframes

@@ -22,7 +22,7 @@ from octolog.kit.geometry import Intrinsics, RgbdFrame, invert
 from octolog.tracker.config import DepthParams, TrackerConfig
 from octolog.tracker.features import OrbExtractor, Undistorter, bucket_select, hamming, match_by_projection
 from octolog.tracker.interface import Tracker, TrackingState, TrackResult
-from octolog.tracker.odometry import RgbdOdometry
+from octolog.tracker.odometry import RgbdSlam
 from octolog.tracker.pose import rotation_angle
 
 W, H = 640, 480
@@ -118,7 +118,7 @@ def scene() -> tuple[list[RgbdFrame], list[np.ndarray]]:
 
 
 def _track_all(frames: list[RgbdFrame]) -> list[TrackResult]:
-    odo = RgbdOdometry()
+    odo = RgbdSlam()
     return [odo.track(f) for f in frames]
 
 
@@ -199,7 +199,7 @@ def test_deterministic_across_processes(scene) -> None:
 
 def test_black_frame_is_lost_and_tracking_resumes(scene) -> None:
     frames, poses = scene
-    odo = RgbdOdometry()
+    odo = RgbdSlam()
     out = [odo.track(f) for f in frames[:4]]
     black = RgbdFrame(4, frames[4].stamp_ns, np.zeros_like(frames[4].rgb), frames[4].depth, DEPTH_SCALE, INTR)
     lost = odo.track(black)
@@ -222,7 +222,7 @@ def test_black_frame_is_lost_and_tracking_resumes(scene) -> None:
 def test_recovers_after_a_long_gap(scene) -> None:
     """Several unusable frames make the prediction drift; tracking must resume from the map."""
     frames, poses = scene
-    odo = RgbdOdometry()
+    odo = RgbdSlam()
     for f in frames[:3]:
         odo.track(f)
     for k in range(3, 9):
@@ -235,7 +235,7 @@ def test_recovers_after_a_long_gap(scene) -> None:
 
 
 def test_frames_before_initialisation_are_lost() -> None:
-    odo = RgbdOdometry()
+    odo = RgbdSlam()
     assert isinstance(odo, Tracker)
     blank = RgbdFrame(0, 0, np.zeros((H, W, 3), np.uint8), np.zeros((H, W), np.uint16), DEPTH_SCALE, INTR)
     r = odo.track(blank)
@@ -244,7 +244,7 @@ def test_frames_before_initialisation_are_lost() -> None:
 
 
 def test_configuration_mistakes_raise() -> None:
-    odo = RgbdOdometry()
+    odo = RgbdSlam()
     small = RgbdFrame(0, 0, np.zeros((240, 320, 3), np.uint8), np.zeros((240, 320), np.uint16), DEPTH_SCALE, INTR)
     with pytest.raises(TrackingError, match="intrinsics"):
         odo.track(small)
@@ -253,9 +253,9 @@ def test_configuration_mistakes_raise() -> None:
         odo.track(bad_depth)
     # parameters are checked once, where they are built from the config
     with pytest.raises(ConfigError, match="tracker.n_features 10"):
-        RgbdOdometry(TrackerConfig(n_features=10).odometry_params())
+        RgbdSlam(TrackerConfig(n_features=10).odometry_params())
     with pytest.raises(ConfigError, match="tracker.depth.max_m 1.0"):
-        RgbdOdometry(TrackerConfig(depth=DepthParams(min_m=3.0, max_m=1.0)).odometry_params())
+        RgbdSlam(TrackerConfig(depth=DepthParams(min_m=3.0, max_m=1.0)).odometry_params())
 
 
 # ----------------------------------------------------------------------------------------------
@@ -370,7 +370,7 @@ def test_tum_fr1_xyz_first300_accuracy() -> None:
 
     def online_ate(readout_s: float) -> float:
         # as `octolog run` sets it from the source (config.for_source)
-        odo = RgbdOdometry(TrackerConfig(rolling_shutter_ms=1e3 * readout_s).odometry_params())
+        odo = RgbdSlam(TrackerConfig(rolling_shutter_ms=1e3 * readout_s).odometry_params())
         results = [odo.track(f) for f in seq.frames()]
         assert results[0].state == TrackingState.INIT
         assert [r.state for r in results[1:]] == [TrackingState.OK] * (len(results) - 1)

@@ -22,7 +22,7 @@ from octolog.tracker.bundle import BundleProblem, bundle_adjust
 from octolog.tracker.config import KeyframeParams, TrackerConfig
 from octolog.tracker.interface import TrackingState
 from octolog.tracker.keyframe_map import Keyframe, MapPoints
-from octolog.tracker.odometry import RgbdOdometry
+from octolog.tracker.odometry import RgbdSlam
 from octolog.kit.posegraph import optimize_pose_graph
 from octolog.tracker.places import BowIndex, rigid_ransac, verify, vote
 from octolog.tracker.pose import optimize_pose, so3_exp
@@ -33,9 +33,9 @@ K = (500.0, 500.0, 320.0, 240.0)
 KM = np.array([[K[0], 0, K[2]], [0, K[1], K[3]], [0, 0, 1.0]])
 
 
-def _odometry(*, vocabulary=None, background: bool = False, **config) -> RgbdOdometry:
-    """RgbdOdometry with `TrackerConfig(**config)`'s parameters, as `octolog track` builds it."""
-    return RgbdOdometry(TrackerConfig(**config).odometry_params(), vocabulary=vocabulary, background=background)
+def _odometry(*, vocabulary=None, background: bool = False, **config) -> RgbdSlam:
+    """RgbdSlam with `TrackerConfig(**config)`'s parameters, as `octolog track` builds it."""
+    return RgbdSlam(TrackerConfig(**config).odometry_params(), vocabulary=vocabulary, background=background)
 
 
 def _pose(rotvec, t) -> np.ndarray:
@@ -146,7 +146,7 @@ def loop_frames(room) -> list:
 
 
 def _features(frame):
-    odo = RgbdOdometry()
+    odo = RgbdSlam()
     gray = odo._check_frame(frame)
     return odo._features(frame, odo._extractor.extract(gray)), odo._undistort.K
 
@@ -207,14 +207,14 @@ def test_relocalisation_after_a_jump_to_a_known_place(room, loop_frames, vocabul
 # ------------------------------------------------------------------------ the whole tracker
 
 
-def _run(frames, **kw) -> tuple[RgbdOdometry, list]:
+def _run(frames, **kw) -> tuple[RgbdSlam, list]:
     odo = _odometry(**kw)
     results = [odo.track(f) for f in frames]
     odo.finish()
     return odo, results
 
 
-def _ate(room, odo: RgbdOdometry, stamps=None, gt_poses=None) -> float:
+def _ate(room, odo: RgbdSlam, stamps=None, gt_poses=None) -> float:
     st, ps = odo.trajectory()
     gt = metrics.Trajectory.from_matrices(
         np.array(stamps if stamps is not None else [room.stamp_ns(i) for i in range(len(room))]),
@@ -222,7 +222,7 @@ def _ate(room, odo: RgbdOdometry, stamps=None, gt_poses=None) -> float:
     return metrics.ate(metrics.Trajectory.from_matrices(np.array(st), np.array(ps)), gt).rmse
 
 
-def _digest(odo: RgbdOdometry, results) -> str:
+def _digest(odo: RgbdSlam, results) -> str:
     h = hashlib.sha256()
     for r in results:
         h.update(r.world_from_camera.tobytes())
@@ -273,7 +273,7 @@ def test_a_live_tracker_goes_on_while_the_back_end_works_and_its_record_replays_
     keyframes in between carried along. A back end that never reports done before it is waited
     for makes the pattern fixed: defer, defer, wait. The frames where it deferred are the record a
     replay follows: inline, without a worker, the same bytes."""
-    odo = RgbdOdometry(TrackerConfig().odometry_params(), background=True, defer_backend=2)
+    odo = RgbdSlam(TrackerConfig().odometry_params(), background=True, defer_backend=2)
     odo.worker.done = lambda: False  # the real worker computes; it only never answers early
     results = [odo.track(f) for f in loop_frames]
     odo.finish()
@@ -281,7 +281,7 @@ def test_a_live_tracker_goes_on_while_the_back_end_works_and_its_record_replays_
     kf = [r.backend_deferred for r in results if r.is_keyframe][1:]  # the first has nothing pending
     assert len(deferred) >= 10 and not any(kf[i] and kf[i + 1] and kf[i + 2] for i in range(len(kf) - 2))
     assert _ate(room, odo) <= 0.005  # the accuracy held (test_synthetic_accuracy's bar)
-    replay = RgbdOdometry(TrackerConfig().odometry_params(), backend_deferred_at=frozenset(deferred))
+    replay = RgbdSlam(TrackerConfig().odometry_params(), backend_deferred_at=frozenset(deferred))
     again = [replay.track(f) for f in loop_frames]
     replay.finish()
     assert [r.seq for r in again if r.backend_deferred] == deferred

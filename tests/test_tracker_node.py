@@ -89,7 +89,7 @@ def test_rerun_logging_runs_off_the_tracking_thread_in_frame_order(tmp_path):
     from octolog.kit.viz import Viz
     from octolog.tracker.config import TrackerConfig
     from octolog.tracker.factory import make_odometry
-    from octolog.tracker.node import TrackerResult, VizLog
+    from octolog.tracker.node import TrackerRunSummary, VizLog
 
     calls: list[tuple[str, int | None]] = []
 
@@ -100,7 +100,7 @@ def test_rerun_logging_runs_off_the_tracking_thread_in_frame_order(tmp_path):
 
     frames = list(SyntheticScene(n_frames=6).frames())
     odometry = make_odometry(TrackerConfig(background=False))
-    result = TrackerResult()
+    result = TrackerRunSummary()
     with Watched(f"save:{tmp_path}", "tracker", "t") as viz, VizLog(viz) as shown:
         for f in frames:
             res = odometry.track(f)

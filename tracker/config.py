@@ -117,7 +117,7 @@ class LoopParams:
 
 @dataclass(frozen=True)
 class OdometryParams:
-    """Everything `RgbdOdometry` needs, grouped by the part of the core that uses it, and nothing of
+    """Everything `RgbdSlam` needs, grouped by the part of the core that uses it, and nothing of
     the process around it. Built by `TrackerConfig.odometry_params()`, where it is validated; the
     defaults live in `TrackerConfig` and its sections (shared with this), so there is one source of them."""
 

@@ -1,4 +1,4 @@
-"""The tracker a config names: `make_odometry(cfg)`, native `RgbdOdometry` or `OrbSlam3Odometry`.
+"""The tracker a config names: `make_odometry(cfg)`, native `RgbdSlam` or `OrbSlam3Odometry`.
 
 Apart from tracker.node so that benchmarks and tests build a tracker without the bus and viewer.
 """
@@ -9,7 +9,7 @@ import dataclasses
 
 from octolog.tracker.config import TrackerConfig
 from octolog.tracker.interface import Tracker
-from octolog.tracker.odometry import RgbdOdometry
+from octolog.tracker.odometry import RgbdSlam
 from octolog.tracker.orbslam3 import OrbSlam3Odometry
 from octolog.tracker.vocab import load as load_vocabulary
 from octolog.tracker.worker import Worker
@@ -24,7 +24,7 @@ def make_odometry(cfg: TrackerConfig) -> Tracker:
     params = cfg.odometry_params()
     vocabulary = load_vocabulary(cfg.vocabulary) if cfg.vocabulary else None
     background = Worker(min_job_s=cfg.backend_throttle_ms / 1e3) if cfg.background else False
-    return RgbdOdometry(params, vocabulary=vocabulary, background=background,
+    return RgbdSlam(params, vocabulary=vocabulary, background=background,
                         defer_backend=cfg.live_backend_defer if cfg.live else 0,
                         backend_deferred_at=frozenset(int(s) for s in cfg.backend_deferred))
 

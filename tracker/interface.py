@@ -1,7 +1,7 @@
 """What a tracker is to the tracker process: `Tracker` (the protocol both backends implement), the
 per-frame `TrackResult` and its `TrackingState`.
 
-The native `RgbdOdometry` (tracker.odometry) and `OrbSlam3Odometry` (tracker.orbslam3) both satisfy
+The native `RgbdSlam` (tracker.odometry) and `OrbSlam3Odometry` (tracker.orbslam3) both satisfy
 `Tracker`; tracker.node works against the protocol only.
 """
 
@@ -56,7 +56,7 @@ class TrackResult:
     # pyramid level (a fit quality with no ground truth: ~1 for a model that explains the image)
     residual: float = float("nan")
     # a keyframe inserted without the back end's pending result (live, the back end busy; see
-    # RgbdOdometry.defer_backend): the result is applied at a later keyframe
+    # RgbdSlam.defer_backend): the result is applied at a later keyframe
     backend_deferred: bool = False
 
 

@@ -50,7 +50,8 @@ def status_code(state: TrackingState) -> int:
 
 
 @dataclass
-class TrackerResult:
+class TrackerRunSummary:
+    """What one tracker run did, frame counts by outcome: the summary `track` returns."""
     frames: int = 0
     tracked: int = 0
     lost: int = 0
@@ -67,7 +68,7 @@ class TrackerResult:
 
 
 def run(cfg: TrackerConfig, bus_cfg: BusConfig, *, trajectory: Path | None = None, rerun: str = "off",
-        recording_id: str = "octolog") -> TrackerResult:
+        recording_id: str = "octolog") -> TrackerRunSummary:
     odometry = make_odometry(cfg)
     with Bus(bus_cfg, "tracker") as bus, Viz(rerun, "tracker", recording_id) as viz:
         result = track(odometry, cfg, bus, viz)
@@ -78,7 +79,7 @@ def run(cfg: TrackerConfig, bus_cfg: BusConfig, *, trajectory: Path | None = Non
     return result
 
 
-def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerResult:
+def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerRunSummary:
     pub_pose, pub_status, pub_tf = bus.publisher(POSE), bus.publisher(TRACKING_STATUS), bus.publisher(TF)
     pub_kf = KeyframeOut(bus, cfg.wire_compression)
     pub_kf_end = bus.publisher(KEYFRAME_END)
@@ -92,7 +93,7 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
     bus.publisher(CONFIGS["tracker"]).put(streammsgs.config_msg("tracker", to_dict(cfg)))
     bus.watch(FRAME_PRODUCERS)  # whichever sends the frames: a replay, or a recorder publishing live
     bus.watch(["mapper"], required=False)  # a mapper may restart: keep its keyframes until it is done
-    result = TrackerResult()
+    result = TrackerRunSummary()
     expected: int | None = None
     with Intake(bus, odometry, viz=viz.enabled, live=cfg.live, lag_ms=cfg.live_lag_ms) as intake, \
             VizLog(viz) as shown:
@@ -293,7 +294,7 @@ class VizLog:
         if self.error is not None and exc[0] is None:
             raise self.error
 
-    def put(self, frame: RgbdFrame, res: TrackResult, result: TrackerResult, odometry: Tracker) -> None:
+    def put(self, frame: RgbdFrame, res: TrackResult, result: TrackerRunSummary, odometry: Tracker) -> None:
         if not self.viz.enabled:
             return
         kp = odometry.keypoints()

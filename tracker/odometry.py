@@ -74,8 +74,9 @@ class _Tracked:
     residual: float = float("nan")  # RMS level-scaled reprojection error of the inliers
 
 
-class RgbdOdometry:
-    """Frame-to-local-map RGB-D odometry with a back end. Call `track` once per frame, in time order,
+class RgbdSlam:
+    """RGB-D SLAM: frame-to-local-map tracking, keyframe insertion and the back end (loop closing, bundle
+    adjustment). Call `track` once per frame, in time order,
     and `finish` at the end of the stream; implements tracker.interface.Tracker.
 
     `params` (default: `TrackerConfig()`'s) holds every tunable, by stage: features, depth gating,

@@ -1,6 +1,6 @@
 """ORB-SLAM3 (RGB-D) behind the native tracker's interface, for comparison: `pyorbslam3`, an extra.
 
-`OrbSlam3Odometry` implements tracker.interface.Tracker like `RgbdOdometry`. The ORB-SLAM3 settings file
+`OrbSlam3Odometry` implements tracker.interface.Tracker like `RgbdSlam`. The ORB-SLAM3 settings file
 is generated from the first frame's intrinsics and depth scale; the vocabulary is a DBoW2 text
 file (`octolog vocab build` trains one). What the binding does not expose is derived here:
 
