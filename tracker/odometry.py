@@ -15,7 +15,6 @@ and is deterministic: the same frames give byte-identical poses in any process.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from functools import partial
 from typing import Any
 
@@ -24,7 +23,8 @@ import numpy as np
 
 from octolog.kit.errors import TrackingError
 from octolog.kit.geometry import Intrinsics, RgbdFrame, invert
-from octolog.tracker.backend import BackendJob, BackendResult, LoopState, apply_result, build_job, run_backend
+from octolog.tracker.backend import BackendResult, run_backend
+from octolog.tracker.backend_handoff import BackendHandoff
 from octolog.tracker.config import OdometryParams, TrackerConfig
 from octolog.tracker.features import (
     FrameFeatures,
@@ -37,7 +37,8 @@ from octolog.tracker.features import (
     match_by_projection,
 )
 from octolog.tracker.interface import KeypointState, TrackingState, TrackResult
-from octolog.tracker.keyframe_map import Keyframe, MapPoints, depth_weight, keyframe_wanted
+from octolog.tracker.keyframe_map import Keyframe, MapPoints
+from octolog.tracker.local_mapping import LocalMapping, TrackedFrame
 from octolog.tracker.places import PLACE_MAX_HAMMING, PLACE_RATIO, BowIndex, recognise
 from octolog.tracker.pose import optimize_pose, so3_exp, so3_log, unroll_rolling_shutter
 from octolog.tracker.vocab import Vocabulary
@@ -56,25 +57,9 @@ WIDE_SEARCH_FACTOR = 3.0
 # A pose with this many times `min_inliers` inliers (and `confident_ratio` of its matches) is final;
 # the previous frame's inliers seed the first match only if there are this many times `min_inliers`.
 CONFIDENT_INLIER_FACTOR = 3
-# A keyframe's covisible neighbours (pose-graph edges): at most this many, sharing at least that many points.
-COVIS_NEIGHBOURS = 3
-COVIS_MIN_SHARED_POINTS = 30
 
 
-@dataclass
-class _Tracked:
-    """Outcome of matching and pose estimation for one frame."""
-
-    camera_from_world: np.ndarray
-    kp_idx: np.ndarray  # keypoint indices of inlier matches
-    map_idx: np.ndarray  # map point ids of inlier matches
-    n_matches: int
-    n_inliers: int
-    feats: FrameFeatures  # the keypoints the pose was fitted to (moved to mid-readout: rolling shutter)
-    residual: float = float("nan")  # RMS level-scaled reprojection error of the inliers
-
-
-class RgbdSlam:
+class RgbdSlam(LocalMapping, BackendHandoff):
     """RGB-D SLAM: frame-to-local-map tracking, keyframe insertion and the back end (loop closing, bundle
     adjustment). Call `track` once per frame, in time order,
     and `finish` at the end of the stream; implements tracker.interface.Tracker.
@@ -303,7 +288,7 @@ class RgbdSlam:
         if int(feats.has_depth.sum()) < self.params.tracking.min_init_points:
             return TrackResult(frame.seq, frame.stamp_ns, pose, TrackingState.LOST, False, -1, 0, 0)
         empty = np.zeros(0, np.int64)
-        tracked = _Tracked(np.eye(4), empty, empty, 0, 0, feats)
+        tracked = TrackedFrame(np.eye(4), empty, empty, 0, 0, feats)
         kf_id = self._insert_keyframe(frame.seq, pose, feats, tracked)
         self._frames.append((frame.stamp_ns, kf_id, np.eye(4)))
         self._remember(frame.stamp_ns, pose, ok=True)
@@ -398,7 +383,7 @@ class RgbdSlam:
             return None
         return T, inl_mask
 
-    def _track_against_map(self, raw: FrameFeatures, predicted_wc: np.ndarray, stamp_ns: int) -> _Tracked | None:
+    def _track_against_map(self, raw: FrameFeatures, predicted_wc: np.ndarray, stamp_ns: int) -> TrackedFrame | None:
         """Match and estimate the pose; None when the frame cannot be tracked.
 
         With a rolling shutter the keypoints are moved to mid-readout twice: with the motion
@@ -475,58 +460,7 @@ class RgbdSlam:
         level_scale = self.params.features.scale_factor ** -feats.octave[ki].astype(np.float64)
         scaled = (uv - feats.uv[ki]) * level_scale[:, None]
         residual = float(np.sqrt(np.mean(np.sum(scaled * scaled, axis=1)))) if ki.size else float("nan")
-        return _Tracked(T_cw, ki, mi, int(inl.size), int(inl.sum()), feats, residual)
-
-    # -- keyframes ------------------------------------------------------------------------------
-
-    def _need_keyframe(self, pose: np.ndarray, tracked: _Tracked) -> bool:
-        """Whether this frame adds to the map. Measured against the reference keyframe, the local
-        keyframe that holds most of the frame's inliers (ORB-SLAM's), not the newest: a camera back
-        in a place the map already covers adds nothing, so a session that keeps revisiting a room
-        keeps a map (and a back end) the size of the room, not of the session."""
-        local = self._local_keyframes(pose, self.params.local_map.n_keyframes)
-        shared_by = [int(np.isin(tracked.map_idx, self._keyframes[i].point_ids, assume_unique=True).sum())
-                     for i in local]
-        best = int(np.argmax(shared_by))  # ties: the oldest
-        return keyframe_wanted(self._keyframes[int(local[best])], shared_by[best], pose, tracked.feats.z,
-                               tracked.kp_idx, self.params.keyframes, max_new_point_m=self.params.depth.max_new_point_m)
-
-    def _insert_keyframe(self, seq: int, pose: np.ndarray, feats: FrameFeatures, tracked: _Tracked) -> int:
-        """Add a keyframe: fuse depth into its matched points, create points for the rest."""
-        mp, local = self._map, self.params.local_map
-        R, t = pose[:3, :3], pose[:3, 3]
-        z = feats.z
-        kp_m, ids_m = tracked.kp_idx, tracked.map_idx
-        with_d = z[kp_m] > 0.0
-        if local.fuse_depth and np.any(with_d):
-            k = kp_m[with_d]
-            mp.fuse(ids_m[with_d], feats.xyz[k] @ R.T + t, depth_weight(z[k]))
-        # The newest appearance matches the next frames best.
-        mp.desc[ids_m] = feats.desc[kp_m]
-        mp.n_obs[ids_m] += 1
-
-        kf_id = len(self._keyframes)
-        fresh = np.ones(len(feats), dtype=bool)
-        fresh[kp_m] = False
-        fresh &= (z > 0.0) & (z <= self.params.depth.max_new_point_m)
-        k = np.flatnonzero(fresh)
-        new_ids = mp.add(feats.xyz[k] @ R.T + t, feats.desc[k], depth_weight(z[k]), kf_id)
-        if self._last_kp_state.size == len(feats):
-            self._last_kp_state[k] = KeypointState.NEW
-
-        mp.cull(local.cull_min_visible, local.cull_min_found_ratio)
-
-        point_ids = np.unique(np.concatenate([ids_m, new_ids]))
-        shared = np.bincount(mp.ref_kf[ids_m], minlength=kf_id) if ids_m.size else np.zeros(kf_id, np.int64)
-        covis = [int(j) for j in np.lexsort((np.arange(shared.size), -shared))[:COVIS_NEIGHBOURS]
-                 if shared[j] >= COVIS_MIN_SHARED_POINTS]
-        if self._bow is not None:
-            self._bow.add(kf_id, feats.desc)
-        self._keyframes.append(Keyframe(kf_id, seq, pose.copy(), point_ids, feats,
-                                         np.concatenate([kp_m, k]), np.concatenate([ids_m, new_ids]), sorted(covis)))
-        self._kf_pos = np.vstack([self._kf_pos, t[None, :]])
-        self._kf_axis = np.vstack([self._kf_axis, R[:, 2][None, :]])
-        return kf_id
+        return TrackedFrame(T_cw, ki, mi, int(inl.size), int(inl.sum()), feats, residual)
 
     # -- relocalisation -------------------------------------------------------------------------
 
@@ -542,60 +476,6 @@ class RgbdSlam:
                           min_inliers=min_inliers, refine=self._refine_args())
         return None if match is None else self._keyframes[match.keyframe].world_from_camera @ match.T_kf_query
 
-    # -- back end: local bundle adjustment and loop closing --------------------------------------
-
     def _refine_args(self) -> tuple[np.ndarray, float, float]:
         assert self._undistort is not None
         return self._undistort.K, self.params.features.scale_factor, self.params.tracking.inv_depth_sigma
-
-    def _submit_backend(self) -> None:
-        """Start the back end for the newest keyframe (in the worker process when there is one)."""
-        if not (self.params.local_ba or self.params.loop_closing):
-            return
-        p, ba = self.params, self.params.bundle_adjustment
-        job = self._backend_job(window_n=p.ba_window, max_points=ba.max_points, loop_closing=p.loop_closing,
-                                iterations=ba.iterations)
-        self._pending = self.worker.submit(job) if self.worker else run_backend(job)
-
-    def _backend_job(self, *, window_n: int, max_points: int | None, loop_closing: bool,
-                     iterations: int) -> BackendJob:
-        """A snapshot of the map for the back end of the newest keyframe (see backend.build_job)."""
-        assert self._undistort is not None
-        newest = self._keyframes[-1].id
-        candidate = self._loop_candidate[1]  # the previous job's: one job at a time, its result is in
-        loops = LoopState(edges=self._loop_edges, last_loop_kf=self._last_loop_kf, previous_candidate=candidate)
-        return build_job(self._map, self._keyframes, self.params, K=self._undistort.K, bow=self._bow, loops=loops,
-                         window_n=window_n, max_points=max_points, loop_closing=loop_closing, iterations=iterations)
-
-    def _sync_backend(self, pose: np.ndarray) -> tuple[dict[int, np.ndarray], tuple[int, int] | None, np.ndarray]:
-        """Apply the pending back-end result; returns (moved keyframes if a loop closed, the loop,
-        `pose` moved with the newest keyframe)."""
-        res = self._pending
-        if res is None:
-            return {}, None, pose
-        self._pending = None
-        if not isinstance(res, BackendResult):
-            res = res.result()
-        delta, moved = apply_result(res, self._keyframes, self._map, self._kf_pos, self._kf_axis,
-                                    self.params.bundle_adjustment.max_point_move_m)
-        for name in ("_last_pose", "_last_tracked_pose"):
-            if getattr(self, name) is not None:
-                setattr(self, name, delta @ getattr(self, name))
-        self._loop_candidate = (res.kf_id, res.candidate) if res.candidate is not None else (-1, None)
-        if res.loop is None:
-            return {}, None, delta @ pose
-        self._loop_edges.append(res.loop_edge)
-        self.loops.append(res.loop)
-        self._last_loop_kf = res.loop[0]
-        return moved, res.loop, delta @ pose
-
-    def _defer_backend(self, seq: int) -> bool:
-        """Whether the keyframe at frame `seq` goes in without the pending back-end result: where a
-        replayed live run's record says; live (`defer_backend` > 0), while the back end is at work, at
-        most that many keyframes in a row; else never (the tracker waits for it)."""
-        busy = self._pending is not None and not isinstance(self._pending, BackendResult) and not self._pending.done()
-        defer = self._pending is not None and (seq in self.backend_deferred_at if self.backend_deferred_at else
-                                               busy and self._deferred_run < self.defer_backend)
-        self._deferred_run = self._deferred_run + 1 if defer else 0
-        return defer
-
