@@ -225,51 +225,9 @@ class TrackerConfig:
             parse_wire_compression(self.wire_compression)
         except ConfigError as exc:
             raise ConfigError(f"tracker.wire_compression: {exc}") from None
-        f, d, t, k, m = self.features, self.depth, self.tracking, self.keyframes, self.local_map
-        _want(f.grid_cols >= 1, "features.grid_cols", f.grid_cols, "want >= 1")
-        _want(f.grid_rows >= 1, "features.grid_rows", f.grid_rows, "want >= 1")
-        _want(0 < f.min_fast_threshold <= f.fast_threshold, "features.min_fast_threshold", f.min_fast_threshold,
-              f"want 1 to features.fast_threshold ({f.fast_threshold})")
-        _want(f.n_levels >= 1, "features.n_levels", f.n_levels, "want >= 1")
-        _want(f.scale_factor > 1.0, "features.scale_factor", f.scale_factor, "want > 1")
-        _want(d.min_m > 0.0, "depth.min_m", d.min_m, "want > 0")
-        _want(d.max_m > d.min_m, "depth.max_m", d.max_m, f"want > depth.min_m ({d.min_m}): the range is empty")
-        _want(d.max_new_point_m > 0.0, "depth.max_new_point_m", d.max_new_point_m, "want > 0")
-        _want(d.edge_spread > 0.0, "depth.edge_spread", d.edge_spread, "want > 0")
-        for key in ("search_radius_px", "refine_radius_px", "ransac_reproj_px", "inv_depth_sigma"):
-            _want(getattr(t, key) > 0.0, f"tracking.{key}", getattr(t, key), "want > 0")
-        _want(0 <= t.max_hamming <= 256, "tracking.max_hamming", t.max_hamming, "want 0 to 256 (bits)")
-        _want(0.0 < t.match_ratio <= 1.0, "tracking.match_ratio", t.match_ratio, "want in (0, 1]")
-        _want(0.0 <= t.confident_ratio <= 1.0, "tracking.confident_ratio", t.confident_ratio, "want 0 to 1")
-        _want(t.ransac_iterations >= 1, "tracking.ransac_iterations", t.ransac_iterations, "want >= 1")
-        _want(t.min_inliers >= 6, "tracking.min_inliers", t.min_inliers, "a pose needs at least 6 inliers")
-        _want(t.min_init_points >= 1, "tracking.min_init_points", t.min_init_points, "want >= 1")
-        _want(k.translation_m > 0.0, "keyframes.translation_m", k.translation_m, "want > 0")
-        _want(k.rotation_deg > 0.0, "keyframes.rotation_deg", k.rotation_deg, "want > 0")
-        _want(0.0 <= k.min_overlap <= 1.0, "keyframes.min_overlap", k.min_overlap, "want 0 to 1")
-        _want(k.close_tracked >= 0, "keyframes.close_tracked", k.close_tracked, "want >= 0 (0: off)")
-        _want(k.close_untracked >= 0, "keyframes.close_untracked", k.close_untracked, "want >= 0")
-        _want(m.n_keyframes >= 1, "local_map.n_keyframes", m.n_keyframes, "want >= 1")
-        _want(m.n_recent_keyframes >= 1, "local_map.n_recent_keyframes", m.n_recent_keyframes, "want >= 1")
-        _want(m.cull_min_visible >= 1, "local_map.cull_min_visible", m.cull_min_visible, "want >= 1")
-        _want(0.0 <= m.cull_min_found_ratio <= 1.0, "local_map.cull_min_found_ratio", m.cull_min_found_ratio,
-              "want 0 to 1")
-        b, lp = self.bundle_adjustment, self.loops
-        _want(b.fixed_keyframes >= 0, "bundle_adjustment.fixed_keyframes", b.fixed_keyframes, "want >= 0")
-        _want(b.iterations >= 1, "bundle_adjustment.iterations", b.iterations, "want >= 1")
-        _want(b.max_points >= 1, "bundle_adjustment.max_points", b.max_points, "want >= 1")
-        _want(b.inv_depth_sigma > 0.0, "bundle_adjustment.inv_depth_sigma", b.inv_depth_sigma, "want > 0")
-        _want(b.max_point_move_m > 0.0, "bundle_adjustment.max_point_move_m", b.max_point_move_m, "want > 0")
-        _want(b.global_iterations >= 1, "bundle_adjustment.global_iterations", b.global_iterations, "want >= 1")
-        _want(lp.min_gap >= 1, "loops.min_gap", lp.min_gap, "want >= 1")
-        _want(lp.min_votes >= 0, "loops.min_votes", lp.min_votes, "want >= 0")
-        _want(lp.min_inliers >= 6, "loops.min_inliers", lp.min_inliers, "a loop's pose needs at least 6 inliers")
-        for key in ("min_correction_m", "min_correction_deg", "consistency_m", "consistency_deg"):
-            _want(getattr(lp, key) >= 0.0, f"loops.{key}", getattr(lp, key), "want >= 0")
-        _want(lp.max_correction_m > lp.min_correction_m, "loops.max_correction_m", lp.max_correction_m,
-              f"want > loops.min_correction_m ({lp.min_correction_m})")
-        _want(lp.max_correction_deg > lp.min_correction_deg, "loops.max_correction_deg", lp.max_correction_deg,
-              f"want > loops.min_correction_deg ({lp.min_correction_deg})")
+        _validate_front_end(self.features, self.depth, self.tracking)
+        _validate_local_map(self.keyframes, self.local_map)
+        _validate_back_end(self.bundle_adjustment, self.loops)
 
     def odometry_params(self) -> OdometryParams:
         """The native core's parameters (validated here); an unset rolling shutter is a global one."""
@@ -293,3 +251,58 @@ def for_source(cfg: TrackerConfig, source) -> TrackerConfig:
     if cfg.rolling_shutter_ms is not None:
         return cfg
     return dataclasses.replace(cfg, rolling_shutter_ms=1e3 * float(source.readout_s))
+
+
+def _validate_front_end(f: FeatureParams, d: DepthParams, t: TrackingParams) -> None:
+    """TrackerConfig.validate's checks of feature extraction, depth gating and tracking."""
+    _want(f.grid_cols >= 1, "features.grid_cols", f.grid_cols, "want >= 1")
+    _want(f.grid_rows >= 1, "features.grid_rows", f.grid_rows, "want >= 1")
+    _want(0 < f.min_fast_threshold <= f.fast_threshold, "features.min_fast_threshold", f.min_fast_threshold,
+          f"want 1 to features.fast_threshold ({f.fast_threshold})")
+    _want(f.n_levels >= 1, "features.n_levels", f.n_levels, "want >= 1")
+    _want(f.scale_factor > 1.0, "features.scale_factor", f.scale_factor, "want > 1")
+    _want(d.min_m > 0.0, "depth.min_m", d.min_m, "want > 0")
+    _want(d.max_m > d.min_m, "depth.max_m", d.max_m, f"want > depth.min_m ({d.min_m}): the range is empty")
+    _want(d.max_new_point_m > 0.0, "depth.max_new_point_m", d.max_new_point_m, "want > 0")
+    _want(d.edge_spread > 0.0, "depth.edge_spread", d.edge_spread, "want > 0")
+    for key in ("search_radius_px", "refine_radius_px", "ransac_reproj_px", "inv_depth_sigma"):
+        _want(getattr(t, key) > 0.0, f"tracking.{key}", getattr(t, key), "want > 0")
+    _want(0 <= t.max_hamming <= 256, "tracking.max_hamming", t.max_hamming, "want 0 to 256 (bits)")
+    _want(0.0 < t.match_ratio <= 1.0, "tracking.match_ratio", t.match_ratio, "want in (0, 1]")
+    _want(0.0 <= t.confident_ratio <= 1.0, "tracking.confident_ratio", t.confident_ratio, "want 0 to 1")
+    _want(t.ransac_iterations >= 1, "tracking.ransac_iterations", t.ransac_iterations, "want >= 1")
+    _want(t.min_inliers >= 6, "tracking.min_inliers", t.min_inliers, "a pose needs at least 6 inliers")
+    _want(t.min_init_points >= 1, "tracking.min_init_points", t.min_init_points, "want >= 1")
+
+
+def _validate_local_map(k: KeyframeParams, m: LocalMapParams) -> None:
+    """TrackerConfig.validate's checks of keyframe decision and the local map."""
+    _want(k.translation_m > 0.0, "keyframes.translation_m", k.translation_m, "want > 0")
+    _want(k.rotation_deg > 0.0, "keyframes.rotation_deg", k.rotation_deg, "want > 0")
+    _want(0.0 <= k.min_overlap <= 1.0, "keyframes.min_overlap", k.min_overlap, "want 0 to 1")
+    _want(k.close_tracked >= 0, "keyframes.close_tracked", k.close_tracked, "want >= 0 (0: off)")
+    _want(k.close_untracked >= 0, "keyframes.close_untracked", k.close_untracked, "want >= 0")
+    _want(m.n_keyframes >= 1, "local_map.n_keyframes", m.n_keyframes, "want >= 1")
+    _want(m.n_recent_keyframes >= 1, "local_map.n_recent_keyframes", m.n_recent_keyframes, "want >= 1")
+    _want(m.cull_min_visible >= 1, "local_map.cull_min_visible", m.cull_min_visible, "want >= 1")
+    _want(0.0 <= m.cull_min_found_ratio <= 1.0, "local_map.cull_min_found_ratio", m.cull_min_found_ratio,
+          "want 0 to 1")
+
+
+def _validate_back_end(b: BundleAdjustmentParams, lp: LoopParams) -> None:
+    """TrackerConfig.validate's checks of bundle adjustment and loop closing."""
+    _want(b.fixed_keyframes >= 0, "bundle_adjustment.fixed_keyframes", b.fixed_keyframes, "want >= 0")
+    _want(b.iterations >= 1, "bundle_adjustment.iterations", b.iterations, "want >= 1")
+    _want(b.max_points >= 1, "bundle_adjustment.max_points", b.max_points, "want >= 1")
+    _want(b.inv_depth_sigma > 0.0, "bundle_adjustment.inv_depth_sigma", b.inv_depth_sigma, "want > 0")
+    _want(b.max_point_move_m > 0.0, "bundle_adjustment.max_point_move_m", b.max_point_move_m, "want > 0")
+    _want(b.global_iterations >= 1, "bundle_adjustment.global_iterations", b.global_iterations, "want >= 1")
+    _want(lp.min_gap >= 1, "loops.min_gap", lp.min_gap, "want >= 1")
+    _want(lp.min_votes >= 0, "loops.min_votes", lp.min_votes, "want >= 0")
+    _want(lp.min_inliers >= 6, "loops.min_inliers", lp.min_inliers, "a loop's pose needs at least 6 inliers")
+    for key in ("min_correction_m", "min_correction_deg", "consistency_m", "consistency_deg"):
+        _want(getattr(lp, key) >= 0.0, f"loops.{key}", getattr(lp, key), "want >= 0")
+    _want(lp.max_correction_m > lp.min_correction_m, "loops.max_correction_m", lp.max_correction_m,
+          f"want > loops.min_correction_m ({lp.min_correction_m})")
+    _want(lp.max_correction_deg > lp.min_correction_deg, "loops.max_correction_deg", lp.max_correction_deg,
+          f"want > loops.min_correction_deg ({lp.min_correction_deg})")
