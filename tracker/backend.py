@@ -78,62 +78,64 @@ class LoopState:
     previous_candidate: np.ndarray | None
 
 
-def build_job(points: MapPoints, keyframes: list[Keyframe], params: OdometryParams, *, K: np.ndarray,
-              bow: BowIndex | None, loops: LoopState, window_n: int, max_points: int | None, loop_closing: bool,
-              iterations: int) -> BackendJob:
-    """A self-contained snapshot for the back end of the newest keyframe: BA over the newest
-    `window_n` keyframes with at most `max_points` points (None: all), `iterations` long, and loop
-    detection if `loop_closing`."""
-    mp, kfs = points, keyframes
-    ba_params, lp = params.bundle_adjustment, params.loops
+def _ba_problem(mp: MapPoints, kfs: list[Keyframe], params: OdometryParams, K: np.ndarray, window_n: int,
+                max_points: int | None) -> tuple[BundleProblem | None, np.ndarray, np.ndarray]:
+    """build_job's local BA: the problem over the newest `window_n` keyframes and their fixed
+    neighbours, with the keyframes and point ids it covers (None and empty without local BA)."""
+    ba_params = params.bundle_adjustment
     scale_factor = params.features.scale_factor
+    n_kf = len(kfs)
+    if not (params.local_ba and n_kf >= 2):
+        return None, np.zeros(0, np.int64), np.zeros(0, np.int64)
+    window = np.arange(max(0, n_kf - window_n), n_kf)
+    pids = np.unique(np.concatenate([kfs[i].point_ids for i in window]))
+    pids = pids[~mp.bad[pids]]
+    if max_points is not None and pids.size > max_points:
+        # the best-observed points carry the most information per factor: keep those
+        n_obs = np.zeros(pids.size, np.int64)
+        for i in window:
+            n_obs += np.isin(pids, kfs[i].point_ids, assume_unique=True)
+        pids = np.sort(pids[np.lexsort((pids, -n_obs))[:max_points]])
+    # fixed neighbours: the earlier keyframes that created most of the window's points
+    creators = mp.ref_kf[pids]
+    counts = np.bincount(creators[creators < window[0]], minlength=n_kf)
+    order = np.lexsort((np.arange(n_kf), -counts))
+    n_fixed = ba_params.fixed_keyframes
+    fixed = np.sort(order[:n_fixed][counts[order[:n_fixed]] > 0])
+    ba_kf = np.concatenate([fixed, window])
+    kf_idx, pt_idx, uv, zz, sig = [], [], [], [], []
+    for li, i in enumerate(ba_kf):
+        kf = kfs[i]
+        pos = np.searchsorted(pids, kf.obs_pid)
+        pos = np.minimum(pos, pids.size - 1)
+        ok = pids[pos] == kf.obs_pid
+        ok &= kf.feats.z[kf.obs_kp] > 0.0  # depth-less rays (near-parallel here) let points run off
+        kp = kf.obs_kp[ok]
+        kf_idx.append(np.full(kp.size, li))
+        pt_idx.append(pos[ok])
+        uv.append(kf.feats.uv[kp])
+        zz.append(kf.feats.z[kp])
+        sig.append(scale_factor ** kf.feats.octave[kp].astype(np.float64))
+    ba = BundleProblem(
+        poses_wc=np.stack([kfs[i].world_from_camera for i in ba_kf]),
+        # as ORB-SLAM3 does: with fewer than two fixed neighbours (a new area) the oldest
+        # window keyframe is held too, or the window would be free to drift as a whole
+        fixed=np.array([i < window[0] or i == 0 or (fixed.size < 2 and i == window[0]) for i in ba_kf]),
+        points=mp.xyz[pids].copy(),
+        obs_kf=np.concatenate(kf_idx), obs_pt=np.concatenate(pt_idx), obs_uv=np.concatenate(uv),
+        obs_z=np.concatenate(zz), obs_sigma=np.concatenate(sig),
+        K=(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])),
+        bf=1.0 / ba_params.inv_depth_sigma,
+    )
+    return ba, ba_kf, pids
+
+
+def _loop_candidates(mp: MapPoints, kfs: list[Keyframe], params: OdometryParams, bow: BowIndex | None,
+                     loops: LoopState, loop_closing: bool) -> np.ndarray:
+    """build_job's loop detection: the old keyframes the newest one may close a loop with."""
+    lp = params.loops
     new = kfs[-1]
     n_kf = len(kfs)
-    ba = None
-    ba_kf = np.zeros(0, np.int64)
-    ba_pids = np.zeros(0, np.int64)
-    if params.local_ba and n_kf >= 2:
-        window = np.arange(max(0, n_kf - window_n), n_kf)
-        pids = np.unique(np.concatenate([kfs[i].point_ids for i in window]))
-        pids = pids[~mp.bad[pids]]
-        if max_points is not None and pids.size > max_points:
-            # the best-observed points carry the most information per factor: keep those
-            n_obs = np.zeros(pids.size, np.int64)
-            for i in window:
-                n_obs += np.isin(pids, kfs[i].point_ids, assume_unique=True)
-            pids = np.sort(pids[np.lexsort((pids, -n_obs))[:max_points]])
-        # fixed neighbours: the earlier keyframes that created most of the window's points
-        creators = mp.ref_kf[pids]
-        counts = np.bincount(creators[creators < window[0]], minlength=n_kf)
-        order = np.lexsort((np.arange(n_kf), -counts))
-        n_fixed = ba_params.fixed_keyframes
-        fixed = np.sort(order[:n_fixed][counts[order[:n_fixed]] > 0])
-        ba_kf = np.concatenate([fixed, window])
-        kf_idx, pt_idx, uv, zz, sig = [], [], [], [], []
-        for li, i in enumerate(ba_kf):
-            kf = kfs[i]
-            pos = np.searchsorted(pids, kf.obs_pid)
-            pos = np.minimum(pos, pids.size - 1)
-            ok = pids[pos] == kf.obs_pid
-            ok &= kf.feats.z[kf.obs_kp] > 0.0  # depth-less rays (near-parallel here) let points run off
-            kp = kf.obs_kp[ok]
-            kf_idx.append(np.full(kp.size, li))
-            pt_idx.append(pos[ok])
-            uv.append(kf.feats.uv[kp])
-            zz.append(kf.feats.z[kp])
-            sig.append(scale_factor ** kf.feats.octave[kp].astype(np.float64))
-        ba = BundleProblem(
-            poses_wc=np.stack([kfs[i].world_from_camera for i in ba_kf]),
-            # as ORB-SLAM3 does: with fewer than two fixed neighbours (a new area) the oldest
-            # window keyframe is held too, or the window would be free to drift as a whole
-            fixed=np.array([i < window[0] or i == 0 or (fixed.size < 2 and i == window[0]) for i in ba_kf]),
-            points=mp.xyz[pids].copy(),
-            obs_kf=np.concatenate(kf_idx), obs_pt=np.concatenate(pt_idx), obs_uv=np.concatenate(uv),
-            obs_z=np.concatenate(zz), obs_sigma=np.concatenate(sig),
-            K=(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])),
-            bf=1.0 / ba_params.inv_depth_sigma,
-        )
-        ba_pids = pids
     candidates = np.zeros(0, np.int64)
     if loop_closing and new.id - loops.last_loop_kf > lp.min_gap:
         # old keyframes that share (almost) no map points with the new one: a match with one
@@ -149,6 +151,22 @@ def build_job(points: MapPoints, keyframes: list[Keyframe], params: OdometryPara
             floor = min((score.get(j, 0.0) for j in new.covis), default=0.0)
             keep = np.isin(ids, candidates) & (scores >= floor)
             candidates = np.sort(ids[keep][: params.bow_candidates])
+    return candidates
+
+
+def build_job(points: MapPoints, keyframes: list[Keyframe], params: OdometryParams, *, K: np.ndarray,
+              bow: BowIndex | None, loops: LoopState, window_n: int, max_points: int | None, loop_closing: bool,
+              iterations: int) -> BackendJob:
+    """A self-contained snapshot for the back end of the newest keyframe: BA over the newest
+    `window_n` keyframes with at most `max_points` points (None: all), `iterations` long, and loop
+    detection if `loop_closing`."""
+    mp, kfs = points, keyframes
+    lp = params.loops
+    scale_factor = params.features.scale_factor
+    new = kfs[-1]
+    n_kf = len(kfs)
+    ba, ba_kf, ba_pids = _ba_problem(mp, kfs, params, K, window_n, max_points)
+    candidates = _loop_candidates(mp, kfs, params, bow, loops, loop_closing)
     return BackendJob(
         kf_id=new.id, poses_wc=np.stack([kf.world_from_camera for kf in kfs]), ba=ba, ba_kf=ba_kf,
         ba_point_ids=ba_pids, iterations=iterations, candidates=candidates,
