@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 
 import numpy as np
 
@@ -53,6 +54,108 @@ def rotation_angle(R: np.ndarray) -> float:
 # Robust pose refinement.
 
 
+def _residual_fn(points_w: np.ndarray, uv: np.ndarray, inv_sigma_px: np.ndarray, inv_z_meas: np.ndarray,
+                 dsig_d: np.ndarray, K: np.ndarray
+                 ) -> Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """optimize_pose's residuals at a pose: camera-frame points, weighted residuals, chi-square."""
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    n = points_w.shape[0]
+
+    def residuals(Rm: np.ndarray, tv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        # r rows: u, v, inverse depth (3, n), so that the rows of the active points concatenate
+        # to the Jacobian's row order with one gather.
+        p = points_w @ Rm.T + tv
+        z = p[:, 2]
+        front = z > 1e-6
+        iz = 1.0 / np.where(front, z, 1e-6)
+        r = np.empty((3, n))
+        np.multiply(fx * p[:, 0] * iz + cx - uv[:, 0], inv_sigma_px, out=r[0])
+        np.multiply(fy * p[:, 1] * iz + cy - uv[:, 1], inv_sigma_px, out=r[1])
+        np.multiply(iz - inv_z_meas, dsig_d, out=r[2])  # iz > 0: exactly +0 without depth
+        sq = r * r
+        chi2 = np.where(front, sq[0] + sq[1] + sq[2], np.inf)  # the order of a row sum
+        return p, r, chi2
+
+    return residuals
+
+
+def _pose_jacobian(pa: np.ndarray, obs: np.ndarray, fx: float, fy: float) -> np.ndarray:
+    """The (3m, 6) Jacobian of the active observations' weighted residuals (rows u, v, inverse
+    depth) at their camera-frame points `pa`; `obs` holds each one's sigma scale, Huber delta and
+    inverse-depth factor."""
+    m = pa.shape[0]
+    x, y, z = pa[:, 0], pa[:, 1], pa[:, 2]
+    s, nd = obs[:, 0], obs[:, 2]
+    iz = 1.0 / z
+    xz, yz = x * iz, y * iz
+    # Analytic Jacobians for the left perturbation p' = exp(phi) p + rho, columns
+    # (rho, phi): rows u, v and inverse depth (zeroed where there is no depth). Entries
+    # are written in place; the expressions keep the operand order of the formulas.
+    J = np.zeros((3 * m, 6))
+    Ju, Jv, Jd = J[:m], J[m : 2 * m], J[2 * m :]
+    su, sv = s * fx, s * fy
+    nsu, nsv = -su, -sv
+    np.multiply(su, iz, out=Ju[:, 0])
+    nsu_xz = nsu * xz
+    np.multiply(nsu_xz, iz, out=Ju[:, 2])  # -su * xz * iz
+    np.multiply(nsu_xz, yz, out=Ju[:, 3])  # -su * xz * yz
+    np.multiply(su, 1.0 + xz * xz, out=Ju[:, 4])
+    np.multiply(nsu, yz, out=Ju[:, 5])  # -su * yz
+    np.multiply(sv, iz, out=Jv[:, 1])
+    np.multiply(nsv * yz, iz, out=Jv[:, 2])  # -sv * yz * iz
+    np.multiply(nsv, 1.0 + yz * yz, out=Jv[:, 3])  # -sv * (1 + yz^2)
+    np.multiply(sv, xz, out=Jv[:, 5])
+    np.multiply(Jv[:, 5], yz, out=Jv[:, 4])  # sv * xz * yz
+    c2 = Jd[:, 2]
+    np.multiply(iz * iz, nd, out=c2)  # -iz * iz * dsig with depth, +0 without
+    np.multiply(y, c2, out=Jd[:, 3])
+    np.multiply(x, -c2, out=Jd[:, 4])  # -x * c2 (same value, signed zeros included)
+    return J
+
+
+def _gauss_newton_step(J: np.ndarray, r: np.ndarray, chi2: np.ndarray, idx: np.ndarray,
+                       dh: np.ndarray) -> np.ndarray | None:
+    """One Huber-weighted Gauss-Newton step on the active observations `idx`; None if singular."""
+    m = idx.size
+    rr = np.take(r, idx, axis=1).ravel()
+    e = np.sqrt(np.take(chi2, idx))
+    w = np.minimum(dh / np.maximum(e, 1e-12), 1.0)  # Huber: 1 where e <= dh
+    Jw = (J.reshape(3, m, 6) * w[:, None]).reshape(3 * m, 6)
+    H = Jw.T @ J
+    g = Jw.T @ rr
+    H.flat[::7] += 1e-9 + 1e-6 * H.diagonal()
+    try:
+        return -np.linalg.solve(H, g)
+    except np.linalg.LinAlgError:
+        return None
+
+
+def _gauss_newton(R: np.ndarray, t: np.ndarray, active: np.ndarray, res: tuple | None,
+                  residuals: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]],
+                  per_obs: np.ndarray, fx: float, fy: float, iterations: int) -> tuple[np.ndarray, np.ndarray]:
+    """One round of optimize_pose: up to `iterations` Gauss-Newton steps on the `active`
+    observations, from `res` (the residuals at R, t when already computed)."""
+    for _ in range(iterations):
+        p, r, chi2 = residuals(R, t) if res is None else res
+        res = None
+        idx = np.flatnonzero(active & np.isfinite(chi2))
+        m = idx.size
+        if m < 6:
+            break
+        pa = np.take(p, idx, axis=0)
+        obs = np.take(per_obs, idx, axis=0)
+        J = _pose_jacobian(pa, obs, fx, fy)
+        dx = _gauss_newton_step(J, r, chi2, idx, obs[:, 1])
+        if dx is None:
+            break
+        dR = so3_exp(dx[3:])
+        R = dR @ R
+        t = dR @ t + dx[:3]
+        if float(dx @ dx) < 1e-10:  # below 10 micrometres / microradians
+            break
+    return R, t
+
+
 def optimize_pose(
     camera_from_world: np.ndarray,
     points_w: np.ndarray,
@@ -75,7 +178,7 @@ def optimize_pose(
     re-classified by a chi-square test so a wrong match cannot pull the pose (the scheme of
     ORB-SLAM's pose-only optimisation).
     """
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    fx, fy = K[0, 0], K[1, 1]
     R = camera_from_world[:3, :3].copy()
     t = camera_from_world[:3, 3].copy()
     n = points_w.shape[0]
@@ -89,77 +192,13 @@ def optimize_pose(
     # inverse-depth Jacobian factor (-dsig with depth, +0 without).
     per_obs = np.stack([inv_sigma_px, delta_h, np.where(has_d, -dsig, 0.0)]).T.copy()
     dsig_d = np.where(has_d, dsig, 0.0)
-
-    def residuals(Rm: np.ndarray, tv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        # r rows: u, v, inverse depth (3, n), so that the rows of the active points concatenate
-        # to the Jacobian's row order with one gather.
-        p = points_w @ Rm.T + tv
-        z = p[:, 2]
-        front = z > 1e-6
-        iz = 1.0 / np.where(front, z, 1e-6)
-        r = np.empty((3, n))
-        np.multiply(fx * p[:, 0] * iz + cx - uv[:, 0], inv_sigma_px, out=r[0])
-        np.multiply(fy * p[:, 1] * iz + cy - uv[:, 1], inv_sigma_px, out=r[1])
-        np.multiply(iz - inv_z_meas, dsig_d, out=r[2])  # iz > 0: exactly +0 without depth
-        sq = r * r
-        chi2 = np.where(front, sq[0] + sq[1] + sq[2], np.inf)  # the order of a row sum
-        return p, r, chi2
+    residuals = _residual_fn(points_w, uv, inv_sigma_px, inv_z_meas, dsig_d, K)
 
     res = None  # residuals at the current pose, when already computed
     for rnd in range(rounds):
         if int(active.sum()) < 6:
             break
-        for _ in range(iterations):
-            p, r, chi2 = residuals(R, t) if res is None else res
-            res = None
-            idx = np.flatnonzero(active & np.isfinite(chi2))
-            m = idx.size
-            if m < 6:
-                break
-            pa = np.take(p, idx, axis=0)
-            x, y, z = pa[:, 0], pa[:, 1], pa[:, 2]
-            obs = np.take(per_obs, idx, axis=0)
-            s, dh, nd = obs[:, 0], obs[:, 1], obs[:, 2]
-            iz = 1.0 / z
-            xz, yz = x * iz, y * iz
-            # Analytic Jacobians for the left perturbation p' = exp(phi) p + rho, columns
-            # (rho, phi): rows u, v and inverse depth (zeroed where there is no depth). Entries
-            # are written in place; the expressions keep the operand order of the formulas.
-            J = np.zeros((3 * m, 6))
-            Ju, Jv, Jd = J[:m], J[m : 2 * m], J[2 * m :]
-            su, sv = s * fx, s * fy
-            nsu, nsv = -su, -sv
-            np.multiply(su, iz, out=Ju[:, 0])
-            nsu_xz = nsu * xz
-            np.multiply(nsu_xz, iz, out=Ju[:, 2])  # -su * xz * iz
-            np.multiply(nsu_xz, yz, out=Ju[:, 3])  # -su * xz * yz
-            np.multiply(su, 1.0 + xz * xz, out=Ju[:, 4])
-            np.multiply(nsu, yz, out=Ju[:, 5])  # -su * yz
-            np.multiply(sv, iz, out=Jv[:, 1])
-            np.multiply(nsv * yz, iz, out=Jv[:, 2])  # -sv * yz * iz
-            np.multiply(nsv, 1.0 + yz * yz, out=Jv[:, 3])  # -sv * (1 + yz^2)
-            np.multiply(sv, xz, out=Jv[:, 5])
-            np.multiply(Jv[:, 5], yz, out=Jv[:, 4])  # sv * xz * yz
-            c2 = Jd[:, 2]
-            np.multiply(iz * iz, nd, out=c2)  # -iz * iz * dsig with depth, +0 without
-            np.multiply(y, c2, out=Jd[:, 3])
-            np.multiply(x, -c2, out=Jd[:, 4])  # -x * c2 (same value, signed zeros included)
-            rr = np.take(r, idx, axis=1).ravel()
-            e = np.sqrt(np.take(chi2, idx))
-            w = np.minimum(dh / np.maximum(e, 1e-12), 1.0)  # Huber: 1 where e <= dh
-            Jw = (J.reshape(3, m, 6) * w[:, None]).reshape(3 * m, 6)
-            H = Jw.T @ J
-            g = Jw.T @ rr
-            H.flat[::7] += 1e-9 + 1e-6 * H.diagonal()
-            try:
-                dx = -np.linalg.solve(H, g)
-            except np.linalg.LinAlgError:
-                break
-            dR = so3_exp(dx[3:])
-            R = dR @ R
-            t = dR @ t + dx[:3]
-            if float(dx @ dx) < 1e-10:  # below 10 micrometres / microradians
-                break
+        R, t = _gauss_newton(R, t, active, res, residuals, per_obs, fx, fy, iterations)
         res = residuals(R, t)  # also the next round's first residuals
         new_active = res[2] <= thr
         if rnd > 0 and np.array_equal(new_active, active):
