@@ -10,8 +10,10 @@ from octolog.kit.config import to_json
 from octolog.kit.errors import ConfigError
 from octolog.kit.mcaplog import COMPRESSIONS
 from octolog.recorder.capture import Backend, CaptureProfile, DeviceDescription, DeviceOptions
+from octolog.recorder.livesink import LiveSink
 from octolog.recorder.realsense_camera import RealSenseBackend
-from octolog.recorder.record import Encoding, LiveSink, Recorder, WriterParams
+from octolog.recorder.record import Recorder
+from octolog.recorder.recording import Encoding, WriterParams
 from octolog.recorder.software_d455 import D455_IMU, SoftwareDeviceBackend
 
 BACKENDS = ("realsense", "software")

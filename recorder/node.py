@@ -22,12 +22,12 @@ from octolog.kit.viz import Viz
 from octolog.recorder.capture import Backend, Capture, DeviceDescription
 from octolog.recorder.config import RecorderConfig, capture_profile, make_backend, make_recorder
 from octolog.recorder.frame_converter import FrameConverter
-from octolog.recorder.record import (
+from octolog.recorder.livesink import LiveSink
+from octolog.recorder.record import Recorder
+from octolog.recorder.recording import (
     Encoded,
-    LiveSink,
-    Recorder,
+    RecorderStatus,
     RecordResult,
-    Status,
     camera_transforms,
     frame_names,
     output_paths,
@@ -37,7 +37,7 @@ from octolog.schemas import topics as T
 
 
 def run(cfg: RecorderConfig, out: Path, *, bus_cfg: Any = None, rerun: str = "off", recording_id: str = "octolog",
-        duration_s: float = 0.0, overwrite: bool = False, status: Callable[[Status], None] | None = None,
+        duration_s: float = 0.0, overwrite: bool = False, status: Callable[[RecorderStatus], None] | None = None,
         status_interval_s: float = 1.0, backend: Backend | None = None,
         stop: threading.Event | None = None) -> RecordResult:
     """Record until `duration_s` of sensor time, the source ends, `stop` is set or Ctrl-C/SIGTERM.
@@ -56,7 +56,7 @@ def run(cfg: RecorderConfig, out: Path, *, bus_cfg: Any = None, rerun: str = "of
 
 
 def record(backend: Backend, converter: FrameConverter, recorder: Recorder, *, duration_ns: int = 0,
-           status: Callable[[Status], None] | None = None, status_interval_s: float = 1.0,
+           status: Callable[[RecorderStatus], None] | None = None, status_interval_s: float = 1.0,
            stop: threading.Event | None = None) -> RecordResult:
     """Run the capture thread until done; finish the recorder; raise what went wrong, if anything."""
     stop = stop or threading.Event()

@@ -1,5 +1,6 @@
 """The recording core: a bounded queue from the capture thread to a writer thread, encoding,
-MCAP files (split by size or sensor time), drop accounting, live sinks and the status line.
+MCAP files (split by size or sensor time), drop accounting, handing frames to the live sinks
+(recorder/livesink.py) and the status (recorder/recording.py).
 
 Nothing is dropped silently. Per stream it counts frame-number gaps at the device, frames the
 writer could not keep up with (the queue was full), aligned depth that had no colour partner,
@@ -19,7 +20,6 @@ import time
 from collections import deque
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -27,188 +27,28 @@ import cv2
 import numpy as np
 
 from octolog.kit.errors import DiskFull, McapError, RecorderError, WriteFailed
-from octolog.kit.geometry import Intrinsics, invert
+from octolog.kit.geometry import Intrinsics
 from octolog.kit.mcaplog import McapWriter
-from octolog.kit.tftree import LINK_FROM_OPTICAL
 from octolog.recorder.capture import Capture, DeviceDescription, blank_capture
+from octolog.recorder.livesink import LiveSink
+from octolog.recorder.recording import (
+    JPEG_FORMAT,
+    PNG_FORMAT,
+    STREAMS,
+    Encoded,
+    RecorderStatus,
+    RecordResult,
+    StreamStats,
+    WriterParams,
+    camera_transforms,
+    frame_names,
+)
 from octolog.schemas import codec, imagecodec, posemsgs, sensormsgs
 from octolog.schemas import topics as T
 from octolog.schemas.topics import Topic
 
-STREAMS = ("color", "aligned_depth", "depth", "gyro", "accel")
-JPEG_FORMAT = "rgb8; jpeg compressed bgr8"  # image_transport's spelling
-PNG_FORMAT = "16UC1; png compressed"  # lossless 16-bit PNG of the depth image, in sensor units
 MOTION_BATCH = 64  # IMU samples per queue entry without a frame: the queue counts frames, not IMU samples
 DISK_CHECK_S = 0.5  # free-space checks at most this often (and after every chunk): statvfs is not free
-# camera_link (x forward, y left, z up) from an optical frame (x right, y down, z forward)
-
-
-def frame_names(prefix: str) -> dict[str, str]:
-    """The camera's TF frames, realsense-ros style (`camera_link`, `camera_color_optical_frame`, ...)."""
-    return {"color": f"{prefix}_color_optical_frame", "depth": f"{prefix}_depth_optical_frame",
-            "gyro": f"{prefix}_gyro_optical_frame", "accel": f"{prefix}_accel_optical_frame", "link": f"{prefix}_link"}
-
-
-def camera_transforms(device: DeviceDescription, frames: dict[str, str]) -> list[tuple[str, str, np.ndarray]]:
-    """(parent, child, parent_from_child) of the camera's static tree: link -> depth -> colour, IMU."""
-    f = frames
-    out = [(f["link"], f["depth"], LINK_FROM_OPTICAL), (f["depth"], f["color"], invert(device.color_from_depth))]
-    for s in ("gyro", "accel"):
-        m = getattr(device, f"depth_from_{s}")
-        if m is not None and getattr(device, f"{s}_fps"):
-            out.append((f["depth"], f[s], m))
-    return out
-
-
-@dataclass(frozen=True)
-class Encoded:
-    """One message as written: its topic, CDR bytes and sensor time."""
-
-    topic: Topic
-    data: bytes
-    stamp_ns: int
-
-
-Sink = Callable[[Capture, list[Encoded]], None]
-
-
-@dataclass
-class StreamStats:
-    frames: int = 0  # written
-    device_gaps: int = 0  # frame numbers the device skipped
-    queue_drops: int = 0  # the writer was behind and its queue full
-    unpaired: int = 0  # aligned depth without a colour partner
-    unwritten: int = 0  # left in the queue after a write failure
-    live_drops: int = 0  # a live sink (bus, Rerun) had no room
-    last_frame_number: int = -1
-
-    @property
-    def dropped(self) -> int:
-        """Frames lost to the file, whatever the cause."""
-        return self.device_gaps + self.queue_drops + self.unpaired + self.unwritten
-
-
-@dataclass(frozen=True)
-class Status:
-    elapsed_s: float
-    frames: dict[str, int]
-    rates_hz: dict[str, float]
-    dropped: dict[str, int]
-    live_drops: int
-    messages: int
-    flushed_messages: int  # messages in chunks already on disk
-    mb_written: float
-    mb_per_s: float
-    free_mb: float
-    queue: int
-    files: int
-    held_back: int = 0  # frames not published: the live tracker had RecorderConfig.publish_window in hand
-
-
-@dataclass
-class RecordResult:
-    paths: list[Path] = field(default_factory=list)
-    messages: int = 0
-    bytes: int = 0
-    streams: dict[str, StreamStats] = field(default_factory=dict)
-    stop_reason: str = ""
-    wall_s: float = 0.0
-    first_stamp_ns: int = 0
-    last_stamp_ns: int = 0
-    held_back: int = 0  # RGB-D frames recorded but not published (RecorderConfig.publish_window)
-
-    @property
-    def dropped(self) -> int:
-        return sum(s.dropped for s in self.streams.values())
-
-
-@dataclass(frozen=True)
-class Encoding:
-    color_codec: str = "jpeg"  # raw | jpeg
-    jpeg_quality: int = 95
-    depth_codec: str = "raw"  # raw | png
-    png_level: int = 1
-
-
-@dataclass(frozen=True)
-class WriterParams:
-    """The writer's settings, built once from a validated RecorderConfig (`RecorderConfig.writer_params`)."""
-
-    compression: str  # MCAP chunk compression: none | lz4 | zstd
-    chunk_size_bytes: int
-    encoding: Encoding
-    split_size_bytes: int  # 0: no size split
-    split_duration_ns: int  # 0: no time split
-    queue_size: int  # captures waiting for the writer
-    block_when_full: bool  # wait instead of dropping (a source that can wait)
-    encode_threads: int
-    min_free_bytes: int  # stop cleanly when the disk has less free
-    frame_prefix: str  # topic prefix of the frames (camera/...)
-
-
-def output_paths(out: Path, *, split: bool, overwrite: bool) -> Callable[[int], Path]:
-    """The file name for part i; refuses to overwrite an existing recording unless asked."""
-    out = Path(out)
-    if out.is_dir():
-        raise RecorderError(f"{out} is a directory; give a file name like {out / 'recording.mcap'}")
-    stem = out.name.removesuffix(".mcap")
-
-    def part(i: int) -> Path:
-        return out.with_name(f"{stem}_{i:04d}.mcap") if split else out
-
-    existing = sorted(out.parent.glob(f"{stem}_[0-9][0-9][0-9][0-9].mcap")) if split else \
-        ([out] if out.exists() else [])
-    if existing:
-        if not overwrite:
-            raise RecorderError(f"{existing[0]} exists; pass --overwrite to replace it")
-        for p in existing:
-            p.unlink()
-    return part
-
-
-class LiveSink:
-    """A consumer of written frames on its own thread (Zenoh publishing, Rerun logging), behind a
-    small bounded queue: a slow consumer loses frames here, counted, and never stalls the file."""
-
-    def __init__(self, name: str, fn: Sink, *, size: int, on_close: Callable[[], None] | None = None) -> None:
-        self.name = name
-        self.fn = fn
-        self._on_close = on_close
-        self._q: queue.Queue[tuple[Capture, list[Encoded]] | None] = queue.Queue(maxsize=size)
-        self.dropped: dict[str, int] = {}
-        self.error: Exception | None = None
-        self._closed = False
-        self._thread = threading.Thread(target=self._run, name=f"recorder-{name}", daemon=True)
-        self._thread.start()
-
-    def offer(self, cap: Capture, msgs: list[Encoded]) -> None:
-        if self.error is not None:
-            return
-        try:
-            self._q.put_nowait((cap, msgs))
-        except queue.Full:
-            for s in cap.streams():
-                self.dropped[s] = self.dropped.get(s, 0) + 1
-
-    def _run(self) -> None:
-        while (job := self._q.get()) is not None:
-            if self.error is None:
-                try:
-                    self.fn(*job)
-                except Exception as exc:  # noqa: BLE001 - reported by the recorder, file goes on
-                    self.error = exc
-
-    def close(self) -> None:
-        if self._closed:
-            return
-        self._closed = True
-        self._q.put(None)
-        self._thread.join()
-        if self._on_close is not None and self.error is None:
-            try:
-                self._on_close()
-            except Exception as exc:  # noqa: BLE001
-                self.error = exc
 
 
 class Recorder:
@@ -346,7 +186,7 @@ class Recorder:
 
     # --- status ------------------------------------------------------------------------------
 
-    def status(self) -> Status:
+    def status(self) -> RecorderStatus:
         """Counters since the start, rates since the previous call."""
         now = time.monotonic()
         frames = {s: st.frames for s, st in self.stats.items()}
@@ -355,7 +195,7 @@ class Recorder:
         total = self._bytes_written()
         self._last_status = (now, frames, total)
         w = self._writer
-        return Status(
+        return RecorderStatus(
             elapsed_s=now - self._t0, frames=frames,
             rates_hz={s: (frames[s] - f_prev.get(s, 0)) / dt for s in frames},
             dropped={s: st.dropped for s, st in self.stats.items()},
@@ -575,22 +415,3 @@ class Recorder:
         self._closed_bytes += w.size_bytes
         self.result.bytes = self._closed_bytes
         return err
-
-
-def format_status(s: Status) -> str:
-    """One line: frames and rate per stream, drops, write rate, free disk."""
-    parts = [f"{s.elapsed_s:6.1f} s"]
-    for name in STREAMS:
-        if s.frames.get(name) or s.dropped.get(name):
-            drop = f" -{s.dropped[name]}" if s.dropped.get(name) else ""
-            parts.append(f"{name} {s.frames[name]} ({s.rates_hz[name]:.0f} Hz){drop}")
-    drops = sum(s.dropped.values())
-    parts.append(f"dropped {drops}" + (f" +{s.live_drops} live" if s.live_drops else ""))
-    if s.held_back:
-        parts.append(f"held back {s.held_back} (tracker busy)")
-    parts.append(f"{s.mb_per_s:5.1f} MB/s, {s.mb_written:.0f} MB")
-    parts.append(f"{s.free_mb / 1e3:.1f} GB free")
-    if s.files > 1:
-        parts.append(f"file {s.files}")
-    parts.append(f"msgs {s.messages} ({s.flushed_messages} on disk)")
-    return " | ".join(parts)

@@ -106,7 +106,7 @@ def overrides(args: argparse.Namespace) -> list[str]:
 
 
 def _status_printer() -> Callable[[Any], None]:
-    from octolog.recorder.record import format_status
+    from octolog.recorder.recording import format_status
 
     tty = sys.stderr.isatty()
 

@@ -25,7 +25,7 @@ from octolog.recorder import node
 from octolog.recorder.capture import Capture, CaptureProfile
 from octolog.recorder.config import RecorderConfig, SoftwareConfig, make_recorder
 from octolog.recorder.realsense_camera import RealSenseBackend
-from octolog.recorder.record import JPEG_FORMAT, PNG_FORMAT, output_paths
+from octolog.recorder.recording import JPEG_FORMAT, PNG_FORMAT, output_paths
 from octolog.recorder.recover import recover
 from octolog.recorder.software_d455 import SoftwareDeviceBackend, SyntheticPattern
 from octolog.schemas import codec, imagecodec, rgbdmsgs, sensormsgs, wirecompression
