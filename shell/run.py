@@ -9,17 +9,17 @@ signal (not asked to stop) is started again and rebuilds the same map from the t
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
-import shutil
-import signal
 import socket
 import subprocess
 import sys
 import threading
 import time
 import tomllib
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -28,7 +28,7 @@ from octolog import __version__
 from octolog.kit import metrics
 from octolog.kit.bus import Bus, BusConfig, wait_interruptibly
 from octolog.kit.config import load, to_dict, to_toml
-from octolog.kit.errors import ConfigError, InputError, OctologError, StageError, StageExited, StageKilled
+from octolog.kit.errors import ConfigError, InputError, OctologError, StageError
 from octolog.kit.mcaplog import message_counts, read_wire, summarize
 from octolog.kit.viz import parse_spec
 from octolog.mapper.config import MapperConfig
@@ -39,16 +39,12 @@ from octolog.schemas import codec
 from octolog.schemas import topics as T
 from octolog.schemas.topics import RGBD, RGBD_COMPRESSED, TRACKING_STATUS
 from octolog.shell import errorfile
+from octolog.shell.children import StageProcesses
 from octolog.shell.sessiondir import INCOMPLETE, incomplete_reason, prepare_out
 from octolog.shell.versions import versions
 from octolog.tracker.config import TrackerConfig, for_source
 
 STAGES = ("log", "mapper", "tracker", "replay")
-# A killed mapper is started again: it rebuilds its map from the tracker's keyframe history (the
-# tracker keeps every keyframe until the mapper is done; see octolog/bus.py). The other stages'
-# outputs depend on what they already sent, so their death ends the session.
-RESTARTABLE = ("mapper",)
-MAX_RESTARTS = 3
 
 
 NOT_ALIGNED = "not gravity-aligned: no accelerometer, the first camera is assumed level (set mapper.grid_up)"
@@ -75,31 +71,6 @@ def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
-
-
-# Stages that yield the CPU to the others (`nice` levels): the mapper works on keyframes from a deep
-# queue, so when the cores are short it is the one to wait, not the tracker (whose frames are live)
-# nor the camera or the session log. Its outputs do not depend on when it runs.
-NICENESS = {"mapper": 10}
-
-
-def _niced(name: str) -> list[str]:
-    """The command prefix that starts stage `name` at its NICENESS (`nice -n N`), race-free: every
-    thread the stage starts inherits it."""
-    n = NICENESS.get(name, 0)
-    return ["nice", "-n", str(n)] if n and shutil.which("nice") else []
-
-
-def _nice_session(name: str, pid: int) -> None:
-    """The same level for the stage's session: each stage leads a session of its own, and where Linux
-    groups the scheduling by session (autogroup, the desktop default) a process's nice level only
-    weighs inside its group, so the group's level is what yields the cores to the other stages."""
-    n = NICENESS.get(name, 0)
-    if n:
-        try:
-            Path(f"/proc/{pid}/autogroup").write_text(str(n))
-        except OSError:
-            pass  # no autogroup (kernel without it, or not Linux): nice alone does it
 
 
 # Live sources: a D455 (pyrealsense2) or the simulated one (its software device, paced at the
@@ -169,122 +140,6 @@ def _resolve_configs(source: str, config: str | None, per: dict[str, list[str]])
     return cfgs
 
 
-class _Children:
-    """The stage processes; stops them all on the first failure or on exit."""
-
-    def __init__(self, logs: Path) -> None:
-        self.logs = logs
-        self.procs: dict[str, subprocess.Popen] = {}
-        self.argv: dict[str, tuple[list[str], bool]] = {}
-        self.restarts: dict[str, int] = {}
-        self.relays: list[threading.Thread] = []
-        self.line_open = False  # a relayed stderr (the replay's progress line) ended without a newline
-
-    def start(self, name: str, argv: list[str], *, show_stderr: bool = False, append: bool = False) -> None:
-        """Start stage `name` as `python -m octolog ARGV`, its output in logs/NAME.log."""
-        log = open(self.logs / f"{name}.log", "ab" if append else "wb")  # noqa: SIM115 - owned by the child
-        errorfile.reserve(self.error_file(name))
-        env = {**os.environ, "PYTHONHASHSEED": "0", "PYTHONUNBUFFERED": "1", errorfile.ENV: str(self.error_file(name)),
-               errorfile.REPORT_ENV: str(self.logs / f"{name}.report.json")}
-        self.argv[name] = (argv, show_stderr)
-        # OCTOLOG_PROFILE=STAGE[,STAGE]: run those stages under cProfile, into logs/STAGE.prof
-        profile = name in os.environ.get("OCTOLOG_PROFILE", "").split(",")
-        prof = ["-m", "cProfile", "-o", str(self.logs / f"{name}.prof")] if profile else []
-        self.procs[name] = proc = subprocess.Popen(
-            [*_niced(name), sys.executable, *prof, "-m", "octolog", *argv], stdout=log,
-            stderr=subprocess.PIPE if show_stderr else log, env=env, start_new_session=True)
-        _nice_session(name, proc.pid)
-        if show_stderr:
-            relay = threading.Thread(target=self._relay, args=(proc.stderr,), daemon=True)
-            relay.start()
-            self.relays.append(relay)
-
-    def _relay(self, pipe: Any) -> None:
-        """Copy a stage's stderr to ours, remembering whether its last line is still open."""
-        out = sys.stderr.buffer
-        while chunk := pipe.read1(65536):
-            try:
-                out.write(chunk)
-                out.flush()
-            except (OSError, ValueError):
-                pass  # our stderr is gone: keep draining, so the stage never blocks on a full pipe
-            self.line_open = not chunk.endswith(b"\n")
-        pipe.close()
-
-    def end_line(self) -> None:
-        """Once the stages are gone: end a relayed progress line, so an error line starts on its own."""
-        for relay in self.relays:
-            relay.join(timeout=5)
-        if self.line_open:
-            sys.stderr.write("\n")
-            sys.stderr.flush()
-            self.line_open = False
-
-    def restart(self, name: str, code: int) -> bool:
-        """Start a restartable stage again after a kill (not a stop request); False if it may not."""
-        if name not in RESTARTABLE or code >= 0 or -code in (signal.SIGTERM, signal.SIGINT) or \
-                self.restarts.get(name, 0) >= MAX_RESTARTS:
-            return False
-        self.restarts[name] = self.restarts.get(name, 0) + 1
-        with open(self.logs / f"{name}.log", "a") as log:
-            log.write(f"octolog run: the {name} stage was killed by signal {-code}; starting it again\n")
-        argv, show_stderr = self.argv[name]
-        self.start(name, argv, show_stderr=show_stderr, append=True)
-        return True
-
-    def wait_all(self) -> None:
-        """Wait until every stage has exited; restart a killed mapper; raise StageFailed for a failed stage."""
-        pending = dict(self.procs)
-        while pending:
-            for name, proc in list(pending.items()):
-                code = proc.poll()
-                if code is None:
-                    continue
-                del pending[name]
-                if code != 0 and self.restart(name, code):
-                    pending[name] = self.procs[name]
-                    continue
-                if code != 0:
-                    self.stop_all()
-                    log = f"{self.logs / name}.log"
-                    if code < 0:
-                        raise StageKilled(name, -code, self.reason(name), log)
-                    raise StageExited(name, code, self.reason(name), log)
-            time.sleep(0.1)
-        for other, proc in self.procs.items():
-            rc = proc.returncode
-            if other != name and rc not in (None, 0) and errorfile.read(self.error_file(other)) is not None:
-                record = errorfile.read(self.error_file(other))
-                if record is not None and record.type != "KeyboardInterrupt":
-                    return other, rc
-        return name, code
-
-    def error_file(self, name: str) -> Path:
-        """Where stage `name` records its known error (shell/errorfile.py)."""
-        return self.logs / f"{name}.error.json"
-
-    def reason(self, name: str) -> str:
-        """Why stage `name` failed: the error it recorded, else the last line of its log."""
-        record = errorfile.read(self.error_file(name))
-        if record is not None:
-            return record.message
-        lines = [ln for ln in (self.logs / f"{name}.log").read_text(errors="replace").splitlines() if ln.strip()]
-        return (lines or ["(no output)"])[-1].strip()
-
-    def stop_all(self) -> None:
-        """Stop every stage still running: SIGTERM to its process group, SIGKILL after 5 s."""
-        for proc in self.procs.values():
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGTERM)
-        deadline = time.monotonic() + 5
-        for proc in self.procs.values():
-            try:
-                proc.wait(max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait()
-
-
 def run_session(*, source: str, out: Path, config: str | None = None, overrides: list[str] | None = None,
                 rerun: str = "save", recording_id: str, quiet: bool = False,
                 overwrite: bool = False, duration_s: float = 0.0, router: str | None = None,
@@ -319,8 +174,8 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     marker.write_text(f"octolog run has not finished writing this session (started {started}, pid {os.getpid()}); "
                       f"if no run is going on, it failed or was killed\n")
     try:
-        summary = _run(source, out, src, cfgs, feed_tracker, rerun, recording_id, quiet, duration_s, router,
-                       ros2_domain, map_frame)
+        summary = _run(SessionPlan(source, out, src, cfgs, feed_tracker, rerun, recording_id, quiet, duration_s,
+                                   router, ros2_domain, map_frame))
     except BaseException as exc:
         what = str(exc) if isinstance(exc, OctologError) else \
             ("interrupted" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}")
@@ -333,77 +188,115 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     return summary
 
 
-def _run(source: str, out: Path, src: Source | LiveSource, cfgs: dict[str, Any], feed_tracker: bool, rerun: str,
-         recording_id: str, quiet: bool, duration_s: float = 0.0, router: str | None = None,
-         ros2_domain: int = -1, map_frame: dict[str, str] | None = None) -> SessionSummary:
-    if rerun == "save":
-        rerun = f"save:{out / 'rerun'}"
-    parse_spec(rerun)
-    gt = src.groundtruth_tum()
+@dataclass(frozen=True)
+class SessionPlan:
+    """What one `octolog run` session is, resolved before any process starts."""
+
+    source: str
+    out: Path
+    src: Source | LiveSource
+    cfgs: dict[str, Any]  # stage -> its validated config
+    feed_tracker: bool  # a log player stands in for the tracker
+    rerun: str
+    recording_id: str
+    quiet: bool
+    duration_s: float = 0.0
+    router: str | None = None  # join this router; None: host one on a free loopback port
+    ros2_domain: int = -1
+    map_frame: dict[str, str] | None = None  # where up came from (see _map_frame)
+
+    @property
+    def live(self) -> bool:
+        return isinstance(self.src, LiveSource)
+
+
+def _write_session_files(plan: SessionPlan) -> Path:
+    """groundtruth.txt (when the source has one), config.toml and metadata.json; config.toml's path."""
+    out, cfgs = plan.out, plan.cfgs
+    gt = plan.src.groundtruth_tum()
     if gt:
         (out / "groundtruth.txt").write_text(gt)
     config_path = out / "config.toml"
     config_path.write_text(to_toml({k: to_dict(v) for k, v in cfgs.items()}))
-    metadata = {"octolog": {"version": __version__, "source": source, "recording_id": recording_id},
+    metadata = {"octolog": {"version": __version__, "source": plan.source, "recording_id": plan.recording_id},
                 "config": {k: json.dumps(to_dict(v), sort_keys=True) for k, v in cfgs.items()}}
     if gt:
         metadata["groundtruth"] = {"tum": gt}
-    if map_frame:  # where up came from (see _map_frame)
-        metadata["gravity"] = map_frame
+    if plan.map_frame:
+        metadata["gravity"] = plan.map_frame
     (out / "metadata.json").write_text(json.dumps(metadata, indent=2, sort_keys=True))
+    return config_path
 
-    endpoint = router or f"tcp/127.0.0.1:{_free_port()}"
-    bus = ["--mode", "peer", "--connect", endpoint, "--no-multicast", "--ros2-domain", str(ros2_domain)]
-    viz = ["--rerun", rerun, "--recording-id", recording_id]
-    conf = ["--config", str(config_path)]
-    stop_router = threading.Event()
-    router_ready = threading.Event()
-    router_error: list[BaseException] = []
 
-    def host_router() -> None:
-        if router is not None:  # the stages join the one given
-            router_ready.set()
-            stop_router.wait()
-            return
+@contextlib.contextmanager
+def _router(given: str | None) -> Iterator[str]:
+    """The endpoint the stages meet at: `given`, or a Zenoh router this process hosts on a free
+    loopback port (on a thread, until the session ends)."""
+    if given is not None:
+        yield given
+        return
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    stop, ready = threading.Event(), threading.Event()
+    error: list[BaseException] = []
+
+    def host() -> None:
         try:
             with Bus(BusConfig(mode="router", listen=(endpoint,), multicast_scouting=False), "router"):
-                router_ready.set()
-                stop_router.wait()
+                ready.set()
+                stop.wait()
         except BaseException as exc:  # reported by the main thread
-            router_error.append(exc)
-            router_ready.set()
+            error.append(exc)
+            ready.set()
 
-    thread = threading.Thread(target=host_router, daemon=True)
+    thread = threading.Thread(target=host, daemon=True)
     thread.start()
-    wait_interruptibly(router_ready)
-    if router_error:
-        raise router_error[0]
-    children = _Children(out / "logs")
-    t0 = time.monotonic()
+    wait_interruptibly(ready)
+    if error:
+        raise error[0]
     try:
-        live = isinstance(src, LiveSource)
-        producers = "tracker,mapper" if feed_tracker else ("recorder" if live else "replay") + ",tracker,mapper"
-        children.start("log", ["log", *bus, "--out", str(out / "session.mcap"), "--metadata", str(out / "metadata.json"),
-                               "--compression", "lz4", "--stages", producers])
-        children.start("mapper", ["map", *bus, *viz, *conf, "--out", str(out)])
-        if not feed_tracker:
-            children.start("tracker", ["track", *bus, *viz, *conf, "--trajectory", str(out / "trajectory.txt")])
-        quiet_flag = [] if not quiet else ["--quiet"]
-        if live:  # the camera in full to recording.mcap; its images reach Rerun through the tracker
-            children.start("recorder", ["record", str(out / "recording.mcap"), "--publish", *bus, "--rerun", "off",
-                                        *conf, "--duration", str(duration_s), *quiet_flag], show_stderr=not quiet)
-        else:
-            children.start("replay", ["replay", *bus, *viz, *conf, *quiet_flag], show_stderr=not quiet)
-        children.wait_all()
+        yield endpoint
     finally:
-        children.stop_all()
-        children.end_line()
-        stop_router.set()
+        stop.set()
         # let the router's session close before the interpreter exits: a daemon thread still inside
         # Zenoh at exit aborts the process
         thread.join(timeout=10)
-    wall = time.monotonic() - t0
-    return _summarize(out, source, src, wall, recording_id, loop=cfgs["replay"].loop)
+
+
+def _start_stages(children: StageProcesses, plan: SessionPlan, endpoint: str, rerun: str, config_path: Path) -> None:
+    """The session logger, mapper, tracker and the frames' source (replay, or the recorder live)."""
+    out = plan.out
+    bus = ["--mode", "peer", "--connect", endpoint, "--no-multicast", "--ros2-domain", str(plan.ros2_domain)]
+    viz = ["--rerun", rerun, "--recording-id", plan.recording_id]
+    conf = ["--config", str(config_path)]
+    producers = "tracker,mapper" if plan.feed_tracker else ("recorder" if plan.live else "replay") + ",tracker,mapper"
+    children.start("log", ["log", *bus, "--out", str(out / "session.mcap"), "--metadata", str(out / "metadata.json"),
+                           "--compression", "lz4", "--stages", producers])
+    children.start("mapper", ["map", *bus, *viz, *conf, "--out", str(out)])
+    if not plan.feed_tracker:
+        children.start("tracker", ["track", *bus, *viz, *conf, "--trajectory", str(out / "trajectory.txt")])
+    quiet_flag = [] if not plan.quiet else ["--quiet"]
+    if plan.live:  # the camera in full to recording.mcap; its images reach Rerun through the tracker
+        children.start("recorder", ["record", str(out / "recording.mcap"), "--publish", *bus, "--rerun", "off",
+                                    *conf, "--duration", str(plan.duration_s), *quiet_flag], show_stderr=not plan.quiet)
+    else:
+        children.start("replay", ["replay", *bus, *viz, *conf, *quiet_flag], show_stderr=not plan.quiet)
+
+
+def _run(plan: SessionPlan) -> SessionSummary:
+    rerun = f"save:{plan.out / 'rerun'}" if plan.rerun == "save" else plan.rerun
+    parse_spec(rerun)
+    config_path = _write_session_files(plan)
+    with _router(plan.router) as endpoint:
+        children = StageProcesses(plan.out / "logs")
+        t0 = time.monotonic()
+        try:
+            _start_stages(children, plan, endpoint, rerun, config_path)
+            children.wait_all()
+        finally:
+            children.stop_all()
+            children.end_line()
+        wall = time.monotonic() - t0
+    return _summarize(plan.out, plan.source, plan.src, wall, plan.recording_id, loop=plan.cfgs["replay"].loop)
 
 
 def _keep_live_up(out: Path, found: dict) -> None:

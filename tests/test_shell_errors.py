@@ -6,7 +6,7 @@ import pytest
 
 from octolog.kit.errors import InputError, StageExited, StageFailed, StageKilled
 from octolog.shell import cli, errorfile
-from octolog.shell.run import _Children
+from octolog.shell.children import StageProcesses
 
 
 def test_a_known_error_is_recorded_for_the_orchestrator(tmp_path, monkeypatch, capsys):
@@ -28,7 +28,7 @@ def test_no_record_without_the_variable_or_for_a_success(tmp_path, monkeypatch):
 
 
 def test_stage_failures_are_typed_and_name_the_stage(tmp_path):
-    children = _Children(tmp_path)
+    children = StageProcesses(tmp_path)
     (tmp_path / "tracker.log").write_text("frame 10\nTraceback (most recent call last):\nValueError: boom\n\n")
     assert children.reason("tracker") == "ValueError: boom"  # no record: the log's last line
     children.error_file("tracker").write_text('{"type": "MapError", "message": "cannot write map.bt"}')

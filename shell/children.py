@@ -1,0 +1,164 @@
+"""The stage processes of an `octolog run`: each started as `python -m octolog STAGE`, its output in
+logs/STAGE.log, watched until all end; the first failure stops the others, a killed mapper starts again."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from octolog.kit.errors import StageExited, StageKilled
+from octolog.shell import errorfile
+
+# A killed mapper is started again: it rebuilds its map from the tracker's keyframe history (the
+# tracker keeps every keyframe until the mapper is done; see octolog/bus.py). The other stages'
+# outputs depend on what they already sent, so their death ends the session.
+RESTARTABLE = ("mapper",)
+MAX_RESTARTS = 3
+
+
+# Stages that yield the CPU to the others (`nice` levels): the mapper works on keyframes from a deep
+# queue, so when the cores are short it is the one to wait, not the tracker (whose frames are live)
+# nor the camera or the session log. Its outputs do not depend on when it runs.
+NICENESS = {"mapper": 10}
+
+
+def _niced(name: str) -> list[str]:
+    """The command prefix that starts stage `name` at its NICENESS (`nice -n N`), race-free: every
+    thread the stage starts inherits it."""
+    n = NICENESS.get(name, 0)
+    return ["nice", "-n", str(n)] if n and shutil.which("nice") else []
+
+
+def _nice_session(name: str, pid: int) -> None:
+    """The same level for the stage's session: each stage leads a session of its own, and where Linux
+    groups the scheduling by session (autogroup, the desktop default) a process's nice level only
+    weighs inside its group, so the group's level is what yields the cores to the other stages."""
+    n = NICENESS.get(name, 0)
+    if n:
+        try:
+            Path(f"/proc/{pid}/autogroup").write_text(str(n))
+        except OSError:
+            pass  # no autogroup (kernel without it, or not Linux): nice alone does it
+
+
+class StageProcesses:
+    """The stage processes; stops them all on the first failure or on exit."""
+
+    def __init__(self, logs: Path) -> None:
+        self.logs = logs
+        self.procs: dict[str, subprocess.Popen] = {}
+        self.argv: dict[str, tuple[list[str], bool]] = {}
+        self.restarts: dict[str, int] = {}
+        self.relays: list[threading.Thread] = []
+        self.line_open = False  # a relayed stderr (the replay's progress line) ended without a newline
+
+    def start(self, name: str, argv: list[str], *, show_stderr: bool = False, append: bool = False) -> None:
+        """Start stage `name` as `python -m octolog ARGV`, its output in logs/NAME.log."""
+        log = open(self.logs / f"{name}.log", "ab" if append else "wb")  # noqa: SIM115 - owned by the child
+        errorfile.reserve(self.error_file(name))
+        env = {**os.environ, "PYTHONHASHSEED": "0", "PYTHONUNBUFFERED": "1", errorfile.ENV: str(self.error_file(name)),
+               errorfile.REPORT_ENV: str(self.logs / f"{name}.report.json")}
+        self.argv[name] = (argv, show_stderr)
+        # OCTOLOG_PROFILE=STAGE[,STAGE]: run those stages under cProfile, into logs/STAGE.prof
+        profile = name in os.environ.get("OCTOLOG_PROFILE", "").split(",")
+        prof = ["-m", "cProfile", "-o", str(self.logs / f"{name}.prof")] if profile else []
+        self.procs[name] = proc = subprocess.Popen(
+            [*_niced(name), sys.executable, *prof, "-m", "octolog", *argv], stdout=log,
+            stderr=subprocess.PIPE if show_stderr else log, env=env, start_new_session=True)
+        _nice_session(name, proc.pid)
+        if show_stderr:
+            relay = threading.Thread(target=self._relay, args=(proc.stderr,), daemon=True)
+            relay.start()
+            self.relays.append(relay)
+
+    def _relay(self, pipe: Any) -> None:
+        """Copy a stage's stderr to ours, remembering whether its last line is still open."""
+        out = sys.stderr.buffer
+        while chunk := pipe.read1(65536):
+            try:
+                out.write(chunk)
+                out.flush()
+            except (OSError, ValueError):
+                pass  # our stderr is gone: keep draining, so the stage never blocks on a full pipe
+            self.line_open = not chunk.endswith(b"\n")
+        pipe.close()
+
+    def end_line(self) -> None:
+        """Once the stages are gone: end a relayed progress line, so an error line starts on its own."""
+        for relay in self.relays:
+            relay.join(timeout=5)
+        if self.line_open:
+            sys.stderr.write("\n")
+            sys.stderr.flush()
+            self.line_open = False
+
+    def restart(self, name: str, code: int) -> bool:
+        """Start a restartable stage again after a kill (not a stop request); False if it may not."""
+        if name not in RESTARTABLE or code >= 0 or -code in (signal.SIGTERM, signal.SIGINT) or \
+                self.restarts.get(name, 0) >= MAX_RESTARTS:
+            return False
+        self.restarts[name] = self.restarts.get(name, 0) + 1
+        with open(self.logs / f"{name}.log", "a") as log:
+            log.write(f"octolog run: the {name} stage was killed by signal {-code}; starting it again\n")
+        argv, show_stderr = self.argv[name]
+        self.start(name, argv, show_stderr=show_stderr, append=True)
+        return True
+
+    def wait_all(self) -> None:
+        """Wait until every stage has exited; restart a killed mapper; raise StageFailed for a failed stage."""
+        pending = dict(self.procs)
+        while pending:
+            for name, proc in list(pending.items()):
+                code = proc.poll()
+                if code is None:
+                    continue
+                del pending[name]
+                if code != 0 and self.restart(name, code):
+                    pending[name] = self.procs[name]
+                    continue
+                if code != 0:
+                    self.stop_all()
+                    log = f"{self.logs / name}.log"
+                    if code < 0:
+                        raise StageKilled(name, -code, self.reason(name), log)
+                    raise StageExited(name, code, self.reason(name), log)
+            time.sleep(0.1)
+        for other, proc in self.procs.items():
+            rc = proc.returncode
+            if other != name and rc not in (None, 0) and errorfile.read(self.error_file(other)) is not None:
+                record = errorfile.read(self.error_file(other))
+                if record is not None and record.type != "KeyboardInterrupt":
+                    return other, rc
+        return name, code
+
+    def error_file(self, name: str) -> Path:
+        """Where stage `name` records its known error (shell/errorfile.py)."""
+        return self.logs / f"{name}.error.json"
+
+    def reason(self, name: str) -> str:
+        """Why stage `name` failed: the error it recorded, else the last line of its log."""
+        record = errorfile.read(self.error_file(name))
+        if record is not None:
+            return record.message
+        lines = [ln for ln in (self.logs / f"{name}.log").read_text(errors="replace").splitlines() if ln.strip()]
+        return (lines or ["(no output)"])[-1].strip()
+
+    def stop_all(self) -> None:
+        """Stop every stage still running: SIGTERM to its process group, SIGKILL after 5 s."""
+        for proc in self.procs.values():
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGTERM)
+        deadline = time.monotonic() + 5
+        for proc in self.procs.values():
+            try:
+                proc.wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
