@@ -15,7 +15,7 @@ import os
 import signal
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from octolog.kit.config import load
 from octolog.kit.errors import ConfigError, DiskFull, OctologError
@@ -235,29 +235,30 @@ def cmd_router(args: argparse.Namespace) -> int:
 # --- parser ------------------------------------------------------------------------------------
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The `octolog` parser with every subcommand."""
-    parser = argparse.ArgumentParser(prog="octolog", description="RGB-D record/replay and mapping over Zenoh.")
-    sub = parser.add_subparsers(dest="command", required=True)
+def _stage_parser(sub: Any, name: str, help_: str) -> argparse.ArgumentParser:
+    """A pipeline stage's subcommand: config, transport and viewer flags."""
+    p = sub.add_parser(name, help=help_, description=help_)
+    add_config_arguments(p)
+    add_bus_arguments(p)
+    add_viz_arguments(p)
+    return p
 
-    def stage(name: str, help_: str) -> argparse.ArgumentParser:
-        p = sub.add_parser(name, help=help_, description=help_)
-        add_config_arguments(p)
-        add_bus_arguments(p)
-        add_viz_arguments(p)
-        return p
 
-    def session(p: argparse.ArgumentParser) -> None:
-        add_config_arguments(p)
-        p.add_argument("--rerun", default="save", metavar="SPEC",
-                       help="save (default: one .rrd per stage in OUT/rerun), off, save:DIR or connect[:URL]")
-        p.add_argument("--recording-id", default=None, help="Rerun recording id (default: a new one)")
-        p.add_argument("--quiet", action="store_true", help="no progress line")
-        p.add_argument("--overwrite", action="store_true",
-                       help="replace a session already in --out (its files are removed first)")
-        p.add_argument("--ros2-domain", type=int, default=-1, metavar="ID",
-                       help="the stages also publish standard-typed topics as ROS 2's rmw_zenoh does (default off)")
+def _session_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of a whole-pipeline session (`run`, `demo`)."""
+    add_config_arguments(p)
+    p.add_argument("--rerun", default="save", metavar="SPEC",
+                   help="save (default: one .rrd per stage in OUT/rerun), off, save:DIR or connect[:URL]")
+    p.add_argument("--recording-id", default=None, help="Rerun recording id (default: a new one)")
+    p.add_argument("--quiet", action="store_true", help="no progress line")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace a session already in --out (its files are removed first)")
+    p.add_argument("--ros2-domain", type=int, default=-1, metavar="ID",
+                   help="the stages also publish standard-typed topics as ROS 2's rmw_zenoh does (default off)")
 
+
+def _add_session_commands(sub: Any) -> None:
+    """`run` and `demo`: the whole pipeline on one machine."""
     p = sub.add_parser("run", help="whole pipeline as separate processes on one machine")
     p.add_argument("--source", required=True,
                    help="tum:PATH, mcap:PATH, synthetic[:N[:tilt=DEG]], or live: d455 (a camera) or d455:software (simulated)")
@@ -267,16 +268,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--router", metavar="ENDPOINT",
                    help="the stages join this Zenoh router (e.g. tcp/127.0.0.1:7447) instead of one hosted on a "
                         "free loopback port: to watch or probe the session's topics from another process")
-    session(p)
+    _session_arguments(p)
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("demo", help="the pipeline on the built-in synthetic room")
     p.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     p.add_argument("--frames", type=int, default=150, help="synthetic frames (default 150, 5 s)")
-    session(p)
+    _session_arguments(p)
     p.set_defaults(func=cmd_demo)
 
-    p = stage("replay", "publish a source's frames on the bus, or re-run stages of a recorded SESSION")
+
+def _add_stage_commands(sub: Any) -> None:
+    """`replay`, `track`, `map`, `log`: one stage each, on any machine of a bus."""
+    p = _stage_parser(sub, "replay", "publish a source's frames on the bus, or re-run stages of a recorded SESSION")
     p.add_argument("session", nargs="?", help="a session folder (made by octolog run): re-run stages from its log")
     p.add_argument("--source", help="tum:PATH, mcap:PATH or synthetic[:N[:tilt=DEG]]")
     p.add_argument("--stages", default="tracker,mapper", help="SESSION: stages to run fresh (tracker,mapper or mapper)")
@@ -287,11 +291,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_replay)
 
-    p = stage("track", "run the tracker on frames from the bus")
+    p = _stage_parser(sub, "track", "run the tracker on frames from the bus")
     p.add_argument("--trajectory", help="write the TUM-format trajectory here at the end")
     p.set_defaults(func=cmd_track)
 
-    p = stage("map", "run the mapper on keyframes from the bus")
+    p = _stage_parser(sub, "map", "run the mapper on keyframes from the bus")
     p.add_argument("--out", default=".", help="folder for map.bt, cloud.ply, map_stats.json")
     p.set_defaults(func=cmd_map)
 
@@ -304,13 +308,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="log the camera frames (default); --no-frames on a machine across a link from the camera "
                         "keeps them on the camera's side")
     p.add_argument("--compression", choices=("none", "lz4", "zstd"), default="lz4",
-                   help="chunk compression (default lz4: 3x zstd's write speed, see docs/results.md)")
+                   help="chunk compression (default lz4: the fastest to write)")
     p.add_argument("--metadata", metavar="JSON", help="file of {name: {key: value}} metadata records")
     p.add_argument("--stages", default="replay,tracker,mapper", help="producers whose end messages end the log")
     p.set_defaults(func=cmd_log)
 
-    record.add_parsers(sub)
 
+def _add_file_commands(sub: Any) -> None:
+    """`import`, `eval`, `view`, `info`: work on files."""
     p = sub.add_parser("import", help="a TUM folder, RealSense .bag/.db3 or ROS bag → octolog MCAP")
     p.add_argument("source", help="TUM folder, .bag (ROS 1), .db3 or rosbag2 folder (ROS 2), .mcap")
     p.add_argument("output", help="the MCAP file to write")
@@ -337,6 +342,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("file")
     p.set_defaults(func=cmd_info)
 
+
+def _add_vocab_command(sub: Any) -> None:
+    """`vocab build`: ORB vocabularies for the ORB-SLAM3 backend."""
     p = sub.add_parser("vocab", help="ORB vocabularies for the ORB-SLAM3 tracker backend")
     vsub = p.add_subparsers(dest="vocab_command", required=True)
     v = vsub.add_parser("build", help="train a DBoW2 text vocabulary (ORBvoc.txt format) from images",
@@ -354,12 +362,27 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--quiet", action="store_true", help="no progress line")
     v.set_defaults(func=cmd_vocab)
 
+
+def _add_router_command(sub: Any) -> None:
+    """`router`: a Zenoh router hosted in Python."""
     p = sub.add_parser("router", help="host a Zenoh router (no zenohd needed)")
     p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT")
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                    help="another router to join (a robot's own router joining the server's)")
     p.add_argument("--zenoh-config", metavar="FILE")
     p.set_defaults(func=cmd_router)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The `octolog` parser with every subcommand (in the order `octolog --help` lists them)."""
+    parser = argparse.ArgumentParser(prog="octolog", description="RGB-D record/replay and mapping over Zenoh.")
+    sub = parser.add_subparsers(dest="command", required=True)
+    _add_session_commands(sub)
+    _add_stage_commands(sub)
+    record.add_parsers(sub)
+    _add_file_commands(sub)
+    _add_vocab_command(sub)
+    _add_router_command(sub)
     return parser
 
 
