@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import queue
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Self
@@ -79,12 +81,59 @@ def run(cfg: TrackerConfig, bus_cfg: BusConfig, *, trajectory: Path | None = Non
     return result
 
 
+class _Outputs:
+    """What the tracker publishes: per frame its pose, status and TF, keyframes, loop corrections and
+    deferred back-end jobs; at the end the final poses, the trajectory and the end counts."""
+
+    def __init__(self, bus: Bus, cfg: TrackerConfig) -> None:
+        self.bus = bus
+        self.pose, self.status, self.tf = bus.publisher(POSE), bus.publisher(TRACKING_STATUS), bus.publisher(TF)
+        self.kf = KeyframeOut(bus, cfg.wire_compression)
+        self.kf_end = bus.publisher(KEYFRAME_END)
+        self.poses = bus.publisher(KEYFRAME_POSES)
+        self.deferred = bus.publisher(BACKEND_DEFERRED)
+
+    def untracked(self, msg: Any, state: TrackingState) -> None:
+        """A frame skipped or rejected: its status only."""
+        self.status.put(_status(msg.seq, codec.stamp_ns(msg.header), state, False, -1, 0, 0, 0.0))
+
+    def tracked(self, frame: RgbdFrame, res: TrackResult, tree: StaticTree, ms: float,
+                result: TrackerRunSummary) -> None:
+        self.pose.put(posemsgs.pose_stamped_msg(res.world_from_camera, frame.stamp_ns))
+        # world -> the camera tree's root (camera_link), so each frame keeps one parent (REP 105)
+        root, root_from_camera = tree.root_from(frame.frame_id)
+        world_from_root = res.world_from_camera @ invert(root_from_camera)
+        self.tf.put(posemsgs.tf_msg([("world", root, world_from_root)], frame.stamp_ns))
+        if res.corrected:  # a loop closed: the mapper moves those keyframes
+            self.poses.put(posemsgs.keyframe_poses_msg(res.corrected, frame.stamp_ns))
+        result.loops += res.loop is not None
+        result.relocalisations += res.relocalised
+        if res.is_keyframe:
+            self.kf.put(res.keyframe_id, res.world_from_camera, frame)
+            result.keyframes += 1
+        if res.backend_deferred:  # on record: a replay of this run defers at the same frame
+            self.deferred.put(codec.msgtype(BACKEND_DEFERRED.msgtype)(data=json.dumps(
+                {"seq": frame.seq, "keyframe_id": res.keyframe_id, "stamp_ns": frame.stamp_ns})))
+            result.backend_deferred += 1
+        self.status.put(_status(frame.seq, frame.stamp_ns, res.state, res.is_keyframe, res.keyframe_id,
+                                res.n_matches, res.n_inliers, ms))
+
+    def finish(self, odometry: Tracker, result: TrackerRunSummary) -> None:
+        # the back end's last word: every keyframe at its final pose, so the map matches the
+        # trajectory. Sent before the end messages, whose count for it the mapper waits for.
+        moved = odometry.finish()
+        if moved:
+            self.poses.put(posemsgs.keyframe_poses_msg(odometry.keyframe_poses(), result.stamps_ns[-1]))
+        # the whole trajectory at its final poses, for a log on another machine (the file is local)
+        stamps, poses = odometry.trajectory()
+        self.bus.publisher(TRAJECTORY).put(posemsgs.path_msg(stamps, poses))
+        self.kf_end.put(streammsgs.stream_end_msg(TRAJECTORY.name, 1))
+        self.kf_end.put(streammsgs.stream_end_msg(KEYFRAME_POSES.name, self.poses.count))
+        self.kf_end.put(streammsgs.stream_end_msg(self.kf.topic_name, self.kf.count))
+
+
 def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerRunSummary:
-    pub_pose, pub_status, pub_tf = bus.publisher(POSE), bus.publisher(TRACKING_STATUS), bus.publisher(TF)
-    pub_kf = KeyframeOut(bus, cfg.wire_compression)
-    pub_kf_end = bus.publisher(KEYFRAME_END)
-    pub_poses = bus.publisher(KEYFRAME_POSES)
-    pub_deferred = bus.publisher(BACKEND_DEFERRED)
+    out = _Outputs(bus, cfg)
     # frames come raw or compressed, whichever the source publishes; decoding is the same call
     warm_up()
     tree = StaticTree()  # the camera's own frames, from whoever knows the camera (recorder, replay)
@@ -112,68 +161,51 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
                 continue
             result.frames += 1
             if cfg.live and intake.behind(r):
-                # stay real-time: the newest waiting frame wins, the older ones are skipped, on record
-                while (newer := intake.newer_frame()) is not None:
-                    old = r.decode()
-                    pub_status.put(_status(old.seq, codec.stamp_ns(old.header), TrackingState.SKIPPED, False, -1, 0,
-                                           0, 0.0))
-                    result.skipped += 1
-                    result.frames += 1
-                    r, prep = newer
-            t0 = time.perf_counter()
-            msg, frame_or_error, prepared = intake.prepared(r, prep)
-            try:
-                if isinstance(frame_or_error, InputError):
-                    raise frame_or_error
-                frame = frame_or_error
-                res = odometry.track(frame, prepared)
-            except (InputError, TrackingError) as exc:
-                # an undecodable frame, or one that contradicts its camera (size, depth type, changed
-                # intrinsics), is consumed and reported LOST, never a crash
-                result.rejected += 1
-                result.problems.append(f"frame {msg.seq}: {exc}")
-                pub_status.put(_status(msg.seq, codec.stamp_ns(msg.header), TrackingState.LOST, False, -1, 0, 0, 0.0))
-                continue
-            if cfg.throttle_ms:
-                time.sleep(max(0.0, cfg.throttle_ms / 1e3 - (time.perf_counter() - t0)))
-            ms = (time.perf_counter() - t0) * 1e3
-            result.ms.append(ms)
-            result.stamps_ns.append(frame.stamp_ns)
-            result.poses.append(res.world_from_camera)
-            result.tracked += res.state == TrackingState.OK
-            result.lost += res.state == TrackingState.LOST
-            pub_pose.put(posemsgs.pose_stamped_msg(res.world_from_camera, frame.stamp_ns))
-            # world -> the camera tree's root (camera_link), so each frame keeps one parent (REP 105)
-            root, root_from_camera = tree.root_from(frame.frame_id)
-            world_from_root = res.world_from_camera @ invert(root_from_camera)
-            pub_tf.put(posemsgs.tf_msg([("world", root, world_from_root)], frame.stamp_ns))
-            if res.corrected:  # a loop closed: the mapper moves those keyframes
-                pub_poses.put(posemsgs.keyframe_poses_msg(res.corrected, frame.stamp_ns))
-            result.loops += res.loop is not None
-            result.relocalisations += res.relocalised
-            if res.is_keyframe:
-                pub_kf.put(res.keyframe_id, res.world_from_camera, frame)
-                result.keyframes += 1
-            if res.backend_deferred:  # on record: a replay of this run defers at the same frame
-                pub_deferred.put(codec.msgtype(BACKEND_DEFERRED.msgtype)(data=json.dumps(
-                    {"seq": frame.seq, "keyframe_id": res.keyframe_id, "stamp_ns": frame.stamp_ns})))
-                result.backend_deferred += 1
-            pub_status.put(_status(frame.seq, frame.stamp_ns, res.state, res.is_keyframe, res.keyframe_id,
-                                   res.n_matches, res.n_inliers, ms))
-            shown.put(frame, res, result, odometry)
-    # the back end's last word: every keyframe at its final pose, so the map matches the
-    # trajectory. Sent before the end messages, whose count for it the mapper waits for.
-    moved = odometry.finish()
-    if moved:
-        pub_poses.put(posemsgs.keyframe_poses_msg(odometry.keyframe_poses(), result.stamps_ns[-1]))
-    # the whole trajectory at its final poses, for a log on another machine (the file is local)
-    stamps, poses = odometry.trajectory()
-    bus.publisher(TRAJECTORY).put(posemsgs.path_msg(stamps, poses))
-    pub_kf_end.put(streammsgs.stream_end_msg(TRAJECTORY.name, 1))
-    pub_kf_end.put(streammsgs.stream_end_msg(KEYFRAME_POSES.name, pub_poses.count))
-    pub_kf_end.put(streammsgs.stream_end_msg(pub_kf.topic_name, pub_kf.count))
+                r, prep = _skip_to_newest(intake, r, prep, out, result)
+            _track_frame(odometry, cfg, functools.partial(intake.prepared, r, prep), out, tree, result, shown)
+    out.finish(odometry, result)
     bus.linger("mapper")
     return result
+
+
+def _skip_to_newest(intake: Intake, r: Any, prep: Any, out: _Outputs, result: TrackerRunSummary) -> tuple[Any, Any]:
+    """Stay real-time: the newest waiting frame wins, the older ones are skipped, on record."""
+    while (newer := intake.newer_frame()) is not None:
+        out.untracked(r.decode(), TrackingState.SKIPPED)
+        result.skipped += 1
+        result.frames += 1
+        r, prep = newer
+    return r, prep
+
+
+def _track_frame(odometry: Tracker, cfg: TrackerConfig, prepare: Callable[[], tuple[Any, Any, Any]], out: _Outputs,
+                 tree: StaticTree, result: TrackerRunSummary, shown: VizLog) -> None:
+    """One frame through the tracker and out to the bus and the viewer; a frame that cannot be
+    tracked at all is consumed and reported LOST (`prepare`: the frame's decoding and features, timed with it)."""
+    t0 = time.perf_counter()
+    msg, frame_or_error, prepared = prepare()
+    try:
+        if isinstance(frame_or_error, InputError):
+            raise frame_or_error
+        frame = frame_or_error
+        res = odometry.track(frame, prepared)
+    except (InputError, TrackingError) as exc:
+        # an undecodable frame, or one that contradicts its camera (size, depth type, changed
+        # intrinsics), is consumed and reported LOST, never a crash
+        result.rejected += 1
+        result.problems.append(f"frame {msg.seq}: {exc}")
+        out.untracked(msg, TrackingState.LOST)
+        return
+    if cfg.throttle_ms:
+        time.sleep(max(0.0, cfg.throttle_ms / 1e3 - (time.perf_counter() - t0)))
+    ms = (time.perf_counter() - t0) * 1e3
+    result.ms.append(ms)
+    result.stamps_ns.append(frame.stamp_ns)
+    result.poses.append(res.world_from_camera)
+    result.tracked += res.state == TrackingState.OK
+    result.lost += res.state == TrackingState.LOST
+    out.tracked(frame, res, tree, ms, result)
+    shown.put(frame, res, result, odometry)
 
 
 def warm_up() -> None:
