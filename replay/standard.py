@@ -188,27 +188,30 @@ def open_standard(path: str | Path, calibration: Calibration | None = None) -> S
         raise InputError(f"{path}: no colour/depth pairs within 20 ms "
                          f"({len(c_stamps)} colour, {len(d_stamps)} depth images)")
 
-    calib = summary.metadata.get("calibration", {})
-    scale_text = calib.get("depth_scale_m")
-    if calibration is not None and calibration.depth_scale_m is not None:  # the file given wins
-        scale, source = calibration.depth_scale_m, f"calibration file ({calibration.name})"
-    elif scale_text is None:
-        scale = DEFAULT_DEPTH_SCALE_M
-        source = f"default {DEFAULT_DEPTH_SCALE_M} m per unit (ROS 16UC1 convention): no calibration depth_scale_m"
-    else:
-        try:
-            scale = float(scale_text)
-        except ValueError:
-            raise InputError(f"{path}: calibration depth_scale_m {scale_text!r} is not a number") from None
-        if not scale > 0:
-            raise InputError(f"{path}: calibration depth_scale_m {scale_text!r}: want > 0 metres per unit")
-        source = calib.get("depth_scale_source", "calibration metadata")
+    scale, source = _depth_scale(path, summary.metadata.get("calibration", {}), calibration)
     return StandardSequence(
         path=path, color=color, depth=depth,
         pairs=tuple((c_order[i], d_order[k]) for i, k in pairs),
         color_stamps=tuple(c_stamps), intrinsics=info, depth_scale_m=scale, depth_scale_source=source,
         metadata=summary.metadata,
     )
+
+def _depth_scale(path: Path, calib: dict[str, str], calibration: Calibration | None) -> tuple[float, str]:
+    """Metres per depth unit and where that came from: a calibration file given wins, then the
+    recording's calibration metadata, then the ROS 16UC1 convention (1 mm)."""
+    scale_text = calib.get("depth_scale_m")
+    if calibration is not None and calibration.depth_scale_m is not None:  # the file given wins
+        return calibration.depth_scale_m, f"calibration file ({calibration.name})"
+    if scale_text is None:
+        return (DEFAULT_DEPTH_SCALE_M,
+                f"default {DEFAULT_DEPTH_SCALE_M} m per unit (ROS 16UC1 convention): no calibration depth_scale_m")
+    try:
+        scale = float(scale_text)
+    except ValueError:
+        raise InputError(f"{path}: calibration depth_scale_m {scale_text!r} is not a number") from None
+    if not scale > 0:
+        raise InputError(f"{path}: calibration depth_scale_m {scale_text!r}: want > 0 metres per unit")
+    return scale, calib.get("depth_scale_source", "calibration metadata")
 
 
 def read_standard_frames(path: str | Path, *, start: int = 0, end: int | None = None) -> Iterator[RgbdFrame]:

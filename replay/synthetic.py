@@ -24,9 +24,9 @@ import numpy as np
 from octolog.kit.geometry import Intrinsics, RgbdFrame, matrix_to_pose
 from octolog.kit.opencv import baseline_simd
 from octolog.replay import depth_noise
+from octolog.replay.gravity import simulated_up
 from octolog.replay.synthetic_room import OBJECTS, ROOM, scene_faces, scene_triangles
 from octolog.replay.synthetic_textures import Textures, scene_textures
-from octolog.replay.gravity import simulated_up
 from octolog.replay.synthetic_trajectory import camera_trajectory
 
 EPOCH_NS = 1_700_000_000 * 1_000_000_000
@@ -280,22 +280,7 @@ class SyntheticScene:
         tu = c[:, 0] + b1 * c[:, 2] + b2 * c[:, 4]
         tv = c[:, 1] + b1 * c[:, 3] + b2 * c[:, 5]
 
-        levels = cfg.mip_levels
-        if levels == 1:
-            col = self._sample(0, prim, tu, tv)
-        else:
-            # Trilinear mip-mapping; the level follows the pixel's footprint on the surface
-            # (geometric mean of its two axes, the longer one stretched by the incidence angle).
-            cos = np.abs(np.einsum("ij,ij->i", tx.normal.take(prim, axis=0), dirs)) * inv_len
-            foot = z * np.float32(1.0 / (K.fx * cfg.texel_m)) / np.sqrt(np.maximum(cos, np.float32(0.02)))
-            lod = np.clip(np.log2(np.maximum(foot, np.float32(1.0))), 0.0, levels - 1.0)
-            l0 = np.minimum(lod.astype(np.int64), levels - 2)
-            w = (lod - l0.astype(np.float32))[:, None]
-            lower = self._sample(l0, prim, tu, tv).astype(np.float32)
-            upper = self._sample(l0 + 1, prim, tu, tv).astype(np.float32)
-            lower += (upper - lower) * w
-            lower += np.float32(0.5)
-            col = lower.astype(np.uint8)
+        col = self._texture_colour(prim, tu, tv, z, dirs, inv_len)
         if all_hit:
             rgb = col
         else:
@@ -306,6 +291,27 @@ class SyntheticScene:
             sensor = depth_noise.SENSORS[cfg.depth_noise]
             depth = self._depth_mm(depth_noise.apply(exact.reshape(K.height, K.width), rgb, sensor, noise).ravel())
         return rgb, depth.reshape(K.height, K.width)
+
+    def _texture_colour(self, prim: np.ndarray, tu: np.ndarray, tv: np.ndarray, z: np.ndarray, dirs: np.ndarray,
+                        inv_len: np.ndarray) -> np.ndarray:
+        """The texture's colour at each hit (triangle `prim`, texture coordinates `tu`, `tv`), trilinear
+        mip-mapped when the scene has mip levels."""
+        cfg, K, tx = self.config, self.intrinsics, self._textures
+        levels = cfg.mip_levels
+        if levels == 1:
+            return self._sample(0, prim, tu, tv)
+        # Trilinear mip-mapping; the level follows the pixel's footprint on the surface
+        # (geometric mean of its two axes, the longer one stretched by the incidence angle).
+        cos = np.abs(np.einsum("ij,ij->i", tx.normal.take(prim, axis=0), dirs)) * inv_len
+        foot = z * np.float32(1.0 / (K.fx * cfg.texel_m)) / np.sqrt(np.maximum(cos, np.float32(0.02)))
+        lod = np.clip(np.log2(np.maximum(foot, np.float32(1.0))), 0.0, levels - 1.0)
+        l0 = np.minimum(lod.astype(np.int64), levels - 2)
+        w = (lod - l0.astype(np.float32))[:, None]
+        lower = self._sample(l0, prim, tu, tv).astype(np.float32)
+        upper = self._sample(l0 + 1, prim, tu, tv).astype(np.float32)
+        lower += (upper - lower) * w
+        lower += np.float32(0.5)
+        return lower.astype(np.uint8)
 
     def _depth_mm(self, z: np.ndarray) -> np.ndarray:
         """uint16 depth in depth_scale_m units; 0 outside [min_depth_m, max_depth_m] and for misses."""
