@@ -16,6 +16,7 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -56,6 +57,39 @@ class LogResult:
     files: list[str] = field(default_factory=list)
 
 
+@dataclass
+class _Kept:
+    """What the log keeps from the bus besides the file: the stages' configs, the final trajectory,
+    the replay's camera/gravity."""
+
+    configs: dict[str, dict] = field(default_factory=dict)
+    trajectory: object = None
+    up: list[float] | None = None
+
+    def take(self, r: Any) -> None:
+        if r.topic in T.CONFIGS.values():
+            item = json.loads(r.decode().data)
+            self.configs[str(item["stage"])] = item["config"]
+        elif r.topic is T.TRAJECTORY:
+            self.trajectory = r.decode()
+        elif r.topic is T.GRAVITY:
+            v = r.decode().vector
+            self.up = [float(v.x), float(v.y), float(v.z)]
+
+    def add_metadata(self, mcap: McapWriter, metadata: dict[str, dict[str, str]]) -> None:
+        """The configs (and up, where the mapper was not told it) into the file, unless given."""
+        configs, up = self.configs, self.up
+        if up is not None and not configs.get("mapper", {"grid_up": True}).get("grid_up"):
+            # the mapper was not told up: it built `map` on the replay's (mapper/mapframe.py); a
+            # replay of this folder gets it the way `octolog run` gives it, in the config
+            configs["mapper"]["grid_up"] = up
+            if "gravity" not in metadata:
+                note = "gravity-aligned (the replay's camera/gravity)"
+                mcap.add_metadata("gravity", {"up": json.dumps(up), "note": note})
+        if configs and "config" not in metadata:
+            mcap.add_metadata("config", {k: json.dumps(v, sort_keys=True) for k, v in sorted(configs.items())})
+
+
 def run(bus_cfg: BusConfig, out: Path, *, compression: str = "zstd", metadata: dict[str, dict[str, str]] | None = None,
         stages: tuple[str, ...] = ("replay", "tracker", "mapper"), frames: bool = True) -> LogResult:
     """Log until every producer in `stages` has ended. `out`: an MCAP file, or (no `.mcap` suffix) a
@@ -68,9 +102,7 @@ def run(bus_cfg: BusConfig, out: Path, *, compression: str = "zstd", metadata: d
         folder.mkdir(parents=True, exist_ok=True)
         out = folder / "session.mcap"
     result = LogResult(path=str(out))
-    configs: dict[str, dict] = {}
-    trajectory = None
-    up: list[float] | None = None  # the replay's camera/gravity
+    kept = _Kept()
     metadata = dict(metadata or {})
     with Bus(bus_cfg, "log", inbox_size=16) as bus, McapWriter(out, compression=compression) as mcap:
         for name, data in metadata.items():
@@ -95,14 +127,7 @@ def run(bus_cfg: BusConfig, out: Path, *, compression: str = "zstd", metadata: d
             for name, msgtype, data in _standard(r.topic, bytes(r.payload), checked):
                 mcap.write(name, msgtype, data, log_time_ns=now, publish_time_ns=now)
             result.counts[r.topic.name] = result.counts.get(r.topic.name, 0) + 1
-            if r.topic in T.CONFIGS.values():
-                item = json.loads(r.decode().data)
-                configs[str(item["stage"])] = item["config"]
-            elif r.topic is T.TRAJECTORY:
-                trajectory = r.decode()
-            elif r.topic is T.GRAVITY:
-                v = r.decode().vector
-                up = [float(v.x), float(v.y), float(v.z)]
+            kept.take(r)
             if r.topic in ends:
                 stage, closes = ends[r.topic]
                 end = r.decode()
@@ -119,21 +144,18 @@ def run(bus_cfg: BusConfig, out: Path, *, compression: str = "zstd", metadata: d
                 kfs = [t for t in (T.KEYFRAME, T.KEYFRAME_COMPRESSED) if t.name in announced]
                 if {producer, "tracker"} <= set(stages) and frame_total is not None and kfs:
                     announced[T.TRACKING_STATUS.name] = frame_total  # one per frame consumed
-        if up is not None and not configs.get("mapper", {"grid_up": True}).get("grid_up"):
-            # the mapper was not told up: it built `map` on the replay's (mapper/mapframe.py); a
-            # replay of this folder gets it the way `octolog run` gives it, in the config
-            configs["mapper"]["grid_up"] = up
-            if "gravity" not in metadata:
-                note = "gravity-aligned (the replay's camera/gravity)"
-                mcap.add_metadata("gravity", {"up": json.dumps(up), "note": note})
-        if configs and "config" not in metadata:
-            mcap.add_metadata("config", {k: json.dumps(v, sort_keys=True) for k, v in sorted(configs.items())})
+        kept.add_metadata(mcap, metadata)
     if folder is not None:
-        _leave_session(folder, configs, trajectory, result)
-        summary = {"made_by": "octolog log", "frames_logged": frames, "messages": dict(sorted(result.counts.items())),
-                   "files": ["session.mcap", *result.files]}
-        (folder / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")  # last: the folder is complete
+        _leave_session(folder, kept.configs, kept.trajectory, result)
+        _write_summary(folder, result, frames)
     return result
+
+
+def _write_summary(folder: Path, result: LogResult, frames: bool) -> None:
+    """summary.json, written last: the folder is complete."""
+    summary = {"made_by": "octolog log", "frames_logged": frames, "messages": dict(sorted(result.counts.items())),
+               "files": ["session.mcap", *result.files]}
+    (folder / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
 
 
 def _leave_session(folder: Path, configs: dict[str, dict], trajectory: object, result: LogResult) -> None:
