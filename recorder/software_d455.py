@@ -4,6 +4,7 @@ synthetic pattern, so the recorder runs end to end (tests, benchmarks) without h
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -140,6 +141,14 @@ class SoftwareDeviceBackend:
         self._dprof: dict[tuple[int, int, int], Any] = {}
         self._cprof: dict[tuple[int, int, int], Any] = {}
         self._mprof: dict[tuple[str, int], Any] = {}
+        self._add_video_streams(uid)
+        self._add_motion_streams(uid)
+        self._register_extrinsics()
+        self._add_options()
+        self._dev = dev
+
+    def _add_video_streams(self, uid: Iterator[int]) -> None:
+        """Every depth and colour profile of a D455, each with pinhole intrinsics from its field of view."""
         for table, sensor, stream, fmt, bpp, fov, store, default in (
                 (D455_DEPTH, self._depth_s, rs.stream.depth, rs.format.z16, 2, 87.0, self._dprof, (848, 480, 30)),
                 (D455_COLOR, self._color_s, rs.stream.color, rs.format.rgb8, 3, 90.0, self._cprof,
@@ -157,6 +166,9 @@ class SoftwareDeviceBackend:
                     intr.coeffs = [0.0] * 5
                     vs.intrinsics = intr
                     store[(w, h, fps)] = sensor.add_video_stream(vs, (w, h, fps) == default)
+
+    def _add_motion_streams(self, uid: Iterator[int]) -> None:
+        """The gyro and accelerometer rates of the IMU chip, with D455-like intrinsics and noise."""
         for stream_name, stream in (("gyro", rs.stream.gyro), ("accel", rs.stream.accel)):
             for n, fps in enumerate(D455_IMU[self.imu_chip][stream_name]):
                 ms = rs.motion_stream()
@@ -167,6 +179,8 @@ class SoftwareDeviceBackend:
                 mi.bias_variances = [1e-7, 1e-7, 1e-7] if stream_name == "gyro" else [1e-5, 1e-5, 1e-5]
                 ms.intrinsics = mi
                 self._mprof[(stream_name, fps)] = self._motion_s.add_motion_stream(ms, n == 0)
+
+    def _register_extrinsics(self) -> None:
         # calibration: colour 59 mm beside the left imager, IMU a little behind it (D455-like)
         to_color = rs.extrinsics()
         to_color.rotation = [0.99999, 0.00436, -0.00100, -0.00436, 0.99999, 0.00050, 0.00100, -0.00050, 1.0]
@@ -179,6 +193,8 @@ class SoftwareDeviceBackend:
                 dp.register_extrinsics_to(cp, to_color)
             for mp in self._mprof.values():
                 dp.register_extrinsics_to(mp, to_imu)
+
+    def _add_options(self) -> None:
         # options as a D455 has them (ranges and defaults)
         opt = rs.option
         for sensor, option, lo, hi, step, default in (
@@ -192,7 +208,6 @@ class SoftwareDeviceBackend:
             # pyrealsense2 2.59's option_range(a, b, c, d) takes (min, max, default, step), whatever
             # its docstring says
             sensor.add_option(option, rs.option_range(lo, hi, default, step), True)
-        self._dev = dev
 
     # Backend
 
