@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -49,24 +50,9 @@ def import_tum(folder: Path, output: Path, *, overwrite: bool = False, compressi
                      posemsgs.tf_msg([(COLOR_FRAME, ACCEL_FRAME, COLOR_FROM_KINECT_ACCEL)], first), first)
         for stamp, what, i in events:
             if what == 0:
-                img = read_png(folder / rgb[i][1], cv2.IMREAD_COLOR)
-                if img.ndim != 3 or img.shape[2] != 3:
-                    raise InputError(f"{folder / rgb[i][1]}: not a 3-channel colour image")
-                _check_size(folder / rgb[i][1], img, intr)
-                sink.put(COLOR.name, COLOR.msgtype, sensormsgs.image_msg(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), stamp,
-                                                                    COLOR_FRAME), stamp)
-                sink.put(COLOR_INFO.name, COLOR_INFO.msgtype, sensormsgs.camera_info_msg(intr, stamp, COLOR_FRAME),
-                         stamp)
+                _put_colour(sink, folder / rgb[i][1], stamp, intr)
             elif what == 1:
-                img = read_png(folder / depth[i][1], cv2.IMREAD_ANYDEPTH)
-                if img.dtype != np.uint16 or img.ndim != 2:
-                    raise InputError(f"{folder / depth[i][1]}: depth must be a 16-bit single-channel PNG")
-                _check_size(folder / depth[i][1], img, intr)
-                # Registered depth: realsense-ros stamps it in the colour optical frame.
-                sink.put(ALIGNED_DEPTH.name, ALIGNED_DEPTH.msgtype, sensormsgs.image_msg(img, stamp, COLOR_FRAME),
-                         stamp)
-                sink.put(ALIGNED_DEPTH_INFO.name, ALIGNED_DEPTH_INFO.msgtype,
-                         sensormsgs.camera_info_msg(intr, stamp, COLOR_FRAME), stamp)
+                _put_depth(sink, folder / depth[i][1], stamp, intr)
             else:
                 sink.put(ACCEL.name, ACCEL.msgtype,
                          sensormsgs.imu_msg(stamp, ACCEL_FRAME, linear_acceleration=accel[i][1]), stamp)
@@ -91,6 +77,27 @@ def import_tum(folder: Path, output: Path, *, overwrite: bool = False, compressi
     if seq.groundtruth is None:
         result.notes.append("no groundtruth.txt: no ground truth written")
     return result
+
+
+def _put_colour(sink: Any, path: Path, stamp: int, intr: Intrinsics) -> None:
+    img = read_png(path, cv2.IMREAD_COLOR)
+    if img.ndim != 3 or img.shape[2] != 3:
+        raise InputError(f"{path}: not a 3-channel colour image")
+    _check_size(path, img, intr)
+    sink.put(COLOR.name, COLOR.msgtype, sensormsgs.image_msg(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), stamp,
+                                                        COLOR_FRAME), stamp)
+    sink.put(COLOR_INFO.name, COLOR_INFO.msgtype, sensormsgs.camera_info_msg(intr, stamp, COLOR_FRAME), stamp)
+
+
+def _put_depth(sink: Any, path: Path, stamp: int, intr: Intrinsics) -> None:
+    img = read_png(path, cv2.IMREAD_ANYDEPTH)
+    if img.dtype != np.uint16 or img.ndim != 2:
+        raise InputError(f"{path}: depth must be a 16-bit single-channel PNG")
+    _check_size(path, img, intr)
+    # Registered depth: realsense-ros stamps it in the colour optical frame.
+    sink.put(ALIGNED_DEPTH.name, ALIGNED_DEPTH.msgtype, sensormsgs.image_msg(img, stamp, COLOR_FRAME), stamp)
+    sink.put(ALIGNED_DEPTH_INFO.name, ALIGNED_DEPTH_INFO.msgtype,
+             sensormsgs.camera_info_msg(intr, stamp, COLOR_FRAME), stamp)
 
 
 def _read_accelerometer(path: Path, to_ns: Callable[[str], int]) -> list[tuple[int, tuple[float, float, float]]]:
