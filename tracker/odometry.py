@@ -397,36 +397,7 @@ class RgbdSlam(LocalMapping, BackendHandoff):
         guess_cw = invert(predicted_wc)
         local = self._local_points(predicted_wc)
 
-        # Escalate only while the answer is weak: a tight window around the prediction, wide ones, then
-        # descriptor matching against the map around the last tracked pose (after LOST or a jolt the
-        # prediction is useless, and that is where tracking resumes). Best inlier count wins.
-        best: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None  # T, inl, ki, mi
-        # The windows search the points the previous frame matched (the seed) first: visible, distinctive,
-        # a third to a sixth of the local map, enough for a seed pose; fast motion outruns the tight window
-        # (then a wide one over the seed, then over all). The second pass below matches the whole local map.
-        seed = self._last_inlier_ids if self._last_ok else np.zeros(0, np.int64)
-        if seed.size < CONFIDENT_INLIER_FACTOR * self.params.tracking.min_inliers:
-            seed = local
-        plan = [(seed, 1.0), (seed, WIDE_SEARCH_FACTOR)] + ([(local, WIDE_SEARCH_FACTOR)] if seed is not local else [])
-        for attempt in range(len(plan) + 1):
-            if attempt < len(plan):
-                ids, factor = plan[attempt]
-                ki, mi, _ = self._guided(feats, ids, guess_cw, self.params.tracking.search_radius_px * factor)
-            else:
-                assert self._last_tracked_pose is not None
-                around = self._local_points(self._last_tracked_pose)
-                q, tr, _ = match_brute_force(feats.desc, self._map.desc[around], max_distance=PLACE_MAX_HAMMING,
-                                            ratio=PLACE_RATIO)
-                ki, mi = q, around[tr]
-            # Behind a tracked frame the motion model's pose is a good start: a robust fit from it
-            # needs no RANSAC (as ORB-SLAM's motion-model step); escalation brings RANSAC back.
-            # This pose only seeds the tight second matching pass: two rounds suffice.
-            trusted = attempt == 0 and self._last_ok and self._velocity is not None
-            sol = self._solve(feats, ki, mi, guess_cw, use_ransac=not trusted, rounds=2)
-            if sol is not None and (best is None or int(sol[1].sum()) > int(best[1].sum())):
-                best = (sol[0], sol[1], ki, mi)
-            if best is not None and self._confident(int(best[1].sum()), best[2].size):
-                break
+        best, attempt = self._first_pass(feats, local, guess_cw)
         if best is None:
             return None
         first = (best[0], best[1])
@@ -461,6 +432,42 @@ class RgbdSlam(LocalMapping, BackendHandoff):
         scaled = (uv - feats.uv[ki]) * level_scale[:, None]
         residual = float(np.sqrt(np.mean(np.sum(scaled * scaled, axis=1)))) if ki.size else float("nan")
         return TrackedFrame(T_cw, ki, mi, int(inl.size), int(inl.sum()), feats, residual)
+
+    def _first_pass(self, feats: FrameFeatures, local: np.ndarray, guess_cw: np.ndarray
+                    ) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None, int]:
+        """The first pose: matches and a robust fit, escalating while the answer is weak; the best
+        (pose, inliers, keypoint ids, map ids) or None, and the attempt it stopped at."""
+        # Escalate only while the answer is weak: a tight window around the prediction, wide ones, then
+        # descriptor matching against the map around the last tracked pose (after LOST or a jolt the
+        # prediction is useless, and that is where tracking resumes). Best inlier count wins.
+        best: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None  # T, inl, ki, mi
+        # The windows search the points the previous frame matched (the seed) first: visible, distinctive,
+        # a third to a sixth of the local map, enough for a seed pose; fast motion outruns the tight window
+        # (then a wide one over the seed, then over all). The second pass below matches the whole local map.
+        seed = self._last_inlier_ids if self._last_ok else np.zeros(0, np.int64)
+        if seed.size < CONFIDENT_INLIER_FACTOR * self.params.tracking.min_inliers:
+            seed = local
+        plan = [(seed, 1.0), (seed, WIDE_SEARCH_FACTOR)] + ([(local, WIDE_SEARCH_FACTOR)] if seed is not local else [])
+        for attempt in range(len(plan) + 1):
+            if attempt < len(plan):
+                ids, factor = plan[attempt]
+                ki, mi, _ = self._guided(feats, ids, guess_cw, self.params.tracking.search_radius_px * factor)
+            else:
+                assert self._last_tracked_pose is not None
+                around = self._local_points(self._last_tracked_pose)
+                q, tr, _ = match_brute_force(feats.desc, self._map.desc[around], max_distance=PLACE_MAX_HAMMING,
+                                            ratio=PLACE_RATIO)
+                ki, mi = q, around[tr]
+            # Behind a tracked frame the motion model's pose is a good start: a robust fit from it
+            # needs no RANSAC (as ORB-SLAM's motion-model step); escalation brings RANSAC back.
+            # This pose only seeds the tight second matching pass: two rounds suffice.
+            trusted = attempt == 0 and self._last_ok and self._velocity is not None
+            sol = self._solve(feats, ki, mi, guess_cw, use_ransac=not trusted, rounds=2)
+            if sol is not None and (best is None or int(sol[1].sum()) > int(best[1].sum())):
+                best = (sol[0], sol[1], ki, mi)
+            if best is not None and self._confident(int(best[1].sum()), best[2].size):
+                break
+        return best, attempt
 
     # -- relocalisation -------------------------------------------------------------------------
 
