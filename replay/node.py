@@ -38,7 +38,7 @@ from octolog.schemas.topics import (
 
 
 @dataclass
-class Status:
+class ReplayStatus:
     """What the replay sees of the pipeline while it plays: its own rate and, from the tracker's
     statuses and the mapper's updates on the bus, each stage's progress and queue."""
 
@@ -76,7 +76,7 @@ class Status:
                 f"{self.keyframes - self.mapped} queued, {self.mapped} kf, {self.mapper_ms:3.0f} ms | {left:4.0f} s left")
 
 
-Progress = Callable[[Status], None]
+Progress = Callable[[ReplayStatus], None]
 
 
 _SKIPPED = codec.msgtype(TRACKING_STATUS.msgtype).SKIPPED
@@ -92,7 +92,7 @@ class ReplayResult:
 class Pacer:
     """Decides when the next frame may go: lockstep credit window or sensor-time rate."""
 
-    def __init__(self, bus: Bus, cfg: ReplayConfig, status: Status) -> None:
+    def __init__(self, bus: Bus, cfg: ReplayConfig, status: ReplayStatus) -> None:
         self.bus, self.cfg, self.status = bus, cfg, status
         self.acked = 0
         self._t0_wall: float | None = None
@@ -177,7 +177,7 @@ def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Pro
     props_pub.put(streammsgs.camera_properties_msg(source.name, source.readout_s))
     end = None if cfg.end < 0 else cfg.end
     total = max(0, min(len(source), end if end is not None else len(source)) - cfg.start) * cfg.loop
-    status = Status(total=total)
+    status = ReplayStatus(total=total)
     pacer = Pacer(bus, cfg, status)
     t0 = time.monotonic()
     first_stamp = last_stamp = None

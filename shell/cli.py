@@ -23,13 +23,13 @@ from octolog.shell import errorfile, record
 from octolog.shell.args import add_bus_arguments, add_config_arguments, add_viz_arguments, bus_config, recording_id
 
 if TYPE_CHECKING:
-    from octolog.replay.node import Status
+    from octolog.replay.node import ReplayStatus
 
 _line_open = False  # a progress line is on stderr without its newline yet
 
 
-def _progress(status: Status) -> None:
-    """The replay's status line (replay.node.Status), redrawn every 10 frames on stderr."""
+def _progress(status: ReplayStatus) -> None:
+    """The replay's status line (replay.node.ReplayStatus), redrawn every 10 frames on stderr."""
     global _line_open
     done, total = status.published, status.total
     if done % 10 and done != total:
