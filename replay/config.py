@@ -27,7 +27,7 @@ class ReplayConfig:
     # MCAP source: only the frames the logged tracker consumed (a live tracker skips frames)
     only_consumed: bool = False
     # play every N-th frame of the source only (3: the same camera moving 3x faster, at a third of
-    # the frame rate; the fast-motion development case)
+    # the frame rate; a fast-motion test case)
     every: int = 1
     loop: int = 1  # play the source this many times (sequence numbers keep counting)
     # sensor-time window, seconds from the first frame (-1: unbounded); combines with start/end frames

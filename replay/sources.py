@@ -1,7 +1,7 @@
 """Frame sources for replay: a TUM RGB-D folder, an octolog MCAP file, or the synthetic scene.
 
 A source spec is `tum:PATH`, `mcap:PATH` or `synthetic[:N_FRAMES]`; `every=N` plays every N-th frame
-of it (the same camera moving N times faster: the fast-motion development case).
+of it (the same camera moving N times faster: a fast-motion test case).
 """
 
 from __future__ import annotations

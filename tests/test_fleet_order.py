@@ -8,8 +8,8 @@ import json
 import random
 
 import pytest
-from helpers import stop_all
-from test_fleet import ROBOTS, _free_port, _start
+from helpers import free_port, stop_all
+from test_fleet import ROBOTS, _start
 
 from octolog.mapper.fleet.order import CorrectionItem, FleetMerge, KeyframeItem, Watermark, merged_order
 
@@ -68,7 +68,7 @@ def test_merge_order_does_not_depend_on_arrival_order():
 
 
 def test_watermarks_let_the_merge_decide_sooner_and_change_no_order():
-    """Issue 18, the per-robot watermark: a robot's tracker says after every frame it processed that
+    """The per-robot watermark: a robot's tracker says after every frame it processed that
     nothing older will come (its status). Wherever those fall in its stream, the items come out in
     the order complete streams give; and a robot that only sends watermarks no longer holds the
     others back."""
@@ -101,7 +101,7 @@ def test_watermarks_let_the_merge_decide_sooner_and_change_no_order():
 
 
 def test_a_paused_robot_holds_the_others_back_no_longer_and_the_defined_order_stays():
-    """Issue 18: a robot paused for silence is not waited for; its item that comes later is taken
+    """A robot paused for silence is not waited for; its item that comes later is taken
     late (out of the defined order, and the merge says so), and `canonical` gives every item in the
     order complete streams would have had."""
     a0, a1, b0 = KeyframeItem(10, 0, "a0"), KeyframeItem(30, 1, "a1"), KeyframeItem(5, 0, "b0")
@@ -125,7 +125,7 @@ def test_a_paused_robot_holds_the_others_back_no_longer_and_the_defined_order_st
 
 @pytest.mark.slow
 def test_a_robot_that_tracks_without_keyframes_holds_the_others_back_no_longer(tmp_path):
-    """Issue 18, the watermark through the real processes: r2's camera stands still (one synthetic
+    """The watermark through the real processes: r2's camera stands still (one synthetic
     frame played 600 times at the camera's rate: 20 s of wall time however fast the machine), so after
     its first keyframe its tracker makes none for 20 s, while r1 maps the room. With
     `mapper.robot_stall_s` 10 s, a mapper that heard nothing from r2 would pause it and build the map
@@ -134,7 +134,7 @@ def test_a_robot_that_tracks_without_keyframes_holds_the_others_back_no_longer(t
     machine's scheduling gives either tracker between two statuses; a tighter stall is a timing margin.)"""
     out = tmp_path / "fleet"
     out.mkdir()
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     bus = ["--mode", "client", "--connect", endpoint, "--no-multicast"]
     procs = {"router": _start(out / "router.log", "router", "--listen", endpoint)}
     frames = 40

@@ -3,7 +3,6 @@ a tracker behind the camera tracks in order and when it skips to the newest (`tr
 
 from __future__ import annotations
 
-import socket
 import time
 
 import numpy as np
@@ -27,14 +26,12 @@ def _stamp_ms(r) -> float:
 
 
 @pytest.mark.parametrize("lag_ms", [150.0, 0.0])
-def test_a_tracker_behind_by_less_than_the_lag_tracks_the_burst_in_order(lag_ms):
+def test_a_tracker_behind_by_less_than_the_lag_tracks_the_burst_in_order(lag_ms, endpoint):
     """Nine frames wait behind frame 0 (up to 267 ms of sensor time ahead of it). For each frame the
     tracker takes in turn, `behind` says whether the newest waiting frame is more than the lag ahead:
     with 150 ms the frames from 133 ms on are tracked in order, the older ones are behind; with lag 0
     (the old rule) every frame but the newest is. `behind` reorders and drops nothing."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        ep = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    ep = endpoint
     server = BusConfig(listen=(ep,), multicast_scouting=False, namespace="t")
     client = BusConfig(connect=(ep,), multicast_scouting=False, namespace="t")
     n = 9

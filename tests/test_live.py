@@ -11,8 +11,8 @@ import tomllib
 
 import numpy as np
 import pytest
-from helpers import octolog
-from test_recorder import BASE, _port, _run
+from helpers import free_port, octolog
+from test_recorder import BASE, _run
 
 from octolog.kit import metrics
 from octolog.kit.gravity import level_on_plane
@@ -84,7 +84,7 @@ def test_publish_window_holds_back_what_the_tracker_has_no_hand_for(tmp_path, la
     tracker tracks such a burst in order), and none later."""
     from octolog.kit.bus import Bus, BusConfig
 
-    ep = f"tcp/127.0.0.1:{_port()}"
+    ep = f"tcp/127.0.0.1:{free_port()}"
     sub_cfg = BusConfig(listen=(ep,), multicast_scouting=False, namespace="win")
     pub_cfg = BusConfig(connect=(ep,), multicast_scouting=False, namespace="win")
     frames: list[bytes] = []

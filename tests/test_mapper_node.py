@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import socket
 import subprocess
 import sys
 import time
@@ -11,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import ROOT
+from helpers import ROOT, free_port
 
 from octolog.kit.errors import InputError
 from octolog.kit.geometry import pose_to_matrix
@@ -94,11 +93,6 @@ def test_bad_keyframes_are_refused_and_leave_the_map_alone(scene, tmp_path, pose
     assert m.octree.bt_bytes() == before and list(m.keyframes) == [k]
 
 
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
 
 def test_mapper_process_follows_corrections_and_serves_late_joiners(scene, tmp_path):
     """The real `octolog map` process; this test plays the tracker over a real Zenoh link."""
@@ -106,7 +100,7 @@ def test_mapper_process_follows_corrections_and_serves_late_joiners(scene, tmp_p
     from octolog.schemas import posemsgs, rgbdmsgs, streammsgs
     from octolog.schemas.topics import KEYFRAME, KEYFRAME_END, KEYFRAME_POSES, MAP_UPDATE, OCTOMAP
 
-    ep = f"tcp/127.0.0.1:{_port()}"
+    ep = f"tcp/127.0.0.1:{free_port()}"
     kfs = _keyframes(scene)
     proc = subprocess.Popen([sys.executable, "-m", "octolog", "map", "--connect", ep, "--no-multicast",
                              "--out", str(tmp_path / "map"), "--set", "publish_every=1"], cwd=ROOT,

@@ -16,7 +16,6 @@ from octolog.kit.metrics import (
     ate,
     format_report,
     format_tum,
-    parse_tum,
     read_tum,
     rpe,
     umeyama_se3,

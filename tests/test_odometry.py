@@ -377,7 +377,7 @@ def test_tum_fr1_xyz_first300_accuracy() -> None:
         return _ate_rmse(seq.groundtruth, [r.stamp_ns for r in results], [r.world_from_camera for r in results])
 
     # Online poses (no final global BA). Measured 0.74 cm with the rolling-shutter model and
-    # 1.11 cm without (OpenCV 5.0); ORB-SLAM3 reaches ~1.15 cm here. Issue 4 asks <= 1 cm; the model
+    # 1.11 cm without (OpenCV 5.0); ORB-SLAM3 reaches ~1.15 cm here. The target is <= 1 cm; the model
     # must earn its keep by a clear margin, not by noise.
     with_model, without = online_ate(src.readout_s), online_ate(0.0)
     assert with_model <= 0.010, f"ATE RMSE {with_model * 100:.2f} cm with the rolling-shutter model"

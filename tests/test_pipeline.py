@@ -7,7 +7,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -221,7 +220,7 @@ def test_eval_and_info_commands(runs):
     rmse_cm = json.loads((a / "summary.json").read_text())["ate"]["rmse_m"] * 100
     assert f"ATE RMSE {rmse_cm:.2f} cm" in out and "RPE" in out
     info = octolog("info", str(a / "session.mcap")).stdout
-    assert "complete" in info and f"/camera/rgbd" in info and "metadata config" in info
+    assert "complete" in info and "/camera/rgbd" in info and "metadata config" in info
 
 
 @pytest.mark.slow

@@ -8,7 +8,6 @@ import errno
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -16,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import free_port
 
 from octolog.kit import mcaplog, recordfile
 from octolog.kit.config import to_json
@@ -465,11 +465,6 @@ def test_options_and_config_errors(tmp_path):
 # --- live ----------------------------------------------------------------------------------------
 
 
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
 
 @pytest.mark.parametrize("wire_depth", ["zstd", "png"])
 def test_publishes_live_while_recording(tmp_path, wire_depth):
@@ -477,7 +472,7 @@ def test_publishes_live_while_recording(tmp_path, wire_depth):
     lossless zstd); what a slow consumer missed is counted as live drops."""
     from octolog.kit.bus import Bus, BusConfig
 
-    ep = f"tcp/127.0.0.1:{_port()}"
+    ep = f"tcp/127.0.0.1:{free_port()}"
     sub_cfg = BusConfig(listen=(ep,), multicast_scouting=False, namespace="rec")
     pub_cfg = BusConfig(connect=(ep,), multicast_scouting=False, namespace="rec")
     got: dict[str, list[bytes]] = {}

@@ -1,4 +1,4 @@
-"""Robots that meet again are linked again (issue 18's inter-robot loop closure, mapper/fleet/placement.py:
+"""Robots that meet again are linked again (inter-robot loop closure, mapper/fleet/placement.py:
 relinking): in process on rendered views of the synthetic room, and through the real processes
 (tests/test_fleet.py's `run_fleet`: a router, a mapper for r1+r2, and per robot a replay and a tracker)."""
 
@@ -15,7 +15,7 @@ from octolog.mapper.config import MapperConfig
 
 @pytest.mark.slow
 def test_robots_that_meet_again_later_are_linked_again():
-    """Issue 18, inter-robot loop closure: r2 is placed where r1 started (X) and refined there, goes
+    """Inter-robot loop closure: r2 is placed where r1 started (X) and refined there, goes
     where r1 never was, then comes past the place r1 saw at the end (Y): a new link between r2's
     keyframe at Y and r1's, found among r1's nearest kept keyframes. Without relinking (as before)
     the robots stay tied at X only; same keyframes, same links (the defined order)."""
@@ -66,7 +66,7 @@ def test_robots_that_meet_again_later_are_linked_again():
 
 @pytest.mark.slow
 def test_robots_linked_again_through_the_real_processes(tmp_path):
-    """Issue 18, inter-robot loop closure end to end: r1 walks frames 0-299 of a 600-frame loop round
+    """Inter-robot loop closure end to end: r1 walks frames 0-299 of a 600-frame loop round
     the synthetic room, r2 frames 150-449 (every second frame of each), both at once, no start poses. r2 starts ahead of r1, waits,
     and is placed once r1 reaches where r2 began; r1 then comes past places r2 saw seconds before and
     is linked to them again (relinks count as r2's refinement, which r1 behind it cannot give). Both

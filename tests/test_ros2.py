@@ -12,11 +12,12 @@ import threading
 import pytest
 import zenoh
 from helpers import ROOT
+from rosbags.typesys import Stores, get_typestore
+from test_hostile import router  # noqa: F401  (fixture: a Zenoh router in this process)
+
 from octolog.kit.bus import ros2
 from octolog.kit.busconfig import BusConfig
 from octolog.kit.errors import BusError
-from rosbags.typesys import Stores, get_typestore
-from test_hostile import router  # noqa: F401  (fixture: a Zenoh router in this process)
 
 # As ROS 2 Jazzy announces them (`ros2 topic info -v` prints "Topic type hash"; the same values are
 # in each package's share/<pkg>/msg/<Type>.json): not computed here, copied from ROS.

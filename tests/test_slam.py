@@ -15,6 +15,7 @@ import pytest
 
 from octolog.kit import metrics
 from octolog.kit.geometry import RgbdFrame, invert
+from octolog.kit.posegraph import optimize_pose_graph
 from octolog.replay.synthetic import SyntheticScene
 from octolog.replay.synthetic_trajectory import LOOP_S, camera_trajectory
 from octolog.tracker.backend import BackendResult, apply_result
@@ -23,7 +24,6 @@ from octolog.tracker.config import KeyframeParams, TrackerConfig
 from octolog.tracker.interface import TrackingState
 from octolog.tracker.keyframe_map import Keyframe, MapPoints
 from octolog.tracker.odometry import RgbdSlam
-from octolog.kit.posegraph import optimize_pose_graph
 from octolog.tracker.places import BowIndex, rigid_ransac, verify, vote
 from octolog.tracker.pose import optimize_pose, so3_exp
 from octolog.tracker.vocab import train
@@ -332,7 +332,7 @@ def test_recovers_after_30_black_frames(room, loop_frames, with_loops) -> None:
 
 
 def test_synthetic_accuracy(room, with_loops) -> None:
-    """Issue 4 asks for ATE <= 0.5 cm on the synthetic scene: here at 10 fps (3x the demo's motion per
+    """The target is ATE <= 0.5 cm on the synthetic scene: here at 10 fps (3x the demo's motion per
     frame) over a whole loop; the 30 fps demo scene is checked through the pipeline."""
     assert _ate(room, with_loops[0]) <= 0.005
 

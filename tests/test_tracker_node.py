@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import dataclasses
-import socket
 import subprocess
 import sys
 
 import numpy as np
-from helpers import ROOT
+from helpers import ROOT, free_port
 
 from octolog.kit.bus import Bus, BusConfig
 from octolog.kit.geometry import Intrinsics
@@ -17,12 +16,6 @@ from octolog.schemas import rgbdmsgs, streammsgs
 from octolog.schemas.topics import RGBD, RGBD_END, TRACKING_STATUS
 from octolog.tracker.interface import TrackingState
 from octolog.tracker.node import status_code
-
-
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def test_bad_frames_are_lost_and_tracking_goes_on(tmp_path):
@@ -36,7 +29,7 @@ def test_bad_frames_are_lost_and_tracking_goes_on(tmp_path):
             frames[8].intrinsics, width=1280, height=960)),
     }
     assert isinstance(bad[8].intrinsics, Intrinsics)
-    ep = f"tcp/127.0.0.1:{_port()}"
+    ep = f"tcp/127.0.0.1:{free_port()}"
     traj = tmp_path / "trajectory.txt"
     proc = subprocess.Popen([sys.executable, "-m", "octolog", "track", "--connect", ep, "--no-multicast",
                              "--trajectory", str(traj)], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -79,7 +72,7 @@ def test_state_codes_on_the_wire_are_the_messages_constants():
 
 
 def test_rerun_logging_runs_off_the_tracking_thread_in_frame_order(tmp_path):
-    """Issue 19: the tracker's Rerun log (images, keypoints, paths) is written by a thread of its own,
+    """The tracker's Rerun log (images, keypoints, paths) is written by a thread of its own,
     frame after frame in order, while the tracking thread goes on to the next frame; what the log
     reads of the tracker is copied at hand-over. A logging error surfaces when the block ends."""
     import threading

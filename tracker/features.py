@@ -104,7 +104,7 @@ class OrbExtractor:
         # pixel's centre lies at (x + 0.5) s - 0.5 in the full image (the pyramid is a resize), so the
         # reported point sits 0.5 (s - 1) px up and left of the corner (1.3 px at level 7). Corrected:
         # on the synthetic room with exact truth the Sim(3) scale came 0.04-0.31 % short and ATE
-        # 0.24-0.34 cm; corrected, within 0.12 % and 0.19-0.28 cm (docs/results.md, issue 17)
+        # 0.24-0.34 cm; corrected, within 0.12 % and 0.19-0.28 cm (docs/results.md, "Depth noise and scale")
         pts += 0.5 * (self.scale_factor ** octave - 1.0)[:, None]
         return pts, octave, np.ascontiguousarray(desc, dtype=np.uint8)
 

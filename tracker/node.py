@@ -301,7 +301,7 @@ class _Shown:
 
 
 class VizLog:
-    """The tracker's Rerun logging off the tracking thread (issue 19): one thread logs the frames in
+    """The tracker's Rerun logging off the tracking thread: one thread logs the frames in
     their order; the tracking thread hands each frame over with copies of what its log reads of the
     tracker. A full queue holds the tracking thread back rather than lose a frame's log. An error in
     logging is raised when the block ends, as it was raised where it happened before."""
