@@ -23,6 +23,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -70,58 +71,75 @@ def render_loop(folder: Path, n_loop: int) -> None:
         "start_ns": scene.config.start_ns}))
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--minutes", type=float, default=10.0, help="session length in sensor time (default 10)")
-    ap.add_argument("--vocabulary", default="", help="ORB vocabulary for place recognition (default: none)")
-    ap.add_argument("--render-to", help=argparse.SUPPRESS)
-    args = ap.parse_args()
-    if args.render_to:
-        render_loop(Path(args.render_to), round(LOOP_S * FPS))
-        return
-    n_loop = round(LOOP_S * FPS)
-    n = round(args.minutes * 60 * FPS)
+@dataclasses.dataclass
+class Played:
+    """What playing the loop left to report: the per-minute rows, each frame's stamp, the memory of the
+    empty tracker (tracker; worker), the end-of-stream time and the tracking process's CPU seconds."""
+
+    odom: Any  # the tracker make_odometry built (RgbdSlam's counts and worker are read too)
+    rows: list[tuple]
+    stamps: list[int]
+    empty: tuple[float, float]
+    end_s: float
+    cpu_s: float
+
+
+def _rendered_loop(tmp: str, n_loop: int, n: int, minutes: float) -> tuple[dict, Intrinsics]:
+    """Render one loop into `tmp` in a child process; its meta.json and intrinsics."""
+    t0 = time.monotonic()
+    subprocess.run([sys.executable, __file__, "--render-to", tmp], check=True)
+    meta = json.loads((Path(tmp) / "meta.json").read_text())
+    K = Intrinsics(**{**meta["intrinsics"], "distortion": tuple(meta["intrinsics"]["distortion"])})
+    print(f"rendered one loop ({n_loop} frames) in {time.monotonic() - t0:.0f} s; playing {n} frames "
+          f"({minutes:g} min at {FPS} fps)", flush=True)
+    return meta, K
+
+
+def _play(cfg: TrackerConfig, tmp: str, meta: dict, K: Intrinsics, n: int, n_loop: int) -> Played:
+    """The loop's PNGs played `n` frames through the tracker, a row printed per minute of sensor time."""
     per_min = 60 * FPS
-    poses = loop_poses(n_loop)
-    cfg = TrackerConfig(vocabulary=args.vocabulary)
-    with tempfile.TemporaryDirectory(prefix="octolog-long-") as tmp:
-        t0 = time.monotonic()
-        subprocess.run([sys.executable, __file__, "--render-to", tmp], check=True)
-        meta = json.loads((Path(tmp) / "meta.json").read_text())
-        K = Intrinsics(**{**meta["intrinsics"], "distortion": tuple(meta["intrinsics"]["distortion"])})
-        print(f"rendered one loop ({n_loop} frames) in {time.monotonic() - t0:.0f} s; playing {n} frames "
-              f"({args.minutes:g} min at {FPS} fps)", flush=True)
-        odom = make_odometry(cfg)
-        worker = getattr(getattr(odom, "worker", None), "_proc", None)
-        if getattr(odom, "worker", None) is not None:
-            odom.worker.ready()  # its imports done: the empty tracker's memory below holds no keyframe
-        empty = (_mb("self", "VmRSS"), _mb(worker.pid, "VmRSS") if worker else 0.0)
-        stamps, ms, rows = [], [], []
-        cpu0 = resource.getrusage(resource.RUSAGE_SELF)
-        for i in range(n):
-            k = i % n_loop
-            rgb = cv2.cvtColor(cv2.imread(f"{tmp}/{k:04d}_rgb.png", cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
-            depth = cv2.imread(f"{tmp}/{k:04d}_depth.png", cv2.IMREAD_ANYDEPTH)
-            frame = RgbdFrame(seq=i, stamp_ns=meta["start_ns"] + round(i * 1e9 / FPS), rgb=rgb, depth=depth,
-                              depth_scale_m=meta["depth_scale_m"], intrinsics=K)
-            t = time.perf_counter()
-            r = odom.track(frame)
-            ms.append((time.perf_counter() - t) * 1e3)
-            stamps.append(r.stamp_ns)
-            if (i + 1) % per_min == 0 or i + 1 == n:
-                lo = len(rows) * per_min
-                rows.append((len(rows) + 1, pct(ms[lo:], 50), pct(ms[lo:], 90), odom.n_keyframes, odom.n_map_points,
-                             _mb("self", "VmRSS"), _mb(worker.pid, "VmRSS") if worker else 0.0))
-                print("minute {} | {:.1f} / {:.1f} ms | {} keyframes | {} points | {:.0f} MB + worker {:.0f} MB"
-                      .format(*rows[-1]), flush=True)
-        t_end = time.perf_counter()
-        odom.finish()
-        end_s = time.perf_counter() - t_end
-        cpu1 = resource.getrusage(resource.RUSAGE_SELF)
-    fs, fp = odom.trajectory()
+    odom = make_odometry(cfg)
+    worker = getattr(getattr(odom, "worker", None), "_proc", None)
+    if getattr(odom, "worker", None) is not None:
+        odom.worker.ready()  # its imports done: the empty tracker's memory below holds no keyframe
+    empty = (_mb("self", "VmRSS"), _mb(worker.pid, "VmRSS") if worker else 0.0)
+    stamps, ms, rows = [], [], []
+    cpu0 = resource.getrusage(resource.RUSAGE_SELF)
+    for i in range(n):
+        k = i % n_loop
+        rgb = cv2.cvtColor(cv2.imread(f"{tmp}/{k:04d}_rgb.png", cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+        depth = cv2.imread(f"{tmp}/{k:04d}_depth.png", cv2.IMREAD_ANYDEPTH)
+        frame = RgbdFrame(seq=i, stamp_ns=meta["start_ns"] + round(i * 1e9 / FPS), rgb=rgb, depth=depth,
+                          depth_scale_m=meta["depth_scale_m"], intrinsics=K)
+        t = time.perf_counter()
+        r = odom.track(frame)
+        ms.append((time.perf_counter() - t) * 1e3)
+        stamps.append(r.stamp_ns)
+        if (i + 1) % per_min == 0 or i + 1 == n:
+            lo = len(rows) * per_min
+            rows.append((len(rows) + 1, pct(ms[lo:], 50), pct(ms[lo:], 90), odom.n_keyframes, odom.n_map_points,
+                         _mb("self", "VmRSS"), _mb(worker.pid, "VmRSS") if worker else 0.0))
+            print("minute {} | {:.1f} / {:.1f} ms | {} keyframes | {} points | {:.0f} MB + worker {:.0f} MB"
+                  .format(*rows[-1]), flush=True)
+    t_end = time.perf_counter()
+    odom.finish()
+    end_s = time.perf_counter() - t_end
+    cpu1 = resource.getrusage(resource.RUSAGE_SELF)
+    cpu_s = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
+    return Played(odom=odom, rows=rows, stamps=stamps, empty=empty, end_s=end_s, cpu_s=cpu_s)
+
+
+def _ate_cm(played: Played, poses: np.ndarray, n: int, n_loop: int) -> float:
+    """ATE RMSE of the final trajectory against the looped ground truth, in cm."""
+    fs, fp = played.odom.trajectory()
     all_poses = np.stack([poses[i % n_loop] for i in range(n)])
-    gt = metrics.Trajectory.from_matrices(np.array(stamps), all_poses)
-    ate = metrics.ate(metrics.Trajectory.from_matrices(np.array(fs), np.array(fp)), gt).rmse * 100.0
+    gt = metrics.Trajectory.from_matrices(np.array(played.stamps), all_poses)
+    return metrics.ate(metrics.Trajectory.from_matrices(np.array(fs), np.array(fp)), gt).rmse * 100.0
+
+
+def _report(played: Played, ate: float, n: int, minutes: float) -> None:
+    """The per-minute table and the summary table, as Markdown."""
+    odom, rows, empty = played.odom, played.rows, played.empty
     first, last = rows[0], rows[-1]
     kf_growth = last[3] - first[3]
     mb_per_1000 = (last[5] - first[5]) / kf_growth * 1000.0 if kf_growth > 0 else float("nan")
@@ -130,10 +148,9 @@ def main() -> None:
     # frames' trajectory, small); the growth after it, when the map still grows on later minutes
     kf1 = max(1, first[3])
     mb_first = ((first[5] - empty[0]) / kf1 * 1000.0, (first[6] - empty[1]) / kf1 * 1000.0)
-    cpu = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
     load = os.getloadavg()
     print()
-    print(f"octolog long-session tracker benchmark: synthetic room, {n} frames ({args.minutes:g} min at {FPS} fps), "
+    print(f"octolog long-session tracker benchmark: synthetic room, {n} frames ({minutes:g} min at {FPS} fps), "
           f"one {LOOP_S:g} s loop repeated; native tracker, worker on, Rerun off; load average {load[0]:.1f}")
     print()
     print("| minute | track ms median / p90 | keyframes | map points | tracker RSS MB | worker RSS MB |")
@@ -156,9 +173,29 @@ def main() -> None:
     if kf_growth == 0:
         print("| (after the first minute: no keyframe was added, so no growth per keyframe to measure) | |")
     print(f"| keyframes | {odom.n_keyframes} |")
-    print(f"| end of stream (finish: last back end + final BA), s | {end_s:.1f} |")
-    print(f"| CPU of the tracking process, ms per frame (worker not counted while alive) | {cpu / n * 1e3:.1f} |")
+    print(f"| end of stream (finish: last back end + final BA), s | {played.end_s:.1f} |")
+    print(f"| CPU of the tracking process, ms per frame (worker not counted while alive) | "
+          f"{played.cpu_s / n * 1e3:.1f} |")
     print(f"| ATE RMSE, cm (final trajectory) | {ate:.2f} |")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--minutes", type=float, default=10.0, help="session length in sensor time (default 10)")
+    ap.add_argument("--vocabulary", default="", help="ORB vocabulary for place recognition (default: none)")
+    ap.add_argument("--render-to", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    n_loop = round(LOOP_S * FPS)
+    if args.render_to:
+        render_loop(Path(args.render_to), n_loop)
+        return
+    n = round(args.minutes * 60 * FPS)
+    poses = loop_poses(n_loop)
+    cfg = TrackerConfig(vocabulary=args.vocabulary)
+    with tempfile.TemporaryDirectory(prefix="octolog-long-") as tmp:
+        meta, K = _rendered_loop(tmp, n_loop, n, args.minutes)
+        played = _play(cfg, tmp, meta, K, n, n_loop)
+    _report(played, _ate_cm(played, poses, n, n_loop), n, args.minutes)
 
 
 if __name__ == "__main__":
