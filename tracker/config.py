@@ -14,6 +14,7 @@ import math
 from dataclasses import dataclass, field
 
 from octolog.kit.errors import ConfigError
+from octolog.schemas.wirecompression import parse_wire_compression
 
 BACKENDS = ("native", "orbslam3")
 
@@ -220,8 +221,6 @@ class TrackerConfig:
             _want(0.0 <= self.rolling_shutter_ms <= 100.0, "rolling_shutter_ms", self.rolling_shutter_ms,
                   "want 0 to 100 (0 = global shutter)")
         try:
-            from octolog.schemas.wirecompression import parse_wire_compression  # rosbags: not in the back-end worker
-
             parse_wire_compression(self.wire_compression)
         except ConfigError as exc:
             raise ConfigError(f"tracker.wire_compression: {exc}") from None
