@@ -82,3 +82,22 @@ def octolog_run(tmp_path_factory) -> RunFn:
 def first300_run(octolog_run: RunFn) -> tuple[Path, str]:
     """The whole pipeline on TUM fr1/xyz first300 with the default config (skips without the data)."""
     return octolog_run(f"tum:{tum_first300()}")
+
+
+# The modules that take longest (seconds of wall time on two cores, from `pytest --durations=0`),
+# started first; the rest follow, those with more `slow` tests sooner. Only the schedule depends on it.
+LONGEST_FIRST = ("test_relink", "test_fleet", "test_distributed", "test_determinism", "test_slam", "test_pipeline")
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    """pytest-xdist hands whole modules to its workers in collection order: the long ones start early,
+    so no worker is left with one at the end while the other idles."""
+    slow: dict[str, int] = {}
+    for item in items:
+        slow[item.module.__name__] = slow.get(item.module.__name__, 0) + (item.get_closest_marker("slow") is not None)
+
+    def rank(item) -> tuple[int, int]:
+        name = item.module.__name__
+        return (LONGEST_FIRST.index(name) if name in LONGEST_FIRST else len(LONGEST_FIRST), -slow[name])
+
+    items.sort(key=rank)  # stable: a module's tests keep their order
