@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from octolog.kit.cpuclock import charge, note_threads
 from octolog.kit.errors import ConfigError, DiskFull, VizError
 from octolog.kit.geometry import Intrinsics, matrix_to_pose
 
@@ -39,7 +40,8 @@ def _encode(image: np.ndarray, ext: str, params: list[int]) -> np.ndarray:
 def encode_jpeg(rgb: np.ndarray) -> np.ndarray:
     """An RGB image as the JPEG the recordings hold (thread-safe: a stage may encode ahead, off its loop)."""
     cv = cv2()
-    return _encode(cv.cvtColor(rgb, cv.COLOR_RGB2BGR), ".jpg", [cv.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+    with charge("rerun"):
+        return _encode(cv.cvtColor(rgb, cv.COLOR_RGB2BGR), ".jpg", [cv.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
 
 
 def _blob(data: Any) -> np.ndarray:
@@ -135,10 +137,12 @@ class Viz:
             return
         rec, self.rec = self.rec, None
         try:
-            rec.flush()
+            with charge("rerun"):
+                rec.flush()
         except RuntimeError as exc:  # rerun's file writer died (it logs the OS error itself)
             raise self._write_error(exc) from None
         finally:
+            note_threads()  # rerun's threads end with the recording: their CPU, counted before
             rec.disconnect()
 
     def _write_error(self, exc: RuntimeError) -> Exception:

@@ -8,6 +8,7 @@ from typing import Any
 
 from octolog.kit.bus import Bus, BusConfig
 from octolog.kit.config import to_dict
+from octolog.kit.cpuclock import charge
 from octolog.kit.errors import InputError, MapError
 from octolog.kit.viz import Viz
 from octolog.mapper.config import MapperConfig
@@ -101,7 +102,8 @@ def _integrate_keyframe(r: Any, mapper: Mapper, result: MapperResult, viz: Viz, 
         kf_id, pose, frame = rgbdmsgs.keyframe_from_msg(msg)
         if publisher.frame is not None:
             publisher.frame.first_keyframe(frame)
-        n = mapper.integrate(kf_id, pose, frame)
+        with charge("mapper"):
+            n = mapper.integrate(kf_id, pose, frame)
         result.keyframes += 1
     except (InputError, MapError) as exc:
         # a bad keyframe is counted, reported and skipped; the map is never touched by it
@@ -116,7 +118,8 @@ def _integrate_keyframe(r: Any, mapper: Mapper, result: MapperResult, viz: Viz, 
         n_occupied=publisher.stats.get("occupied_voxels", 0), n_free=publisher.stats.get("free_voxels", 0),
         processing_ms=ms))
     if frame is not None:
-        publisher.maybe(result.keyframes, stamp)
+        with charge("mapper"):
+            publisher.maybe(result.keyframes, stamp)
         if viz.enabled:
             viz.set_time(stamp, frame.seq)
             viz.scalar("mapper/ms", ms)

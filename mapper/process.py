@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from octolog.kit.bus import Bus
+from octolog.kit.cpuclock import charge
 from octolog.kit.errors import MapError
 from octolog.kit.viz import Viz
 from octolog.mapper.core import Mapper, bt_payload
@@ -117,6 +118,11 @@ PREVIEW_POINTS = 100_000
 
 
 def log_map(viz: Viz, mapper: Mapper, stamp: int, grid: Any = None, *, final: bool = False) -> None:
+    with charge("rerun"):
+        _log_map(viz, mapper, stamp, grid, final)
+
+
+def _log_map(viz: Viz, mapper: Mapper, stamp: int, grid: Any, final: bool) -> None:
     viz.set_time(stamp)
     pts, cols = mapper.cloud.cloud() if final else mapper.cloud.preview(CLOUD_STRIDE, PREVIEW_POINTS)
     viz.points3d("map/cloud", pts, cols, radius=0.004 if final else 0.008)

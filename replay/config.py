@@ -29,6 +29,9 @@ class ReplayConfig:
     # play every N-th frame of the source only (3: the same camera moving 3x faster, at a third of
     # the frame rate; a fast-motion test case)
     every: int = 1
+    # with every > 1: stamp the frames `every` times closer (sensor time / every, ground truth too),
+    # so they play at the source's own frame rate: the camera `every` times faster at the same rate
+    retime: bool = False
     loop: int = 1  # play the source this many times (sequence numbers keep counting)
     # sensor-time window, seconds from the first frame (-1: unbounded); combines with start/end frames
     start_s: float = -1.0

@@ -128,7 +128,8 @@ def run(cfg: ReplayConfig, bus_cfg: BusConfig, *, rerun: str = "off", recording_
         progress: Progress | None = None) -> ReplayResult:
     if cfg.play == "tracker":
         return play_tracker_log(cfg, bus_cfg)
-    source = open_source(cfg.source, only_consumed=cfg.only_consumed, camera=cfg.camera, every=cfg.every)
+    source = open_source(cfg.source, only_consumed=cfg.only_consumed, camera=cfg.camera, every=cfg.every,
+                         retime=cfg.retime)
     with Bus(bus_cfg, "replay") as bus, Viz(rerun, "replay", recording_id) as viz:
         return publish(source, cfg, bus, viz, progress)
 

@@ -1,6 +1,6 @@
 """Frame sources for replay: a TUM RGB-D folder, an octolog MCAP file, or the synthetic scene.
 
-A source spec is `tum:PATH`, `mcap:PATH` or `synthetic[:N_FRAMES]`; `every=N` plays every N-th frame
+A source spec is `tum:PATH`, `mcap:PATH` or `synthetic[:N_FRAMES][:KEY=VALUE...]` (SYNTHETIC_SPEC); `every=N` plays every N-th frame
 of it (the same camera moving N times faster: a fast-motion test case).
 """
 
@@ -254,16 +254,27 @@ def backend_deferred(path: Path) -> list[int]:
                   for m in read_wire(path, [BACKEND_DEFERRED.name]))
 
 
+SYNTHETIC_SPEC = "synthetic[:N][:tilt=DEG][:motion=loop|turns][:exposure=MS][:noise=none|kinect|d455]"
+
+
 @dataclass
 class SyntheticSource:
     n_frames: int = 150
-    start_tilt_deg: float = 0.0  # `synthetic:N:tilt=DEG`: the camera starts looking down DEG more
+    start_tilt_deg: float = 0.0  # `tilt=DEG`: the camera starts looking down DEG more
+    motion: str = "loop"  # `motion=turns`: the walk with fast head turns (150-210 deg/s)
+    exposure_ms: float = 0.0  # `exposure=MS`: colour blurred by the camera's rotation over MS
+    depth_noise: str = "none"  # `noise=kinect|d455`: the depth that sensor would read
     readout_s = 0.0  # rendered, every row at once
     encoded = False  # rendered pixels
 
     def __post_init__(self) -> None:
-        self.scene = SyntheticScene(n_frames=self.n_frames, start_tilt_deg=self.start_tilt_deg)
-        self.name = f"synthetic:{self.n_frames}" + (f":tilt={self.start_tilt_deg:g}" if self.start_tilt_deg else "")
+        self.scene = SyntheticScene(n_frames=self.n_frames, start_tilt_deg=self.start_tilt_deg, motion=self.motion,
+                                    exposure_ms=self.exposure_ms, depth_noise=self.depth_noise)
+        options = {"tilt": f"{self.start_tilt_deg:g}" if self.start_tilt_deg else "",
+                   "motion": "" if self.motion == "loop" else self.motion,
+                   "exposure": f"{self.exposure_ms:g}" if self.exposure_ms else "",
+                   "noise": "" if self.depth_noise == "none" else self.depth_noise}
+        self.name = ":".join([f"synthetic:{self.n_frames}", *(f"{k}={v}" for k, v in options.items() if v)])
 
     def gravity_up(self) -> np.ndarray | None:
         return self.scene.gravity_up()
@@ -325,21 +336,75 @@ class Subsampled:
         return self.inner.gravity_up()  # the same first frame
 
 
+@dataclass
+class Retimed:
+    """`inner` (every `factor`-th frame of a source) stamped `factor` times closer together: sensor
+    time t becomes t0 + (t - t0) / factor for the frames and the ground truth alike, so every N-th
+    frame plays at the source's own frame rate: the same camera moving N times faster at the same
+    frame rate (replay.retime). t0 is the first frame's stamp."""
+
+    inner: Source
+    factor: int
+
+    def __post_init__(self) -> None:
+        self.name = f"{self.inner.name} at {self.factor}x speed"
+        self.readout_s = self.inner.readout_s
+        self.encoded = self.inner.encoded
+        first = self.inner.encoded_frames(0, 1) if self.encoded else self.inner.frames(0, 1)
+        self.t0_ns = next(iter(first)).stamp_ns
+
+    def _ns(self, ns: int) -> int:
+        return self.t0_ns + round((ns - self.t0_ns) / self.factor)
+
+    def __len__(self) -> int:
+        return len(self.inner)
+
+    @property
+    def duration_ns(self) -> int:
+        return round(self.inner.duration_ns / self.factor)
+
+    def frames(self, start: int = 0, end: int | None = None) -> Iterator[RgbdFrame]:
+        return (dataclasses.replace(f, stamp_ns=self._ns(f.stamp_ns)) for f in self.inner.frames(start, end))
+
+    def encoded_frames(self, start: int = 0, end: int | None = None) -> Iterator[EncodedRgbd]:
+        return (dataclasses.replace(f, stamp_ns=self._ns(f.stamp_ns)) for f in self.inner.encoded_frames(start, end))
+
+    def groundtruth_tum(self) -> str | None:
+        text = self.inner.groundtruth_tum()
+        if text is None:
+            return None
+        lines = []
+        for line in text.splitlines():
+            stamp, sep, rest = line.strip().partition(" ")
+            if not line.strip() or line.lstrip().startswith("#"):
+                lines.append(line)
+                continue
+            whole, _, frac = stamp.partition(".")
+            ns = self._ns(int(whole) * 1_000_000_000 + int((frac + "000000000")[:9]))
+            lines.append(f"{ns // 1_000_000_000}.{ns % 1_000_000_000:09d}{sep}{rest}")
+        return "\n".join(lines) + "\n"
+
+    def gravity_up(self) -> np.ndarray | None:
+        return self.inner.gravity_up()
+
+
 def open_source(spec: str, *, only_consumed: bool = False, camera: str = "", every: int = 1,
-                keyframes_only: bool = False) -> Source:
-    """Open `tum:PATH`, `mcap:PATH` or `synthetic[:N[:tilt=DEG]]`; errors name the problem in one line.
+                keyframes_only: bool = False, retime: bool = False) -> Source:
+    """Open `tum:PATH`, `mcap:PATH` or `synthetic[:N][:KEY=VALUE...]` (SYNTHETIC_SPEC); errors name the
+    problem in one line.
     `camera` names a TUM folder's camera when its name does not (replay.camera); `every` > 1 plays
-    every `every`-th frame only (replay.every)."""
+    every `every`-th frame only (replay.every), with `retime` at the source's own frame rate (replay.retime)."""
     if every < 1:
         raise ConfigError(f"replay.every {every}: want >= 1")
     kind, _, arg = spec.partition(":")
-    if kind == "tum" and arg:
-        return TumSource(Path(arg), camera, every)
-    kind, _, arg = spec.partition(":")
     if keyframes_only and kind == "mcap" and arg:
         return McapSource(Path(arg), keyframes_only=True)
-    source = _open(spec, only_consumed, camera)
-    return source if every == 1 else Subsampled(source, every)
+    if kind == "tum" and arg:
+        source: Source = TumSource(Path(arg), camera, every)
+    else:
+        source = _open(spec, only_consumed, camera)
+        source = source if every == 1 else Subsampled(source, every)
+    return Retimed(source, every) if retime and every > 1 else source
 
 
 def _open(spec: str, only_consumed: bool, camera: str) -> Source:
@@ -352,15 +417,27 @@ def _open(spec: str, only_consumed: bool, camera: str) -> Source:
     if only_consumed:
         raise ConfigError(f"source {spec!r}: only an MCAP session log knows which frames were consumed")
     if kind == "synthetic":
-        count, *options = arg.split(":") if arg else [""]
-        try:
-            n = int(count) if count else 150
-            tilt = float(options[0].removeprefix("tilt=")) if options else 0.0
-        except ValueError:
-            raise ConfigError(f"source {spec!r}: want synthetic[:N[:tilt=DEG]]") from None
-        if n < 2:
-            raise ConfigError(f"source {spec!r}: want at least 2 frames")
-        if len(options) > 1 or (options and not options[0].startswith("tilt=")) or not -80.0 <= tilt <= 80.0:
-            raise ConfigError(f"source {spec!r}: want synthetic[:N[:tilt=DEG]] with -80 <= DEG <= 80")
-        return SyntheticSource(n, tilt)
-    raise ConfigError(f"source {spec!r}: want tum:PATH, mcap:PATH or synthetic[:N[:tilt=DEG]]")
+        return _synthetic(spec, arg)
+    raise ConfigError(f"source {spec!r}: want tum:PATH, mcap:PATH or {SYNTHETIC_SPEC}")
+
+
+def _synthetic(spec: str, arg: str) -> SyntheticSource:
+    """`synthetic[:N][:KEY=VALUE...]` (SYNTHETIC_SPEC); a bad count, key or value is a one-line error."""
+    count, *options = arg.split(":") if arg else [""]
+    keys = {"tilt": "start_tilt_deg", "motion": "motion", "exposure": "exposure_ms", "noise": "depth_noise"}
+    kwargs: dict[str, Any] = {}
+    try:
+        n = int(count) if count else 150
+        for option in options:
+            key, eq, value = option.partition("=")
+            if not eq or key not in keys or keys[key] in kwargs:
+                raise ValueError(option)
+            kwargs[keys[key]] = value if key in ("motion", "noise") else float(value)
+        source = SyntheticSource(n, **kwargs)
+    except ValueError:
+        raise ConfigError(f"source {spec!r}: want {SYNTHETIC_SPEC}") from None
+    if n < 2:
+        raise ConfigError(f"source {spec!r}: want at least 2 frames")
+    if not -80.0 <= source.start_tilt_deg <= 80.0:
+        raise ConfigError(f"source {spec!r}: want {SYNTHETIC_SPEC} with -80 <= DEG <= 80")
+    return source

@@ -2,6 +2,11 @@
 ~47 deg/s, 1.2-1.5 m high), looking roughly along its path with a slow look-around; surfaces are
 0.5-5 m away (median 2.4-3.6 m). A function of time only, so frame i is the same whatever the
 sequence length.
+
+`motion="turns"` is the hand-held user turning to look at the room: the same walk, and on top of
+it a turn of the head every 1.5 s, 0.75 s long, by +85, -85, -70, +70 degrees of yaw in turn
+(a smooth start and stop) with a 10-degree nod (pitch) on each: with the walk's own turning, the
+camera turns at 150-210 deg/s at the peak of each turn.
 """
 
 from __future__ import annotations
@@ -13,10 +18,26 @@ from scipy.spatial.transform import Rotation
 
 LOOP_S = 18.0  # one loop around the pillar
 TILT_S = 1.0  # a tilted start (`start_tilt_deg`) levels out over this long
+MOTIONS = ("loop", "turns")
+TURN_S, TURN_EVERY_S = 0.75, 1.5  # `turns`: each turn takes TURN_S, one starts every TURN_EVERY_S
+TURN_YAW_DEG = (85.0, -85.0, -70.0, 70.0)  # the turns' yaw, in turn (the yaw is back to 0 after four)
+TURN_PITCH_DEG = (10.0, -10.0, -10.0, 10.0)
 
 
-def camera_trajectory(t: np.ndarray, *, periodic: bool = False,
-                      start_tilt_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def _turns(t: np.ndarray, steps_deg: tuple[float, ...]) -> np.ndarray:
+    """The angle (rad) a head turning by `steps_deg` in turn has turned at times t: each step a
+    raised-cosine ramp over TURN_S (peak rate pi/2 * step / TURN_S), one every TURN_EVERY_S."""
+    k = np.floor(t / TURN_EVERY_S).astype(np.int64)
+    within = np.clip((t - k * TURN_EVERY_S) / TURN_S, 0.0, 1.0)
+    steps = np.radians(np.asarray(steps_deg))
+    done = np.concatenate([[0.0], np.cumsum(steps)])  # after 0, 1, 2, ... whole steps (mod len)
+    n = len(steps)
+    before = (k // n) * done[-1] + done[k % n]
+    return before + steps[k % n] * 0.5 * (1.0 - np.cos(math.pi * within))
+
+
+def camera_trajectory(t: np.ndarray, *, periodic: bool = False, start_tilt_deg: float = 0.0,
+                      motion: str = "loop") -> tuple[np.ndarray, np.ndarray]:
     """Camera centres (N, 3) and world_from_camera rotations (N, 3, 3) at times t (s).
 
     `periodic`: the height and look-around periods (7, 7.3, 5.3, 4.1 s) rounded to whole fractions
@@ -38,6 +59,11 @@ def camera_trajectory(t: np.ndarray, *, periodic: bool = False,
     pitch = math.radians(-8.0) + math.radians(7.0) * np.sin(2.0 * math.pi * t / period(5.3) + 1.0)
     if start_tilt_deg:  # looking down by this much at t <= 0, level with the usual path from TILT_S on
         pitch = pitch - math.radians(start_tilt_deg) * 0.5 * (1.0 + np.cos(math.pi * np.clip(t / TILT_S, 0.0, 1.0)))
+    if motion == "turns":
+        yaw = yaw + _turns(np.maximum(t, 0.0), TURN_YAW_DEG)
+        pitch = pitch + _turns(np.maximum(t, 0.0), TURN_PITCH_DEG)
+    elif motion != "loop":
+        raise ValueError(f"motion {motion!r}: want one of {', '.join(MOTIONS)}")
     roll = math.radians(3.0) * np.sin(2.0 * math.pi * t / period(4.1))
     # body frame: x forward, y left, z up; a positive pitch raises the view.
     body = Rotation.from_euler("ZYX", np.stack([yaw, -pitch, roll], axis=1)).as_matrix()

@@ -261,7 +261,7 @@ def _add_session_commands(sub: Any) -> None:
     """`run` and `demo`: the whole pipeline on one machine."""
     p = sub.add_parser("run", help="whole pipeline as separate processes on one machine")
     p.add_argument("--source", required=True,
-                   help="tum:PATH, mcap:PATH, synthetic[:N[:tilt=DEG]], or live: d455 (a camera) or d455:software (simulated)")
+                   help="tum:PATH, mcap:PATH, synthetic[:N][:KEY=VALUE...], or live: d455 (a camera) or d455:software (simulated)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--duration", type=float, default=0.0,
                    help="live sources: stop after this many seconds of camera time (0: until the stream ends)")
@@ -282,7 +282,7 @@ def _add_stage_commands(sub: Any) -> None:
     """`replay`, `track`, `map`, `log`: one stage each, on any machine of a bus."""
     p = _stage_parser(sub, "replay", "publish a source's frames on the bus, or re-run stages of a recorded SESSION")
     p.add_argument("session", nargs="?", help="a session folder (made by octolog run): re-run stages from its log")
-    p.add_argument("--source", help="tum:PATH, mcap:PATH or synthetic[:N[:tilt=DEG]]")
+    p.add_argument("--source", help="tum:PATH, mcap:PATH or synthetic[:N][:KEY=VALUE...]")
     p.add_argument("--stages", default="tracker,mapper", help="SESSION: stages to run fresh (tracker,mapper or mapper)")
     p.add_argument("--from", dest="from_stage", metavar="STAGE",
                    help="SESSION: feed the logged output of STAGE (tracker) to fresh downstream stages")
@@ -400,9 +400,10 @@ def main(argv: list[str] | None = None) -> int:
         return _run_command(args)
     finally:
         if "octolog.kit.bus.screening" in sys.modules:  # a command that took samples off a bus
+            from octolog.kit import cpuclock
             from octolog.kit.bus import screening
 
-            errorfile.write_report(screening.totals())
+            errorfile.write_report(screening.totals(), cpuclock.report())
 
 
 def _run_command(args: argparse.Namespace) -> int:

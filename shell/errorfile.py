@@ -67,15 +67,25 @@ def read(path: Path) -> ErrorRecord | None:
     return ErrorRecord(str(data.get("type", "")), str(data.get("message", "")))
 
 
-def write_report(malformed: dict[str, int]) -> None:
-    """Record in `$OCTOLOG_REPORT_FILE` (if set) the malformed samples the stage dropped, per topic."""
+def write_report(malformed: dict[str, int], cpu: dict | None = None) -> None:
+    """Record in `$OCTOLOG_REPORT_FILE` (if set) the malformed samples the stage dropped, per topic,
+    and where its CPU went (kit/cpuclock.py: report)."""
     path = os.environ.get(REPORT_ENV)
     if not path:
         return
     try:
-        Path(path).write_text(json.dumps({"malformed": malformed}, sort_keys=True) + "\n")
+        Path(path).write_text(json.dumps({"malformed": malformed, "cpu_s": cpu or {}}, sort_keys=True) + "\n")
     except OSError:
         pass  # best effort: each first drop per publisher is in the stage's log
+
+
+def read_cpu(path: Path) -> dict:
+    """The CPU report in a stage's report file, {} if there is none."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    return data.get("cpu_s", {}) if isinstance(data, dict) else {}
 
 
 def read_malformed(path: Path) -> dict[str, int]:

@@ -161,6 +161,7 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     # opened here to fail fast, before any process starts
     src = LiveSource(source) if live else open_source(source, only_consumed=replay_cfg.only_consumed,
                                                       camera=replay_cfg.camera, every=replay_cfg.every,
+                                                      retime=replay_cfg.retime,
                                                       keyframes_only=feed_tracker)
     cfgs["tracker"] = for_source(cfgs["tracker"], src)  # an unset rolling shutter: the source's camera
     if live and not any(o.split("=", 1)[0].strip() == "recorder.publish_lag_ms" for o in overrides or []):
@@ -380,9 +381,11 @@ def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, re
     # samples the stages' buses dropped as malformed (not messages, or lying about their sizes)
     s.malformed = {p.name.removesuffix(".report.json"): counts for p in sorted((out / "logs").glob("*.report.json"))
                    if (counts := errorfile.read_malformed(p))}
+    # where each stage's CPU went (kit/cpuclock.py); CPU time differs run to run: not for comparing outputs
+    cpu = {p.name.removesuffix(".report.json"): errorfile.read_cpu(p) for p in sorted((out / "logs").glob("*.report.json"))}
     (out / "summary.json").write_text(json.dumps(
         {"source": source, "frames": frames, "tracked_frames": s.frames, "wall_s": round(wall, 3),
-         "malformed": s.malformed, "map_frame": s.map_frame,
+         "malformed": s.malformed, "map_frame": s.map_frame, "cpu_s": cpu,
          "duration_s": s.duration_s, "ate": s.ate, "map": s.map, "files": sorted(s.files),
          "recording_id": recording_id, "versions": versions()},
         indent=2, sort_keys=True) + "\n")

@@ -21,6 +21,7 @@ from concurrent.futures import CancelledError, Future, ThreadPoolExecutor
 from typing import Any
 
 from octolog.kit.bus import Bus, Received
+from octolog.kit.cpuclock import charge
 from octolog.kit.errors import InputError
 from octolog.kit.geometry import RgbdFrame
 from octolog.kit.viz import encode_jpeg
@@ -36,15 +37,19 @@ def decode(r: Received, odometry: Tracker | None = None, viz: bool = False) -> D
     """A frame message, its decoded frame (or the InputError that says why it cannot be one) and,
     given the tracker, what `odometry.prepare` makes of it ahead of `track`; with `viz`, the frame's
     colour as the JPEG the recording logs (`extra["jpeg"]`), unless it came as one."""
-    msg = r.decode()
-    try:
-        frame = rgbdmsgs.rgbd_from_msg(msg)
-    except InputError as exc:
-        return msg, exc, None
+    with charge("decode"):
+        msg = r.decode()
+        try:
+            frame = rgbdmsgs.rgbd_from_msg(msg)
+        except InputError as exc:
+            return msg, exc, None
     colour = frame.extra.get("wire", (None,))[0]
     if viz and (colour is None or "jpeg" not in colour.format):
         frame.extra["jpeg"] = encode_jpeg(frame.rgb)
-    return msg, frame, odometry.prepare(frame) if odometry is not None else None
+    if odometry is None:
+        return msg, frame, None
+    with charge("features"):
+        return msg, frame, odometry.prepare(frame)
 
 
 def is_frame(r: Received) -> bool:

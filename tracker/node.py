@@ -17,6 +17,7 @@ import numpy as np
 
 from octolog.kit.bus import Bus, BusConfig
 from octolog.kit.config import to_dict
+from octolog.kit.cpuclock import charge
 from octolog.kit.errors import InputError, TrackingError
 from octolog.kit.geometry import Intrinsics, RgbdFrame, invert
 from octolog.kit.metrics import write_tum
@@ -188,7 +189,8 @@ def _track_frame(odometry: Tracker, cfg: TrackerConfig, prepare: Callable[[], tu
         if isinstance(frame_or_error, InputError):
             raise frame_or_error
         frame = frame_or_error
-        res = odometry.track(frame, prepared)
+        with charge("tracking"):
+            res = odometry.track(frame, prepared)
     except (InputError, TrackingError) as exc:
         # an undecodable frame, or one that contradicts its camera (size, depth type, changed
         # intrinsics), is consumed and reported LOST, never a crash
@@ -338,7 +340,8 @@ class VizLog:
     def _run(self) -> None:
         while (item := self._q.get()) is not None:
             try:
-                _log(self.viz, item)
+                with charge("rerun"):
+                    _log(self.viz, item)
             except BaseException as exc:  # noqa: BLE001  (kept, raised on the tracking thread at the end)
                 self.error = self.error or exc
 

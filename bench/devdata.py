@@ -1,0 +1,118 @@
+"""The benches' motion cases: TUM fr1/xyz first300 as recorded (slow), the same every 3rd frame at
+30 fps (3x the motion at the camera's rate), and the synthetic room with fast head turns written
+out as a TUM folder, so the renderer's CPU is not counted against the pipeline.
+
+    from devdata import CASES, case_source   # bench scripts: bench/ is on sys.path
+
+A case is a source spec and the `--set` overrides that make it; `case_source(name)` prepares what
+it needs (the synthetic folder is rendered once, ~1 min, into /tmp/octolog-bench).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+
+ROOT = Path(__file__).resolve().parents[1]
+CACHE = Path(os.environ.get("OCTOLOG_BENCH_CACHE", "/tmp/octolog-bench"))
+TURNS_SPEC = "synthetic:600:motion=turns:exposure=8:noise=kinect"
+
+
+@dataclass(frozen=True)
+class Case:
+    name: str
+    about: str
+    fast: bool
+
+
+CASES = {
+    "first300": Case("first300", "TUM fr1/xyz first300 as recorded (slow hand-held motion)", False),
+    "first300x3": Case("first300x3", "TUM fr1/xyz first300, every 3rd frame re-timed to 30 fps (3x the motion)", True),
+    "turns": Case("turns", f"{TURNS_SPEC}: the synthetic room, head turns at 150-210 deg/s, 8 ms blur, Kinect depth",
+                  True),
+}
+
+
+def first300() -> Path:
+    data = Path(os.environ.get("OCTOLOG_DATA", ROOT.parent / "shared" / "data"))
+    folder = data / "tum" / "rgbd_dataset_freiburg1_xyz_first300"
+    if not folder.is_dir():
+        sys.exit(f"bench: {folder} not found; set OCTOLOG_DATA")
+    return folder
+
+
+def case_source(name: str) -> tuple[str, list[str]]:
+    """The source spec and `--set` overrides (KEY=VALUE) of a case."""
+    if name == "first300":
+        return f"tum:{first300()}", []
+    if name == "first300x3":
+        return f"tum:{first300()}", ["replay.every=3", "replay.retime=true"]
+    if name == "turns":
+        folder = render_tum(TURNS_SPEC, CACHE / "synthetic-turns-600")
+        return f"tum:{folder}", [f"replay.camera={folder / 'calibration.toml'}"]
+    sys.exit(f"bench: unknown case {name!r}: want one of {', '.join(CASES)}")
+
+
+def render_tum(spec: str, folder: Path) -> Path:
+    """The synthetic source `spec` as a TUM folder (PNGs, lists, ground truth, a calibration file);
+    kept and reused once complete (a `done` file holding the spec)."""
+    done = folder / "done"
+    if done.is_file() and done.read_text() == spec:
+        return folder
+    from octolog.replay.sources import open_source
+
+    src = open_source(spec)
+    scene, K = src.scene, src.scene.intrinsics
+    for sub in ("rgb", "depth"):
+        (folder / sub).mkdir(parents=True, exist_ok=True)
+    rgb_list, depth_list = [], []
+    print(f"bench: rendering {spec} into {folder} (once)", file=sys.stderr)
+    for f in src.frames():
+        t = f"{f.stamp_ns // 1_000_000_000}.{f.stamp_ns % 1_000_000_000:09d}"
+        cv2.imwrite(str(folder / f"rgb/{t}.png"), cv2.cvtColor(f.rgb, cv2.COLOR_RGB2BGR))
+        cv2.imwrite(str(folder / f"depth/{t}.png"), f.depth)
+        rgb_list.append(f"{t} rgb/{t}.png")
+        depth_list.append(f"{t} depth/{t}.png")
+    (folder / "rgb.txt").write_text("# timestamp filename\n" + "\n".join(rgb_list) + "\n")
+    (folder / "depth.txt").write_text("# timestamp filename\n" + "\n".join(depth_list) + "\n")
+    (folder / "groundtruth.txt").write_text(scene.groundtruth_tum())
+    (folder / "calibration.toml").write_text(
+        f'name = "synthetic"\nwidth = {K.width}\nheight = {K.height}\nfx = {K.fx}\nfy = {K.fy}\n'
+        f"cx = {K.cx}\ncy = {K.cy}\ndepth_scale_m = {scene.depth_scale_m}\n")
+    done.write_text(spec)
+    return folder
+
+
+def published_steps(session: Path, groundtruth: Path, *, bad_m: float = 0.05) -> dict:
+    """What the tracker published frame by frame (tracker/pose: the poses the mapper and a user get,
+    before any later correction), against the ground truth: consecutive published poses whose
+    relative motion is more than `bad_m` off the true one (RPE, delta 1), the worst, and the
+    counts of published and LOST frames."""
+    import numpy as np
+
+    from octolog.kit import metrics
+    from octolog.kit.mcaplog import read_wire
+    from octolog.schemas import codec, posemsgs
+    from octolog.schemas.topics import POSE, TRACKING_STATUS
+
+    stamps, poses, lost = [], [], 0
+    for m in read_wire(session, [POSE.name, TRACKING_STATUS.name]):
+        msg = codec.decode(m.data, POSE.msgtype if m.topic == POSE.name else TRACKING_STATUS.msgtype)
+        if m.topic == POSE.name:
+            stamps.append(msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
+            poses.append(posemsgs.pose_matrix(msg.pose))
+        else:
+            lost += msg.state == msg.LOST
+    est = metrics.Trajectory.from_matrices(np.array(stamps, np.int64), np.array(poses))
+    r = metrics.rpe(est, metrics.read_tum(groundtruth), delta=1)
+    return {"published": len(stamps), "lost": lost, "bad_steps": int((r.trans_errors > bad_m).sum()),
+            "worst_step_m": r.trans_max}
+
+
+if __name__ == "__main__":
+    for case in CASES:
+        print(case, *case_source(case))
