@@ -57,6 +57,30 @@ def case_source(name: str) -> tuple[str, list[str]]:
     sys.exit(f"bench: unknown case {name!r}: want one of {', '.join(CASES)}")
 
 
+def open_case(source: str, sets: list[str]):
+    """The case's source as the replay stage opens it (replay.every, replay.retime, replay.camera)."""
+    from octolog.replay.sources import open_source
+
+    opts = dict(s.split("=", 1) for s in sets)
+    return open_source(source, every=int(opts.get("replay.every", 1)), retime=opts.get("replay.retime") == "true",
+                       camera=opts.get("replay.camera", ""))
+
+
+def step_errors(stamps_ns: list[int], poses: list, groundtruth, *, bad_m: float = 0.05) -> dict:
+    """Consecutive poses (published ones) whose relative motion is more than `bad_m` off the ground
+    truth's (`groundtruth`: a kit.metrics Trajectory), and the worst."""
+    import numpy as np
+
+    from octolog.kit import metrics
+
+    if len(stamps_ns) < 2:
+        return {"published": len(stamps_ns), "bad_steps": 0, "worst_step_m": 0.0}
+    est = metrics.Trajectory.from_matrices(np.array(stamps_ns, np.int64), np.array(poses))
+    r = metrics.rpe(est, groundtruth, delta=1)
+    return {"published": len(stamps_ns), "bad_steps": int((r.trans_errors > bad_m).sum()),
+            "worst_step_m": r.trans_max}
+
+
 def render_tum(spec: str, folder: Path) -> Path:
     """The synthetic source `spec` as a TUM folder (PNGs, lists, ground truth, a calibration file);
     kept and reused once complete (a `done` file holding the spec)."""
@@ -92,8 +116,6 @@ def published_steps(session: Path, groundtruth: Path, *, bad_m: float = 0.05) ->
     before any later correction), against the ground truth: consecutive published poses whose
     relative motion is more than `bad_m` off the true one (RPE, delta 1), the worst, and the
     counts of published and LOST frames."""
-    import numpy as np
-
     from octolog.kit import metrics
     from octolog.kit.mcaplog import read_wire
     from octolog.schemas import codec, posemsgs
@@ -107,10 +129,7 @@ def published_steps(session: Path, groundtruth: Path, *, bad_m: float = 0.05) ->
             poses.append(posemsgs.pose_matrix(msg.pose))
         else:
             lost += msg.state == msg.LOST
-    est = metrics.Trajectory.from_matrices(np.array(stamps, np.int64), np.array(poses))
-    r = metrics.rpe(est, metrics.read_tum(groundtruth), delta=1)
-    return {"published": len(stamps), "lost": lost, "bad_steps": int((r.trans_errors > bad_m).sum()),
-            "worst_step_m": r.trans_max}
+    return {**step_errors(stamps, poses, metrics.read_tum(groundtruth), bad_m=bad_m), "lost": lost}
 
 
 if __name__ == "__main__":

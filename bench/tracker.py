@@ -6,13 +6,16 @@ per-frame time is the wall time of `track()` (ORB-SLAM3 also works on its local-
 loop-closing threads: CPU time counts every thread). ORB-SLAM3 is not deterministic, so it runs
 `--orb-runs` times (default 3) and the table quotes the median ATE and every run's.
 
-    python bench/tracker.py [--source tum:PATH] [--every 1,3] [--vocabulary FILE] [--orb-runs 3]
+    python bench/tracker.py [--cases first300,first300x3,turns] [--vocabulary FILE] [--orb-runs 3]
 
-`--every 1,3` (default) runs the sequence as recorded and then every 3rd frame only: the same
-camera moving three times faster (the fast-motion case), one table each.
+The cases are bench/devdata.py's: TUM fr1/xyz first300 as recorded, the same every 3rd frame
+re-timed to 30 fps (3x the motion at the camera's rate), and the synthetic room with 150-210 deg/s
+head turns, 8 ms motion blur and Kinect depth noise; one table each. Besides ATE, each table
+counts the published poses whose step from the previous published pose is more than 5 cm off
+the ground truth's step (a confident wrong pose: what a mapper would integrate).
 
-Without --vocabulary one is built with `octolog vocab build` from the sequence's rgb/ folder
-(k 10, L 6, seed 0) and cached in --cache (default /tmp/octolog-bench/vocab).
+Without --vocabulary one is built with `octolog vocab build` from TUM fr1/xyz first300's rgb/
+folder (k 10, L 6, seed 0) and cached in --cache (default /tmp/octolog-bench/vocab).
 """
 
 from __future__ import annotations
@@ -33,7 +36,6 @@ from pathlib import Path
 import numpy as np
 
 from octolog.kit import metrics
-from octolog.replay.sources import open_source
 from octolog.tracker.config import TrackerConfig, for_source
 from octolog.tracker.factory import make_odometry
 from octolog.tracker.interface import TrackingState
@@ -43,7 +45,8 @@ from octolog.tracker.orbslam3 import OrbSlam3Odometry
 ROOT = Path(__file__).resolve().parents[1]
 
 
-from pipeline import default_source, pct  # noqa: E402  (bench/ is this script's folder)
+from devdata import CASES, case_source, first300, open_case, step_errors  # noqa: E402  (bench/ is this script's folder)
+from pipeline import pct  # noqa: E402
 
 
 def _vm(key: str) -> float:
@@ -58,8 +61,8 @@ def _vm(key: str) -> float:
 # Worker: one backend, one run, in its own process.
 
 
-def worker(backend: str, source: str, every: int, vocabulary: str, result_path: Path) -> None:
-    src = open_source(source, every=every)
+def worker(backend: str, source: str, sets: list[str], vocabulary: str, result_path: Path) -> None:
+    src = open_case(source, sets)
     frames = src.frames()
     first = next(frames)
     cfg = for_source(TrackerConfig(backend=backend, vocabulary=vocabulary), src)
@@ -111,12 +114,12 @@ def worker(backend: str, source: str, every: int, vocabulary: str, result_path: 
     }))
 
 
-def run_worker(backend: str, source: str, every: int, vocabulary: str) -> dict:
+def run_worker(backend: str, source: str, sets: list[str], vocabulary: str) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         res = Path(tmp) / "result.json"
         # ORB-SLAM3 prints its progress on stdout: keep it out of the table
         proc = subprocess.run([sys.executable, __file__, "--worker", backend, "--source", source,
-                               "--every", str(every), "--vocabulary", vocabulary, "--result", str(res)],
+                               "--sets", json.dumps(sets), "--vocabulary", vocabulary, "--result", str(res)],
                               cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         if proc.returncode != 0:
             sys.exit(f"bench: {backend} worker failed:\n{proc.stderr}")
@@ -127,14 +130,11 @@ def run_worker(backend: str, source: str, every: int, vocabulary: str) -> dict:
 # Vocabulary
 
 
-def ensure_vocabulary(source: str, given: str | None, cache: Path) -> tuple[str, str]:
-    """(path, note): the given file, a cached build, or a fresh `octolog vocab build`."""
+def ensure_vocabulary(given: str | None, cache: Path) -> tuple[str, str]:
+    """(path, note): the given file, a cached build from first300's images, or a fresh `octolog vocab build`."""
     if given:
         return given, f"vocabulary: {given} (given)"
-    kind, _, path = source.partition(":")
-    rgb = Path(path) / "rgb"
-    if kind != "tum" or not rgb.is_dir():
-        sys.exit("bench: without --vocabulary the source must be a TUM folder (its rgb/ images train one)")
+    rgb = first300() / "rgb"
     params = ["--k", "10", "--levels", "6", "--features", "1000", "--seed", "0"]
     key = hashlib.sha256(f"{rgb.resolve()} {' '.join(params)}".encode()).hexdigest()[:12]
     out = cache / f"{rgb.parent.name}_k10_L6_{key}.txt"
@@ -163,8 +163,9 @@ def cm(v: float) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--source", default=None, help="tum:PATH (default: TUM fr1/xyz first 300)")
-    ap.add_argument("--every", default="1,3", help="cases: play every N-th frame (default 1,3: as recorded, then 3x faster)")
+    ap.add_argument("--cases", default="first300,first300x3,turns", help=f"of {', '.join(CASES)}")
+    ap.add_argument("--source", help=argparse.SUPPRESS)
+    ap.add_argument("--sets", default="[]", help=argparse.SUPPRESS)
     ap.add_argument("--vocabulary", default=None, metavar="FILE", help="ORB vocabulary (default: build and cache one)")
     ap.add_argument("--orb-runs", type=int, default=3, help="ORB-SLAM3 runs (default 3; it is not deterministic)")
     ap.add_argument("--cache", default="/tmp/octolog-bench/vocab", help="where a built vocabulary is kept")
@@ -172,15 +173,10 @@ def main() -> None:
     ap.add_argument("--result", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
-        worker(args.worker, args.source, int(args.every), args.vocabulary or "", Path(args.result))
+        worker(args.worker, args.source, json.loads(args.sets), args.vocabulary or "", Path(args.result))
         return
 
-    source = args.source or default_source()
-    vocabulary, voc_note = ensure_vocabulary(source, args.vocabulary, Path(args.cache))
-    try:
-        cases = [int(x) for x in args.every.split(",")]
-    except ValueError:
-        sys.exit(f"bench: --every {args.every!r}: want comma-separated frame steps, e.g. 1,3")
+    vocabulary, voc_note = ensure_vocabulary(args.vocabulary, Path(args.cache))
     try:
         from importlib.metadata import version
 
@@ -189,43 +185,57 @@ def main() -> None:
         orb_version = "?"
     cpu = next((ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
                 if ln.startswith("model name")), platform.processor() or "?")
-    print(f"octolog tracker benchmark: {source}")
+    print("octolog tracker benchmark")
     print(f"machine: {cpu}, {os.cpu_count()} cores, {platform.machine()}, Python {platform.python_version()}")
     print(f"native: tracker.odometry in-process, Rerun off, 1 run (deterministic); ORB-SLAM3: pyorbslam3 {orb_version} "
           f"RGB-D, {args.orb_runs} runs (not deterministic), keyframes published by pose distance "
           "(the binding reports none), 'own' = ORB-SLAM3's keyframe count at shutdown")
     print(voc_note)
-    for every in cases:
+    for name in args.cases.split(","):
         print()
-        bench_case(source, every, vocabulary, args.orb_runs)
+        bench_case(name, vocabulary, args.orb_runs)
 
 
-def bench_case(source: str, every: int, vocabulary: str, orb_runs: int) -> None:
-    gt_text = open_source(source).groundtruth_tum()
+def published(r: dict, gt: metrics.Trajectory) -> dict:
+    """The tracked frames' per-frame poses (as published) against the truth: bad steps, ATE."""
+    traj = metrics.parse_tum(r["online_tum"])
+    ok = np.array([s == TrackingState.OK for s in r["states"]])
+    stamps, poses = traj.stamps_ns[ok], traj.matrices()[ok]
+    steps = step_errors(list(stamps), list(poses), gt)
+    tracked = metrics.Trajectory.from_matrices(stamps, poses)
+    return {**steps, "ate_cm": metrics.ate(tracked, gt).rmse * 100 if len(stamps) > 2 else float("nan")}
+
+
+def bench_case(name: str, vocabulary: str, orb_runs: int) -> None:
+    source, sets = case_source(name)
+    gt_text = open_case(source, sets).groundtruth_tum()
     if not gt_text:
         sys.exit(f"bench: {source} has no ground truth")
     gt = metrics.parse_tum(gt_text)
     load0 = os.getloadavg()
-    native = run_worker("native", source, every, vocabulary)
-    orbs = [run_worker("orbslam3", source, every, vocabulary) for _ in range(orb_runs)]
+    native = run_worker("native", source, sets, vocabulary)
+    orbs = [run_worker("orbslam3", source, sets, vocabulary) for _ in range(orb_runs)]
     load1 = os.getloadavg()
+    pub_n, pub_o = published(native, gt), [published(r, gt) for r in orbs]
 
     def ok(r: dict) -> int:
         return sum(s == TrackingState.OK for s in r["states"])
 
     n = len(native["states"])
-    orb_ate = [ate_cm(r["online_tum"], gt) for r in orbs]
     orb_final = [ate_cm(r["final_tum"], gt) for r in orbs]
     orb_ms = [x for r in orbs for x in r["ms"]]
-    runs = ", ".join(cm(a) for a in orb_ate)
     finals = ", ".join(cm(a) for a in orb_final)
 
     def med(key: str) -> float:
         return statistics.median(r[key] for r in orbs)
 
     rows = [
-        ("ATE RMSE, cm (per-frame poses as published)", cm(ate_cm(native["online_tum"], gt)),
-         f"{cm(statistics.median(orb_ate))} (runs: {runs})"),
+        ("ATE RMSE, cm (per-frame poses as published, tracked frames)", cm(pub_n["ate_cm"]),
+         f"{cm(statistics.median(p['ate_cm'] for p in pub_o))} (runs: {', '.join(cm(p['ate_cm']) for p in pub_o)})"),
+        ("published steps > 5 cm off the truth's / worst, cm", f"{pub_n['bad_steps']} / {pub_n['worst_step_m'] * 100:.1f}",
+         f"{statistics.median(p['bad_steps'] for p in pub_o):.0f} / "
+         f"{statistics.median(p['worst_step_m'] for p in pub_o) * 100:.1f} (runs: "
+         f"{', '.join(str(p['bad_steps']) for p in pub_o)})"),
         ("ATE RMSE, cm (final trajectory after back end)", cm(ate_cm(native["final_tum"], gt)),
          f"{cm(statistics.median(orb_final))} (runs: {finals})"),
         ("frames tracked (state OK) / frames", f"{ok(native)} / {n}",
@@ -251,9 +261,7 @@ def bench_case(source: str, every: int, vocabulary: str, orb_runs: int) -> None:
          f"{native['rss_before_mb']:.0f}",
          f"{med('rss_before_mb'):.0f}"),
     ]
-    nth = {2: "2nd", 3: "3rd"}.get(every, f"{every}th")
-    case = "as recorded" if every == 1 else f"every {nth} frame: {every}x the motion per frame (fast-motion case)"
-    print(f"## {case}: {n} frames; load average {load0[0]:.1f} before, {load1[0]:.1f} after (shared machine); "
+    print(f"## {name}: {CASES[name].about}: {n} frames; load average {load0[0]:.1f} before, {load1[0]:.1f} after (shared machine); "
           f"native rolling-shutter readout {native['readout_ms']:g} ms")
     print()
     print("| | native | ORB-SLAM3 |")
