@@ -195,6 +195,8 @@ def apply_result(res: BackendResult, keyframes: list[Keyframe], points: MapPoint
     ref = keyframes[res.kf_id]
     old_ref = ref.world_from_camera.copy()
     moved = dict(res.poses)
+    # how each keyframe the job moved moved (world_from_world), for the points it made that the job left out
+    creator_delta = {i: T @ invert(keyframes[i].world_from_camera) for i, T in res.poses.items()}
     for i, T in res.poses.items():
         keyframes[i].world_from_camera = T
     delta = ref.world_from_camera @ invert(old_ref)
@@ -209,6 +211,7 @@ def apply_result(res: BackendResult, keyframes: list[Keyframe], points: MapPoint
         jump = moved_m > max_point_move_m
         points.bad[res.point_ids[jump]] = True
         points.xyz[res.point_ids[~jump]] = res.points[~jump]
+        _carry_left_out(points, res.point_ids, creator_delta)
     else:
         points.xyz[res.point_ids] = res.points
     if res.kf_id + 1 < len(keyframes):
@@ -217,6 +220,22 @@ def apply_result(res: BackendResult, keyframes: list[Keyframe], points: MapPoint
         ids = np.flatnonzero(later)
         points.xyz[ids] = points.xyz[ids] @ delta[:3, :3].T + delta[:3, 3]
     return delta, moved
+
+
+def _carry_left_out(points: MapPoints, in_job: np.ndarray, creator_delta: dict[int, np.ndarray]) -> None:
+    """Points local BA left out (beyond `max_points`) move rigidly with the keyframe that made them:
+    left behind, a moved keyframe's own points no longer agreed with it (on a fast turn, reprojection
+    errors of 10-20 px), and the next local BA pulled the keyframes apart to fit them."""
+    if not creator_delta:
+        return
+    n = points.size
+    left = np.isin(points.ref_kf[:n], np.array(sorted(creator_delta)))
+    left[in_job] = False
+    for i in sorted(creator_delta):
+        ids = np.flatnonzero(left & (points.ref_kf[:n] == i))
+        if ids.size:
+            d = creator_delta[i]
+            points.xyz[ids] = points.xyz[ids] @ d[:3, :3].T + d[:3, 3]
 
 
 def run_backend(job: BackendJob) -> BackendResult:
