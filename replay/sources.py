@@ -254,7 +254,7 @@ def backend_deferred(path: Path) -> list[int]:
                   for m in read_wire(path, [BACKEND_DEFERRED.name]))
 
 
-SYNTHETIC_SPEC = "synthetic[:N][:tilt=DEG][:motion=loop|turns][:exposure=MS][:noise=none|kinect|d455]"
+SYNTHETIC_SPEC = "synthetic[:N][:tilt=DEG][:motion=loop|turns][:exposure=MS][:noise=none|kinect|d455][:seed=S]"
 
 
 @dataclass
@@ -264,16 +264,18 @@ class SyntheticSource:
     motion: str = "loop"  # `motion=turns`: the walk with fast head turns (150-210 deg/s)
     exposure_ms: float = 0.0  # `exposure=MS`: colour blurred by the camera's rotation over MS
     depth_noise: str = "none"  # `noise=kinect|d455`: the depth that sensor would read
+    seed: int = 0  # `seed=S`: another room's textures and another draw of the depth noise
     readout_s = 0.0  # rendered, every row at once
     encoded = False  # rendered pixels
 
     def __post_init__(self) -> None:
         self.scene = SyntheticScene(n_frames=self.n_frames, start_tilt_deg=self.start_tilt_deg, motion=self.motion,
-                                    exposure_ms=self.exposure_ms, depth_noise=self.depth_noise)
+                                    exposure_ms=self.exposure_ms, depth_noise=self.depth_noise, seed=self.seed)
         options = {"tilt": f"{self.start_tilt_deg:g}" if self.start_tilt_deg else "",
                    "motion": "" if self.motion == "loop" else self.motion,
                    "exposure": f"{self.exposure_ms:g}" if self.exposure_ms else "",
-                   "noise": "" if self.depth_noise == "none" else self.depth_noise}
+                   "noise": "" if self.depth_noise == "none" else self.depth_noise,
+                   "seed": str(self.seed) if self.seed else ""}
         self.name = ":".join([f"synthetic:{self.n_frames}", *(f"{k}={v}" for k, v in options.items() if v)])
 
     def gravity_up(self) -> np.ndarray | None:
@@ -424,7 +426,8 @@ def _open(spec: str, only_consumed: bool, camera: str) -> Source:
 def _synthetic(spec: str, arg: str) -> SyntheticSource:
     """`synthetic[:N][:KEY=VALUE...]` (SYNTHETIC_SPEC); a bad count, key or value is a one-line error."""
     count, *options = arg.split(":") if arg else [""]
-    keys = {"tilt": "start_tilt_deg", "motion": "motion", "exposure": "exposure_ms", "noise": "depth_noise"}
+    keys = {"tilt": "start_tilt_deg", "motion": "motion", "exposure": "exposure_ms", "noise": "depth_noise",
+            "seed": "seed"}
     kwargs: dict[str, Any] = {}
     try:
         n = int(count) if count else 150
@@ -432,7 +435,7 @@ def _synthetic(spec: str, arg: str) -> SyntheticSource:
             key, eq, value = option.partition("=")
             if not eq or key not in keys or keys[key] in kwargs:
                 raise ValueError(option)
-            kwargs[keys[key]] = value if key in ("motion", "noise") else float(value)
+            kwargs[keys[key]] = value if key in ("motion", "noise") else int(value) if key == "seed" else float(value)
         source = SyntheticSource(n, **kwargs)
     except ValueError:
         raise ConfigError(f"source {spec!r}: want {SYNTHETIC_SPEC}") from None

@@ -139,6 +139,7 @@ class TrackingStatusMsg(Protocol):
     n_matches: int
     n_inliers: int
     processing_ms: float
+    map_moved_m: float
 
 
 class MapUpdateMsg(Protocol):

@@ -52,7 +52,8 @@ def test_bookkeeping_messages_become_diagnostics():
     Status = codec.msgtype(topics.TRACKING_STATUS.msgtype)
     for state, level in ((Status.INIT, 1), (Status.OK, 0), (Status.LOST, 2), (Status.SKIPPED, 1)):
         msg = Status(header=codec.header(12, "cam"), seq=2**64 - 1, state=state, is_keyframe=True,
-                     keyframe_id=-1, n_matches=3, n_inliers=2, processing_ms=0.1)
+                     keyframe_id=-1, n_matches=3, n_inliers=2, processing_ms=0.1,
+                     map_moved_m=0.0)
         (part,) = _round_trip(topics.TRACKING_STATUS, msg)
         diag = codec.decode(part[2], logview.DIAGNOSTICS)
         assert diag.status[0].level == level and diag.status[0].message == topics.TRACKING_STATUS.msgtype

@@ -68,9 +68,9 @@ class KeyframeParams:
     # Pose change (a backstop: on fast motion a keyframe every 6 cm / 6 degrees was one every 3.5
     # frames, with a local BA behind each; see docs/results.md for how 8 / 8 was chosen)
     translation_m: float = 0.08  # moved this far from its reference keyframe (tracker.keyframe_map)
-    rotation_deg: float = 8.0  # turned this far from it
+    rotation_deg: float = 45.0  # turned this far from it
     # shares less than this fraction of the points the reference shared with the first frame it served
-    min_overlap: float = 0.3
+    min_overlap: float = 0.5
     # ORB-SLAM's rule for depth cameras: tracks fewer than this many map points nearer than
     # depth.max_new_point_m while more than `close_untracked` such keypoints are not in the map
     close_tracked: int = 100

@@ -58,6 +58,9 @@ class TrackResult:
     # a keyframe inserted without the back end's pending result (live, the back end busy; see
     # RgbdSlam.defer_backend): the result is applied at a later keyframe
     backend_deferred: bool = False
+    # how far the back end's correction, applied at this keyframe, moved the frame's pose (m): the
+    # map was corrected under it, so its step from the previous pose is that much more than motion
+    map_moved_m: float = 0.0
 
 
 @runtime_checkable

@@ -169,12 +169,13 @@ class RgbdSlam(LocalMapping, BackendHandoff):
             return TrackResult(frame.seq, frame.stamp_ns, predicted.copy(), TrackingState.LOST, False, -1, 0, 0)
         feats = tracked.feats
         pose = invert(tracked.camera_from_world)
-        kf_id, loop, deferred = -1, None, False
+        kf_id, loop, deferred, map_moved_m = -1, None, False, 0.0
         corrected: dict[int, np.ndarray] = {}
         # A frame without enough depth adds no map points, so it must not replace the reference.
         if int(feats.has_depth.sum()) >= self.params.tracking.min_init_points and self._need_keyframe(pose, tracked):
             deferred = self._defer_backend(frame.seq)
             moved_map = self._pending is not None and not deferred
+            before = pose
             if not deferred:
                 corrected, loop, pose = self._sync_backend(pose)
             if moved_map:
@@ -182,6 +183,7 @@ class RgbdSlam(LocalMapping, BackendHandoff):
                 sol = self._solve(feats, tracked.kp_idx, tracked.map_idx, invert(pose), use_ransac=False)
                 if sol is not None:
                     pose = invert(sol[0])
+            map_moved_m = float(np.linalg.norm(pose[:3, 3] - before[:3, 3]))
             kf_id = self._insert_keyframe(frame.seq, pose, feats, tracked)
             if self._pending is None:
                 self._submit_backend()
@@ -191,7 +193,7 @@ class RgbdSlam(LocalMapping, BackendHandoff):
         return TrackResult(
             frame.seq, frame.stamp_ns, pose.copy(), TrackingState.OK, kf_id >= 0, kf_id, tracked.n_matches,
             tracked.n_inliers,
-            corrected, loop, relocalised, tracked.residual, deferred,
+            corrected, loop, relocalised, tracked.residual, deferred, map_moved_m,
         )
 
     def trajectory(self) -> tuple[list[int], list[np.ndarray]]:
