@@ -57,6 +57,13 @@ class TrackingParams:
     # sigma of an inverse-depth residual (1/m) in the pose fit: weighs depth against pixels
     inv_depth_sigma: float = 0.03
     min_inliers: int = 20  # fewer inliers: the frame is LOST
+    # a pose that leaves the constant-velocity prediction by more than these (per frame at 30 fps,
+    # growing with the square of a longer interval) on fewer than `jump_support` inliers is a jump
+    # the motion cannot explain, from too little evidence: the frame is LOST, not published (on fast
+    # turns with 30 ms of blur such frames were 6-29 cm off; no real hand-held step was caught)
+    max_jump_m: float = 0.07
+    max_jump_deg: float = 3.0
+    jump_support: int = 150
     # keypoints with depth a frame needs to start the map, or to become a keyframe
     min_init_points: int = 100
 

@@ -15,6 +15,7 @@ and is deterministic: the same frames give byte-identical poses in any process.
 
 from __future__ import annotations
 
+import math
 from functools import partial
 from typing import Any
 
@@ -40,7 +41,7 @@ from octolog.tracker.interface import KeypointState, TrackingState, TrackResult
 from octolog.tracker.keyframe_map import Keyframe, MapPoints
 from octolog.tracker.local_mapping import LocalMapping, TrackedFrame
 from octolog.tracker.places import PLACE_MAX_HAMMING, PLACE_RATIO, BowIndex, recognise
-from octolog.tracker.pose import optimize_pose, so3_exp, so3_log, unroll_rolling_shutter
+from octolog.tracker.pose import optimize_pose, rotation_angle, so3_exp, so3_log, unroll_rolling_shutter
 from octolog.tracker.vocab import Vocabulary
 from octolog.tracker.worker import Worker
 
@@ -103,6 +104,7 @@ class RgbdSlam(LocalMapping, BackendHandoff):
         self._last_kp_state = np.zeros(0, np.uint8)
         self._last_local = np.zeros(0, np.int64)
         self.loops: list[tuple[int, int]] = []  # (new, old) keyframe ids of closed loops
+        self.rejected_jumps = 0  # tracked frames made LOST: a jump the motion cannot explain, on few inliers
 
         self._intrinsics: Intrinsics | None = None
         self._undistort: Undistorter | None = None
@@ -163,6 +165,9 @@ class RgbdSlam(LocalMapping, BackendHandoff):
         except (cv2.error, np.linalg.LinAlgError):
             # Degenerate geometry inside OpenCV or a singular system: this frame is untrackable,
             # the stream is not broken.
+            tracked = None
+        if tracked is not None and not relocalised and self._unsupported_jump(tracked, predicted, frame.stamp_ns):
+            self.rejected_jumps += 1
             tracked = None
         if tracked is None:
             self._remember(frame.stamp_ns, predicted, ok=False)
@@ -255,6 +260,19 @@ class RgbdSlam(LocalMapping, BackendHandoff):
         return FrameFeatures(uv=uv, octave=octave, desc=desc, z=z, xyz=backproject(uv, z, self._undistort.K))
 
     # -- motion model ---------------------------------------------------------------------------
+
+    def _unsupported_jump(self, tracked: TrackedFrame, predicted: np.ndarray, stamp_ns: int) -> bool:
+        """Whether a tracked pose leaves the motion model's prediction by more than hand-held motion
+        can (`tracking.max_jump_m`, `max_jump_deg` a frame at 30 fps) on few inliers (fewer than
+        `tracking.jump_support`). Only against a prediction from a tracked frame's velocity: after
+        LOST the prediction is a guess, and the next tracked frame is taken."""
+        tp = self.params.tracking
+        if self._velocity is None or not self._last_ok or tracked.n_inliers >= tp.jump_support:
+            return False
+        frames = max(1.0, (stamp_ns - self._last_stamp) * 30e-9) ** 2
+        dev = invert(predicted) @ invert(tracked.camera_from_world)
+        return float(np.linalg.norm(dev[:3, 3])) > tp.max_jump_m * frames \
+            or rotation_angle(dev[:3, :3]) > math.radians(tp.max_jump_deg) * frames
 
     def _predict(self, stamp_ns: int) -> np.ndarray:
         """Constant-velocity prediction of world_from_camera, scaled to the frame interval."""
