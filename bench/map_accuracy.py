@@ -31,10 +31,11 @@ def main() -> None:
     def truth(points: np.ndarray) -> np.ndarray:  # exact distance to the room's mesh
         return r.scene.distance_to_surface(transform(points, scene_from_map))
     variants = {
-        "default (SOR k=20, 3 sigma)": MapperConfig(),
-        "SOR 2 sigma (PCL's usual)": dataclasses.replace(MapperConfig(), sor_std_ratio=2.0),
-        "SOR first (paper's order), 3 sigma": dataclasses.replace(MapperConfig(), sor_first=True),
-        "no SOR (std ratio 1e9)": dataclasses.replace(MapperConfig(), sor_std_ratio=1e9),
+        "default (image grid 5x5, 3 sigma)": MapperConfig(),
+        "SOR k=20, 3 sigma": dataclasses.replace(MapperConfig(), outliers="knn"),
+        "SOR 2 sigma (PCL's usual)": dataclasses.replace(MapperConfig(), outliers="knn", sor_std_ratio=2.0),
+        "SOR first (paper's order), 3 sigma": dataclasses.replace(MapperConfig(), outliers="knn", sor_first=True),
+        "no outlier filter (std ratio 1e9)": dataclasses.replace(MapperConfig(), sor_std_ratio=1e9),
     }
     print(f"synthetic room, {len(KEYFRAMES)} keyframes 640x480, ground-truth poses, 5 cm voxels, 1 cm cloud")
     print(f"{'config':<36} {'cloud→surface mean/p90 mm':>26} {'surface occ %':>14} {'free occ %':>11} {'s':>6}")

@@ -19,6 +19,7 @@ from octolog.kit.geometry import Intrinsics
 __all__ = [
     "DenseCloud",
     "backproject",
+    "image_outlier_removal",
     "keyframe_cloud",
     "ply_bytes",
     "statistical_outlier_removal",
@@ -135,6 +136,69 @@ def statistical_outlier_removal(
     return points[keep], colours[keep]
 
 
+def image_outlier_removal(
+    depth: np.ndarray,
+    rgb: np.ndarray,
+    intrinsics: Intrinsics,
+    depth_scale_m: float,
+    *,
+    max_range_m: float = 4.0,
+    stride: int = 2,
+    radius: int = 2,
+    std_ratio: float = 3.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """`backproject` with the first filter layer done on the image grid: each point's neighbours are
+    the points of the (2 radius + 1)^2 pixels around it (of the strided grid) instead of its k nearest
+    in 3D (PCL's statistical outlier removal, `statistical_outlier_removal`). Its mean distance to
+    them, in units of its own pixel footprint (stride z / fx: a surface seen head-on is 1-1.4 of
+    them away whatever its depth), above mean + std_ratio * std over the keyframe is an outlier, as
+    is a point with fewer than 3 valid neighbours (an isolated reading). The same points in the same
+    order as `backproject`, minus the outliers; ~15x cheaper than the k-d tree at 640x480 (k-NN
+    distances grow with depth, so its one global threshold also dropped far surfaces first)."""
+    p, c = backproject(depth, rgb, intrinsics, depth_scale_m, max_range_m=max_range_m, stride=stride)
+    if len(p) == 0:
+        return p, c
+    d = np.asarray(depth)[::stride, ::stride]
+    max_units = int(np.floor(max_range_m / depth_scale_m))
+    valid = (d > 0) & (d <= max_units)
+    h, w = valid.shape
+    r = radius
+    # one padded float32 plane per coordinate; an invalid pixel is NaN, so a distance to it is NaN
+    planes = np.full((3, h + 2 * r, w + 2 * r), np.nan, dtype=np.float32)
+    for j in range(3):
+        planes[j, r:r + h, r:r + w][valid] = p[:, j]
+    centre = planes[:, r:r + h, r:r + w]
+    total = np.zeros((h, w), dtype=np.float32)
+    count = np.zeros((h, w), dtype=np.int32)
+    sq = np.empty((h, w), dtype=np.float32)
+    tmp = np.empty((h, w), dtype=np.float32)
+    for dy in range(-r, r + 1):  # a fixed order: the same sums every time
+        for dx in range(-r, r + 1):
+            if dy == 0 and dx == 0:
+                continue
+            other = planes[:, r + dy:r + dy + h, r + dx:r + dx + w]
+            np.subtract(other[0], centre[0], out=sq)
+            np.multiply(sq, sq, out=sq)
+            for j in (1, 2):
+                np.subtract(other[j], centre[j], out=tmp)
+                np.multiply(tmp, tmp, out=tmp)
+                np.add(sq, tmp, out=sq)
+            np.sqrt(sq, out=sq)
+            seen = ~np.isnan(sq)
+            count += seen
+            np.add(total, np.where(seen, sq, np.float32(0.0)), out=total)
+    n = count[valid]
+    footprint = p[:, 2] * (stride / intrinsics.fx)
+    mean_d = np.where(n > 0, total[valid].astype(np.float64) / np.maximum(n, 1), np.inf) / footprint
+    finite = n >= 3
+    if not finite.any():
+        return _EMPTY_POINTS.copy(), _EMPTY_COLOURS.copy()
+    mu = float(mean_d[finite].mean())
+    sigma = float(mean_d[finite].std(ddof=1)) if finite.sum() > 1 else 0.0
+    keep = finite & (mean_d <= mu + std_ratio * sigma)
+    return p[keep], c[keep]
+
+
 def _voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:
     """(N,3) int64 voxel indices floor(p / voxel_m)."""
     return np.floor(points / voxel_m).astype(np.int64)
@@ -219,6 +283,7 @@ def keyframe_cloud(
     std_ratio: float = 2.0,
     voxel_m: float = 0.01,
     sor_first: bool = False,
+    outliers: str = "image",
 ) -> tuple[np.ndarray, np.ndarray]:
     """A keyframe's filtered world-frame cloud: back-project, filter, transform.
 
@@ -226,8 +291,15 @@ def keyframe_cloud(
     By default the voxel grid runs before SOR: SOR's k-NN search dominates the cost and the 1 cm
     grid shrinks its input 2-3x (640x480, stride 2: ~50 ms instead of ~115 ms); `sor_first=True`
     keeps the paper's order (SOR, then voxel grid). The second voxel layer is applied again across
-    keyframes by `DenseCloud`. Returns (points_world, colours).
+    keyframes by `DenseCloud`. `outliers="image"` (default) runs the first layer on the image grid
+    (`image_outlier_removal`, before the voxel grid) instead of PCL's k-NN filter. Returns
+    (points_world, colours).
     """
+    if outliers == "image":
+        p, c = image_outlier_removal(depth, rgb, intrinsics, depth_scale_m, max_range_m=max_range_m, stride=stride,
+                                     std_ratio=std_ratio)
+        p, c = voxel_downsample(p, c, voxel_m)
+        return transform(p, world_from_camera), c
     p, c = backproject(depth, rgb, intrinsics, depth_scale_m, max_range_m=max_range_m, stride=stride)
     if sor_first:
         p, c = statistical_outlier_removal(p, c, nb_neighbors=nb_neighbors, std_ratio=std_ratio)

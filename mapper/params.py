@@ -26,6 +26,7 @@ class CloudParams:
     sor_neighbors: int  # statistical outlier removal: k nearest neighbours
     sor_std_ratio: float  # ... and the threshold in standard deviations above the mean distance
     sor_first: bool  # the outlier filter before the voxel grid (the paper's order) instead of after
+    outliers: str = "image"  # the first layer on the image grid ("image") or over 3D k nearest ("knn")
 
 
 @dataclass(frozen=True)
