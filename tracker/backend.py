@@ -20,7 +20,7 @@ from octolog.kit.geometry import invert
 from octolog.tracker.bundle import BundleProblem, bundle_adjust
 from octolog.tracker.config import OdometryParams
 from octolog.tracker.features import FrameFeatures
-from octolog.tracker.keyframe_map import Keyframe, MapPoints
+from octolog.tracker.keyframe_map import METRES_PER_RADIAN, Keyframe, MapPoints
 from octolog.kit.posegraph import optimize_pose_graph
 from octolog.tracker.places import BowIndex, recognise
 from octolog.tracker.pose import rotation_angle
@@ -151,6 +151,17 @@ def _loop_candidates(mp: MapPoints, kfs: list[Keyframe], params: OdometryParams,
             floor = min((score.get(j, 0.0) for j in new.covis), default=0.0)
             keep = np.isin(ids, candidates) & (scores >= floor)
             candidates = np.sort(ids[keep][: params.bow_candidates])
+        elif candidates.size > params.bow_candidates:
+            # without a vocabulary, the `bow_candidates` nearest by pose (position and viewing
+            # direction, as the local map ranks keyframes): voting against every old keyframe cost
+            # O(keyframes) per keyframe (synthetic turns: 80 % of the back end's time); drift of
+            # a room-scale session still leaves the place seen again among the nearest
+            pos = np.stack([kfs[i].world_from_camera[:3, 3] for i in candidates])
+            axis = np.stack([kfs[i].world_from_camera[:3, 2] for i in candidates])
+            T = new.world_from_camera
+            score = np.linalg.norm(pos - T[:3, 3], axis=1) + \
+                METRES_PER_RADIAN * np.arccos(np.clip(axis @ T[:3, 2], -1.0, 1.0))
+            candidates = np.sort(candidates[np.lexsort((candidates, score))[: params.bow_candidates]])
     return candidates
 
 

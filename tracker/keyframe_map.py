@@ -79,6 +79,11 @@ class MapPoints:
         self.bad[:n] |= bad & (self.n_obs[:n] < CULL_MAX_OBSERVATIONS)
 
 
+# Keyframes are ranked by distance + this many metres per radian of viewing-direction change (the
+# local map; loop candidates without a vocabulary): roughly how far a move changes the view as much
+# as a turn does.
+METRES_PER_RADIAN = 0.3
+
 @dataclass
 class Keyframe:
     """A keyframe: its pose, its keypoints and which map points they observe."""

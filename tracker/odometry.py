@@ -38,7 +38,7 @@ from octolog.tracker.features import (
     match_by_projection,
 )
 from octolog.tracker.interface import KeypointState, TrackingState, TrackResult
-from octolog.tracker.keyframe_map import Keyframe, MapPoints
+from octolog.tracker.keyframe_map import METRES_PER_RADIAN, Keyframe, MapPoints
 from octolog.tracker.local_mapping import LocalMapping, TrackedFrame
 from octolog.tracker.places import PLACE_MAX_HAMMING, PLACE_RATIO, BowIndex, recognise
 from octolog.tracker.pose import optimize_pose, rotation_angle, so3_exp, so3_log, unroll_rolling_shutter
@@ -50,9 +50,6 @@ _RANSAC_SEED = 0x0C70
 RANSAC_CONFIDENCE = 0.999
 # The motion model extrapolates at most this many frame intervals: a long gap is a stall.
 MAX_PREDICTION_STEPS = 4.0
-# Local keyframes are ranked by distance + this many metres per radian of viewing-direction change:
-# roughly how far a move changes the view as much as a turn does.
-METRES_PER_RADIAN = 0.3
 # The second matching attempt widens the search window by this factor.
 WIDE_SEARCH_FACTOR = 3.0
 # A pose with this many times `min_inliers` inliers (and `confident_ratio` of its matches) is final;
