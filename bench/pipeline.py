@@ -63,7 +63,6 @@ class CpuSampler(threading.Thread):
         self.root, self.period_s = root, period_s
         self.samples: list[tuple[int, dict[str, float]]] = []  # (time ns, role -> CPU s)
         self._halt = threading.Event()
-        self._roles: dict[int, str] = {}
 
     def run(self) -> None:
         while not self._halt.is_set():
@@ -75,20 +74,19 @@ class CpuSampler(threading.Thread):
         self.join()
 
     def _role(self, pid: int) -> str:
-        if pid not in self._roles:
-            try:
-                argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
-            except OSError:
-                return ""
-            words = [a.decode(errors="replace") for a in argv]
-            if "octolog.tracker.worker" in words:
-                self._roles[pid] = "back end"
-            elif "octolog" in words and words.index("octolog") + 1 < len(words):
-                self._roles[pid] = {"track": "tracker", "map": "mapper", "log": "session log"}.get(
-                    words[words.index("octolog") + 1], words[words.index("octolog") + 1])
-            else:
-                self._roles[pid] = "other"
-        return self._roles[pid]
+        """The stage a process is, from its command line (read every time: a child forked but not yet
+        exec'd still shows its parent's)."""
+        try:
+            argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+        except OSError:
+            return ""
+        words = [a.decode(errors="replace") for a in argv]
+        if "octolog.tracker.worker" in words:
+            return "back end"
+        if "octolog" in words and words.index("octolog") + 1 < len(words):
+            word = words[words.index("octolog") + 1]
+            return {"track": "tracker", "map": "mapper", "log": "session log"}.get(word, word)
+        return "other"
 
     def _sample(self) -> dict[str, float]:
         out: dict[str, float] = {}

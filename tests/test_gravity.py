@@ -113,10 +113,20 @@ def test_a_tilted_start_levels_out_after_one_second() -> None:
     np.testing.assert_array_equal(level[2:], tilted[2:])
 
 
-@pytest.mark.parametrize("spec", ["synthetic:10:tilt=x", "synthetic:10:roll=3", "synthetic:10:tilt=95"])
+@pytest.mark.parametrize("spec", ["synthetic:10:tilt=x", "synthetic:10:roll=3", "synthetic:10:tilt=95",
+                                  "synthetic:10:motion=spin", "synthetic:10:exposure=50", "synthetic:10:noise=tof",
+                                  "synthetic:10:seed=1.5", "synthetic:10:tilt=1:tilt=2", "synthetic:10:fast"])
 def test_bad_synthetic_options_are_refused(spec: str) -> None:
     with pytest.raises(ConfigError, match="synthetic"):
         open_source(spec)
+
+
+def test_synthetic_options_build_the_scene_they_name() -> None:
+    src = open_source("synthetic:10:motion=turns:exposure=8:noise=kinect:seed=2")
+    cfg = src.scene.config
+    assert (cfg.motion, cfg.exposure_ms, cfg.depth_noise, cfg.seed) == ("turns", 8.0, "kinect", 2)
+    assert src.name == "synthetic:10:motion=turns:exposure=8:noise=kinect:seed=2"
+    assert open_source("synthetic").name == "synthetic:150"
 
 
 def _grid_cells(session: Path) -> dict[tuple[int, int], int]:

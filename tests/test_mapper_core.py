@@ -167,15 +167,39 @@ def test_transform_and_bad_pose():
         transform(np.zeros((1, 3)), np.eye(3))
 
 
-def test_keyframe_cloud_both_orders_drop_flying_pixels():
+def test_keyframe_cloud_every_filter_drops_flying_pixels():
     depth, rgb = scene_frame()
-    for sor_first in (False, True):
-        pts, col = keyframe_cloud(depth, rgb, K, SCALE, np.eye(4), sor_first=sor_first)
+    for outliers, sor_first in (("image", False), ("knn", False), ("knn", True)):
+        pts, col = keyframe_cloud(depth, rgb, K, SCALE, np.eye(4), sor_first=sor_first, outliers=outliers)
         keys = voxel_keys(pts, 0.01)
         assert np.unique(keys, axis=0).shape[0] == pts.shape[0]
         z = pts[:, 2]
         on_surface = (np.abs(z - 1.2) < 0.02) | (np.abs(z - 2.5) < 0.02)
         assert on_surface.mean() > 0.995
+
+
+def test_image_outlier_filter_drops_flying_pixels_and_keeps_far_surfaces():
+    """The image-grid filter: the unfiltered cloud holds the flying pixels, the filtered one almost
+    none, and a far surface (4x the pixel spacing of a near one) is kept as whole as a near one: the
+    distance is measured in pixel footprints, not metres. Deterministic to the byte."""
+    from octolog.mapper.cloud import image_outlier_removal
+
+    depth, rgb = scene_frame()
+    raw, _ = backproject(depth, rgb, K, SCALE, stride=2)
+    kept, _ = image_outlier_removal(depth, rgb, K, SCALE, stride=2)
+
+    def off_surface(p: np.ndarray) -> int:
+        return int((~((np.abs(p[:, 2] - 1.2) < 0.02) | (np.abs(p[:, 2] - 2.5) < 0.02))).sum())
+
+    assert off_surface(raw) > 50 and off_surface(kept) < 0.1 * off_surface(raw)
+    assert len(kept) > 0.95 * (len(raw) - off_surface(raw))  # the surfaces stay
+    near, far = wall_frame(0.8), wall_frame(3.6)
+    for d, c in (near, far):
+        noisy = (d.astype(np.int32) + np.random.default_rng(1).integers(-3, 4, d.shape)).astype(np.uint16)
+        n_raw = len(backproject(noisy, c, K, SCALE, stride=2)[0])
+        assert len(image_outlier_removal(noisy, c, K, SCALE, stride=2)[0]) > 0.97 * n_raw
+    again, _ = image_outlier_removal(depth, rgb, K, SCALE, stride=2)
+    assert again.tobytes() == kept.tobytes()
 
 
 # ---- dense cloud and PLY ------------------------------------------------------------------------

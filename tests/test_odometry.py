@@ -234,6 +234,36 @@ def test_recovers_after_a_long_gap(scene) -> None:
     assert np.linalg.norm((invert(poses[9]) @ r.world_from_camera)[:3, 3]) < 0.005
 
 
+def test_a_jump_the_motion_cannot_explain_on_weak_support_is_lost_not_published(scene) -> None:
+    """The camera's view jumps five frames ahead between two frames 33 ms apart: a pose that leaves
+    the constant-velocity prediction by more than tracking.max_jump_m. Called weak (any inlier count
+    below jump_support), it is LOST, not published; the next frame is taken without the gate (the
+    prediction after LOST is a guess) and lands where the camera truly is. With the default support
+    threshold the same frame, matched by hundreds of inliers, is tracked."""
+    import dataclasses
+
+    from octolog.tracker.config import TrackingParams
+
+    frames, poses = scene
+    jump = RgbdFrame(6, frames[6].stamp_ns, frames[11].rgb, frames[11].depth, DEPTH_SCALE, INTR)
+    after = RgbdFrame(7, frames[7].stamp_ns, frames[11].rgb, frames[11].depth, DEPTH_SCALE, INTR)
+    strict = TrackerConfig(tracking=dataclasses.replace(TrackingParams(), max_jump_m=0.03, jump_support=10**6))
+    odo = RgbdSlam(strict.odometry_params())
+    assert [odo.track(f).state for f in frames[:6]] == [TrackingState.INIT] + [TrackingState.OK] * 5
+    r = odo.track(jump)
+    assert r.state == TrackingState.LOST and odo.rejected_jumps == 1 and not r.is_keyframe
+    back = odo.track(after)
+    assert back.state == TrackingState.OK
+    assert np.linalg.norm((invert(poses[11]) @ back.world_from_camera)[:3, 3]) < 0.005
+    # the same jump with the default support threshold: strong evidence, tracked
+    odo = RgbdSlam()
+    for f in frames[:6]:
+        odo.track(f)
+    r = odo.track(jump)
+    assert r.n_inliers >= TrackingParams().jump_support and r.state == TrackingState.OK and odo.rejected_jumps == 0
+    assert np.linalg.norm((invert(poses[11]) @ r.world_from_camera)[:3, 3]) < 0.005
+
+
 def test_frames_before_initialisation_are_lost() -> None:
     odo = RgbdSlam()
     assert isinstance(odo, Tracker)

@@ -91,3 +91,39 @@ def test_remap_topics():
         from octolog.kit.config import load
 
         load(ReplayConfig, None, ['remap=["camera/rgbd"]'])
+
+
+class TruthSource(FakeSource):
+    """FakeSource with ground truth: at x = t (m), one pose per frame."""
+
+    def groundtruth_tum(self):
+        return "# timestamp tx ty tz qx qy qz qw\n" + "".join(
+            f"{1 + i / 10:.9f} {i / 10} 0 0 0 0 0 1\n" for i in range(self.n))
+
+
+def test_retimed_every_nth_frame_plays_at_the_source_rate_and_so_does_the_truth():
+    """replay.retime: every 3rd frame, stamped 3x closer: the camera 3x faster at the same frame rate;
+    the ground truth is re-timed the same way, so a pose still meets the truth of its own instant."""
+    from octolog.kit import metrics
+    from octolog.replay.sources import Retimed, Subsampled
+
+    src = Retimed(Subsampled(TruthSource(), 3), 3)
+    frames = list(src.frames())
+    assert [f.stamp_ns for f in frames] == [1_000_000_000 + i * 100_000_000 for i in range(4)]  # 10 Hz, as the source
+    assert src.duration_ns == 300_000_000 and len(src) == 4
+    truth = metrics.parse_tum(src.groundtruth_tum())
+    at = {int(s): p[0] for s, p in zip(truth.stamps_ns, truth.positions)}
+    # frame k was source frame 3k, where the camera was at x = 0.3 k
+    assert [round(at[f.stamp_ns], 6) for f in frames] == [0.0, 0.3, 0.6, 0.9]
+    assert [f.stamp_ns for f in src.frames(1, 3)] == [1_100_000_000, 1_200_000_000]
+
+
+def test_retime_through_open_source_and_the_config():
+    from octolog.kit.config import load
+    from octolog.replay.sources import open_source
+
+    assert load(ReplayConfig, None, ["every=3", "retime=true"]).retime
+    plain, fast = open_source("synthetic:9", every=3), open_source("synthetic:9", every=3, retime=True)
+    assert fast.duration_ns * 3 == plain.duration_ns
+    assert [f.stamp_ns - 1_700_000_000_000_000_000 for f in fast.frames()] == [0, 33_333_333, 66_666_667]
+    assert open_source("synthetic:9", retime=True).duration_ns == open_source("synthetic:9").duration_ns  # every 1

@@ -309,6 +309,29 @@ def test_a_late_loop_result_carries_the_keyframes_inserted_since_its_job() -> No
     assert np.allclose(points.xyz[6:10], before[1][6:10] @ shift[:3, :3].T + shift[:3, 3])
 
 
+def test_points_local_ba_left_out_move_with_the_keyframe_that_made_them() -> None:
+    """Local BA adjusts at most `max_points` points; a keyframe it moved takes the points it made and
+    the job left out along (rigidly), so they still agree with it. Left behind, a fast turn's keyframes
+    disagreed with their own points by 10-20 px and the next BA pulled them 15-40 cm off. Points the
+    job adjusted take the job's positions; points of keyframes it did not move stay."""
+    points, keyframes = MapPoints(), []
+    for i in range(3):
+        ids = points.add(np.full((4, 3), float(i + 1)), np.zeros((4, 32), np.uint8), np.ones(4), i)
+        keyframes.append(Keyframe(i, i, _pose([0, 0, 0], [0.1 * i, 0, 0]), ids, None, ids * 0, ids))
+    kf_pos, kf_axis = np.zeros((3, 3)), np.zeros((3, 3))
+    before = points.xyz[: points.size].copy()
+    shift = _pose([0, 0, 0.02], [0.03, 0, 0])  # local BA moved keyframes 1 and 2 by this
+    poses = {i: shift @ keyframes[i].world_from_camera for i in (1, 2)}
+    in_job = np.array([4, 5, 8])  # two of keyframe 1's points and one of keyframe 2's
+    adjusted = before[in_job] + 0.01
+    apply_result(BackendResult(2, poses, in_job, adjusted), keyframes, points, kf_pos, kf_axis, max_point_move_m=0.5)
+    carried = before @ shift[:3, :3].T + shift[:3, 3]
+    np.testing.assert_array_equal(points.xyz[:4], before[:4])  # keyframe 0 did not move
+    np.testing.assert_allclose(points.xyz[in_job], adjusted)
+    left_out = np.array([6, 7, 9, 10, 11])
+    np.testing.assert_allclose(points.xyz[left_out], carried[left_out])
+
+
 @pytest.mark.slow
 def test_recovers_after_30_black_frames(room, loop_frames, with_loops) -> None:
     half = 100

@@ -242,3 +242,37 @@ def test_groundtruth_tum_round_trip() -> None:
         T = pose_to_matrix(vals[:3], vals[3:])
         assert np.allclose(T, s.pose(i), atol=1e-8)
         assert math.isclose(np.linalg.norm(vals[3:]), 1.0, abs_tol=1e-8)
+
+
+def test_turns_motion_is_fast_head_turns_on_the_same_walk() -> None:
+    """motion=turns: the fast-motion development case turns at 150-210 deg/s at its peaks, smoothly,
+    on the walk of the default path (same positions)."""
+    fps = 30.0
+    walk, turns = SyntheticScene(n_frames=180), SyntheticScene(n_frames=180, motion="turns")
+    assert np.array_equal(walk.poses()[:, :3, 3], turns.poses()[:, :3, 3])
+    R = turns.poses()[:, :3, :3]
+    rate = np.degrees([Rotation.from_matrix(R[i].T @ R[i + 1]).magnitude() for i in range(len(R) - 1)]) * fps
+    assert 150.0 < rate.max() < 215.0
+    assert np.mean(rate > 100.0) > 0.2  # a good part of the time, not one spike
+    assert np.abs(np.diff(rate)).max() < 40.0  # deg/s per frame: a smooth start and stop, no jump
+    with pytest.raises(ValueError, match="motion"):
+        SyntheticScene(n_frames=2, motion="spin")
+
+
+def test_exposure_blurs_colour_along_the_turn_only() -> None:
+    """exposure=MS smears colour by the camera's rotation over the exposure: a frame mid-turn loses
+    most of its fine detail, a frame of the plain walk little, depth is untouched."""
+    def sharpness(img: np.ndarray) -> float:
+        g = img.mean(axis=2)
+        return float(np.abs(np.diff(g, axis=1)).mean())
+
+    i = 11  # the first turn at its fastest (0.375 s)
+    sharp = SyntheticScene(n_frames=20, width=320, height=240, motion="turns").render(i)
+    blurred = SyntheticScene(n_frames=20, width=320, height=240, motion="turns", exposure_ms=8.0).render(i)
+    assert sharpness(blurred.rgb) < 0.5 * sharpness(sharp.rgb)  # ~7 px of smear at 320 px wide
+    assert np.array_equal(blurred.depth, sharp.depth)
+    still = SyntheticScene(n_frames=20, width=320, height=240).render(i)
+    still_blurred = SyntheticScene(n_frames=20, width=320, height=240, exposure_ms=8.0).render(i)
+    assert sharpness(still_blurred.rgb) > 0.75 * sharpness(still.rgb)  # the walk turns at under 50 deg/s
+    with pytest.raises(ValueError, match="exposure_ms"):
+        SyntheticScene(n_frames=2, exposure_ms=50.0)  # longer than a frame at 30 fps
