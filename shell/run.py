@@ -132,12 +132,37 @@ def _resolve_configs(source: str, config: str | None, per: dict[str, list[str]])
     if source in LIVE_SOURCES:
         from octolog.recorder.config import RecorderConfig
 
-        rec = load(RecorderConfig, config, per["recorder"], section="recorder")
+        rec = _live_resolution(load(RecorderConfig, config, per["recorder"], section="recorder"), config,
+                               per["recorder"])
         backend = LIVE_SOURCES[source]
         software = dataclasses.replace(rec.software, paced=True) if backend == "software" else rec.software
         # capture starts once every consumer listens: the session log misses no frame
         cfgs["recorder"] = dataclasses.replace(rec, backend=backend, software=software, wait_for=consumers)
     return cfgs
+
+
+# A live session's camera, unless the config file or --set says otherwise: what the tracker and mapper
+# are measured at. At the recorder's own default (1280x720 colour, 848x480 depth, for recording alone)
+# two cores fell behind at 30 fps: the simulated camera held back 4-18 % of its frames, at 640x480
+# under 1 % (docs/results.md, "Pipeline and live").
+LIVE_COLOUR = LIVE_DEPTH = (640, 480)
+
+
+def _live_resolution(rec: Any, config: str | None, sets: list[str]) -> Any:
+    """The recorder config with LIVE_COLOUR / LIVE_DEPTH for a stream whose size nobody set."""
+    given = {s.split("=", 1)[0].split(".")[0] for s in sets}
+    if config:
+        import tomllib
+
+        try:
+            given |= set(tomllib.loads(Path(config).read_text()).get("recorder", {}))
+        except (OSError, tomllib.TOMLDecodeError):
+            pass  # load() above has named the problem already
+    sizes = {}
+    for stream, (w, h) in (("color", LIVE_COLOUR), ("depth", LIVE_DEPTH)):
+        if stream not in given:
+            sizes[stream] = dataclasses.replace(getattr(rec, stream), width=w, height=h)
+    return dataclasses.replace(rec, **sizes)
 
 
 def run_session(*, source: str, out: Path, config: str | None = None, overrides: list[str] | None = None,

@@ -113,3 +113,42 @@ def test_rerun_logging_runs_off_the_tracking_thread_in_frame_order(tmp_path):
     with pytest.raises(RuntimeError, match="viewer gone"), Broken(f"save:{tmp_path / 'b'}", "tracker", "t") as viz, \
             VizLog(viz) as shown:
         shown.put(frames[-1], res, result, odometry)
+
+
+class _Queue:
+    """What `_skip_behind` needs of the intake: the frames waiting, oldest first."""
+
+    def __init__(self, waiting: list[int]) -> None:
+        self.waiting = [(_Msg(s), None) for s in waiting]
+
+    def newer_frame(self):
+        return self.waiting.pop(0) if self.waiting else None
+
+
+class _Msg:
+    def __init__(self, seq: int) -> None:
+        self.seq = seq
+
+    def decode(self):
+        return self
+
+
+class _Out:
+    def __init__(self) -> None:
+        self.skipped: list[int] = []
+
+    def untracked(self, msg, state) -> None:
+        assert state == TrackingState.SKIPPED
+        self.skipped.append(msg.seq)
+
+
+def test_a_live_tracker_behind_skips_one_frame_far_behind_jumps_to_the_newest():
+    """Behind, the frame in hand is skipped for the next (a tracked frame is at most two camera frames
+    after the last, as a fast turn needs); far behind, every frame but the newest. Each skip on record."""
+    from octolog.tracker.node import TrackerRunSummary, _skip_behind
+
+    for far, want_skipped, want_taken in ((False, [0], 1), (True, [0, 1, 2, 3], 4)):
+        intake, out, result = _Queue([1, 2, 3, 4]), _Out(), TrackerRunSummary()
+        r, _ = _skip_behind(intake, _Msg(0), None, out, result, far=far)
+        assert (out.skipped, r.seq) == (want_skipped, want_taken)
+        assert result.skipped == result.frames == len(want_skipped)

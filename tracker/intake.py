@@ -134,9 +134,9 @@ class Intake:
         """The next sample and, for a frame, its preparation; None after `timeout_s`."""
         return self._take(timeout_s)
 
-    def behind(self, r: Received) -> bool:
-        """Live: whether a frame waiting is more than the lag newer than frame `r` (then the
-        newest wins); the samples waiting stay in line."""
+    def behind(self, r: Received, times: float = 1.0) -> bool:
+        """Live: whether a frame waiting is more than `times` the lag newer than frame `r`; the
+        samples waiting stay in line."""
         while True:
             try:
                 item = self._q.get_nowait()
@@ -147,7 +147,7 @@ class Intake:
                 break
             self._held.append(item)
         stamps = [_stamp(it[0]) for it in self._held if is_frame(it[0])]
-        return bool(stamps) and max(stamps) - _stamp(r) > self._lag_ns
+        return bool(stamps) and max(stamps) - _stamp(r) > self._lag_ns * times
 
     def newer_frame(self) -> tuple[Received, Future | None] | None:
         """Live: the next sample if it is a frame already waiting (then the one before it is to be

@@ -162,20 +162,30 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
                 continue
             result.frames += 1
             if cfg.live and intake.behind(r):
-                r, prep = _skip_to_newest(intake, r, prep, out, result)
+                r, prep = _skip_behind(intake, r, prep, out, result, far=intake.behind(r, FAR_BEHIND))
             _track_frame(odometry, cfg, functools.partial(intake.prepared, r, prep), out, tree, result, shown)
     out.finish(odometry, result)
     bus.linger("mapper")
     return result
 
 
-def _skip_to_newest(intake: Intake, r: Any, prep: Any, out: _Outputs, result: TrackerRunSummary) -> tuple[Any, Any]:
-    """Stay real-time: the newest waiting frame wins, the older ones are skipped, on record."""
+# live: more than this many times `tracker.live_lag_ms` behind, the newest frame wins at once
+FAR_BEHIND = 4.0
+
+
+def _skip_behind(intake: Intake, r: Any, prep: Any, out: _Outputs, result: TrackerRunSummary, *,
+                 far: bool) -> tuple[Any, Any]:
+    """Stay real-time, on record: behind, this frame is skipped for the next one, never two in a row
+    (a tracked frame is at most two camera frames after the last: a fast turn stays trackable,
+    where jumping to the newest made gaps of several frames and lost track); `far` behind, the
+    newest waiting frame wins and every older one is skipped, so latency stays bounded."""
     while (newer := intake.newer_frame()) is not None:
         out.untracked(r.decode(), TrackingState.SKIPPED)
         result.skipped += 1
         result.frames += 1
         r, prep = newer
+        if not far:
+            break
     return r, prep
 
 
