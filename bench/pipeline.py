@@ -277,29 +277,29 @@ def run_case(name: str, repeat: int, n_live: int) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         runs = [run_pipeline(source, sets, Path(tmp) / f"run{i}") for i in range(repeat)]
         live = [run_pipeline(source, sets, Path(tmp) / f"live{i}", live=True) for i in range(n_live)]
-    ref = run_in_process(source, sets)
     print(f"\n## {name}: {CASES[name].about}  (load average {os.getloadavg()[0]:.1f} after)")
-    print_rows(("lockstep", "pipeline", "in-process", "ratio"), table(runs, ref, 0))
+    if runs:
+        print_rows(("lockstep", "pipeline", "in-process", "ratio"), table(runs, run_in_process(source, sets), 0))
     if live:
         print()
         print_rows(("live (paced at 30 fps)", "pipeline"), live_rows(live))
     print()
-    cols = [("lockstep", runs)] + ([("live", live)] if live else [])
+    cols = ([("lockstep", runs)] if runs else []) + ([("live", live)] if live else [])
     per = {label: [budget(r) for r in rs] for label, rs in cols}
     rows = [(row, *(f"{statistics.median(b[row] for b in per[label]):.1f}" for label, _ in cols))
             for row in (*BUDGET_ROWS, "total")]
     rows.append((f"budget (2 cores at 30 fps)", *(f"{BUDGET_MS:.1f}" for _ in cols)))
     print_rows(("CPU ms per camera frame", *(label for label, _ in cols)), rows)
-    if runs[0]["steps"]:
+    if cols and cols[0][1][0]["steps"]:
         print()
         print_rows(("published poses", *(label for label, _ in cols)),
-                   [tuple([a[0], *(dict(steps_rows(rs))[a[0]] for _, rs in cols)]) for a in steps_rows(runs)])
+                   [tuple([a[0], *(dict(steps_rows(rs))[a[0]] for _, rs in cols)]) for a in steps_rows(cols[0][1])])
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", default="first300,first300x3,turns", help=f"of {', '.join(CASES)}")
-    ap.add_argument("--repeat", type=int, default=3, help="lockstep runs per case (medians over runs)")
+    ap.add_argument("--repeat", type=int, default=3, help="lockstep runs per case (medians over runs; 0: live only)")
     ap.add_argument("--live", type=int, default=1, help="runs paced at the camera's rate with the live tracker")
     args = ap.parse_args()
     print(f"octolog pipeline benchmark: {platform.machine()}, {os.cpu_count()} cores, Python "

@@ -35,6 +35,11 @@ class MapperConfig:
     voxel_m: float = 0.01  # dense cloud voxel filter (second layer)
     max_range_m: float = 4.0  # depth readings beyond this are ignored
     pixel_stride: int = 2  # back-project every n-th pixel in each direction
+    # at most this many keyframes in a second of camera time at `pixel_stride`; the rest of a burst
+    # (a fast turn: one every 3-5 frames) at `burst_pixel_stride`, a quarter of the points and rays
+    # at 4, so a burst cannot starve the tracker of the cores it shares (0: no limit)
+    full_keyframes_per_s: float = 4.0
+    burst_pixel_stride: int = 4
     sor_neighbors: int = 20  # statistical outlier removal (first layer)
     # 3 sigma, not PCL's usual 2: a per-keyframe threshold at 2 sigma drops 15-50 % of floor and
     # ceiling points seen at grazing angles (synthetic room: 96.2 % of observed surface voxels occupied
@@ -98,6 +103,10 @@ class MapperConfig:
             raise ConfigError(f"mapper.publish_every {self.publish_every}: want >= 0")
         if self.pixel_stride < 1:
             raise ConfigError(f"mapper.pixel_stride {self.pixel_stride}: want >= 1")
+        if self.burst_pixel_stride < 1:
+            raise ConfigError(f"mapper.burst_pixel_stride {self.burst_pixel_stride}: want >= 1")
+        if not (math.isfinite(self.full_keyframes_per_s) and self.full_keyframes_per_s >= 0):
+            raise ConfigError(f"mapper.full_keyframes_per_s {self.full_keyframes_per_s}: want >= 0 (0: no limit)")
         if self.outliers not in ("image", "knn"):
             raise ConfigError(f"mapper.outliers {self.outliers!r}: want image or knn")
         if self.sor_neighbors < 1:
@@ -130,7 +139,8 @@ class MapperConfig:
         return MapperParams(
             cloud=CloudParams(max_range_m=self.max_range_m, pixel_stride=self.pixel_stride, voxel_m=self.voxel_m,
                               sor_neighbors=self.sor_neighbors, sor_std_ratio=self.sor_std_ratio,
-                              sor_first=self.sor_first, outliers=self.outliers),
+                              sor_first=self.sor_first, outliers=self.outliers,
+                              full_per_s=self.full_keyframes_per_s, burst_stride=self.burst_pixel_stride),
             occupancy=OccupancyParams(backend=self.backend, resolution_m=self.resolution_m, colour=self.colour,
                                       sensor=self.sensor_model()),
             grid=GridParams(up=self.grid_up or DEFAULT_UP, camera_height_m=self.grid_camera_height_m, z_min_m=self.grid_z_min_m,

@@ -40,6 +40,7 @@ class KeyframeCloud:
     world_from_camera: np.ndarray  # 4x4
     stamp_ns: int
     seq: int
+    stride: int = 0  # the pixel stride it was back-projected at (0: not recorded)
 
 
 class Mapper:
@@ -112,17 +113,31 @@ class Mapper:
         if not np.any(frame.depth):
             raise InputError(f"keyframe {kf_id}: no valid depth")
         c = self.params.cloud
+        stride = self._stride(frame.stamp_ns)
         pts, cols = keyframe_cloud(
             frame.depth, frame.rgb, frame.intrinsics, frame.depth_scale_m, np.eye(4),
-            max_range_m=c.max_range_m, stride=c.pixel_stride, nb_neighbors=c.sor_neighbors,
+            max_range_m=c.max_range_m, stride=stride, nb_neighbors=c.sor_neighbors,
             std_ratio=c.sor_std_ratio, voxel_m=c.voxel_m, sor_first=c.sor_first, outliers=c.outliers)
         if len(pts) == 0:
             raise InputError(f"keyframe {kf_id}: no valid depth within {c.max_range_m} m")
-        kf = KeyframeCloud(pts, cols, world_from_camera.copy(), frame.stamp_ns, frame.seq)
+        kf = KeyframeCloud(pts, cols, world_from_camera.copy(), frame.stamp_ns, frame.seq, stride)
         self.keyframes[kf_id] = kf
         if not self._stale:  # else the coming rebuild inserts it
             self._insert(kf_id, kf)
         return len(pts)
+
+    def _stride(self, stamp_ns: int) -> int:
+        """The pixel stride for a keyframe taken at `stamp_ns`: `cloud.pixel_stride`, or
+        `cloud.burst_stride` once `cloud.full_per_s` keyframes at full stride were integrated in
+        the second of camera time before it. A fast turn makes a burst of keyframes of mostly the
+        same surfaces; each costs the mapper its pixels and their rays, and the two cores are the
+        tracker's too. Decided by sensor time alone, so a replay makes the same map."""
+        c = self.params.cloud
+        if c.full_per_s <= 0:
+            return c.pixel_stride
+        recent = sum(1 for kf in self.keyframes.values()
+                     if kf.stride == c.pixel_stride and 0 <= stamp_ns - kf.stamp_ns < 1_000_000_000)
+        return c.pixel_stride if recent < c.full_per_s else max(c.pixel_stride, c.burst_stride)
 
     def _insert(self, kf_id: int, kf: KeyframeCloud) -> None:
         map_from_camera = self.map_from_world @ kf.world_from_camera

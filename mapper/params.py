@@ -27,6 +27,8 @@ class CloudParams:
     sor_std_ratio: float  # ... and the threshold in standard deviations above the mean distance
     sor_first: bool  # the outlier filter before the voxel grid (the paper's order) instead of after
     outliers: str = "image"  # the first layer on the image grid ("image") or over 3D k nearest ("knn")
+    full_per_s: float = 0.0  # keyframes a second at pixel_stride; more in that second: burst_stride (0: no limit)
+    burst_stride: int = 4
 
 
 @dataclass(frozen=True)

@@ -69,6 +69,8 @@ PARTS: dict[str, tuple[Part, ...]] = {
         Part("world_from_camera", "tracker/keyframe/pose", POSE_STAMPED)),
     "octolog_msgs/msg/KeyframePoses": (Part("world_from_camera", "tracker/keyframe_poses/poses", POSE_ARRAY),),
 }
+# Fields added to a wire type after logs of it were written, and what an older log's message reads as
+ADDED_FIELDS = {("octolog_msgs/msg/TrackingStatus", "map_moved_m"): "0.0"}
 # TrackingStatus.state -> diagnostic level (OK=0, WARN=1, ERROR=2): INIT and SKIPPED warn, LOST is an error
 _STATE_LEVEL = {0: 1, 1: 0, 2: 2, 3: 1}
 
@@ -165,7 +167,8 @@ def join(msgtype: str, diagnostics: bytes, parts: dict[str, bytes]) -> bytes:
     values = {kv.key: kv.value for kv in diag.status[0].values}
     try:
         for name, base, sequence in _residual_fields(msgtype):
-            fields[name] = _value(values[name], base, sequence)
+            raw = values[name] if name in values else ADDED_FIELDS[(msgtype, name)]
+            fields[name] = _value(raw, base, sequence)
     except (KeyError, ValueError, TypeError) as exc:
         raise InputError(f"a logged {msgtype} with an unreadable field: {type(exc).__name__}: {exc}") from None
     return codec.encode(codec.msgtype(msgtype)(**fields), msgtype)

@@ -434,3 +434,29 @@ def test_snapshot_preview_stops_growing_with_the_session():
     assert max(sizes) <= PREVIEW_POINTS + 60 and sizes[-1] > 0.8 * PREVIEW_POINTS  # then capped, not thinned out
     pts, cols = cloud.preview(CLOUD_STRIDE, PREVIEW_POINTS)
     assert np.array_equal(pts[0], cloud.preview(1)[0][0]) and len(cols) == len(pts)  # each keyframe's first point
+
+
+def test_a_burst_of_keyframes_past_the_per_second_budget_is_integrated_coarser():
+    """mapper.full_keyframes_per_s: within one second of camera time, the keyframes past the budget
+    are back-projected at burst_pixel_stride (a quarter of the points at 4), decided by sensor
+    stamps alone; a keyframe a second later is at the full stride again."""
+    import dataclasses
+
+    from octolog.kit.geometry import RgbdFrame
+    from octolog.mapper.config import MapperConfig
+    from octolog.mapper.core import make_mapper
+
+    depth, rgb = scene_frame()
+    m = make_mapper(dataclasses.replace(MapperConfig(), full_keyframes_per_s=2.0))
+    stamps = [0, 100, 200, 300, 1_250]  # ms
+    sizes = []
+    for i, ms in enumerate(stamps):
+        n = m.integrate(i, np.eye(4), RgbdFrame(i, ms * 1_000_000, rgb, depth, SCALE, K))
+        sizes.append(n)
+    assert [m.keyframes[i].stride for i in range(5)] == [2, 2, 4, 4, 2]
+    assert sizes[2] < 0.3 * sizes[0] and sizes[4] == sizes[0]
+    unlimited = make_mapper(dataclasses.replace(MapperConfig(), full_keyframes_per_s=0.0))
+    unlimited.integrate(0, np.eye(4), RgbdFrame(0, 0, rgb, depth, SCALE, K))
+    unlimited.integrate(1, np.eye(4), RgbdFrame(1, 1, rgb, depth, SCALE, K))
+    unlimited.integrate(2, np.eye(4), RgbdFrame(2, 2, rgb, depth, SCALE, K))
+    assert [kf.stride for kf in unlimited.keyframes.values()] == [2, 2, 2]

@@ -135,8 +135,9 @@ class Intake:
         return self._take(timeout_s)
 
     def behind(self, r: Received, times: float = 1.0) -> bool:
-        """Live: whether a frame waiting is more than `times` the lag newer than frame `r`; the
-        samples waiting stay in line."""
+        """Live: whether two or more frames wait and the newest is more than `times` the lag newer
+        than frame `r` (one waiting frame is the next in line however far its stamp: a camera that
+        dropped frames leaves a gap, not a backlog); the samples waiting stay in line."""
         while True:
             try:
                 item = self._q.get_nowait()
@@ -147,7 +148,7 @@ class Intake:
                 break
             self._held.append(item)
         stamps = [_stamp(it[0]) for it in self._held if is_frame(it[0])]
-        return bool(stamps) and max(stamps) - _stamp(r) > self._lag_ns * times
+        return len(stamps) >= 2 and max(stamps) - _stamp(r) > self._lag_ns * times
 
     def newer_frame(self) -> tuple[Received, Future | None] | None:
         """Live: the next sample if it is a frame already waiting (then the one before it is to be
