@@ -75,3 +75,22 @@ def test_mapper_params_group_the_config_and_keep_octomaps_defaults():
     assert MapperConfig().params().occupancy.sensor == SensorModel() == SensorModel(0.7, 0.4, 0.12, 0.97, 0.5)
     with pytest.raises(dataclasses.FrozenInstanceError):
         p.cloud.voxel_m = 0.5  # type: ignore[misc]
+
+
+def test_a_live_session_runs_the_camera_at_640x480_unless_told(tmp_path):
+    """`octolog run` with a live source: colour and depth at 640x480 (what the pipeline keeps up with
+    on two cores at 30 fps), unless --set or the config file names a stream's size."""
+    from octolog.recorder.config import RecorderConfig
+    from octolog.shell.run import _live_resolution
+
+    rec = RecorderConfig()
+    assert (rec.color.width, rec.color.height) == (1280, 720)  # recording alone keeps its own default
+    live = _live_resolution(rec, None, [])
+    assert (live.color.width, live.color.height, live.depth.width, live.depth.height) == (640, 480, 640, 480)
+    assert live.color.fps == rec.color.fps
+    told = _live_resolution(rec, None, ["color.width=848", "color.height=480"])
+    assert (told.color.width, told.depth.width) == (1280, 640)  # the given stream is left as loaded
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[recorder.depth]\nwidth = 848\nheight = 480\n")
+    from_file = _live_resolution(rec, str(cfg), [])
+    assert (from_file.color.width, from_file.depth.width) == (640, rec.depth.width)

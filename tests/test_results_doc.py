@@ -24,7 +24,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS_MD = ROOT / "docs" / "results.md"
 CAPABILITIES = (
-    "Tracker accuracy", "Tracker cost", "Pipeline and live", "Mapper", "Recorder", "Transport",
+    "Tracker accuracy", "Tracker cost", "Fast motion", "Pipeline and live", "Mapper", "Recorder", "Transport",
     "Determinism", "Hostile input", "Fleet",
 )
 PYTEST_OPTIONS = {"-s", "-q", "-x", "-v", "-k", "--hypothesis-show-statistics"}
