@@ -288,7 +288,7 @@ def run_case(name: str, repeat: int, n_live: int) -> None:
     per = {label: [budget(r) for r in rs] for label, rs in cols}
     rows = [(row, *(f"{statistics.median(b[row] for b in per[label]):.1f}" for label, _ in cols))
             for row in (*BUDGET_ROWS, "total")]
-    rows.append((f"budget (2 cores at 30 fps)", *(f"{BUDGET_MS:.1f}" for _ in cols)))
+    rows.append(("budget (2 cores at 30 fps)", *(f"{BUDGET_MS:.1f}" for _ in cols)))
     print_rows(("CPU ms per camera frame", *(label for label, _ in cols)), rows)
     if cols and cols[0][1][0]["steps"]:
         print()

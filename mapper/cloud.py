@@ -164,15 +164,33 @@ def image_outlier_removal(
     d = np.asarray(depth)[::stride, ::stride]
     max_units = int(np.floor(max_range_m / depth_scale_m))
     valid = (d > 0) & (d <= max_units)
+    dist = _window_distances(p, valid, radius)
+    # the mean over its `IMAGE_NEAREST` nearest neighbours in the window: a point on an object's edge
+    # has that many on its own surface, a flying pixel between two surfaces has none (no valid
+    # neighbour: inf, an outlier)
+    np.nan_to_num(dist, copy=False, nan=np.inf)
+    nearest = np.partition(dist, IMAGE_NEAREST - 1, axis=0)[:IMAGE_NEAREST]
+    footprint = p[:, 2] * (stride / intrinsics.fx)
+    mean_d = np.sqrt(nearest.astype(np.float64)).sum(axis=0) / IMAGE_NEAREST / footprint
+    finite = np.isfinite(mean_d)
+    if not finite.any():
+        return _EMPTY_POINTS.copy(), _EMPTY_COLOURS.copy()
+    mu = float(mean_d[finite].mean())
+    sigma = float(mean_d[finite].std(ddof=1)) if finite.sum() > 1 else 0.0
+    keep = finite & (mean_d <= mu + std_ratio * sigma)
+    return p[keep], c[keep]
+
+
+def _window_distances(p: np.ndarray, valid: np.ndarray, r: int) -> np.ndarray:
+    """Squared distances (float32, ((2r+1)^2 - 1, N)) from each point `p` (the `valid` pixels of the
+    grid, row-major) to the point of each other pixel of its window; NaN where that pixel has none."""
     h, w = valid.shape
-    r = radius
     # one padded float32 plane per coordinate; an invalid pixel is NaN, so a distance to it is NaN
     planes = np.full((3, h + 2 * r, w + 2 * r), np.nan, dtype=np.float32)
     for j in range(3):
         planes[j, r:r + h, r:r + w][valid] = p[:, j]
     centre = planes[:, r:r + h, r:r + w]
-    n_near = (2 * r + 1) ** 2 - 1
-    dist = np.empty((n_near, int(valid.sum())), dtype=np.float32)  # each point's distance to each neighbour
+    dist = np.empty(((2 * r + 1) ** 2 - 1, int(valid.sum())), dtype=np.float32)
     sq = np.empty((h, w), dtype=np.float32)
     tmp = np.empty((h, w), dtype=np.float32)
     k = 0
@@ -189,20 +207,7 @@ def image_outlier_removal(
                 np.add(sq, tmp, out=sq)
             dist[k] = sq[valid]
             k += 1
-    # the mean over its `IMAGE_NEAREST` nearest neighbours in the window: a point on an object's edge
-    # has that many on its own surface, a flying pixel between two surfaces has none (no valid
-    # neighbour: inf, an outlier)
-    np.nan_to_num(dist, copy=False, nan=np.inf)
-    nearest = np.partition(dist, IMAGE_NEAREST - 1, axis=0)[:IMAGE_NEAREST]
-    footprint = p[:, 2] * (stride / intrinsics.fx)
-    mean_d = np.sqrt(nearest.astype(np.float64)).sum(axis=0) / IMAGE_NEAREST / footprint
-    finite = np.isfinite(mean_d)
-    if not finite.any():
-        return _EMPTY_POINTS.copy(), _EMPTY_COLOURS.copy()
-    mu = float(mean_d[finite].mean())
-    sigma = float(mean_d[finite].std(ddof=1)) if finite.sum() > 1 else 0.0
-    keep = finite & (mean_d <= mu + std_ratio * sigma)
-    return p[keep], c[keep]
+    return dist
 
 
 def _voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:

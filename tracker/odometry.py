@@ -15,7 +15,6 @@ and is deterministic: the same frames give byte-identical poses in any process.
 
 from __future__ import annotations
 
-import math
 from functools import partial
 from typing import Any
 
@@ -41,7 +40,7 @@ from octolog.tracker.interface import KeypointState, TrackingState, TrackResult
 from octolog.tracker.keyframe_map import METRES_PER_RADIAN, Keyframe, MapPoints
 from octolog.tracker.local_mapping import LocalMapping, TrackedFrame
 from octolog.tracker.places import PLACE_MAX_HAMMING, PLACE_RATIO, BowIndex, recognise
-from octolog.tracker.pose import optimize_pose, rotation_angle, so3_exp, so3_log, unroll_rolling_shutter
+from octolog.tracker.pose import optimize_pose, so3_exp, so3_log, unroll_rolling_shutter, unsupported_jump
 from octolog.tracker.vocab import Vocabulary
 from octolog.tracker.worker import Worker
 
@@ -163,7 +162,9 @@ class RgbdSlam(LocalMapping, BackendHandoff):
             # Degenerate geometry inside OpenCV or a singular system: this frame is untrackable,
             # the stream is not broken.
             tracked = None
-        if tracked is not None and not relocalised and self._unsupported_jump(tracked, predicted, frame.stamp_ns):
+        if tracked is not None and not relocalised and self._velocity is not None and self._last_ok and \
+                unsupported_jump(self.params.tracking, predicted, invert(tracked.camera_from_world), tracked.n_inliers,
+                                 frame.stamp_ns - self._last_stamp):
             self.rejected_jumps += 1
             tracked = None
         if tracked is None:
@@ -257,19 +258,6 @@ class RgbdSlam(LocalMapping, BackendHandoff):
         return FrameFeatures(uv=uv, octave=octave, desc=desc, z=z, xyz=backproject(uv, z, self._undistort.K))
 
     # -- motion model ---------------------------------------------------------------------------
-
-    def _unsupported_jump(self, tracked: TrackedFrame, predicted: np.ndarray, stamp_ns: int) -> bool:
-        """Whether a tracked pose leaves the motion model's prediction by more than hand-held motion
-        can (`tracking.max_jump_m`, `max_jump_deg` a frame at 30 fps) on few inliers (fewer than
-        `tracking.jump_support`). Only against a prediction from a tracked frame's velocity: after
-        LOST the prediction is a guess, and the next tracked frame is taken."""
-        tp = self.params.tracking
-        if self._velocity is None or not self._last_ok or tracked.n_inliers >= tp.jump_support:
-            return False
-        frames = max(1.0, (stamp_ns - self._last_stamp) * 30e-9) ** 2
-        dev = invert(predicted) @ invert(tracked.camera_from_world)
-        return float(np.linalg.norm(dev[:3, 3])) > tp.max_jump_m * frames \
-            or rotation_angle(dev[:3, :3]) > math.radians(tp.max_jump_deg) * frames
 
     def _predict(self, stamp_ns: int) -> np.ndarray:
         """Constant-velocity prediction of world_from_camera, scaled to the frame interval."""

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -244,3 +245,17 @@ def unroll_rolling_shutter(
     uv[ok, 1] = K[1, 1] * p0[ok, 1] / z0[ok] + K[1, 2]
     keep = has & ok
     return dataclasses.replace(feats, uv=uv, z=np.where(keep, z0, 0.0), xyz=np.where(keep[:, None], p0, 0.0))
+
+
+def unsupported_jump(tracking: Any, predicted_wc: np.ndarray, pose_wc: np.ndarray, n_inliers: int, dt_ns: int) -> bool:
+    """Whether a tracked pose leaves the motion model's prediction (both world_from_camera) by more
+    than hand-held motion can (`tracking.max_jump_m`, `max_jump_deg` a frame at 30 fps, growing with
+    the square of a longer interval `dt_ns`) on fewer inliers than `tracking.jump_support`: a jump
+    the motion cannot explain, from too little evidence (the frame is LOST). For a prediction made
+    from a tracked frame's velocity: after LOST it is a guess and judges nothing."""
+    if n_inliers >= tracking.jump_support:
+        return False
+    frames = max(1.0, dt_ns * 30e-9) ** 2
+    dev = np.linalg.inv(predicted_wc) @ pose_wc
+    return float(np.linalg.norm(dev[:3, 3])) > tracking.max_jump_m * frames \
+        or rotation_angle(dev[:3, :3]) > math.radians(tracking.max_jump_deg) * frames
