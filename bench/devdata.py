@@ -82,17 +82,13 @@ def step_errors(stamps_ns: list[int], poses: list, groundtruth, map_moved_m: lis
 
     stamps = np.array(stamps_ns, np.int64)
     moved_all = np.asarray(map_moved_m if map_moved_m is not None else np.zeros(len(stamps)), dtype=float)
-    # the poses with a ground-truth pose within 20 ms (TUM's truth starts a few frames in)
-    gt_t = np.sort(groundtruth.stamps_ns)
-    j = np.clip(np.searchsorted(gt_t, stamps), 1, max(1, len(gt_t) - 1))
-    near = np.minimum(np.abs(gt_t[j - 1] - stamps), np.abs(gt_t[np.minimum(j, len(gt_t) - 1)] - stamps))
-    keep = near <= 20_000_000
-    if keep.sum() < 2:
+    keep, _ = metrics.associate(stamps, groundtruth.stamps_ns)  # the poses with a truth (TUM's starts late)
+    if keep.size < 2:
         return {"published": len(stamps_ns), "bad_steps": 0, "flagged_steps": 0, "worst_step_m": 0.0}
     est = metrics.Trajectory.from_matrices(stamps[keep], np.array(poses)[keep])
     r = metrics.rpe(est, groundtruth, delta=1)
-    if r.n_pairs != int(keep.sum()) - 1:
-        raise SystemExit(f"bench: {int(keep.sum())} poses near the truth but {r.n_pairs + 1} associated")
+    if r.n_pairs != keep.size - 1:
+        raise SystemExit(f"bench: {keep.size} poses near the truth but {r.n_pairs + 1} associated")
     moved = moved_all[keep][1:]
     bad = r.trans_errors > bad_m
     flagged = bad & (r.trans_errors - moved <= bad_m)

@@ -90,9 +90,7 @@ def backproject(
         raise MapError(f"invalid intrinsics: {intrinsics}")
 
     d = depth[::stride, ::stride]
-    # Range test in integer sensor units: no float rounding decides which pixels survive.
-    max_units = int(np.floor(max_range_m / depth_scale_m))
-    valid = (d > 0) & (d <= max_units)
+    valid = _valid_grid(depth, depth_scale_m, max_range_m, stride)
     rows, cols = np.nonzero(valid)  # row-major order
     z = d[rows, cols].astype(np.float64) * float(depth_scale_m)
     u = (cols * stride).astype(np.float64)
@@ -103,6 +101,13 @@ def backproject(
     points[:, 2] = z
     colours = np.ascontiguousarray(rgb[::stride, ::stride][rows, cols])
     return points, colours
+
+
+def _valid_grid(depth: np.ndarray, depth_scale_m: float, max_range_m: float, stride: int) -> np.ndarray:
+    """The strided pixels `backproject` makes points of: a reading, within range. The range test is
+    in integer sensor units: no float rounding decides which pixels survive."""
+    d = np.asarray(depth)[::stride, ::stride]
+    return (d > 0) & (d <= int(np.floor(max_range_m / depth_scale_m)))
 
 
 def statistical_outlier_removal(
@@ -161,10 +166,7 @@ def image_outlier_removal(
     p, c = backproject(depth, rgb, intrinsics, depth_scale_m, max_range_m=max_range_m, stride=stride)
     if len(p) == 0:
         return p, c
-    d = np.asarray(depth)[::stride, ::stride]
-    max_units = int(np.floor(max_range_m / depth_scale_m))
-    valid = (d > 0) & (d <= max_units)
-    dist = _window_distances(p, valid, radius)
+    dist = _window_distances(p, _valid_grid(depth, depth_scale_m, max_range_m, stride), radius)
     # the mean over its `IMAGE_NEAREST` nearest neighbours in the window: a point on an object's edge
     # has that many on its own surface, a flying pixel between two surfaces has none (no valid
     # neighbour: inf, an outlier)

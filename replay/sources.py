@@ -18,6 +18,7 @@ import numpy as np
 from octolog.kit.calibration import is_calibration_file, load_calibration
 from octolog.kit.errors import ConfigError, InputError
 from octolog.kit.geometry import EncodedRgbd, RgbdFrame
+from octolog.kit import metrics
 from octolog.kit.mcaplog import read_wire, summarize
 from octolog.kit.tum import open_tum, readout_for
 from octolog.replay import gravity
@@ -375,16 +376,8 @@ class Retimed:
         text = self.inner.groundtruth_tum()
         if text is None:
             return None
-        lines = []
-        for line in text.splitlines():
-            stamp, sep, rest = line.strip().partition(" ")
-            if not line.strip() or line.lstrip().startswith("#"):
-                lines.append(line)
-                continue
-            whole, _, frac = stamp.partition(".")
-            ns = self._ns(int(whole) * 1_000_000_000 + int((frac + "000000000")[:9]))
-            lines.append(f"{ns // 1_000_000_000}.{ns % 1_000_000_000:09d}{sep}{rest}")
-        return "\n".join(lines) + "\n"
+        truth = metrics.parse_tum(text, "ground truth")
+        return metrics.format_tum(np.array([self._ns(int(t)) for t in truth.stamps_ns]), truth)
 
     def gravity_up(self) -> np.ndarray | None:
         return self.inner.gravity_up()
