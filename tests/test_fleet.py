@@ -74,6 +74,97 @@ def test_the_joint_graph_closes_the_seam_a_rigid_placement_leaves():
     assert all(np.array_equal(poses[g], again[g]) for g in poses)
 
 
+def test_robots_running_ahead_never_starve_the_one_the_merge_awaits():
+    """The fleet mapper's robot inboxes as `run_fleet` opens them (mapper/fleet/node.py: ROBOT_INBOX),
+    on real Zenoh sessions in one process (one receive pool, as in the mapper): four robots send 300
+    samples each that nobody takes yet (they ran ahead while the merge awaits a fifth), more than a
+    bounded inbox holds; the fifth robot's sample still arrives, then all of the others', in order.
+    With bounded inboxes the full ones block the pool's threads and the fifth's sample never comes."""
+    import contextlib
+    import threading
+    import time
+
+    from octolog.kit.bus import Bus, BusConfig
+    from octolog.mapper.fleet.node import ROBOT_INBOX
+    from octolog.schemas import streammsgs, topics
+
+    n, robots, awaited = 300, ("r1", "r2", "r3", "r4", "r5"), "r2"
+    with contextlib.ExitStack() as stack:
+        mapper, sender = {}, {}
+        for r in robots:
+            ep = f"tcp/127.0.0.1:{free_port()}"
+            mapper[r] = stack.enter_context(Bus(BusConfig(listen=(ep,), multicast_scouting=False, namespace=r),
+                                                "mapper", inbox_size=ROBOT_INBOX))
+            mapper[r].subscribe([topics.RGBD_END])
+            mapper[r].announce()
+            sender[r] = stack.enter_context(Bus(BusConfig(connect=(ep,), multicast_scouting=False, namespace=r),
+                                                "tracker"))
+            sender[r].watch(["mapper"])
+            sender[r].wait_for(["mapper"], timeout_s=30)
+
+        def send(r: str, count: int) -> None:
+            pub = sender[r].publisher(topics.RGBD_END)
+            for i in range(count):  # the message's `count` field carries its number
+                pub.put(streammsgs.stream_end_msg("x", i))
+
+        ahead = [threading.Thread(target=send, args=(r, n), daemon=True) for r in robots if r != awaited]
+        for t in ahead:
+            t.start()
+        for t in ahead:
+            t.join(timeout=120)
+        assert not any(t.is_alive() for t in ahead), "a robot's sending blocked on the mapper's inbox"
+        send(awaited, 1)
+        deadline = time.monotonic() + 120
+        got = None
+        while got is None and time.monotonic() < deadline:
+            got = mapper[awaited].receive(timeout_s=1.0)
+        assert got is not None and int(got.decode().count) == 0, "the awaited robot's sample never arrived"
+        for r in robots:
+            if r != awaited:
+                numbers = []
+                while len(numbers) < n and (m := mapper[r].receive(timeout_s=5.0)) is not None:
+                    numbers.append(int(m.decode().count))
+                assert numbers == list(range(n)), r
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("n_robots", [3, 5])
+def test_fleets_of_three_and_five_robots_complete(tmp_path, octolog_run, n_robots):
+    """docs/deployment.md's fleet layout with 3 and with 5 robots and no start poses: a router, one
+    mapper for every robot, and per robot its tracker's keyframe stream replayed from a session log
+    (`replay.play = "tracker"`, one log for all, so every robot shares its first place with the
+    first). The mapper ends; every robot is placed, every keyframe of every robot is in the map, and
+    each robot's keyframe trajectory in the common world is the first robot's."""
+    from octolog.kit.metrics import read_tum
+
+    log = octolog_run(f"synthetic:{FRAMES}")[0] / "session.mcap"
+    robots = [f"r{k + 1}" for k in range(n_robots)]
+    out = tmp_path / "fleet"
+    out.mkdir()
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    bus = ["--mode", "client", "--connect", endpoint, "--no-multicast"]
+    procs = {"router": _start(out / "router.log", "router", "--listen", endpoint)}
+    try:
+        procs["mapper"] = _start(out / "mapper.log", "map", *bus, "--out", str(out), "--rerun", "off",
+                                 "--set", f"robots={json.dumps(robots)}")
+        for robot in robots:
+            procs[robot] = _start(out / f"{robot}.log", "replay", *bus, "--namespace", robot, "--quiet",
+                                  "--source", f"mcap:{log}", "--set", "play=tracker", "--set", 'wait_for=["mapper"]')
+        for name in ("mapper", *robots):
+            assert procs[name].wait(timeout=600) == 0, (name, (out / f"{name}.log").read_text())
+    finally:
+        stop_all(procs)
+    stats = json.loads((out / "map_stats.json").read_text())
+    per_robot = [stats["robots"][r]["keyframes"] for r in robots]
+    assert all(stats["robots"][r]["merged"] for r in robots), stats["robots"]
+    assert per_robot[0] > 1 and per_robot == [per_robot[0]] * n_robots and stats["keyframes"] == sum(per_robot)
+    first = read_tum(out / "keyframes_r1.txt")
+    for robot in robots[1:]:
+        traj = read_tum(out / f"keyframes_{robot}.txt")
+        assert np.array_equal(traj.stamps_ns, first.stamps_ns)
+        assert np.abs(traj.positions - first.positions).max() < 0.02, robot
+
+
 def test_config_checks_robots_and_start_poses():
     with pytest.raises(ConfigError, match="2 poses for 1 robots"):
         MapperConfig(robots=("r1",), start_poses=((0, 0, 0, 0, 0, 0, 1), (0, 0, 0, 0, 0, 0, 1))).validate()

@@ -28,7 +28,10 @@ WAKE_S = 0.2  # a thread blocked on an event wakes this often, so signal handler
 
 
 class Bus:
-    """One Zenoh session for one stage. Use as a context manager."""
+    """One Zenoh session for one stage. Use as a context manager.
+
+    `inbox_size`: samples waiting for the stage before delivery waits (back-pressure on the
+    producers through Zenoh); 0: unbounded, delivery never waits (see `Inbox`)."""
 
     def __init__(self, cfg: BusConfig, stage: str, *, inbox_size: int = 8) -> None:
         self.cfg = cfg
@@ -90,7 +93,7 @@ class Bus:
         return self._publishing.publisher(topic)
 
     def subscribe(self, topics: Iterable[Topic], *, latest_only: Iterable[Topic] = ()) -> None:
-        """Feed these topics into this stage's bounded inbox: per publisher exactly once and in
+        """Feed these topics into this stage's inbox: per publisher exactly once and in
         order (with history), as they arrive across topics. Samples of a `latest_only` topic in a
         row collapse to the newest while they wait (progress signals: they never fill the inbox)."""
         for topic in latest_only:

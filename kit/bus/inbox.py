@@ -46,8 +46,10 @@ class Inbox:
     with the other topics), so such samples never fill the inbox nor block their sender."""
 
     def __init__(self, size: int) -> None:
+        """`size`: items it holds before a put waits; 0: unbounded (a put never waits, for a stage whose
+        consumer keeps everything it takes anyway, so waiting would only block the transport)."""
         self._items: deque[Received] = deque()
-        self._size = size
+        self._size = size if size > 0 else float("inf")
         self._cond = threading.Condition(threading.Lock())
         self._latest: set[Topic] = set()
         self.closing = threading.Event()

@@ -47,6 +47,12 @@ from octolog.schemas.topics import (
     TRACKING_STATUS,
 )
 
+# Each robot's inbox is unbounded. The merge waits on one robot while others run ahead; a full
+# inbox would block a thread of Zenoh's receive pool (shared by every session of the process, two
+# threads on two cores), and with as many robots ahead as threads the awaited robot's samples
+# could never arrive. Nothing is saved by bounding it: the merge keeps every item (FleetMerge.history).
+ROBOT_INBOX = 0
+
 ROBOT_COLOURS = ((255, 160, 0), (0, 200, 255), (120, 220, 60), (230, 60, 160), (160, 120, 255), (250, 230, 40))
 
 
@@ -58,11 +64,8 @@ def run_fleet(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: st
     mapper = make_mapper(cfg)
     with contextlib.ExitStack() as stack:
         bus = stack.enter_context(Bus(bus_cfg, "mapper", inbox_size=INBOX_KEYFRAMES))
-        # each robot's inbox as deep as the mapper's own: the merge waits on one robot while another
-        # runs ahead, and a full inbox blocks Zenoh's shared receive threads, so the awaited robot's
-        # samples would never arrive (and the router behind them would stall every stage)
         robot_buses = [stack.enter_context(Bus(dataclasses.replace(bus_cfg, namespace=r), "mapper",
-                                               inbox_size=INBOX_KEYFRAMES)) for r in cfg.robots]
+                                               inbox_size=ROBOT_INBOX)) for r in cfg.robots]
         viz = stack.enter_context(Viz(rerun, "mapper", recording_id))
         frame = MapFrame(mapper, bus, viz, from_imu=False, ask=None if cfg.grid_up else robot_buses[0])
         publisher = MapSnapshots(bus, mapper, cfg.publish_every)
@@ -165,8 +168,10 @@ class _RobotStreams:
                                     f"what arrived is in the map")
 
     def take_next(self, viz: Viz) -> None:
-        """The order is not decided yet: take the next message of a robot whose stream is empty
-        (the paused ones in turn when nobody else is awaited)."""
+        """The order is not decided yet: take whatever any robot has sent, else wait for the next
+        message of a robot whose stream is empty (the paused ones in turn when nobody else is awaited)."""
+        if self._take_waiting():
+            return
         merge, expected, received = self.merge, self.expected, self.received
         candidates = merge.waiting_on() or merge.paused()
         i = candidates[self.turn % len(candidates)]
@@ -180,12 +185,26 @@ class _RobotStreams:
             return
         if r is None:
             self._silent(i, viz)
-            return
+        else:
+            self._take(i, r)
+
+    def _take_waiting(self) -> bool:
+        """Every robot's waiting messages into the merge (so a silent robot's pause sees what the
+        others sent); whether there were any."""
+        took = False
+        for k, rb in enumerate(self.robot_buses):
+            while k not in self.lost and (r := rb.receive_nowait()) is not None:
+                self._take(k, r)
+                took = True
+        return took
+
+    def _take(self, i: int, r: Any) -> None:
+        """Robot i's message into its stream; the stream ends with its last announced item."""
         self.heard[i] = time.monotonic()
         self._push(i, r)
-        if expected[i] is not None and received[i] >= expected[i] and self.received_poses[i] >= self.expected_poses[i] \
-                and not merge.has_items(i):
-            merge.end(i)
+        if self.expected[i] is not None and self.received[i] >= self.expected[i] \
+                and self.received_poses[i] >= self.expected_poses[i] and not self.merge.has_items(i):
+            self.merge.end(i)
 
     def _silent(self, i: int, viz: Viz) -> None:
         """Nothing from robot i: check every robot's link, and pause robot i if it stalls the others."""
