@@ -6,9 +6,10 @@ depth models (replay/depth_noise.py), along a slow path (as rendered, 30 fps) an
 `octolog track`'s parameters, its back end inline (the same results as on its worker, no
 transport, Rerun off). Per case: ATE after SE(3)
 alignment, ATE after Sim(3) alignment and the Sim(3) scale (what the estimate's lengths must be
-multiplied by; 1 = no scale error).
+multiplied by; 1 = no scale error). `--bias` adds a systematic disparity offset to the noisy
+sensors (a unit's calibration error: depth short by about z^2 bias / (f b)), 0 for none.
 
-    python bench/depth_scale.py [--frames 300] [--noise none,kinect,d455] [--every 1,3]
+    python bench/depth_scale.py [--frames 300] [--noise none,kinect,d455] [--every 1,3] [--bias 0,0.1]
 """
 
 from __future__ import annotations
@@ -24,9 +25,10 @@ from octolog.tracker.config import TrackerConfig
 from octolog.tracker.odometry import RgbdSlam
 
 
-def track_scene(noise: str, frames: int, every: int, *, seed: int = 0) -> dict:
-    """Track the synthetic room with `noise`; ATE (SE(3), Sim(3)) in metres, the scale, timing."""
-    scene = SyntheticScene(n_frames=frames, seed=seed, depth_noise=noise)
+def track_scene(noise: str, frames: int, every: int, *, seed: int = 0, bias_px: float = 0.0) -> dict:
+    """Track the synthetic room with `noise` (and a disparity offset `bias_px`); ATE (SE(3), Sim(3))
+    in metres, the scale, timing."""
+    scene = SyntheticScene(n_frames=frames, seed=seed, depth_noise=noise, depth_bias_px=bias_px)
     odo = RgbdSlam(TrackerConfig().odometry_params(), background=False)
     idx = list(range(0, frames, every))
     t0 = time.perf_counter()
@@ -38,7 +40,7 @@ def track_scene(noise: str, frames: int, every: int, *, seed: int = 0) -> dict:
     est = metrics.Trajectory.from_matrices(np.array(stamps), np.array(poses))
     gt = metrics.Trajectory.from_matrices(np.array([scene.stamp_ns(i) for i in idx]), scene.poses()[idx])
     se3, sim3 = metrics.ate(est, gt), metrics.ate(est, gt, correct_scale=True)
-    return {"noise": noise, "every": every, "frames": len(idx), "tracked": len(stamps), "ate_m": se3.rmse,
+    return {"noise": noise, "bias_px": bias_px, "every": every, "frames": len(idx), "tracked": len(stamps), "ate_m": se3.rmse,
             "ate_sim3_m": sim3.rmse, "scale": sim3.scale, "wall_s": wall}
 
 
@@ -48,15 +50,19 @@ def main() -> None:
     ap.add_argument("--noise", default="none,kinect,d455")
     ap.add_argument("--every", default="1,3")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--bias", default="0", help="disparity offsets, px (noisy sensors only)")
     args = ap.parse_args()
     print(f"synthetic room, {args.frames} frames at 30 fps, seed {args.seed}")
-    print("| depth | path | frames tracked | ATE SE(3), cm | ATE Sim(3), cm | Sim(3) scale | scale error, % | s |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| depth | bias, px | path | frames tracked | ATE SE(3), cm | ATE Sim(3), cm | Sim(3) scale | "
+          "scale error, % | s |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    cases = [(noise, float(b)) for noise in args.noise.split(",") for b in args.bias.split(",")
+             if noise != "none" or float(b) == 0.0]
     for every in (int(e) for e in args.every.split(",")):
-        for noise in args.noise.split(","):
-            r = track_scene(noise, args.frames, every, seed=args.seed)
+        for noise, bias in cases:
+            r = track_scene(noise, args.frames, every, seed=args.seed, bias_px=bias)
             path = "slow (every frame)" if every == 1 else f"fast (every {every}rd)" if every == 3 else f"every {every}"
-            print(f"| {noise} | {path} | {r['tracked']}/{r['frames']} | {r['ate_m'] * 100:.2f} | "
+            print(f"| {noise} | {bias:g} | {path} | {r['tracked']}/{r['frames']} | {r['ate_m'] * 100:.2f} | "
                   f"{r['ate_sim3_m'] * 100:.2f} | {r['scale']:.4f} | {(r['scale'] - 1) * 100:+.2f} | "
                   f"{r['wall_s']:.0f} |", flush=True)
 

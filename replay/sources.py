@@ -255,7 +255,8 @@ def backend_deferred(path: Path) -> list[int]:
                   for m in read_wire(path, [BACKEND_DEFERRED.name]))
 
 
-SYNTHETIC_SPEC = "synthetic[:N][:tilt=DEG][:motion=loop|turns][:exposure=MS][:noise=none|kinect|d455][:seed=S]"
+SYNTHETIC_SPEC = ("synthetic[:N][:tilt=DEG][:motion=loop|turns][:exposure=MS][:noise=none|kinect|d455][:bias=PX]"
+                  "[:seed=S]")
 
 
 @dataclass
@@ -265,17 +266,20 @@ class SyntheticSource:
     motion: str = "loop"  # `motion=turns`: the walk with fast head turns (150-210 deg/s)
     exposure_ms: float = 0.0  # `exposure=MS`: colour blurred by the camera's rotation over MS
     depth_noise: str = "none"  # `noise=kinect|d455`: the depth that sensor would read
+    depth_bias_px: float = 0.0  # `bias=PX`: the depth sensor's systematic disparity offset (reads short if > 0)
     seed: int = 0  # `seed=S`: another room's textures and another draw of the depth noise
     readout_s = 0.0  # rendered, every row at once
     encoded = False  # rendered pixels
 
     def __post_init__(self) -> None:
         self.scene = SyntheticScene(n_frames=self.n_frames, start_tilt_deg=self.start_tilt_deg, motion=self.motion,
-                                    exposure_ms=self.exposure_ms, depth_noise=self.depth_noise, seed=self.seed)
+                                    exposure_ms=self.exposure_ms, depth_noise=self.depth_noise,
+                                    depth_bias_px=self.depth_bias_px, seed=self.seed)
         options = {"tilt": f"{self.start_tilt_deg:g}" if self.start_tilt_deg else "",
                    "motion": "" if self.motion == "loop" else self.motion,
                    "exposure": f"{self.exposure_ms:g}" if self.exposure_ms else "",
                    "noise": "" if self.depth_noise == "none" else self.depth_noise,
+                   "bias": f"{self.depth_bias_px:g}" if self.depth_bias_px else "",
                    "seed": str(self.seed) if self.seed else ""}
         self.name = ":".join([f"synthetic:{self.n_frames}", *(f"{k}={v}" for k, v in options.items() if v)])
 
@@ -420,7 +424,7 @@ def _synthetic(spec: str, arg: str) -> SyntheticSource:
     """`synthetic[:N][:KEY=VALUE...]` (SYNTHETIC_SPEC); a bad count, key or value is a one-line error."""
     count, *options = arg.split(":") if arg else [""]
     keys = {"tilt": "start_tilt_deg", "motion": "motion", "exposure": "exposure_ms", "noise": "depth_noise",
-            "seed": "seed"}
+            "bias": "depth_bias_px", "seed": "seed"}
     kwargs: dict[str, Any] = {}
     try:
         n = int(count) if count else 150

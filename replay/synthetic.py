@@ -55,6 +55,7 @@ class SyntheticConfig:
     start_tilt_deg: float = 0.0  # the camera starts looking down this much more, level again after 1 s
     motion: str = "loop"  # loop (a walk round the pillar) or turns (the walk with fast head turns)
     exposure_ms: float = 0.0  # colour exposure: > 0 blurs colour by the camera's rotation over it
+    depth_bias_px: float = 0.0  # the depth sensor's systematic disparity offset (replay.depth_noise.apply)
 
     def __post_init__(self) -> None:
         """Checked once, where the parameters are built."""
@@ -68,6 +69,10 @@ class SyntheticConfig:
             raise ValueError(f"exposure_ms {self.exposure_ms}: want 0 (no blur) up to the frame period")
         if self.depth_noise not in depth_noise.names():
             raise ValueError(f"depth_noise {self.depth_noise!r}: want one of {', '.join(depth_noise.names())}")
+        if self.depth_bias_px and self.depth_noise == "none":
+            raise ValueError("depth_bias_px: a disparity offset needs a depth sensor (depth_noise kinect or d455)")
+        if not abs(self.depth_bias_px) <= 1.0:
+            raise ValueError(f"depth_bias_px {self.depth_bias_px}: want -1 to 1 px")
 
 
 class SyntheticScene:
@@ -297,7 +302,7 @@ class SyntheticScene:
         rgb = rgb.reshape(K.height, K.width, 3)
         if exact is not None:
             sensor = depth_noise.SENSORS[cfg.depth_noise]
-            depth = self._depth_mm(depth_noise.apply(exact.reshape(K.height, K.width), rgb, sensor, noise).ravel())
+            depth = self._depth_mm(depth_noise.apply(exact.reshape(K.height, K.width), rgb, sensor, noise, cfg.depth_bias_px).ravel())
         return rgb, depth.reshape(K.height, K.width)
 
     def _texture_colour(self, prim: np.ndarray, tu: np.ndarray, tv: np.ndarray, z: np.ndarray, dirs: np.ndarray,

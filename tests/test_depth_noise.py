@@ -40,6 +40,23 @@ def test_depth_error_grows_with_the_square_of_distance_and_is_unbiased(name, z):
     assert np.allclose(levels, np.round(levels))  # every reading is a whole number of disparity steps
 
 
+@pytest.mark.parametrize("name", ["kinect", "d455"])
+def test_a_disparity_offset_biases_depth_with_the_square_of_distance(name):
+    """`bias_px` (the synthetic source's `bias=PX`): the mean reading on a flat wall is short by
+    z^2 bias / (f b) within 15 % (0.1 px: 0.9-1.1 % at 4 m), at every distance; negative reads long."""
+    s = depth_noise.SENSORS[name]
+    grey = np.full((300, 300, 3), 128, np.uint8)
+    for z in (1.0, 2.5, 4.0):
+        for bias in (0.1, -0.1):
+            exact = np.full((300, 300), z)
+            out = depth_noise.apply(exact, grey, s, np.random.default_rng(2), bias_px=bias)
+            unbiased = depth_noise.apply(exact, grey, s, np.random.default_rng(2))
+            ok = (out > 0) & (unbiased > 0)
+            shift = float(np.mean(unbiased[ok]) - np.mean(out[ok]))
+            want = z * z * bias / (s.focal_px * s.baseline_m)
+            assert abs(shift - want) < 0.15 * abs(want), (z, bias, shift, want)
+
+
 def test_a_depth_discontinuity_reads_zero_along_its_edge():
     s = depth_noise.SENSORS["d455"]
     exact = np.full((50, 50), 3.0)

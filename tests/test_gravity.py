@@ -115,17 +115,18 @@ def test_a_tilted_start_levels_out_after_one_second() -> None:
 
 @pytest.mark.parametrize("spec", ["synthetic:10:tilt=x", "synthetic:10:roll=3", "synthetic:10:tilt=95",
                                   "synthetic:10:motion=spin", "synthetic:10:exposure=50", "synthetic:10:noise=tof",
-                                  "synthetic:10:seed=1.5", "synthetic:10:tilt=1:tilt=2", "synthetic:10:fast"])
+                                  "synthetic:10:seed=1.5", "synthetic:10:tilt=1:tilt=2", "synthetic:10:fast",
+                                  "synthetic:10:bias=0.1", "synthetic:10:noise=d455:bias=2"])
 def test_bad_synthetic_options_are_refused(spec: str) -> None:
     with pytest.raises(ConfigError, match="synthetic"):
         open_source(spec)
 
 
 def test_synthetic_options_build_the_scene_they_name() -> None:
-    src = open_source("synthetic:10:motion=turns:exposure=8:noise=kinect:seed=2")
+    src = open_source("synthetic:10:motion=turns:exposure=8:noise=kinect:bias=0.1:seed=2")
     cfg = src.scene.config
-    assert (cfg.motion, cfg.exposure_ms, cfg.depth_noise, cfg.seed) == ("turns", 8.0, "kinect", 2)
-    assert src.name == "synthetic:10:motion=turns:exposure=8:noise=kinect:seed=2"
+    assert (cfg.motion, cfg.exposure_ms, cfg.depth_noise, cfg.depth_bias_px, cfg.seed) == ("turns", 8.0, "kinect", 0.1, 2)
+    assert src.name == "synthetic:10:motion=turns:exposure=8:noise=kinect:bias=0.1:seed=2"
     assert open_source("synthetic").name == "synthetic:150"
 
 
