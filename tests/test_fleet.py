@@ -140,10 +140,7 @@ def test_fleets_of_three_and_five_robots_complete(tmp_path, octolog_run, n_robot
     log = octolog_run(f"synthetic:{FRAMES}")[0] / "session.mcap"
     robots = [f"r{k + 1}" for k in range(n_robots)]
     out = tmp_path / "fleet"
-    out.mkdir()
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    bus = ["--mode", "client", "--connect", endpoint, "--no-multicast"]
-    procs = {"router": _start(out / "router.log", "router", "--listen", endpoint)}
+    procs, bus = _router(out)
     try:
         procs["mapper"] = _start(out / "mapper.log", "map", *bus, "--out", str(out), "--rerun", "off",
                                  "--set", f"robots={json.dumps(robots)}")
@@ -259,6 +256,15 @@ def _start(log: Path | None, *args: str) -> subprocess.Popen:
     env = {**os.environ, "RERUN_DISABLE_ANALYTICS": "1", "PYTHONUNBUFFERED": "1", "PYTHONHASHSEED": "0"}
     return subprocess.Popen([sys.executable, "-m", "octolog", *args], cwd=ROOT, env=env, text=True,
                             stdout=open(log, "w") if log else subprocess.PIPE, stderr=subprocess.STDOUT)
+
+
+def _router(out: Path) -> tuple[dict[str, subprocess.Popen], list[str]]:
+    """`out` made, a router started on a free loopback port: the processes so far and the bus flags
+    that reach it."""
+    out.mkdir(parents=True)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    return {"router": _start(out / "router.log", "router", "--listen", endpoint)}, \
+        ["--mode", "client", "--connect", endpoint, "--no-multicast"]
 
 
 def run_fleet(out: Path, start_poses: list[list[float]], *, rerun: str = "off", source: str = f"synthetic:{FRAMES}",
@@ -597,10 +603,7 @@ def test_a_robot_killed_mid_run_leaves_the_others_to_finish(tmp_path):
     takes r2 for gone after the peer timeout, keeps what arrived, and finishes r1's map (no start
     poses: r2 is placed from the room both see)."""
     out = tmp_path / "fleet"
-    out.mkdir()
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    bus = ["--mode", "client", "--connect", endpoint, "--no-multicast"]
-    procs = {"router": _start(out / "router.log", "router", "--listen", endpoint)}
+    procs, bus = _router(out)
     try:
         procs["mapper"] = _start(out / "mapper.log", "map", *bus, "--out", str(out), "--set", 'robots=["r1", "r2"]')
         for robot, (start, end), shift in zip(ROBOTS, ((0, HALF), (HALF, FRAMES)), SHIFT_S):
