@@ -114,6 +114,9 @@ def cmd_track(args: argparse.Namespace) -> int:
           + (f", {res.backend_deferred} keyframes without waiting for the back end" if res.backend_deferred else ""))
     for problem in res.problems[:5]:
         print(f"tracker: rejected {problem}")
+    if res.depth_bias is not None:
+        print(f"tracker: {res.depth_bias.summary()}")
+        errorfile.FINDINGS["depth_bias"] = res.depth_bias.as_dict()
     return 0
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 from dataclasses import dataclass
+from typing import Any
 from pathlib import Path
 
 from octolog.kit.errors import OctologError
@@ -67,25 +68,35 @@ def read(path: Path) -> ErrorRecord | None:
     return ErrorRecord(str(data.get("type", "")), str(data.get("message", "")))
 
 
+# what the stage found that its report carries besides drops and CPU (the tracker's `depth_bias`)
+FINDINGS: dict[str, Any] = {}
+
+
 def write_report(malformed: dict[str, int], cpu: dict | None = None) -> None:
     """Record in `$OCTOLOG_REPORT_FILE` (if set) the malformed samples the stage dropped, per topic,
-    and where its CPU went (kit/cpuclock.py: report)."""
+    where its CPU went (kit/cpuclock.py: report) and its FINDINGS."""
     path = os.environ.get(REPORT_ENV)
     if not path:
         return
     try:
-        Path(path).write_text(json.dumps({"malformed": malformed, "cpu_s": cpu or {}}, sort_keys=True) + "\n")
+        Path(path).write_text(json.dumps({"malformed": malformed, "cpu_s": cpu or {}, **FINDINGS},
+                                         sort_keys=True) + "\n")
     except OSError:
         pass  # best effort: each first drop per publisher is in the stage's log
 
 
 def read_cpu(path: Path) -> dict:
     """The CPU report in a stage's report file, {} if there is none."""
+    return read_finding(path, "cpu_s") or {}
+
+
+def read_finding(path: Path, key: str) -> Any:
+    """One entry of a stage's report file (`cpu_s`, a finding), None if there is none."""
     try:
         data = json.loads(path.read_text())
     except (OSError, ValueError):
-        return {}
-    return data.get("cpu_s", {}) if isinstance(data, dict) else {}
+        return None
+    return data.get(key) if isinstance(data, dict) else None
 
 
 def read_malformed(path: Path) -> dict[str, int]:

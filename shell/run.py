@@ -65,6 +65,7 @@ class SessionSummary:
     files: dict[str, str] = field(default_factory=dict)
     malformed: dict[str, dict[str, int]] = field(default_factory=dict)  # stage -> topic -> samples dropped
     map_frame: str = NOT_ALIGNED  # whether the map frame's z is up, and where that came from
+    depth_bias: dict | None = None  # the tracker's estimate of the depth camera's systematic error (summary.json)
 
 
 def _free_port() -> int:
@@ -408,9 +409,10 @@ def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, re
                    if (counts := errorfile.read_malformed(p))}
     # where each stage's CPU went (kit/cpuclock.py); CPU time differs run to run: not for comparing outputs
     cpu = {p.name.removesuffix(".report.json"): errorfile.read_cpu(p) for p in sorted((out / "logs").glob("*.report.json"))}
+    s.depth_bias = errorfile.read_finding(out / "logs" / "tracker.report.json", "depth_bias")
     (out / "summary.json").write_text(json.dumps(
         {"source": source, "frames": frames, "tracked_frames": s.frames, "wall_s": round(wall, 3),
-         "malformed": s.malformed, "map_frame": s.map_frame, "cpu_s": cpu,
+         "malformed": s.malformed, "map_frame": s.map_frame, "cpu_s": cpu, "depth_bias": s.depth_bias,
          "duration_s": s.duration_s, "ate": s.ate, "map": s.map, "files": sorted(s.files),
          "recording_id": recording_id, "versions": versions()},
         indent=2, sort_keys=True) + "\n")
@@ -428,6 +430,11 @@ def format_summary(s: SessionSummary) -> str:
     lines.append(f"  map: {m.get('keyframes', 0)} keyframes, {m.get('occupied_voxels', 0)} occupied / "
                  f"{m.get('free_voxels', 0)} free voxels at {m.get('resolution_m', 0) * 100:.0f} cm, {m.get('cloud_points', 0)} cloud points")
     lines.append(f"  map frame: {s.map_frame}")
+    if s.depth_bias:
+        b = s.depth_bias
+        at = ", ".join(f"{-100 * v / float(z):+.2f} % at {z} m" for z, v in b["bias_m"].items() if float(z) in (2.0, 4.0))
+        lines.append(f"  depth bias (from the map): reads short by {at}" + ("" if b["confident"] else " (not significant)")
+                     + f"; inverse offset {b['inverse_offset_per_m']:.5f} 1/m (tracker.depth.inverse_offset corrects it)")
     for stage, counts in s.malformed.items():
         lines.append(f"  {stage} dropped malformed samples: " + ", ".join(f"{n} on {t}" for t, n in counts.items()))
     lines.append("  files: " + ", ".join(sorted(s.files)))

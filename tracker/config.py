@@ -40,6 +40,10 @@ class DepthParams:
     max_new_point_m: float = 4.0  # a keyframe makes map points only from readings up to this range
     # a reading whose 3x3 neighbourhood spreads more than this fraction of it sits on an edge: ignored
     edge_spread: float = 0.04
+    # the camera's systematic depth error, corrected in every reading: 1/z <- 1/z - inverse_offset
+    # (1/m; > 0: the camera reads short, by inverse_offset * z^2 m at z). A session's own estimate is
+    # in summary.json `depth_bias` (tracker/depth_bias.py); a disparity offset of d px is d / (f b).
+    inverse_offset: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -273,6 +277,8 @@ def _validate_front_end(f: FeatureParams, d: DepthParams, t: TrackingParams) -> 
     _want(d.max_m > d.min_m, "depth.max_m", d.max_m, f"want > depth.min_m ({d.min_m}): the range is empty")
     _want(d.max_new_point_m > 0.0, "depth.max_new_point_m", d.max_new_point_m, "want > 0")
     _want(d.edge_spread > 0.0, "depth.edge_spread", d.edge_spread, "want > 0")
+    _want(abs(d.inverse_offset) * d.max_m < 0.5, "depth.inverse_offset", d.inverse_offset,
+          f"want |value| x depth.max_m < 0.5 (a correction of less than half the reading at {d.max_m:g} m)")
     for key in ("search_radius_px", "refine_radius_px", "ransac_reproj_px", "inv_depth_sigma"):
         _want(getattr(t, key) > 0.0, f"tracking.{key}", getattr(t, key), "want > 0")
     _want(0 <= t.max_hamming <= 256, "tracking.max_hamming", t.max_hamming, "want 0 to 256 (bits)")

@@ -42,6 +42,7 @@ from octolog.schemas.topics import (
     TRAJECTORY,
 )
 from octolog.tracker.config import TrackerConfig
+from octolog.tracker.depth_bias import DepthBias
 from octolog.tracker.factory import make_odometry, set_readout
 from octolog.tracker.intake import FRAME_PRODUCERS, Intake
 from octolog.tracker.interface import Tracker, TrackingState, TrackResult
@@ -68,6 +69,7 @@ class TrackerRunSummary:
     stamps_ns: list[int] = field(default_factory=list)
     poses: list[np.ndarray] = field(default_factory=list)
     ms: list[float] = field(default_factory=list)
+    depth_bias: DepthBias | None = None  # the camera's depth error as the final map has it
 
 
 def run(cfg: TrackerConfig, bus_cfg: BusConfig, *, trajectory: Path | None = None, rerun: str = "off",
@@ -165,6 +167,10 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
                 r, prep = _skip_behind(intake, r, prep, out, result, far=intake.behind(r, FAR_BEHIND))
             _track_frame(odometry, cfg, functools.partial(intake.prepared, r, prep), out, tree, result, shown)
     out.finish(odometry, result)
+    estimate = getattr(odometry, "depth_bias", None)  # the native tracker's; ORB-SLAM3 has none
+    result.depth_bias = estimate() if estimate is not None else None
+    if result.depth_bias is not None:
+        viz.text("tracker/events", result.depth_bias.summary())
     bus.linger("mapper")
     return result
 

@@ -26,6 +26,7 @@ from octolog.kit.geometry import Intrinsics, RgbdFrame, invert
 from octolog.tracker.backend import BackendResult, run_backend
 from octolog.tracker.backend_handoff import BackendHandoff
 from octolog.tracker.config import OdometryParams, TrackerConfig
+from octolog.tracker.depth_bias import DepthBias, bias_from_map
 from octolog.tracker.features import (
     FrameFeatures,
     OrbExtractor,
@@ -208,6 +209,10 @@ class RgbdSlam(LocalMapping, BackendHandoff):
     def keyframe_poses(self) -> dict[int, np.ndarray]:
         return {kf.id: kf.world_from_camera.copy() for kf in self._keyframes}
 
+    def depth_bias(self) -> DepthBias | None:
+        """The depth camera's systematic error as the map has it (tracker/depth_bias.py), or None."""
+        return bias_from_map(self._keyframes, self._map.xyz)
+
     def finish(self) -> dict[int, np.ndarray]:
         """Wait for the back end and apply its last result; returns the keyframe poses it moved."""
         before = self.keyframe_poses()
@@ -252,6 +257,8 @@ class RgbdSlam(LocalMapping, BackendHandoff):
         d = self.params.depth
         z = lookup_depth(frame.depth, frame.depth_scale_m, pts, min_depth_m=d.min_m, max_depth_m=d.max_m,
                          max_spread=d.edge_spread)
+        if d.inverse_offset:
+            z = z / (1.0 - d.inverse_offset * z)  # 0 stays 0
         uv = self._undistort(pts)
         self._last_pts = pts
         self._last_kp_state = np.zeros(len(pts), np.uint8)

@@ -1,0 +1,64 @@
+"""The depth camera's systematic error measured from a map (tracker/depth_bias.py), on readings made
+here with a known offset, and the tracker's correction setting."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from octolog.kit.errors import ConfigError
+from octolog.tracker.config import TrackerConfig
+from octolog.tracker.depth_bias import MIN_POINTS, estimate_depth_bias
+
+
+def _readings(beta: float, noise: float, n_points: int = 600, seed: int = 0):
+    """Points in a room seen from 12 keyframes along a path, each reading at 1/z + beta (short if
+    beta > 0) with depth noise growing with z^2: the estimator's inputs, and the map's depths."""
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform([-3, -1, 2], [3, 1, 6], (n_points, 3))
+    rows = []
+    for k in range(12):
+        yaw = 0.05 * k
+        R = np.array([[np.cos(yaw), 0, np.sin(yaw)], [0, 1, 0], [-np.sin(yaw), 0, np.cos(yaw)]])
+        t = np.array([0.3 * k - 1.5, 0.0, -0.2 * k])
+        cam = (pts - t) @ R  # camera_from_world
+        for j, p in enumerate(cam):
+            if p[2] > 0.5:
+                z_read = 1.0 / (1.0 / p[2] + beta) + noise * p[2] ** 2 * rng.standard_normal()
+                rows.append((k, j, p / p[2] * z_read, p[2], R, t))
+    k, j, xyz, z_map, R, t = zip(*rows)
+    rotations = np.array([r for _, r in sorted({a: b for a, b in zip(k, R)}.items())])
+    translations = np.array([v for _, v in sorted({a: b for a, b in zip(k, t)}.items())])
+    return rotations, translations, np.array(k), np.array(j), np.array(xyz), np.array(z_map)
+
+
+@pytest.mark.parametrize("beta", [0.0023, -0.002, 0.0])
+def test_the_offset_is_recovered_from_readings_of_known_bias(beta):
+    est = estimate_depth_bias(*_readings(beta, noise=1.4e-3))
+    assert est is not None and est.sigma < 2e-4
+    assert abs(est.inverse_offset - beta) < 3e-4, est
+    assert est.confident == (beta != 0.0)
+    assert abs(est.scale - 1) < 0.003
+    # the bias by range: a reading at z is off by about -beta z^2 (short when beta > 0)
+    assert est.bias_m[4.0] == pytest.approx(4.0 / (1 + est.inverse_offset * 4.0) - 4.0)
+
+
+def test_noise_alone_is_no_bias():
+    """Depth noise is in the readings, not in the fit's regressor (the map's depth): pure noise,
+    three times the Kinect's, gives an offset near zero rather than the errors-in-variables pull."""
+    est = estimate_depth_bias(*_readings(0.0, noise=4.3e-3, seed=1))
+    assert abs(est.inverse_offset) < 3 * est.sigma + 1e-4, est
+
+
+def test_too_few_points_give_no_estimate():
+    r = _readings(0.001, noise=1e-3, n_points=MIN_POINTS // 4)
+    assert estimate_depth_bias(*r) is None
+
+
+def test_the_correction_setting_is_checked():
+    cfg = TrackerConfig()
+    bad = dataclasses.replace(cfg, depth=dataclasses.replace(cfg.depth, inverse_offset=0.1))
+    with pytest.raises(ConfigError, match="depth.inverse_offset"):
+        bad.validate()
