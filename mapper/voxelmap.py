@@ -38,7 +38,7 @@ from octolog.kit.errors import MapError
 from octolog.kit.files import write_bytes_atomic
 from octolog.mapper.octokeys import TREE_MAX_VAL, key_to_coord, norm32, pack, to_key, unpack
 from octolog.mapper.sensor_model import SensorModel
-from octolog.mapper.treebuild import WHITE as _WHITE
+from octolog.mapper.voxelstore import VoxelStore
 from octolog.mapper.treebuild import build_tree
 
 __all__ = ["VoxelOccupancyMap"]
@@ -207,9 +207,19 @@ class VoxelOccupancyMap:
 
     def clear(self) -> None:
         """Forget everything (e.g. before re-integrating keyframes after a loop closure)."""
-        self._keys = np.zeros(0, dtype=np.int64)  # packed, sorted, unique
-        self._logodds = np.zeros(0, dtype=np.float32)
-        self._rgb = np.zeros((0, 3), dtype=np.uint8)  # 255,255,255 = no colour (OctoMap)
+        self._store = VoxelStore()  # packed keys sorted and unique, log-odds, colour (255,255,255: none)
+
+    @property
+    def _keys(self) -> np.ndarray:
+        return self._store.arrays()[0]
+
+    @property
+    def _logodds(self) -> np.ndarray:
+        return self._store.arrays()[1]
+
+    @property
+    def _rgb(self) -> np.ndarray:
+        return self._store.arrays()[2]
 
     # ---- integration ----------------------------------------------------------------------------
 
@@ -310,21 +320,7 @@ class VoxelOccupancyMap:
         upd = np.concatenate([np.full(free.shape[0], self._miss, np.float32),
                               np.full(occ.shape[0], self._hit, np.float32)])
         order = np.argsort(upd_keys, kind="stable")
-        upd_keys, upd = upd_keys[order], upd[order]
-        pos = np.searchsorted(self._keys, upd_keys)
-        found = np.zeros(upd_keys.shape[0], dtype=bool)
-        inside = pos < self._keys.shape[0]
-        found[inside] = self._keys[pos[inside]] == upd_keys[inside]
-        cur = np.zeros(upd_keys.shape[0], dtype=np.float32)
-        cur[found] = self._logodds[pos[found]]
-        new = np.clip(cur + upd, self._lmin, self._lmax).astype(np.float32)
-        self._logodds[pos[found]] = new[found]
-        ins = ~found
-        if ins.any():
-            at = pos[ins]
-            self._keys = np.insert(self._keys, at, upd_keys[ins])
-            self._logodds = np.insert(self._logodds, at, new[ins])
-            self._rgb = np.insert(self._rgb, at, np.full((int(ins.sum()), 3), _WHITE, np.uint8), axis=0)
+        self._store.update(upd_keys[order], upd[order], self._lmin, self._lmax)
 
     def _integrate_colour(self, colours: np.ndarray, inverse: np.ndarray, ulin: np.ndarray,
                           in_range: np.ndarray, box: _ScanGrid, keys: np.ndarray, discretize: bool) -> None:
@@ -338,12 +334,7 @@ class VoxelOccupancyMap:
         for j in range(3):
             mean[:, j] = np.bincount(idx, weights=colours[pt_ok, j].astype(np.float64), minlength=m)
         mean = np.clip(np.rint(mean[has] / cnt[has, None]), 0, 255).astype(np.int64)
-        vkeys = box._to_packed(ulin[has])
-        pos = np.searchsorted(self._keys, vkeys)
-        prev = self._rgb[pos].astype(np.int64)
-        is_set = np.any(prev != _WHITE, axis=1)
-        out = np.where(is_set[:, None], (prev + mean) // 2, mean)
-        self._rgb[pos] = out.astype(np.uint8)
+        self._store.average_colour(box._to_packed(ulin[has]), mean)
 
     # ---- queries -------------------------------------------------------------------------------
 
@@ -414,7 +405,7 @@ class VoxelOccupancyMap:
             "free_volume_m3": free_vox * v1,
             "known_volume_m3": (occ_vox + free_vox) * v1,
             "num_nodes": int(occ.shape[0]),
-            "memory_bytes": int(self._keys.nbytes + self._logodds.nbytes + self._rgb.nbytes),
+            "memory_bytes": self._store.nbytes,
         }
 
     # ---- serialisation -------------------------------------------------------------------------

@@ -1,0 +1,38 @@
+"""The occupancy map's two-level voxel store (mapper/voxelstore.py) against one plain sorted table."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from octolog.mapper import voxelstore
+from octolog.mapper.voxelstore import VoxelStore
+
+
+def test_two_levels_hold_what_one_sorted_table_holds(monkeypatch):
+    """Scans of random keys (new ones and ones seen before), with hits, misses and colour, through
+    merges of the small level (MERGE_MIN lowered so they happen often): after every scan the merged
+    arrays, read now and then, equal a dict-based table updated the same way, bit for bit."""
+    monkeypatch.setattr(voxelstore, "MERGE_MIN", 64)
+    rng = np.random.default_rng(3)
+    store, table, colour = VoxelStore(), {}, {}
+    lmin, lmax = np.float32(-2.0), np.float32(3.5)
+    for scan in range(40):
+        keys = np.unique(rng.integers(0, 3000, rng.integers(1, 200)))
+        delta = rng.choice(np.array([0.85, -0.4], np.float32), keys.shape[0])
+        store.update(keys, delta, lmin, lmax)
+        for k, d in zip(keys.tolist(), delta):
+            table[k] = np.clip(np.float32(table.get(k, np.float32(0.0))) + d, lmin, lmax).astype(np.float32)
+        hit = keys[rng.random(keys.shape[0]) < 0.3]
+        mean = rng.integers(0, 256, (hit.shape[0], 3))
+        store.average_colour(hit, mean)
+        for k, m in zip(hit.tolist(), mean):
+            prev = colour.get(k)
+            colour[k] = m if prev is None else (prev + m) // 2
+        assert len(store) == len(table)
+        if scan % 7 and scan != 39:
+            continue  # the small level carries over to the next scans
+        k_all, l_all, c_all = store.arrays()
+        assert k_all.tolist() == sorted(table)
+        assert np.array_equal(l_all, np.array([table[k] for k in sorted(table)], np.float32))
+        want = np.array([colour.get(k, (255, 255, 255)) for k in sorted(table)], np.uint8)
+        assert np.array_equal(c_all, want)
