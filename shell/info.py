@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 from octolog.kit.errors import InputError, MapError, McapError
@@ -27,9 +28,27 @@ def describe_session(folder: Path) -> str:
     if why is None and not (folder / "summary.json").is_file():
         raise InputError(f"{folder}: not an octolog session folder (no summary.json, no {INCOMPLETE})")
     head = f"session {folder}: " + ("complete" if why is None else f"INCOMPLETE ({INCOMPLETE}: {why})")
+    bias = _summary(folder).get("depth_bias")
+    if bias:
+        head += "\n" + depth_bias_line(bias)
     if not log.is_file():
         return f"{head}\n  no session.mcap"
     return f"{head}\n{describe_mcap(log)}"
+
+
+def _summary(folder: Path) -> dict:
+    try:
+        data = json.loads((folder / "summary.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def depth_bias_line(b: dict) -> str:
+    """The tracker's estimate of the depth camera's systematic error (summary.json `depth_bias`)."""
+    at = ", ".join(f"{-100 * v / float(z):+.2f} % at {z} m" for z, v in b["bias_m"].items() if float(z) in (2.0, 4.0))
+    return (f"  depth bias (from the map): reads short by {at}" + ("" if b["confident"] else " (not significant)")
+            + f"; inverse offset {b['inverse_offset_per_m']:.5f} 1/m (tracker.depth.inverse_offset corrects it)")
 
 
 def describe_mcap(path: Path) -> str:

@@ -40,6 +40,7 @@ from octolog.schemas import topics as T
 from octolog.schemas.topics import RGBD, RGBD_COMPRESSED, TRACKING_STATUS
 from octolog.shell import errorfile
 from octolog.shell.children import StageProcesses
+from octolog.shell.info import depth_bias_line
 from octolog.shell.sessiondir import INCOMPLETE, incomplete_reason, prepare_out
 from octolog.shell.versions import versions
 from octolog.tracker.config import TrackerConfig, for_source
@@ -431,10 +432,7 @@ def format_summary(s: SessionSummary) -> str:
                  f"{m.get('free_voxels', 0)} free voxels at {m.get('resolution_m', 0) * 100:.0f} cm, {m.get('cloud_points', 0)} cloud points")
     lines.append(f"  map frame: {s.map_frame}")
     if s.depth_bias:
-        b = s.depth_bias
-        at = ", ".join(f"{-100 * v / float(z):+.2f} % at {z} m" for z, v in b["bias_m"].items() if float(z) in (2.0, 4.0))
-        lines.append(f"  depth bias (from the map): reads short by {at}" + ("" if b["confident"] else " (not significant)")
-                     + f"; inverse offset {b['inverse_offset_per_m']:.5f} 1/m (tracker.depth.inverse_offset corrects it)")
+        lines.append(depth_bias_line(s.depth_bias))
     for stage, counts in s.malformed.items():
         lines.append(f"  {stage} dropped malformed samples: " + ", ".join(f"{n} on {t}" for t, n in counts.items()))
     lines.append("  files: " + ", ".join(sorted(s.files)))

@@ -221,6 +221,11 @@ def test_eval_and_info_commands(runs):
     assert f"ATE RMSE {rmse_cm:.2f} cm" in out and "RPE" in out
     info = octolog("info", str(a / "session.mcap")).stdout
     assert "complete" in info and "/camera/rgbd" in info and "metadata config" in info
+    # the session folder: also the tracker's depth-bias estimate from summary.json (exact depth: none to speak of)
+    bias = json.loads((a / "summary.json").read_text())["depth_bias"]
+    assert abs(bias["inverse_offset_per_m"]) < 1e-3 and bias["points"] > 0
+    folder = octolog("info", str(a)).stdout
+    assert "depth bias (from the map)" in folder and "/camera/rgbd" in folder
 
 
 @pytest.mark.slow
