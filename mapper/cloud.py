@@ -170,7 +170,6 @@ def image_outlier_removal(
     # the mean over its `IMAGE_NEAREST` nearest neighbours in the window: a point on an object's edge
     # has that many on its own surface, a flying pixel between two surfaces has none (no valid
     # neighbour: inf, an outlier)
-    np.nan_to_num(dist, copy=False, nan=np.inf)
     nearest = np.partition(dist, IMAGE_NEAREST - 1, axis=0)[:IMAGE_NEAREST]
     footprint = p[:, 2] * (stride / intrinsics.fx)
     mean_d = np.sqrt(nearest.astype(np.float64)).sum(axis=0) / IMAGE_NEAREST / footprint
@@ -185,10 +184,11 @@ def image_outlier_removal(
 
 def _window_distances(p: np.ndarray, valid: np.ndarray, r: int) -> np.ndarray:
     """Squared distances (float32, ((2r+1)^2 - 1, N)) from each point `p` (the `valid` pixels of the
-    grid, row-major) to the point of each other pixel of its window; NaN where that pixel has none."""
+    grid, row-major) to the point of each other pixel of its window; inf where that pixel has none."""
     h, w = valid.shape
-    # one padded float32 plane per coordinate; an invalid pixel is NaN, so a distance to it is NaN
-    planes = np.full((3, h + 2 * r, w + 2 * r), np.nan, dtype=np.float32)
+    # one padded float32 plane per coordinate; an invalid pixel is inf, so a distance to it is inf
+    # (from a valid point, whose coordinates are finite; inf - inf at invalid centres is never read)
+    planes = np.full((3, h + 2 * r, w + 2 * r), np.inf, dtype=np.float32)
     for j in range(3):
         planes[j, r:r + h, r:r + w][valid] = p[:, j]
     centre = planes[:, r:r + h, r:r + w]
@@ -196,19 +196,20 @@ def _window_distances(p: np.ndarray, valid: np.ndarray, r: int) -> np.ndarray:
     sq = np.empty((h, w), dtype=np.float32)
     tmp = np.empty((h, w), dtype=np.float32)
     k = 0
-    for dy in range(-r, r + 1):
-        for dx in range(-r, r + 1):
-            if dy == 0 and dx == 0:
-                continue
-            other = planes[:, r + dy:r + dy + h, r + dx:r + dx + w]
-            np.subtract(other[0], centre[0], out=sq)
-            np.multiply(sq, sq, out=sq)
-            for j in (1, 2):
-                np.subtract(other[j], centre[j], out=tmp)
-                np.multiply(tmp, tmp, out=tmp)
-                np.add(sq, tmp, out=sq)
-            dist[k] = sq[valid]
-            k += 1
+    with np.errstate(invalid="ignore"):  # inf - inf at invalid centres, not read
+        for dy in range(-r, r + 1):
+            for dx in range(-r, r + 1):
+                if dy == 0 and dx == 0:
+                    continue
+                other = planes[:, r + dy:r + dy + h, r + dx:r + dx + w]
+                np.subtract(other[0], centre[0], out=sq)
+                np.multiply(sq, sq, out=sq)
+                for j in (1, 2):
+                    np.subtract(other[j], centre[j], out=tmp)
+                    np.multiply(tmp, tmp, out=tmp)
+                    np.add(sq, tmp, out=sq)
+                dist[k] = sq[valid]
+                k += 1
     return dist
 
 
