@@ -298,6 +298,7 @@ def keyframe_cloud(
     voxel_m: float = 0.01,
     sor_first: bool = False,
     outliers: str = "image",
+    inverse_offset: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """A keyframe's filtered world-frame cloud: back-project, filter, transform.
 
@@ -307,14 +308,16 @@ def keyframe_cloud(
     keeps the paper's order (SOR, then voxel grid). The second voxel layer is applied again across
     keyframes by `DenseCloud`. `outliers="image"` (default) runs the first layer on the image grid
     (`image_outlier_removal`, before the voxel grid) instead of PCL's k-NN filter. Returns
-    (points_world, colours).
+    (points_world, colours). `inverse_offset` corrects the camera's depth bias along each pixel's ray
+    (1/z <- 1/z - inverse_offset), before the voxel grid.
     """
     if outliers == "image":
         p, c = image_outlier_removal(depth, rgb, intrinsics, depth_scale_m, max_range_m=max_range_m, stride=stride,
                                      std_ratio=std_ratio)
-        p, c = voxel_downsample(p, c, voxel_m)
+        p, c = voxel_downsample(_unbias(p, inverse_offset), c, voxel_m)
         return transform(p, world_from_camera), c
     p, c = backproject(depth, rgb, intrinsics, depth_scale_m, max_range_m=max_range_m, stride=stride)
+    p = _unbias(p, inverse_offset)
     if sor_first:
         p, c = statistical_outlier_removal(p, c, nb_neighbors=nb_neighbors, std_ratio=std_ratio)
         p, c = voxel_downsample(p, c, voxel_m)
@@ -322,6 +325,11 @@ def keyframe_cloud(
         p, c = voxel_downsample(p, c, voxel_m)
         p, c = statistical_outlier_removal(p, c, nb_neighbors=nb_neighbors, std_ratio=std_ratio)
     return transform(p, world_from_camera), c
+
+
+def _unbias(p: np.ndarray, inverse_offset: float) -> np.ndarray:
+    """Camera-frame points moved along their rays to the depth 1 / (1/z - inverse_offset)."""
+    return p / (1.0 - inverse_offset * p[:, 2:3]) if inverse_offset else p
 
 
 class DenseCloud:

@@ -117,7 +117,8 @@ class Mapper:
         pts, cols = keyframe_cloud(
             frame.depth, frame.rgb, frame.intrinsics, frame.depth_scale_m, np.eye(4),
             max_range_m=c.max_range_m, stride=stride, nb_neighbors=c.sor_neighbors,
-            std_ratio=c.sor_std_ratio, voxel_m=c.voxel_m, sor_first=c.sor_first, outliers=c.outliers)
+            std_ratio=c.sor_std_ratio, voxel_m=c.voxel_m, sor_first=c.sor_first, outliers=c.outliers,
+            inverse_offset=c.inverse_offset)
         if len(pts) == 0:
             raise InputError(f"keyframe {kf_id}: no valid depth within {c.max_range_m} m")
         kf = KeyframeCloud(pts, cols, world_from_camera.copy(), frame.stamp_ns, frame.seq, stride)

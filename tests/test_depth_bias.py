@@ -1,5 +1,5 @@
 """The depth camera's systematic error measured from a map (tracker/depth_bias.py), on readings made
-here with a known offset, and the tracker's correction setting."""
+here with a known offset, and the tracker's and the mapper's correction settings."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from octolog.kit.errors import ConfigError
+from octolog.mapper.config import MapperConfig
 from octolog.tracker.config import TrackerConfig
 from octolog.tracker.depth_bias import MIN_POINTS, estimate_depth_bias
 
@@ -62,3 +63,5 @@ def test_the_correction_setting_is_checked():
     bad = dataclasses.replace(cfg, depth=dataclasses.replace(cfg.depth, inverse_offset=0.1))
     with pytest.raises(ConfigError, match="depth.inverse_offset"):
         bad.validate()
+    with pytest.raises(ConfigError, match="mapper.depth_inverse_offset"):
+        MapperConfig(depth_inverse_offset=0.2).validate()

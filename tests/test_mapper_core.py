@@ -228,6 +228,21 @@ def test_dense_cloud_replaces_a_keyframe_and_ignores_arrival_order():
     assert empty[0].shape == (0, 3) and empty[1].dtype == np.uint8
 
 
+def test_a_depth_bias_correction_puts_a_biased_wall_back_in_place():
+    """A wall 3.5 m away read 1 % short (what an inverse offset of 0.00289 1/m does): with
+    mapper.depth_inverse_offset at that value, the keyframe cloud is back at 3.5 m (one depth unit),
+    every point moved along its ray; without it, 3.5 cm short."""
+    beta, z = 0.01 / 3.5, 3.5
+    depth, rgb = wall_frame(z / (1 + beta * z))  # what the biased camera reads
+    short, _ = keyframe_cloud(depth, rgb, K, SCALE, np.eye(4))
+    fixed, _ = keyframe_cloud(depth, rgb, K, SCALE, np.eye(4), inverse_offset=beta)
+    assert abs(float(np.median(short[:, 2])) - (z - 0.035)) < 0.002
+    assert abs(float(np.median(fixed[:, 2])) - z) < 0.002
+    # along the ray: the image position of each point stays where it was
+    u_short = short[:, 0] / short[:, 2]
+    assert np.allclose(np.sort(fixed[:, 0] / fixed[:, 2])[[0, -1]], np.sort(u_short)[[0, -1]], atol=0.01)
+
+
 def test_ply_round_trip_through_open3d(tmp_path):
     o3d = pytest.importorskip("open3d")
     depth, rgb = scene_frame()
