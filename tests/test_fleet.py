@@ -273,10 +273,7 @@ def run_fleet(out: Path, start_poses: list[list[float]], *, rerun: str = "off", 
               mapper_sets: tuple[str, ...] = (), replay_sets: tuple[str, ...] = ()) -> dict[str, str]:
     """Router, mapper for r1+r2, and per robot a tracker and a replay: six processes over Zenoh
     (`sources`: one per robot, else `source` for both)."""
-    out.mkdir(parents=True)
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    bus = ["--mode", "client", "--connect", endpoint, "--no-multicast"]
-    procs = {"router": _start(out / "router.log", "router", "--listen", endpoint)}
+    procs, bus = _router(out)
     try:
         poses = "[" + ", ".join("[" + ", ".join(repr(x) for x in p) + "]" for p in start_poses) + "]"
         procs["mapper"] = _start(out / "mapper.log", "map", *bus, "--out", str(out), "--rerun", rerun,

@@ -71,7 +71,7 @@ def estimate_depth_bias(rotations: np.ndarray, translations: np.ndarray, kf_inde
     z = xyz_cam[:, 2]
     ok = (z > 0) & (z_map > 0)
     kf_index, point_id, xyz_cam, z, z_map = kf_index[ok], point_id[ok], xyz_cam[ok], z[ok], z_map[ok]
-    ids, inverse, counts = np.unique(point_id, return_inverse=True, return_counts=True)
+    _, inverse, counts = np.unique(point_id, return_inverse=True, return_counts=True)
     keep = counts[inverse] >= 2
     if int((counts >= 2).sum()) < MIN_POINTS:
         return None
