@@ -3,16 +3,20 @@ logs/STAGE.log, watched until all end; the first failure stops the others, a kil
 
 from __future__ import annotations
 
+import contextlib
 import os
+import socket
 import shutil
 import signal
 import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from octolog.kit.bus import Bus, BusConfig, wait_interruptibly
 from octolog.kit.errors import StageExited, StageKilled
 from octolog.shell import errorfile
 
@@ -162,3 +166,43 @@ class StageProcesses:
             except subprocess.TimeoutExpired:
                 os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait()
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@contextlib.contextmanager
+def hosted_router(given: str | None) -> Iterator[str]:
+    """The endpoint the stages meet at: `given`, or a Zenoh router this process hosts on a free
+    loopback port (on a thread, until the session ends)."""
+    if given is not None:
+        yield given
+        return
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    stop, ready = threading.Event(), threading.Event()
+    error: list[BaseException] = []
+
+    def host() -> None:
+        try:
+            with Bus(BusConfig(mode="router", listen=(endpoint,), multicast_scouting=False), "router"):
+                ready.set()
+                stop.wait()
+        except BaseException as exc:  # reported by the main thread
+            error.append(exc)
+            ready.set()
+
+    thread = threading.Thread(target=host, daemon=True)
+    thread.start()
+    wait_interruptibly(ready)
+    if error:
+        raise error[0]
+    try:
+        yield endpoint
+    finally:
+        stop.set()
+        # let the router's session close before the interpreter exits: a daemon thread still inside
+        # Zenoh at exit aborts the process
+        thread.join(timeout=10)
