@@ -71,11 +71,12 @@ def open_case(source: str, sets: list[str]):
 
 
 def step_errors(stamps_ns: list[int], poses: list, groundtruth, map_moved_m: list[float] | None = None, *,
-                bad_m: float = 0.05) -> dict:
+                relocalised: list[bool] | None = None, bad_m: float = 0.05) -> dict:
     """Consecutive poses (published ones) whose relative motion is more than `bad_m` off the ground
     truth's (`groundtruth`: a kit.metrics Trajectory), and the worst. `map_moved_m` (per pose, the
     tracker's TrackingStatus.map_moved_m): a step the back end's announced correction explains
-    (what is left of its error without the correction is within `bad_m`) counts as flagged."""
+    (what is left of its error without the correction is within `bad_m`) counts as flagged, and so
+    does a step into a pose announced as found again (TrackingStatus.relocalised)."""
     import numpy as np
 
     from octolog.kit import metrics
@@ -90,8 +91,9 @@ def step_errors(stamps_ns: list[int], poses: list, groundtruth, map_moved_m: lis
     if r.n_pairs != keep.size - 1:
         raise SystemExit(f"bench: {keep.size} poses near the truth but {r.n_pairs + 1} associated")
     moved = moved_all[keep][1:]
+    found_again = np.asarray(relocalised if relocalised is not None else np.zeros(len(stamps)), dtype=bool)[keep][1:]
     bad = r.trans_errors > bad_m
-    flagged = bad & (r.trans_errors - moved <= bad_m)
+    flagged = bad & ((r.trans_errors - moved <= bad_m) | found_again)
     worst = r.trans_errors[bad & ~flagged].max() if (bad & ~flagged).any() else float(np.max(r.trans_errors - moved))
     return {"published": len(stamps_ns), "bad_steps": int((bad & ~flagged).sum()), "flagged_steps": int(flagged.sum()),
             "worst_step_m": float(worst)}
@@ -131,13 +133,14 @@ def published_steps(session: Path, groundtruth: Path, *, bad_m: float = 0.05) ->
     """What the tracker published frame by frame (tracker/pose: the poses the mapper and a user get,
     before any later correction), against the ground truth: consecutive published poses whose
     relative motion is more than `bad_m` off the true one (RPE, delta 1) and not explained by an
-    announced map correction, those that are, the worst, and the counts of published and LOST frames."""
+    announced map correction or a relocalisation, those that are, the worst, and the counts of
+    published and LOST frames."""
     from octolog.kit import metrics
     from octolog.kit.mcaplog import read_wire
     from octolog.schemas import codec, posemsgs
     from octolog.schemas.topics import POSE, TRACKING_STATUS
 
-    stamps, poses, lost, moved = [], [], 0, {}
+    stamps, poses, lost, moved, found_again = [], [], 0, {}, {}
     for m in read_wire(session, [POSE.name, TRACKING_STATUS.name]):
         msg = codec.decode(m.data, POSE.msgtype if m.topic == POSE.name else TRACKING_STATUS.msgtype)
         stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
@@ -147,8 +150,9 @@ def published_steps(session: Path, groundtruth: Path, *, bad_m: float = 0.05) ->
         else:
             lost += msg.state == msg.LOST
             moved[stamp] = msg.map_moved_m
+            found_again[stamp] = msg.relocalised
     return {**step_errors(stamps, poses, metrics.read_tum(groundtruth), [moved.get(s, 0.0) for s in stamps],
-                          bad_m=bad_m), "lost": lost}
+                          relocalised=[found_again.get(s, False) for s in stamps], bad_m=bad_m), "lost": lost}
 
 
 if __name__ == "__main__":

@@ -268,7 +268,7 @@ def steps_rows(runs: list[dict]) -> list[tuple[str, str]]:
     return [("published / LOST frames", f"{statistics.median(x['published'] for x in s):.0f} / "
              f"{statistics.median(x['lost'] for x in s):.0f}"),
             ("published steps > 5 cm off, unflagged", f"{statistics.median(x['bad_steps'] for x in s):.0f}"),
-            ("... at an announced map correction", f"{statistics.median(x['flagged_steps'] for x in s):.0f}"),
+            ("... at an announced map correction or relocalisation", f"{statistics.median(x['flagged_steps'] for x in s):.0f}"),
             ("worst unflagged step error, cm", f"{statistics.median(x['worst_step_m'] for x in s) * 100:.1f}")]
 
 

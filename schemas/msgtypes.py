@@ -140,6 +140,7 @@ class TrackingStatusMsg(Protocol):
     n_inliers: int
     processing_ms: float
     map_moved_m: float
+    relocalised: bool
 
 
 class MapUpdateMsg(Protocol):

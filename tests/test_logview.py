@@ -53,7 +53,7 @@ def test_bookkeeping_messages_become_diagnostics():
     for state, level in ((Status.INIT, 1), (Status.OK, 0), (Status.LOST, 2), (Status.SKIPPED, 1)):
         msg = Status(header=codec.header(12, "cam"), seq=2**64 - 1, state=state, is_keyframe=True,
                      keyframe_id=-1, n_matches=3, n_inliers=2, processing_ms=0.1,
-                     map_moved_m=0.0)
+                     map_moved_m=0.0, relocalised=state == Status.OK)
         (part,) = _round_trip(topics.TRACKING_STATUS, msg)
         diag = codec.decode(part[2], logview.DIAGNOSTICS)
         assert diag.status[0].level == level and diag.status[0].message == topics.TRACKING_STATUS.msgtype
@@ -65,19 +65,20 @@ def test_bookkeeping_messages_become_diagnostics():
     _round_trip(topics.KEYFRAME_POSES, posemsgs.keyframe_poses_msg({}))
 
 
-def test_a_status_logged_before_map_moved_m_existed_reads_as_no_correction():
+def test_a_status_logged_before_its_later_fields_existed_reads_as_no_correction():
     """A field added to a wire type later (logview.ADDED_FIELDS) is absent from older logs: such a
     message reads with the field's stated default, not as a broken log."""
     Status = codec.msgtype(topics.TRACKING_STATUS.msgtype)
     msg = Status(header=codec.header(12, "cam"), seq=4, state=Status.OK, is_keyframe=False, keyframe_id=-1,
-                 n_matches=3, n_inliers=2, processing_ms=0.1, map_moved_m=0.25)
+                 n_matches=3, n_inliers=2, processing_ms=0.1, map_moved_m=0.25, relocalised=True)
     (part,) = logview.split(topics.TRACKING_STATUS.name, topics.TRACKING_STATUS.msgtype, codec.encode(
         msg, topics.TRACKING_STATUS.msgtype))
     diag = codec.decode(part[2], logview.DIAGNOSTICS)
-    diag.status[0].values = [kv for kv in diag.status[0].values if kv.key != "map_moved_m"]  # an older log
+    diag.status[0].values = [kv for kv in diag.status[0].values
+                             if kv.key not in ("map_moved_m", "relocalised")]  # an older log
     old = codec.decode(logview.join(topics.TRACKING_STATUS.msgtype, codec.encode(diag, logview.DIAGNOSTICS), {}),
                        topics.TRACKING_STATUS.msgtype)
-    assert (old.seq, old.n_inliers, old.map_moved_m) == (4, 2, 0.0)
+    assert (old.seq, old.n_inliers, old.map_moved_m, old.relocalised) == (4, 2, 0.0, False)
 
 
 @given(st.floats(allow_nan=True, allow_infinity=True), st.integers(0, 2**64 - 1), st.integers(0, 2**32 - 1))

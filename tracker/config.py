@@ -61,6 +61,8 @@ class TrackingParams:
     # sigma of an inverse-depth residual (1/m) in the pose fit: weighs depth against pixels
     inv_depth_sigma: float = 0.03
     min_inliers: int = 20  # fewer inliers: the frame is LOST
+    # after LOST, a pose found again with fewer inliers stays LOST (ORB-SLAM's relocalisation threshold)
+    relocalise_min_inliers: int = 50
     # a pose that leaves the constant-velocity prediction by more than these (per frame at 30 fps,
     # growing with the square of a longer interval) on fewer than `jump_support` inliers is a jump
     # the motion cannot explain, from too little evidence: the frame is LOST, not published (on fast

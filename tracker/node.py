@@ -119,7 +119,7 @@ class _Outputs:
                 {"seq": frame.seq, "keyframe_id": res.keyframe_id, "stamp_ns": frame.stamp_ns})))
             result.backend_deferred += 1
         self.status.put(_status(frame.seq, frame.stamp_ns, res.state, res.is_keyframe, res.keyframe_id,
-                                res.n_matches, res.n_inliers, ms, res.map_moved_m))
+                                res.n_matches, res.n_inliers, ms, res.map_moved_m, res.relocalised))
 
     def finish(self, odometry: Tracker, result: TrackerRunSummary) -> None:
         # the back end's last word: every keyframe at its final pose, so the map matches the
@@ -294,10 +294,11 @@ class KeyframeOut:
 
 
 def _status(seq: int, stamp: int, state: TrackingState, is_kf: bool, kf_id: int, n_matches: int, n_inliers: int,
-            ms: float, map_moved_m: float = 0.0):
+            ms: float, map_moved_m: float = 0.0, relocalised: bool = False):
     return codec.msgtype(TRACKING_STATUS.msgtype)(
         header=codec.header(stamp, "world"), seq=seq, state=status_code(state), is_keyframe=is_kf,
-        keyframe_id=kf_id, n_matches=n_matches, n_inliers=n_inliers, processing_ms=ms, map_moved_m=map_moved_m)
+        keyframe_id=kf_id, n_matches=n_matches, n_inliers=n_inliers, processing_ms=ms, map_moved_m=map_moved_m,
+        relocalised=relocalised)
 
 
 # keypoint colours by KeypointState: unmatched grey, rejected red, tracked green, new map point blue

@@ -40,7 +40,7 @@ from octolog.tracker.features import (
 from octolog.tracker.interface import KeypointState, TrackingState, TrackResult
 from octolog.tracker.keyframe_map import METRES_PER_RADIAN, Keyframe, MapPoints
 from octolog.tracker.local_mapping import LocalMapping, TrackedFrame
-from octolog.tracker.places import PLACE_MAX_HAMMING, PLACE_RATIO, BowIndex, recognise
+from octolog.tracker.places import PLACE_MAX_HAMMING, PLACE_RATIO, BowIndex, relocalisation_guess
 from octolog.tracker.pose import optimize_pose, so3_exp, so3_log, unroll_rolling_shutter, unsupported_jump
 from octolog.tracker.vocab import Vocabulary
 from octolog.tracker.worker import Worker
@@ -151,23 +151,7 @@ class RgbdSlam(LocalMapping, BackendHandoff):
             return self._try_initialise(frame, feats)
 
         predicted = self._predict(frame.stamp_ns)
-        relocalised = False
-        try:
-            tracked = self._track_against_map(feats, predicted, frame.stamp_ns)
-            if tracked is None and self.params.relocalise:
-                guess = self._relocalisation_guess(feats)
-                if guess is not None:
-                    tracked = self._track_against_map(feats, guess, frame.stamp_ns)
-                    relocalised = tracked is not None
-        except (cv2.error, np.linalg.LinAlgError):
-            # Degenerate geometry inside OpenCV or a singular system: this frame is untrackable,
-            # the stream is not broken.
-            tracked = None
-        if tracked is not None and not relocalised and self._velocity is not None and self._last_ok and \
-                unsupported_jump(self.params.tracking, predicted, invert(tracked.camera_from_world), tracked.n_inliers,
-                                 frame.stamp_ns - self._last_stamp):
-            self.rejected_jumps += 1
-            tracked = None
+        tracked, relocalised = self._locate(feats, predicted, frame.stamp_ns)
         if tracked is None:
             self._remember(frame.stamp_ns, predicted, ok=False)
             return TrackResult(frame.seq, frame.stamp_ns, predicted.copy(), TrackingState.LOST, False, -1, 0, 0)
@@ -193,12 +177,43 @@ class RgbdSlam(LocalMapping, BackendHandoff):
                 self._submit_backend()
         ref = self._keyframes[-1]
         self._frames.append((frame.stamp_ns, ref.id, invert(ref.world_from_camera) @ pose))
-        self._remember(frame.stamp_ns, pose, ok=True)
+        self._remember(frame.stamp_ns, pose, ok=True, continuous=not relocalised)
         return TrackResult(
             frame.seq, frame.stamp_ns, pose.copy(), TrackingState.OK, kf_id >= 0, kf_id, tracked.n_matches,
             tracked.n_inliers,
             corrected, loop, relocalised, tracked.residual, deferred, map_moved_m,
         )
+
+    def _locate(self, feats: FrameFeatures, predicted: np.ndarray, stamp_ns: int) -> tuple[TrackedFrame | None, bool]:
+        """The frame against the map from the prediction, else by place recognition; None when it
+        cannot be placed with the evidence its case asks for; and whether it was found again."""
+        by_place = False
+        try:
+            tracked = self._track_against_map(feats, predicted, stamp_ns)
+            if tracked is None and self.params.relocalise:
+                assert self._undistort is not None
+                guess = relocalisation_guess(feats, self._keyframes, self._bow, self.params, self._undistort.K)
+                if guess is not None:
+                    tracked = self._track_against_map(feats, guess, stamp_ns)
+                    by_place = tracked is not None
+        except (cv2.error, np.linalg.LinAlgError):
+            # Degenerate geometry inside OpenCV or a singular system: this frame is untrackable,
+            # the stream is not broken.
+            tracked = None
+        # a few LOST frames after a tracked one leave the motion model's prediction meaningful: judged as a step
+        short_gap = not self._last_ok and self._velocity is not None and \
+            stamp_ns - self._last_stamp <= MAX_PREDICTION_STEPS * self._velocity[2]
+        if tracked is not None and not by_place and self._velocity is not None and (self._last_ok or short_gap) and \
+                unsupported_jump(self.params.tracking, predicted, invert(tracked.camera_from_world), tracked.n_inliers,
+                                 stamp_ns - self._last_stamp):
+            self.rejected_jumps += 1
+            tracked = None
+        # found again, after a longer LOST stretch or by place recognition (the step is unknown): only on
+        # the evidence ORB-SLAM asks of a relocalisation, and announced (TrackingStatus.relocalised)
+        relocalised = tracked is not None and (by_place or not (self._last_ok or short_gap))
+        if tracked is not None and relocalised and tracked.n_inliers < self.params.tracking.relocalise_min_inliers:
+            tracked = None
+        return tracked, relocalised
 
     def trajectory(self) -> tuple[list[int], list[np.ndarray]]:
         """Stamps and world_from_camera of every tracked frame, re-expressed through the current pose
@@ -267,7 +282,9 @@ class RgbdSlam(LocalMapping, BackendHandoff):
     # -- motion model ---------------------------------------------------------------------------
 
     def _predict(self, stamp_ns: int) -> np.ndarray:
-        """Constant-velocity prediction of world_from_camera, scaled to the frame interval."""
+        """Constant-velocity prediction of world_from_camera from the last tracked frame, scaled to
+        the interval since it (at most MAX_PREDICTION_STEPS frames: a LOST stretch keeps that pose
+        instead of spinning on with the velocity it had)."""
         assert self._last_pose is not None
         if self._velocity is None:
             return self._last_pose.copy()
@@ -280,17 +297,18 @@ class RgbdSlam(LocalMapping, BackendHandoff):
         step[:3, 3] = trans * s
         return self._last_pose @ step
 
-    def _remember(self, stamp_ns: int, pose: np.ndarray, *, ok: bool) -> None:
-        if ok and self._last_ok and self._last_pose is not None:
+    def _remember(self, stamp_ns: int, pose: np.ndarray, *, ok: bool, continuous: bool = True) -> None:
+        """Keep a tracked frame's pose (and the velocity from the last tracked one, over any short
+        LOST gap); a LOST frame keeps the last tracked one. Found again: the velocity is unknown."""
+        if ok and continuous and self._last_pose is not None:
             step = invert(self._last_pose) @ pose
             self._velocity = (so3_log(step[:3, :3]), step[:3, 3].copy(), stamp_ns - self._last_stamp)
         elif ok:
-            # Recovered from LOST: the previous pose was a guess, so the velocity is unknown.
             self._velocity = None
         if ok:
             self._last_tracked_pose = pose.copy()
-        self._last_pose = pose.copy()
-        self._last_stamp = stamp_ns
+            self._last_pose = pose.copy()
+            self._last_stamp = stamp_ns
         self._last_ok = ok
 
     # -- initialisation -------------------------------------------------------------------------
@@ -480,21 +498,3 @@ class RgbdSlam(LocalMapping, BackendHandoff):
             if best is not None and self._confident(int(best[1].sum()), best[2].size):
                 break
         return best, attempt
-
-    # -- relocalisation -------------------------------------------------------------------------
-
-    def _relocalisation_guess(self, feats: FrameFeatures) -> np.ndarray | None:
-        """world_from_camera of a lost frame from a place match against every keyframe, or None."""
-        if int(feats.has_depth.sum()) < self.params.tracking.min_inliers or not self._keyframes:
-            return None
-        cands = np.arange(len(self._keyframes))
-        if self._bow is not None:
-            cands, _ = self._bow.query(feats.desc, top=self.params.bow_candidates)
-        min_inliers = self.params.tracking.min_inliers
-        match = recognise(feats, cands, [self._keyframes[c].feats for c in cands], min_votes=min_inliers,
-                          min_inliers=min_inliers, refine=self._refine_args())
-        return None if match is None else self._keyframes[match.keyframe].world_from_camera @ match.T_kf_query
-
-    def _refine_args(self) -> tuple[np.ndarray, float, float]:
-        assert self._undistort is not None
-        return self._undistort.K, self.params.features.scale_factor, self.params.tracking.inv_depth_sigma

@@ -10,7 +10,9 @@ stable orderings, a fixed RNG seed, no dependence on timing.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -153,6 +155,19 @@ def recognise(query: FrameFeatures, candidates: np.ndarray, cand_feats: list[Fra
         if match is not None:
             return match
     return None
+
+
+def relocalisation_guess(feats: FrameFeatures, keyframes: Sequence[Any], bow: BowIndex | None, params: Any,
+                         K: np.ndarray) -> np.ndarray | None:
+    """world_from_camera of a lost frame from a place match against the keyframes (the vocabulary's
+    `params.bow_candidates` best with one, else every keyframe), or None. `params`: OdometryParams."""
+    t = params.tracking
+    if int(feats.has_depth.sum()) < t.min_inliers or not keyframes:
+        return None
+    cands = np.arange(len(keyframes)) if bow is None else bow.query(feats.desc, top=params.bow_candidates)[0]
+    match = recognise(feats, cands, [keyframes[c].feats for c in cands], min_votes=t.min_inliers,
+                      min_inliers=t.min_inliers, refine=(K, params.features.scale_factor, t.inv_depth_sigma))
+    return None if match is None else keyframes[match.keyframe].world_from_camera @ match.T_kf_query
 
 
 class BowIndex:
