@@ -20,7 +20,7 @@ from octolog.replay.synthetic import SyntheticScene
 from octolog.replay.synthetic_trajectory import LOOP_S, camera_trajectory
 from octolog.tracker.backend import BackendResult, apply_result
 from octolog.tracker.bundle import BundleProblem, bundle_adjust
-from octolog.tracker.config import KeyframeParams, TrackerConfig
+from octolog.tracker.config import KeyframeParams, TrackerConfig, TrackingParams
 from octolog.tracker.interface import TrackingState
 from octolog.tracker.keyframe_map import Keyframe, MapPoints
 from octolog.tracker.odometry import RgbdSlam
@@ -413,3 +413,27 @@ def test_a_room_revisited_adds_no_keyframes() -> None:
     # the first lap maps the room, the second fills in what its drift left; the third adds nothing
     assert after_lap[2] - after_lap[1] <= 2, after_lap
     assert after_lap[1] - after_lap[0] < after_lap[0] // 2, after_lap
+
+
+@pytest.mark.parametrize("min_inliers", [50, 100_000], ids=["default", "unreachable"])
+def test_a_pose_found_again_after_a_lost_stretch_is_announced(loop_frames, min_inliers) -> None:
+    """The lens covered for a second: its frames are LOST and report the last tracked pose carried at
+    most MAX_PREDICTION_STEPS frames on (not a turn spinning on); the first frame seen again comes back
+    with `relocalised` set, but only on `tracking.relocalise_min_inliers` inliers."""
+    from octolog.tracker.odometry import MAX_PREDICTION_STEPS
+
+    odo = _odometry(loop_closing=False, tracking=TrackingParams(relocalise_min_inliers=min_inliers))
+    for f in loop_frames[:40]:
+        assert odo.track(f).state != TrackingState.LOST
+    covered = [dataclasses.replace(f, rgb=np.zeros_like(f.rgb), depth=np.zeros_like(f.depth))
+               for f in loop_frames[40:50]]
+    lost = [odo.track(f) for f in covered]
+    assert all(r.state == TrackingState.LOST for r in lost)
+    held = int(MAX_PREDICTION_STEPS)  # the 4th LOST frame is 5 intervals on: the prediction stops
+    assert all(np.array_equal(r.world_from_camera, lost[held].world_from_camera) for r in lost[held:])
+    back = [odo.track(f) for f in loop_frames[50:55]]
+    if min_inliers > 1000:
+        assert all(r.state == TrackingState.LOST for r in back)
+        return
+    assert back[0].state == TrackingState.OK and back[0].relocalised and back[0].n_inliers >= min_inliers
+    assert all(r.state == TrackingState.OK and not r.relocalised for r in back[1:])
