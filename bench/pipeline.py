@@ -117,7 +117,7 @@ def run_pipeline(source: str, sets: list[str], out: Path, *, live: bool = False)
     t0_ns = time.time_ns()
     t0 = time.monotonic()
     paced = ["replay.rate=1", "tracker.live=true"] if live else []
-    argv = [sys.executable, "-m", "octolog", "run", "--source", source, "--out", str(out), "--quiet"]
+    argv = [sys.executable, "-m", "octolog", "run", "--source", source, "--out", str(out), "--quiet", "--overwrite"]
     for s in [*sets, *paced]:
         argv += ["--set", s]
     proc = subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.DEVNULL)
@@ -272,9 +272,11 @@ def steps_rows(runs: list[dict]) -> list[tuple[str, str]]:
             ("worst unflagged step error, cm", f"{statistics.median(x['worst_step_m'] for x in s) * 100:.1f}")]
 
 
-def run_case(name: str, repeat: int, n_live: int) -> None:
+def run_case(name: str, repeat: int, n_live: int, keep: str = "") -> None:
     source, sets = case_source(name)
     with tempfile.TemporaryDirectory() as tmp:
+        if keep:  # the session folders stay, to look into (octolog info, octolog eval, Rerun)
+            tmp = str(Path(keep) / name)
         runs = [run_pipeline(source, sets, Path(tmp) / f"run{i}") for i in range(repeat)]
         live = [run_pipeline(source, sets, Path(tmp) / f"live{i}", live=True) for i in range(n_live)]
     print(f"\n## {name}: {CASES[name].about}  (load average {os.getloadavg()[0]:.1f} after)")
@@ -301,13 +303,14 @@ def main() -> None:
     ap.add_argument("--cases", default="first300,first300x3,turns", help=f"of {', '.join(CASES)}")
     ap.add_argument("--repeat", type=int, default=3, help="lockstep runs per case (medians over runs; 0: live only)")
     ap.add_argument("--live", type=int, default=1, help="runs paced at the camera's rate with the live tracker")
+    ap.add_argument("--keep", default="", help="keep each run's session folder under KEEP/CASE/ (default: none kept)")
     args = ap.parse_args()
     print(f"octolog pipeline benchmark: {platform.machine()}, {os.cpu_count()} cores, Python "
           f"{platform.python_version()}, load average {os.getloadavg()[0]:.1f} before; pipeline = `octolog run` "
           f"with its default outputs (session log, Rerun recordings), {args.repeat} lockstep + {args.live} live "
           f"run(s) per case; in-process = the same cores in one process, no transport, no logging")
     for name in args.cases.split(","):
-        run_case(name, args.repeat, args.live)
+        run_case(name, args.repeat, args.live, args.keep)
 
 
 if __name__ == "__main__":
