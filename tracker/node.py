@@ -139,6 +139,8 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
     out = _Outputs(bus, cfg)
     # frames come raw or compressed, whichever the source publishes; decoding is the same call
     warm_up()
+    if (worker := getattr(odometry, "worker", None)) is not None:
+        worker.ready()  # its imports done before the stream: not competing for the cores with the first frames
     tree = StaticTree()  # the camera's own frames, from whoever knows the camera (recorder, replay)
     bus.listen(TF_STATIC, tree.add)
     bus.start([RGBD, RGBD_COMPRESSED, RGBD_END, CAMERA_PROPERTIES], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
