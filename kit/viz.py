@@ -126,6 +126,7 @@ class Viz:
         self.rec.log("/", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         if stage in PIPELINE_STAGES:
             self.rec.send_blueprint(pipeline_blueprint())  # the same layout whichever stage's file opens first
+        _warm_up(rr)
 
     @property
     def enabled(self) -> bool:
@@ -247,3 +248,22 @@ class Viz:
     def text(self, path: str, text: str) -> None:
         if self.rec is not None:
             self.rec.log(path, self._rr.TextLog(text))
+
+
+def _warm_up(rr: Any) -> None:
+    """One of each archetype the stages log, built and dropped: Rerun sets up a type's Arrow
+    conversion on its first use (120 ms for these here, holding the GIL), which then happens before
+    the stream, not on a live tracker's first frames."""
+    z3, c3 = np.zeros((2, 3), np.float32), np.zeros((2, 3), np.uint8)
+    rr.Transform3D(translation=[0.0, 0.0, 0.0], quaternion=[0.0, 0.0, 0.0, 1.0])
+    rr.Transform3D(translation=[0.0, 0.0, 0.0], mat3x3=np.eye(3))
+    rr.Pinhole(image_from_camera=np.eye(3), resolution=[8, 8], camera_xyz=rr.ViewCoordinates.RDF)
+    rr.EncodedImage(contents=np.zeros(2, np.uint8), media_type="image/jpeg")
+    rr.EncodedDepthImage(blob=np.zeros(2, np.uint8), media_type="image/png", meter=1000.0)
+    rr.Image(np.zeros((2, 2, 3), np.uint8))
+    rr.Points2D(z3[:, :2], colors=c3, radii=2.0)
+    rr.Points3D(z3, colors=c3, radii=0.005)
+    rr.Boxes3D(centers=z3, half_sizes=z3, colors=c3, fill_mode="solid")
+    rr.LineStrips3D([z3], colors=[0, 0, 0])
+    rr.Scalars(0.0)
+    rr.TextLog("")

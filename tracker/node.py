@@ -166,7 +166,8 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
                 continue
             result.frames += 1
             if cfg.live and intake.behind(r):
-                r, prep = _skip_behind(intake, r, prep, out, result, far=intake.behind(r, FAR_BEHIND))
+                far = odometry.n_keyframes > YOUNG_MAP_KEYFRAMES and intake.behind(r, FAR_BEHIND)
+                r, prep = _skip_behind(intake, r, prep, out, result, far=far)
             _track_frame(odometry, cfg, functools.partial(intake.prepared, r, prep), out, tree, result, shown)
     out.finish(odometry, result)
     estimate = getattr(odometry, "depth_bias", None)  # the native tracker's; ORB-SLAM3 has none
@@ -177,8 +178,11 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
     return result
 
 
-# live: more than this many times `tracker.live_lag_ms` behind, the newest frame wins at once
+# live: more than this many times `tracker.live_lag_ms` behind, the newest frame wins at once ...
 FAR_BEHIND = 4.0
+# ... once the map has more keyframes than this: a young map has nowhere to relocalise into, so a gap
+# of several frames in a fast first turn lost it for good (ORB-SLAM resets a map this young instead)
+YOUNG_MAP_KEYFRAMES = 5
 
 
 def _skip_behind(intake: Intake, r: Any, prep: Any, out: _Outputs, result: TrackerRunSummary, *,
