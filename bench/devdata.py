@@ -22,6 +22,8 @@ CACHE = Path(os.environ.get("OCTOLOG_BENCH_CACHE", "/tmp/octolog-bench"))
 TURNS_SPEC = "synthetic:600:motion=turns:exposure=8:noise=kinect"
 # the second fast case a tuned value is checked on: other textures and noise, a longer exposure
 TURNS2_SPEC = "synthetic:600:motion=turns:exposure=12:noise=kinect:seed=1"
+# beyond the targets: 30 ms of blur, where ORB features fail on the fastest frames
+HARSH_SPEC = "synthetic:600:motion=turns:exposure=30:noise=kinect:seed=2"
 
 
 @dataclass(frozen=True)
@@ -37,6 +39,7 @@ CASES = {
     "turns": Case("turns", f"{TURNS_SPEC}: the synthetic room, head turns at 150-210 deg/s, 8 ms blur, Kinect depth",
                   True),
     "turns2": Case("turns2", f"{TURNS2_SPEC}: the same turns in another room (textures, noise), 12 ms blur", True),
+    "harsh": Case("harsh", f"{HARSH_SPEC}: the turns in a third room with 30 ms blur (beyond the targets)", True),
 }
 
 
@@ -54,8 +57,8 @@ def case_source(name: str) -> tuple[str, list[str]]:
         return f"tum:{first300()}", []
     if name == "first300x3":
         return f"tum:{first300()}", ["replay.every=3", "replay.retime=true"]
-    if name in ("turns", "turns2"):
-        spec = TURNS_SPEC if name == "turns" else TURNS2_SPEC
+    if name in ("turns", "turns2", "harsh"):
+        spec = {"turns": TURNS_SPEC, "turns2": TURNS2_SPEC, "harsh": HARSH_SPEC}[name]
         folder = render_tum(spec, CACHE / f"synthetic-{name}-600")
         return f"tum:{folder}", [f"replay.camera={folder / 'calibration.toml'}"]
     sys.exit(f"bench: unknown case {name!r}: want one of {', '.join(CASES)}")
