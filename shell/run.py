@@ -30,10 +30,10 @@ from octolog.mapper.config import MapperConfig
 from octolog.replay import gravity
 from octolog.replay.config import ReplayConfig
 from octolog.replay.sources import Source, backend_deferred, open_source
-from octolog.schemas.wirecompression import SOURCE
 from octolog.schemas import codec
 from octolog.schemas import topics as T
 from octolog.schemas.topics import RGBD, RGBD_COMPRESSED, TRACKING_STATUS
+from octolog.schemas.wirecompression import SOURCE
 from octolog.shell import errorfile
 from octolog.shell.children import StageProcesses, hosted_router
 from octolog.shell.info import depth_bias_line

@@ -44,9 +44,8 @@ class BackendHandoff:
             res = res.result()
         delta, moved = apply_result(res, self._keyframes, self._map, self._kf_pos, self._kf_axis,
                                     self.params.bundle_adjustment.max_point_move_m)
-        for name in ("_last_pose", "_last_tracked_pose"):
-            if getattr(self, name) is not None:
-                setattr(self, name, delta @ getattr(self, name))
+        if self._last_pose is not None:
+            self._last_pose = delta @ self._last_pose
         self._loop_candidate = (res.kf_id, res.candidate) if res.candidate is not None else (-1, None)
         if res.loop is None:
             return {}, None, delta @ pose

@@ -109,10 +109,9 @@ class RgbdSlam(LocalMapping, BackendHandoff):
         self._keyframes: list[Keyframe] = []
         self._kf_pos = np.zeros((0, 3))
         self._kf_axis = np.zeros((0, 3))
-        self._last_pose: np.ndarray | None = None  # world_from_camera of the previous frame
+        self._last_pose: np.ndarray | None = None  # world_from_camera of the last tracked frame
         self._last_stamp = 0
         self._last_ok = False
-        self._last_tracked_pose: np.ndarray | None = None
         self._last_inlier_ids = np.zeros(0, np.int64)  # map points matched by the previous frame
         self._velocity: tuple[np.ndarray, np.ndarray, int] | None = None  # rotvec, trans, dt_ns
 
@@ -153,7 +152,7 @@ class RgbdSlam(LocalMapping, BackendHandoff):
         predicted = self._predict(frame.stamp_ns)
         tracked, relocalised = self._locate(feats, predicted, frame.stamp_ns)
         if tracked is None:
-            self._remember(frame.stamp_ns, predicted, ok=False)
+            self._last_ok = False  # the prediction keeps coming from the last tracked frame
             return TrackResult(frame.seq, frame.stamp_ns, predicted.copy(), TrackingState.LOST, False, -1, 0, 0)
         feats = tracked.feats
         pose = invert(tracked.camera_from_world)
@@ -177,7 +176,7 @@ class RgbdSlam(LocalMapping, BackendHandoff):
                 self._submit_backend()
         ref = self._keyframes[-1]
         self._frames.append((frame.stamp_ns, ref.id, invert(ref.world_from_camera) @ pose))
-        self._remember(frame.stamp_ns, pose, ok=True, continuous=not relocalised)
+        self._remember(frame.stamp_ns, pose, continuous=not relocalised)
         return TrackResult(
             frame.seq, frame.stamp_ns, pose.copy(), TrackingState.OK, kf_id >= 0, kf_id, tracked.n_matches,
             tracked.n_inliers,
@@ -200,17 +199,18 @@ class RgbdSlam(LocalMapping, BackendHandoff):
             # Degenerate geometry inside OpenCV or a singular system: this frame is untrackable,
             # the stream is not broken.
             tracked = None
-        # a few LOST frames after a tracked one leave the motion model's prediction meaningful: judged as a step
-        short_gap = not self._last_ok and self._velocity is not None and \
-            stamp_ns - self._last_stamp <= MAX_PREDICTION_STEPS * self._velocity[2]
-        if tracked is not None and not by_place and self._velocity is not None and (self._last_ok or short_gap) and \
+        # after a tracked frame, or a few LOST frames after one, the motion model's prediction is
+        # meaningful: the pose is judged as a step from it
+        continuous = self._last_ok or (self._velocity is not None and
+                                       stamp_ns - self._last_stamp <= MAX_PREDICTION_STEPS * self._velocity[2])
+        if tracked is not None and not by_place and self._velocity is not None and continuous and \
                 unsupported_jump(self.params.tracking, predicted, invert(tracked.camera_from_world), tracked.n_inliers,
                                  stamp_ns - self._last_stamp):
             self.rejected_jumps += 1
             tracked = None
         # found again, after a longer LOST stretch or by place recognition (the step is unknown): only on
         # the evidence ORB-SLAM asks of a relocalisation, and announced (TrackingStatus.relocalised)
-        relocalised = tracked is not None and (by_place or not (self._last_ok or short_gap))
+        relocalised = tracked is not None and (by_place or not continuous)
         if tracked is not None and relocalised and tracked.n_inliers < self.params.tracking.relocalise_min_inliers:
             tracked = None
         return tracked, relocalised
@@ -297,19 +297,17 @@ class RgbdSlam(LocalMapping, BackendHandoff):
         step[:3, 3] = trans * s
         return self._last_pose @ step
 
-    def _remember(self, stamp_ns: int, pose: np.ndarray, *, ok: bool, continuous: bool = True) -> None:
-        """Keep a tracked frame's pose (and the velocity from the last tracked one, over any short
-        LOST gap); a LOST frame keeps the last tracked one. Found again: the velocity is unknown."""
-        if ok and continuous and self._last_pose is not None:
+    def _remember(self, stamp_ns: int, pose: np.ndarray, *, continuous: bool = True) -> None:
+        """Keep a tracked frame's pose, and the velocity from the last tracked one (over any short
+        LOST gap); found again, the velocity is unknown. A LOST frame changes neither."""
+        if continuous and self._last_pose is not None:
             step = invert(self._last_pose) @ pose
             self._velocity = (so3_log(step[:3, :3]), step[:3, 3].copy(), stamp_ns - self._last_stamp)
-        elif ok:
+        else:
             self._velocity = None
-        if ok:
-            self._last_tracked_pose = pose.copy()
-            self._last_pose = pose.copy()
-            self._last_stamp = stamp_ns
-        self._last_ok = ok
+        self._last_pose = pose.copy()
+        self._last_stamp = stamp_ns
+        self._last_ok = True
 
     # -- initialisation -------------------------------------------------------------------------
 
@@ -321,7 +319,7 @@ class RgbdSlam(LocalMapping, BackendHandoff):
         tracked = TrackedFrame(np.eye(4), empty, empty, 0, 0, feats)
         kf_id = self._insert_keyframe(frame.seq, pose, feats, tracked)
         self._frames.append((frame.stamp_ns, kf_id, np.eye(4)))
-        self._remember(frame.stamp_ns, pose, ok=True)
+        self._remember(frame.stamp_ns, pose)
         return TrackResult(frame.seq, frame.stamp_ns, pose.copy(), TrackingState.INIT, True, kf_id, 0, 0)
 
     # -- tracking -------------------------------------------------------------------------------
@@ -483,8 +481,8 @@ class RgbdSlam(LocalMapping, BackendHandoff):
                 ids, factor = plan[attempt]
                 ki, mi, _ = self._guided(feats, ids, guess_cw, self.params.tracking.search_radius_px * factor)
             else:
-                assert self._last_tracked_pose is not None
-                around = self._local_points(self._last_tracked_pose)
+                assert self._last_pose is not None
+                around = self._local_points(self._last_pose)
                 q, tr, _ = match_brute_force(feats.desc, self._map.desc[around], max_distance=PLACE_MAX_HAMMING,
                                             ratio=PLACE_RATIO)
                 ki, mi = q, around[tr]
