@@ -42,6 +42,9 @@ class RgbdFrame:
     intrinsics: Intrinsics
     frame_id: str = "camera_color_optical_frame"
     extra: dict = field(default_factory=dict, compare=False)
+    # the depth camera's bias correction this frame's depth takes (1/m): 1/z <- 1/z - offset. A
+    # keyframe carries the tracker's (Keyframe.depth_inverse_offset); `depth` stays raw.
+    depth_inverse_offset: float = 0.0
 
     def depth_m(self) -> np.ndarray:
         return self.depth.astype(np.float32) * np.float32(self.depth_scale_m)

@@ -34,9 +34,6 @@ class MapperConfig:
     occupancy_thres: float = _OCTOMAP.occupancy_thres
     voxel_m: float = 0.01  # dense cloud voxel filter (second layer)
     max_range_m: float = 4.0  # depth readings beyond this are ignored
-    # the depth camera's systematic error, corrected in every keyframe's cloud as the tracker corrects
-    # its readings (set it with tracker.depth.inverse_offset, the same value: docs/cli.md)
-    depth_inverse_offset: float = 0.0
     pixel_stride: int = 2  # back-project every n-th pixel in each direction
     # at most this many keyframes in a second of camera time at `pixel_stride`; the rest of a burst
     # (a fast turn: one every 3-5 frames) at `burst_pixel_stride`, a quarter of the points and rays
@@ -112,8 +109,6 @@ class MapperConfig:
             raise ConfigError(f"mapper.full_keyframes_per_s {self.full_keyframes_per_s}: want >= 0 (0: no limit)")
         if self.outliers not in ("image", "knn"):
             raise ConfigError(f"mapper.outliers {self.outliers!r}: want image or knn")
-        if not (math.isfinite(self.depth_inverse_offset) and abs(self.depth_inverse_offset) * self.max_range_m < 0.5):
-            raise ConfigError(f"mapper.depth_inverse_offset {self.depth_inverse_offset}: want |value| x max_range_m < 0.5")
         if self.sor_neighbors < 1:
             raise ConfigError(f"mapper.sor_neighbors {self.sor_neighbors}: want >= 1")
         if not math.isfinite(self.sor_std_ratio):
@@ -145,8 +140,7 @@ class MapperConfig:
             cloud=CloudParams(max_range_m=self.max_range_m, pixel_stride=self.pixel_stride, voxel_m=self.voxel_m,
                               sor_neighbors=self.sor_neighbors, sor_std_ratio=self.sor_std_ratio,
                               sor_first=self.sor_first, outliers=self.outliers,
-                              full_per_s=self.full_keyframes_per_s, burst_stride=self.burst_pixel_stride,
-                              inverse_offset=self.depth_inverse_offset),
+                              full_per_s=self.full_keyframes_per_s, burst_stride=self.burst_pixel_stride),
             occupancy=OccupancyParams(backend=self.backend, resolution_m=self.resolution_m, colour=self.colour,
                                       sensor=self.sensor_model()),
             grid=GridParams(up=self.grid_up or DEFAULT_UP, camera_height_m=self.grid_camera_height_m, z_min_m=self.grid_z_min_m,

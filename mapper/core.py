@@ -41,6 +41,7 @@ class KeyframeCloud:
     stamp_ns: int
     seq: int
     stride: int = 0  # the pixel stride it was back-projected at (0: not recorded)
+    inverse_offset: float = 0.0  # the depth correction its points took (Keyframe.depth_inverse_offset)
 
 
 class Mapper:
@@ -118,10 +119,11 @@ class Mapper:
             frame.depth, frame.rgb, frame.intrinsics, frame.depth_scale_m, np.eye(4),
             max_range_m=c.max_range_m, stride=stride, nb_neighbors=c.sor_neighbors,
             std_ratio=c.sor_std_ratio, voxel_m=c.voxel_m, sor_first=c.sor_first, outliers=c.outliers,
-            inverse_offset=c.inverse_offset)
+            inverse_offset=frame.depth_inverse_offset)
         if len(pts) == 0:
             raise InputError(f"keyframe {kf_id}: no valid depth within {c.max_range_m} m")
-        kf = KeyframeCloud(pts, cols, world_from_camera.copy(), frame.stamp_ns, frame.seq, stride)
+        kf = KeyframeCloud(pts, cols, world_from_camera.copy(), frame.stamp_ns, frame.seq, stride,
+                           frame.depth_inverse_offset)
         self.keyframes[kf_id] = kf
         if not self._stale:  # else the coming rebuild inserts it
             self._insert(kf_id, kf)
@@ -150,18 +152,38 @@ class Mapper:
         self._octree.insert(pts, map_from_camera[:3, 3], colours=kf.colours if colour else None,
                            max_range_m=-1.0)
 
-    def correct(self, poses: dict[int, np.ndarray]) -> int:
-        """Move known keyframes to corrected poses; returns how many moved (unknown ids are ignored)."""
+    def correct(self, poses: dict[int, np.ndarray], depth_inverse_offset: float | None = None) -> int:
+        """Move known keyframes to corrected poses, and with `depth_inverse_offset` (the tracker's new
+        depth correction, KeyframePoses) re-correct their depth; returns how many changed (unknown ids
+        are ignored)."""
         moved = {i: T for i, T in poses.items() if i in self.keyframes
                  and not np.array_equal(T, self.keyframes[i].world_from_camera)}
         for i, T in moved.items():
             self._check_pose(i, T)
-        if not moved:
-            return 0
+        changed = set(moved)
+        if depth_inverse_offset is not None:
+            changed |= self.recorrect_depth([i for i in poses if i in self.keyframes], depth_inverse_offset)
         for i, T in moved.items():
             self.keyframes[i].world_from_camera = T.copy()
-        self._stale = True  # rebuilt when next looked at
-        return len(moved)
+        if changed:
+            self._stale = True  # rebuilt when next looked at
+        return len(changed)
+
+    def recorrect_depth(self, ids: list[int], inverse_offset: float) -> set[int]:
+        """Give keyframes `ids` the depth correction `inverse_offset` (1/m: 1/z <- 1/z - offset) in
+        place of the one they were integrated with: each point moves along its ray. Returns the ids
+        that changed; the map is rebuilt when next looked at."""
+        changed = set()
+        for i in ids:
+            kf = self.keyframes[i]
+            delta = inverse_offset - kf.inverse_offset
+            if delta:
+                kf.points_cam = kf.points_cam / (1.0 - delta * kf.points_cam[:, 2:3])
+                kf.inverse_offset = inverse_offset
+                changed.add(i)
+        if changed:
+            self._stale = True
+        return changed
 
     def rebuild(self) -> None:
         """Re-integrate every keyframe, in arrival order, with its current pose (and map frame)."""
@@ -172,10 +194,12 @@ class Mapper:
         self.rebuilds += 1
 
     def stats(self) -> dict:
-        """The occupancy map's counts plus keyframes and rebuilds, and the frame the map is in
-        (`map_from_world`, row-major 4x4: where the tracker's poses land), for map_stats.json."""
+        """The occupancy map's counts plus keyframes and rebuilds, the frame the map is in
+        (`map_from_world`, row-major 4x4: where the tracker's poses land) and the depth corrections
+        its keyframes took (1/m, each distinct value once), for map_stats.json."""
+        offsets = sorted({kf.inverse_offset for kf in self.keyframes.values()})
         return {**self.octree.stats(), "keyframes": len(self.keyframes), "rebuilds": self.rebuilds,
-                "map_from_world": self.map_from_world.tolist()}
+                "map_from_world": self.map_from_world.tolist(), "depth_inverse_offsets": offsets}
 
     def project_grid(self) -> OccupancyGrid2D | None:
         """The 2D grid of the current octree, or None while no known voxel lies in the band."""

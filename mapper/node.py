@@ -83,7 +83,8 @@ def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: Ma
         if r.topic == KEYFRAME_POSES:
             received_poses += 1
             try:
-                result.corrections += mapper.correct(posemsgs.keyframe_poses_from_msg(r.decode()))
+                msg = r.decode()
+                result.corrections += mapper.correct(posemsgs.keyframe_poses_from_msg(msg), msg.depth_inverse_offset)
             except InputError as exc:  # the whole correction is refused; the map is unchanged
                 result.problems.append(str(exc))
             continue

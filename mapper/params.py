@@ -29,7 +29,6 @@ class CloudParams:
     outliers: str = "image"  # the first layer on the image grid ("image") or over 3D k nearest ("knn")
     full_per_s: float = 0.0  # keyframes a second at pixel_stride; more in that second: burst_stride (0: no limit)
     burst_stride: int = 4
-    inverse_offset: float = 0.0  # the camera's depth bias, corrected: 1/z <- 1/z - inverse_offset (1/m)
 
 
 @dataclass(frozen=True)

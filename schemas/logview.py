@@ -71,7 +71,10 @@ PARTS: dict[str, tuple[Part, ...]] = {
 }
 # Fields added to a wire type after logs of it were written, and what an older log's message reads as
 ADDED_FIELDS = {("octolog_msgs/msg/TrackingStatus", "map_moved_m"): "0.0",
-                ("octolog_msgs/msg/TrackingStatus", "relocalised"): "false"}
+                ("octolog_msgs/msg/TrackingStatus", "relocalised"): "false",
+                ("octolog_msgs/msg/Keyframe", "depth_inverse_offset"): "0.0",
+                ("octolog_msgs/msg/CompressedKeyframe", "depth_inverse_offset"): "0.0",
+                ("octolog_msgs/msg/KeyframePoses", "depth_inverse_offset"): "0.0"}
 # TrackingStatus.state -> diagnostic level (OK=0, WARN=1, ERROR=2): INIT and SKIPPED warn, LOST is an error
 _STATE_LEVEL = {0: 1, 1: 0, 2: 2, 3: 1}
 

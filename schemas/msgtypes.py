@@ -85,6 +85,7 @@ class KeyframeMsg(Protocol):
     depth: Image
     depth_scale_m: float
     camera_info: CameraInfo
+    depth_inverse_offset: float
 
 
 class CompressedKeyframeMsg(Protocol):
@@ -98,6 +99,7 @@ class CompressedKeyframeMsg(Protocol):
     depth: CompressedImage
     depth_scale_m: float
     camera_info: CameraInfo
+    depth_inverse_offset: float
 
 
 class KeyframePosesMsg(Protocol):
@@ -106,6 +108,7 @@ class KeyframePosesMsg(Protocol):
     header: Header
     ids: U64Array
     world_from_camera: list[Pose]
+    depth_inverse_offset: float
 
 
 class CameraPropertiesMsg(Protocol):

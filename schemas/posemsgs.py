@@ -56,11 +56,12 @@ def path_rows(msg: Path) -> tuple[list[int], np.ndarray]:
     return [stamp_ns(p.header) for p in msg.poses], np.array(rows, dtype=np.float64).reshape(-1, 7)
 
 
-def keyframe_poses_msg(poses: dict[int, np.ndarray], stamp: int = 0) -> KeyframePosesMsg:
+def keyframe_poses_msg(poses: dict[int, np.ndarray], stamp: int = 0, depth_inverse_offset: float = 0.0
+                       ) -> KeyframePosesMsg:
     ids = sorted(poses)
     msg: KeyframePosesMsg = msgtype(KEYFRAME_POSES)(
         header=header(stamp, "world"), ids=np.array(ids, dtype=np.uint64),
-        world_from_camera=[pose_msg(poses[i]) for i in ids])
+        world_from_camera=[pose_msg(poses[i]) for i in ids], depth_inverse_offset=float(depth_inverse_offset))
     return msg
 
 

@@ -89,6 +89,7 @@ def keyframe_msg(kf_id: int, world_from_camera: np.ndarray, frame: RgbdFrame) ->
         depth=image_msg(frame.depth, frame.stamp_ns, frame.frame_id),
         depth_scale_m=float(frame.depth_scale_m),
         camera_info=camera_info_msg(frame.intrinsics, frame.stamp_ns, frame.frame_id),
+        depth_inverse_offset=float(frame.depth_inverse_offset),
     )
     return msg
 
@@ -96,7 +97,7 @@ def keyframe_msg(kf_id: int, world_from_camera: np.ndarray, frame: RgbdFrame) ->
 def keyframe_from_msg(msg: KeyframeMsg | CompressedKeyframeMsg) -> tuple[int, np.ndarray, RgbdFrame]:
     rgb, depth, intr = _rgbd_parts(msg)
     frame = RgbdFrame(int(msg.frame_seq), stamp_ns(msg.header), rgb, depth, float(msg.depth_scale_m), intr,
-                      msg.color.header.frame_id)
+                      msg.color.header.frame_id, depth_inverse_offset=float(msg.depth_inverse_offset))
     return int(msg.id), pose_matrix(msg.world_from_camera), frame
 
 
@@ -145,5 +146,6 @@ def _compressed_keyframe(kf_id: int, world_from_camera: np.ndarray, frame: RgbdF
         header=header(frame.stamp_ns, "world"), id=kf_id, frame_seq=frame.seq,
         world_from_camera=pose_msg(world_from_camera), color=colour, depth=depth,
         depth_scale_m=float(frame.depth_scale_m),
-        camera_info=camera_info_msg(frame.intrinsics, frame.stamp_ns, frame.frame_id))
+        camera_info=camera_info_msg(frame.intrinsics, frame.stamp_ns, frame.frame_id),
+        depth_inverse_offset=float(frame.depth_inverse_offset))
     return msg

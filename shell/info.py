@@ -46,7 +46,15 @@ def _summary(folder: Path) -> dict:
 
 def depth_bias_line(b: dict) -> str:
     """The tracker's estimate of the depth camera's systematic error (summary.json `depth_bias`)."""
-    at = ", ".join(f"{-100 * v / float(z):+.2f} % at {z} m" for z, v in b["bias_m"].items() if float(z) in (2.0, 4.0))
+    bands = b.get("bands") or {}
+    at = ", ".join(f"{-100 * v['bias_m'] / float(z):+.2f} ± {100 * v['sigma_m'] / float(z):.2f} % at {z} m"
+                   for z, v in bands.items()) if bands else \
+        ", ".join(f"{-100 * v / float(z):+.2f} % at {z} m" for z, v in b["bias_m"].items() if float(z) in (2.0, 4.0))
+    corrected = float(b.get("corrected_per_m", 0.0))
+    if corrected:
+        return (f"  depth bias (from the map): reads short by {at}; corrected by {corrected:.5f} 1/m"
+                + (f" ({b['corrections']} times while tracking)" if b.get("corrections") else "")
+                + f", {b['inverse_offset_per_m']:.5f} 1/m left" + ("" if b["confident"] else " (not significant)"))
     return (f"  depth bias (from the map): reads short by {at}" + ("" if b["confident"] else " (not significant)")
             + f"; inverse offset {b['inverse_offset_per_m']:.5f} 1/m (tracker.depth.inverse_offset corrects it)")
 

@@ -378,6 +378,9 @@ def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, re
     # where each stage's CPU went (kit/cpuclock.py); CPU time differs run to run: not for comparing outputs
     cpu = {p.name.removesuffix(".report.json"): errorfile.read_cpu(p) for p in sorted((out / "logs").glob("*.report.json"))}
     s.depth_bias = errorfile.read_finding(out / "logs" / "tracker.report.json", "depth_bias")
+    if s.depth_bias is not None:  # the map's own record of the camera that made it
+        s.map["depth_bias"] = s.depth_bias
+        (out / "map_stats.json").write_text(json.dumps(s.map, indent=2, sort_keys=True) + "\n")
     (out / "summary.json").write_text(json.dumps(
         {"source": source, "frames": frames, "tracked_frames": s.frames, "wall_s": round(wall, 3),
          "malformed": s.malformed, "map_frame": s.map_frame, "cpu_s": cpu, "depth_bias": s.depth_bias,

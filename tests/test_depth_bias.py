@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 
 from octolog.kit.errors import ConfigError
-from octolog.mapper.config import MapperConfig
 from octolog.tracker.config import TrackerConfig
 from octolog.tracker.depth_bias import MIN_POINTS, estimate_depth_bias
 
@@ -44,6 +43,10 @@ def test_the_offset_is_recovered_from_readings_of_known_bias(beta):
     assert abs(est.scale - 1) < 0.003
     # the bias by range: a reading at z is off by about -beta z^2 (short when beta > 0)
     assert est.bias_m[4.0] == pytest.approx(4.0 / (1 + est.inverse_offset * 4.0) - 4.0)
+    # measured band by band on its own: the same offset in each
+    assert est.bands
+    for z, (offset, sigma, readings) in est.bands.items():
+        assert abs(offset - beta) < 3 * sigma + 1e-4, (z, offset, sigma, readings)
 
 
 def test_noise_alone_is_no_bias():
@@ -63,5 +66,3 @@ def test_the_correction_setting_is_checked():
     bad = dataclasses.replace(cfg, depth=dataclasses.replace(cfg.depth, inverse_offset=0.1))
     with pytest.raises(ConfigError, match="depth.inverse_offset"):
         bad.validate()
-    with pytest.raises(ConfigError, match="mapper.depth_inverse_offset"):
-        MapperConfig(depth_inverse_offset=0.2).validate()

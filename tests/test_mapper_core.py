@@ -5,6 +5,7 @@ Synthetic data only (a wall, a box in front of it); no ../shared needed.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -15,7 +16,7 @@ import numpy as np
 import pytest
 
 from octolog.kit.errors import MapError
-from octolog.kit.geometry import Intrinsics, pose_to_matrix
+from octolog.kit.geometry import Intrinsics, RgbdFrame, pose_to_matrix
 from octolog.mapper.cloud import (
     DenseCloud,
     backproject,
@@ -25,6 +26,8 @@ from octolog.mapper.cloud import (
     voxel_downsample,
     write_ply,
 )
+from octolog.mapper.config import MapperConfig
+from octolog.mapper.core import Mapper
 from octolog.mapper.octree import OccupancyOctree
 from octolog.mapper.sensor_model import SensorModel
 
@@ -229,9 +232,9 @@ def test_dense_cloud_replaces_a_keyframe_and_ignores_arrival_order():
 
 
 def test_a_depth_bias_correction_puts_a_biased_wall_back_in_place():
-    """A wall 3.5 m away read 1 % short (what an inverse offset of 0.00289 1/m does): with
-    mapper.depth_inverse_offset at that value, the keyframe cloud is back at 3.5 m (one depth unit),
-    every point moved along its ray; without it, 3.5 cm short."""
+    """A wall 3.5 m away read 1 % short (what an inverse offset of 0.00289 1/m does): with the
+    keyframe's depth_inverse_offset at that value, the keyframe cloud is back at 3.5 m (one depth
+    unit), every point moved along its ray; without it, 3.5 cm short."""
     beta, z = 0.01 / 3.5, 3.5
     depth, rgb = wall_frame(z / (1 + beta * z))  # what the biased camera reads
     short, _ = keyframe_cloud(depth, rgb, K, SCALE, np.eye(4))
@@ -475,3 +478,25 @@ def test_a_burst_of_keyframes_past_the_per_second_budget_is_integrated_coarser()
     unlimited.integrate(1, np.eye(4), RgbdFrame(1, 1, rgb, depth, SCALE, K))
     unlimited.integrate(2, np.eye(4), RgbdFrame(2, 2, rgb, depth, SCALE, K))
     assert [kf.stride for kf in unlimited.keyframes.values()] == [2, 2, 2]
+
+
+def test_a_keyframe_takes_the_trackers_depth_correction_when_it_arrives_and_when_it_changes():
+    """The mapper corrects a keyframe's depth by the offset the keyframe carries, and a correction
+    (KeyframePoses) with a new offset re-corrects the keyframes it lists: a wall read 1 % short,
+    integrated uncorrected, lands where a keyframe integrated with the offset from the start does,
+    and the unlisted keyframe keeps its points."""
+    beta, z = 0.01 / 3.5, 3.5
+    depth, rgb = wall_frame(z / (1 + beta * z))
+    frame = RgbdFrame(0, 0, rgb, depth, SCALE, K)
+    params = MapperConfig(resolution_m=0.05).params()
+    late, first = Mapper(params), Mapper(params)
+    late.integrate(0, np.eye(4), frame)
+    late.integrate(1, np.eye(4), dataclasses.replace(frame, seq=1, stamp_ns=1))
+    first.integrate(0, np.eye(4), dataclasses.replace(frame, depth_inverse_offset=beta))
+    assert abs(float(np.median(late.keyframes[0].points_cam[:, 2])) - (z - 0.035)) < 0.002
+    assert late.correct({0: np.eye(4)}, depth_inverse_offset=beta) == 1
+    assert late.keyframes[0].inverse_offset == beta and late.keyframes[1].inverse_offset == 0.0
+    assert abs(float(np.median(late.keyframes[0].points_cam[:, 2])) - z) < 0.002
+    assert abs(float(np.median(first.keyframes[0].points_cam[:, 2])) - z) < 0.002
+    assert np.median(late.keyframes[1].points_cam[:, 2]) < z - 0.03
+    assert late.correct({0: np.eye(4)}, depth_inverse_offset=beta) == 0  # the same offset again: nothing

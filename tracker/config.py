@@ -44,6 +44,9 @@ class DepthParams:
     # (1/m; > 0: the camera reads short, by inverse_offset * z^2 m at z). A session's own estimate is
     # in summary.json `depth_bias` (tracker/depth_bias.py); a disparity offset of d px is d / (f b).
     inverse_offset: float = 0.0
+    # estimate the bias from the map while tracking and correct it (on top of inverse_offset) once
+    # the estimate is confident, the map with it (tracker/depth_correction.py)
+    correct_bias: bool = False
 
 
 @dataclass(frozen=True)

@@ -12,12 +12,18 @@ and the keyframes' translations off by one common factor (the scale the biased d
 trajectory), the point's position from every reading is linear in (inverse_offset, scale). Both
 come from one weighted least-squares fit over every point seen with depth at least twice, the
 points' positions eliminated in closed form, outlying readings down-weighted (Huber, iterated).
+
+The report also measures the offset band by band (each `REPORT_RANGES_M` ± half a metre with
+enough readings): one more fit, with the final weights, where each band has its own offset, so a
+camera whose error is not one disparity offset shows it. The bands share the one scale unknown: on
+views at one range a depth offset and a trajectory scale look alike, so a bias confined to some
+bands is partly seen in the others.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -27,38 +33,68 @@ MIN_POINTS = 200
 # a reading's residual beyond this many times the median residual is down-weighted (Huber)
 HUBER_MEDIANS = 3.0
 IRLS_ROUNDS = 4
-# the ranges the report gives the bias at (m)
+# the ranges the report gives the bias at (m), and the band of map depths measured for each: centre ± half a metre
 REPORT_RANGES_M = (1.0, 2.0, 3.0, 4.0, 5.0)
+BAND_HALF_WIDTH_M = 0.5
+# a band is reported with at least this many readings in it
+MIN_BAND_READINGS = 500
 
 
 @dataclass(frozen=True)
 class DepthBias:
     """What the map says of the camera's depth: `inverse_offset` (1/m, see the module) and its
-    standard error, the trajectory scale fitted with it, and the bias at `REPORT_RANGES_M`."""
+    standard error, the trajectory scale fitted with it, and the offset measured on its own in each
+    range band (`bands`: centre -> (offset, its standard error, readings)), where the map has the readings."""
 
     inverse_offset: float
     sigma: float
     scale: float
     points: int
     readings: int
-    bias_m: dict[float, float] = field(default_factory=dict)  # range -> reading minus truth (m; < 0: short)
+    bands: dict[float, tuple[float, float, int]] = field(default_factory=dict)
+    # the correction the readings had already taken (1/m: tracker.depth.inverse_offset plus what
+    # tracker.depth.correct_bias added, `corrections` times); the camera's bias is both together
+    corrected: float = 0.0
+    corrections: int = 0
+
+    def after(self, corrected: float, corrections: int) -> DepthBias:
+        """This estimate, made from readings that had taken the correction `corrected`."""
+        return replace(self, corrected=corrected, corrections=corrections)
 
     @property
     def confident(self) -> bool:
         """The offset is at least three standard errors from zero."""
         return abs(self.inverse_offset) >= 3.0 * self.sigma
 
+    @property
+    def bias_m(self) -> dict[float, float]:
+        """What the camera reads at each of `REPORT_RANGES_M`, minus the range (m; < 0: short), by the
+        one-offset model."""
+        return _bias_at(self.inverse_offset + self.corrected)
+
+    @property
+    def band_bias_m(self) -> dict[float, tuple[float, float]]:
+        """The bias measured in each band, at its centre: (reading minus range, standard error), m."""
+        return {z: (_bias_at(b + self.corrected, (z,))[z], z * z * s) for z, (b, s, _) in self.bands.items()}
+
     def summary(self) -> str:
-        """One line: how far the camera's depth is off at a few ranges."""
-        at = ", ".join(f"{-100 * b / z:+.2f} % at {z:g} m" for z, b in self.bias_m.items())
+        """One line: how far the camera's depth is off at the ranges the map measured it."""
+        bands = self.band_bias_m
+        at = ", ".join(f"{-100 * b / z:+.2f} ± {100 * s / z:.2f} % at {z:g} m" for z, (b, s) in bands.items()) if bands \
+            else ", ".join(f"{-100 * b / z:+.2f} % at {z:g} m" for z, b in self.bias_m.items() if z in (2.0, 4.0))
         verdict = "" if self.confident else " (not significant)"
-        return (f"depth reads short by {at}{verdict}; inverse offset {self.inverse_offset:.5f} ± {self.sigma:.5f} 1/m "
-                f"from {self.points} points seen at least twice")
+        done = (f"{self.corrected:.5f} 1/m corrected" + (f" ({self.corrections} times while tracking)"
+                                                          if self.corrections else "") + ", ") if self.corrected else ""
+        return (f"depth reads short by {at}; {done}inverse offset {self.inverse_offset:.5f} ± {self.sigma:.5f} 1/m "
+                f"left{verdict}, from {self.points} points seen at least twice")
 
     def as_dict(self) -> dict:
         return {"inverse_offset_per_m": self.inverse_offset, "sigma_per_m": self.sigma, "scale": self.scale,
                 "points": self.points, "readings": self.readings, "confident": self.confident,
-                "bias_m": {f"{z:g}": b for z, b in self.bias_m.items()}}
+                "bias_m": {f"{z:g}": b for z, b in self.bias_m.items()}, "corrected_per_m": self.corrected,
+                "corrections": self.corrections,
+                "bands": {f"{z:g}": {"bias_m": b, "sigma_m": sd, "readings": self.bands[z][2]}
+                          for z, (b, sd) in self.band_bias_m.items()}}
 
 
 def estimate_depth_bias(rotations: np.ndarray, translations: np.ndarray, kf_index: np.ndarray, point_id: np.ndarray,
@@ -67,7 +103,8 @@ def estimate_depth_bias(rotations: np.ndarray, translations: np.ndarray, kf_inde
     `rotations[k]`, translation `translations[k]`) seeing point `point_id[i]` at `xyz_cam[i]` (its
     raw depth times the pixel's ray), where the map has the point at depth `z_map[i]`. The
     correction's regressor takes the map's depth, not the reading: a noisy reading in both sides of
-    the fit would bias it (errors in variables). None with fewer than MIN_POINTS points seen twice."""
+    the fit would bias it (errors in variables). None with fewer than MIN_POINTS points seen twice.
+    With the weights of the one-offset fit, one more fit gives each range band its own offset."""
     z = xyz_cam[:, 2]
     ok = (z > 0) & (z_map > 0)
     kf_index, point_id, xyz_cam, z, z_map = kf_index[ok], point_id[ok], xyz_cam[ok], z[ok], z_map[ok]
@@ -83,21 +120,51 @@ def estimate_depth_bias(rotations: np.ndarray, translations: np.ndarray, kf_inde
     z = z_map
     t = translations[kf_index]
     w = 1.0 / z ** 4  # depth noise grows with z^2
-    for _ in range(IRLS_ROUNDS):
-        y, A = _centred(a, b, t, w, group)
-        W = np.repeat(w, 3)
-        Aw = A * W[:, None]
-        N = A.T @ Aw
-        x = np.linalg.solve(N, Aw.T @ y)
-        r = np.linalg.norm((y - A @ x).reshape(-1, 3), axis=1) * np.sqrt(w)
-        k = HUBER_MEDIANS * float(np.median(r))
-        w = (1.0 / z ** 4) * np.minimum(1.0, k / np.maximum(r, 1e-12))
-    dof = max(A.shape[0] - 2 - 3 * int(group.max() + 1), 1)
-    s2 = float(np.sum(W * (y - A @ x) ** 2)) / dof
-    cov = s2 * np.linalg.inv(N)
-    beta, scale = float(x[0]), float(x[1])
-    bias = {zr: float(zr / (1.0 + beta * zr) - zr) for zr in REPORT_RANGES_M}  # reading at true range zr
-    return DepthBias(beta, float(np.sqrt(cov[0, 0])), scale, int((counts >= 2).sum()), int(keep.sum()), bias)
+    try:
+        for _ in range(IRLS_ROUNDS):
+            x, cov, r = _fit(a, [b], t, w, group)
+            k = HUBER_MEDIANS * float(np.median(r))
+            w = (1.0 / z ** 4) * np.minimum(1.0, k / np.maximum(r, 1e-12))
+    except np.linalg.LinAlgError:  # degenerate views (one place, no baseline): nothing to say
+        return None
+    beta, sigma, scale = float(x[0]), float(np.sqrt(cov[0, 0])), float(x[1])
+    centre = np.asarray(REPORT_RANGES_M)
+    band = np.argmin(np.abs(z[:, None] - centre[None, :]), axis=1)
+    inside = np.abs(z - centre[band]) < BAND_HALF_WIDTH_M
+    counted = [(i, int(np.sum(inside & (band == i)))) for i in range(centre.size)]
+    counted = [(i, n) for i, n in counted if n >= MIN_BAND_READINGS]
+    bands: dict[float, tuple[float, float, int]] = {}
+    if counted:
+        # readings outside every reported band keep the one offset, so they still place their points
+        rest = ~np.isin(band, [i for i, _ in counted]) | ~inside
+        columns = [b * (inside & (band == i))[:, None] for i, _ in counted] + ([b * rest[:, None]] if rest.any() else [])
+        try:
+            xb, covb, _ = _fit(a, columns, t, w, group)
+            bands = {float(centre[i]): (float(xb[j]), float(np.sqrt(covb[j, j])), n) for j, (i, n) in enumerate(counted)}
+        except np.linalg.LinAlgError:  # a band the views cannot tell from the others: the one offset only
+            bands = {}
+    return DepthBias(beta, sigma, scale, int((counts >= 2).sum()), int(keep.sum()), bands)
+
+
+def _fit(a: np.ndarray, offsets: list[np.ndarray], t: np.ndarray, w: np.ndarray, group: np.ndarray
+         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Weighted least squares of the readings' points `a` moved by one offset per column of
+    `offsets` and the translations `t` scaled, each point's position eliminated: (offsets then
+    scale, their covariance, each reading's whitened residual norm)."""
+    y, A = _centred(a, offsets + [t], w, group)
+    W = np.repeat(w, 3)
+    Aw = A * W[:, None]
+    N = A.T @ Aw
+    x = np.linalg.solve(N, Aw.T @ y)
+    e = y - A @ x
+    dof = max(A.shape[0] - A.shape[1] - 3 * int(group.max() + 1), 1)
+    cov = float(np.sum(W * e ** 2)) / dof * np.linalg.inv(N)
+    return x, cov, np.linalg.norm(e.reshape(-1, 3), axis=1) * np.sqrt(w)
+
+
+def _bias_at(beta: float, ranges: tuple[float, ...] = REPORT_RANGES_M) -> dict[float, float]:
+    """What a camera with the inverse-depth offset `beta` reads at each range, minus the range."""
+    return {zr: float(zr / (1.0 + beta * zr) - zr) for zr in ranges}
 
 
 def bias_from_map(keyframes: Sequence[Any], points_xyz: np.ndarray) -> DepthBias | None:
@@ -115,10 +182,10 @@ def bias_from_map(keyframes: Sequence[Any], points_xyz: np.ndarray) -> DepthBias
     return estimate_depth_bias(poses[:, :3, :3], poses[:, :3, 3], kf_index, pid, xyz, z_map)
 
 
-def _centred(a: np.ndarray, b: np.ndarray, t: np.ndarray, w: np.ndarray, group: np.ndarray
+def _centred(a: np.ndarray, columns: list[np.ndarray], w: np.ndarray, group: np.ndarray
              ) -> tuple[np.ndarray, np.ndarray]:
     """The fit's rows with each point's position eliminated: its weighted mean over its readings
-    subtracted from every column (y = a - mean a; A = [mean b - b, mean t - t]), three rows a reading."""
+    subtracted from every column (y = a - mean a; A = [mean c - c for each column]), three rows a reading."""
     n_groups = int(group.max()) + 1
     wsum = np.bincount(group, w, n_groups)
 
@@ -127,5 +194,5 @@ def _centred(a: np.ndarray, b: np.ndarray, t: np.ndarray, w: np.ndarray, group: 
         return v - mean[group]
 
     y = centre(a).ravel()
-    A = np.stack([-centre(b).ravel(), -centre(t).ravel()], axis=1)
+    A = np.stack([-centre(c).ravel() for c in columns], axis=1)
     return y, A

@@ -61,6 +61,9 @@ class TrackResult:
     # how far the back end's correction, applied at this keyframe, moved the frame's pose (m): the
     # map was corrected under it, so its step from the previous pose is that much more than motion
     map_moved_m: float = 0.0
+    # the depth camera's bias correction this frame's readings took (1/m: 1/z <- 1/z - offset), the
+    # one its keyframe and `corrected` carry to the mapper (tracker.depth)
+    depth_inverse_offset: float = 0.0
 
 
 @runtime_checkable

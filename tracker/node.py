@@ -9,7 +9,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Self
 
@@ -107,12 +107,13 @@ class _Outputs:
         root, root_from_camera = tree.root_from(frame.frame_id)
         world_from_root = res.world_from_camera @ invert(root_from_camera)
         self.tf.put(posemsgs.tf_msg([("world", root, world_from_root)], frame.stamp_ns))
-        if res.corrected:  # a loop closed: the mapper moves those keyframes
-            self.poses.put(posemsgs.keyframe_poses_msg(res.corrected, frame.stamp_ns))
+        if res.corrected:  # a loop closed, or the depth correction changed: the mapper moves those keyframes
+            self.poses.put(posemsgs.keyframe_poses_msg(res.corrected, frame.stamp_ns, res.depth_inverse_offset))
         result.loops += res.loop is not None
         result.relocalisations += res.relocalised
         if res.is_keyframe:
-            self.kf.put(res.keyframe_id, res.world_from_camera, frame)
+            self.kf.put(res.keyframe_id, res.world_from_camera,
+                        replace(frame, depth_inverse_offset=res.depth_inverse_offset) if res.depth_inverse_offset else frame)
             result.keyframes += 1
         if res.backend_deferred:  # on record: a replay of this run defers at the same frame
             self.deferred.put(codec.msgtype(BACKEND_DEFERRED.msgtype)(data=json.dumps(
@@ -126,7 +127,8 @@ class _Outputs:
         # trajectory. Sent before the end messages, whose count for it the mapper waits for.
         moved = odometry.finish()
         if moved:
-            self.poses.put(posemsgs.keyframe_poses_msg(odometry.keyframe_poses(), result.stamps_ns[-1]))
+            self.poses.put(posemsgs.keyframe_poses_msg(odometry.keyframe_poses(), result.stamps_ns[-1],
+                                                       getattr(odometry, "depth_offset", 0.0)))
         # the whole trajectory at its final poses, for a log on another machine (the file is local)
         stamps, poses = odometry.trajectory()
         self.bus.publisher(TRAJECTORY).put(posemsgs.path_msg(stamps, poses))
@@ -172,6 +174,8 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
     out.finish(odometry, result)
     estimate = getattr(odometry, "depth_bias", None)  # the native tracker's; ORB-SLAM3 has none
     result.depth_bias = estimate() if estimate is not None else None
+    if result.depth_bias is not None:
+        result.depth_bias = result.depth_bias.after(odometry.depth_offset, odometry.depth_corrections)
     if result.depth_bias is not None:
         viz.text("tracker/events", result.depth_bias.summary())
     bus.linger("mapper")

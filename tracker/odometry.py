@@ -26,7 +26,7 @@ from octolog.kit.geometry import Intrinsics, RgbdFrame, invert
 from octolog.tracker.backend import BackendResult, run_backend
 from octolog.tracker.backend_handoff import BackendHandoff
 from octolog.tracker.config import OdometryParams, TrackerConfig
-from octolog.tracker.depth_bias import DepthBias, bias_from_map
+from octolog.tracker.depth_correction import DepthCorrection
 from octolog.tracker.features import (
     FrameFeatures,
     OrbExtractor,
@@ -57,7 +57,7 @@ WIDE_SEARCH_FACTOR = 3.0
 CONFIDENT_INLIER_FACTOR = 3
 
 
-class RgbdSlam(LocalMapping, BackendHandoff):
+class RgbdSlam(LocalMapping, BackendHandoff, DepthCorrection):
     """RGB-D SLAM: frame-to-local-map tracking, keyframe insertion and the back end (loop closing, bundle
     adjustment). Call `track` once per frame, in time order,
     and `finish` at the end of the stream; implements tracker.interface.Tracker.
@@ -102,6 +102,7 @@ class RgbdSlam(LocalMapping, BackendHandoff):
         self._last_local = np.zeros(0, np.int64)
         self.loops: list[tuple[int, int]] = []  # (new, old) keyframe ids of closed loops
         self.rejected_jumps = 0  # tracked frames made LOST: a jump the motion cannot explain, on few inliers
+        self.depth_offset, self.depth_corrections = params.depth.inverse_offset, 0  # tracker.depth_correction
 
         self._intrinsics: Intrinsics | None = None
         self._undistort: Undistorter | None = None
@@ -165,6 +166,9 @@ class RgbdSlam(LocalMapping, BackendHandoff):
             before = pose
             if not deferred:
                 corrected, loop, pose = self._sync_backend(pose)
+                fixed = self._correct_depth(pose, feats)  # tracker.depth.correct_bias: every keyframe moves
+                if fixed is not None:
+                    (corrected, pose, feats), moved_map = fixed, True
             if moved_map:
                 # the map moved under this frame: re-fit its pose to the moved points it matched
                 sol = self._solve(feats, tracked.kp_idx, tracked.map_idx, invert(pose), use_ransac=False)
@@ -180,7 +184,7 @@ class RgbdSlam(LocalMapping, BackendHandoff):
         return TrackResult(
             frame.seq, frame.stamp_ns, pose.copy(), TrackingState.OK, kf_id >= 0, kf_id, tracked.n_matches,
             tracked.n_inliers,
-            corrected, loop, relocalised, tracked.residual, deferred, map_moved_m,
+            corrected, loop, relocalised, tracked.residual, deferred, map_moved_m, self.depth_offset,
         )
 
     def _locate(self, feats: FrameFeatures, predicted: np.ndarray, stamp_ns: int) -> tuple[TrackedFrame | None, bool]:
@@ -223,10 +227,6 @@ class RgbdSlam(LocalMapping, BackendHandoff):
 
     def keyframe_poses(self) -> dict[int, np.ndarray]:
         return {kf.id: kf.world_from_camera.copy() for kf in self._keyframes}
-
-    def depth_bias(self) -> DepthBias | None:
-        """The depth camera's systematic error as the map has it (tracker/depth_bias.py), or None."""
-        return bias_from_map(self._keyframes, self._map.xyz)
 
     def finish(self) -> dict[int, np.ndarray]:
         """Wait for the back end and apply its last result; returns the keyframe poses it moved."""
@@ -272,8 +272,8 @@ class RgbdSlam(LocalMapping, BackendHandoff):
         d = self.params.depth
         z = lookup_depth(frame.depth, frame.depth_scale_m, pts, min_depth_m=d.min_m, max_depth_m=d.max_m,
                          max_spread=d.edge_spread)
-        if d.inverse_offset:
-            z = z / (1.0 - d.inverse_offset * z)  # 0 stays 0
+        if self.depth_offset:
+            z = z / (1.0 - self.depth_offset * z)  # 0 stays 0
         uv = self._undistort(pts)
         self._last_pts = pts
         self._last_kp_state = np.zeros(len(pts), np.uint8)

@@ -86,11 +86,13 @@ class FleetMap:
                 self.placement.correct(i, poses)
                 return
             mine = self.map_id[i]
+            recorrected = self.mapper.recorrect_depth([mine[k] for k in poses if k in mine],
+                                                      float(item.poses.depth_inverse_offset))
             self.robot_pose[i].update({mine[k]: T for k, T in poses.items() if k in mine})
             moved = self.settle()  # with links: the joint graph, from the robot's corrected poses
             if moved is None:
                 moved = self.mapper.correct({mine[k]: W @ T for k, T in poses.items() if k in mine})
-            self.corrections += moved
+            self.corrections += max(moved, len(recorrected))
         except InputError as exc:  # the whole correction is refused; the map is unchanged
             self.problems.append(f"{self.robots[i]}: {exc}")
 

@@ -1,0 +1,104 @@
+"""The depth camera's bias corrected while tracking (`tracker.depth.correct_bias`).
+
+Every `CHECK_EVERY` keyframes the front end fits the bias to the newest `WINDOW` keyframes'
+readings (tracker/depth_bias.py). Once the fit is confident (three standard errors from zero), the
+offset it found is added to the correction every later reading takes (1/z <- 1/z - offset), and the
+map is made to agree with it at once: every keyframe's readings are re-corrected, the keyframes'
+translations scaled by the fit's scale about the world origin (where the first keyframe is), each
+map point moved by the scale and by the mean change of its readings, weighted by their information.
+The back end's next bundle adjustments start from there. Every keyframe has moved, so all of them
+go out as a correction (KeyframePoses, with the new offset: the mapper re-corrects their depth).
+
+A camera with no bias gives fits that are not confident: nothing changes. Off by default: on the
+TUM freiburg1 Kinect the fit is confident and wrong (docs/results.md), as a depth error that is not
+one disparity offset can be.
+
+A mixin of `RgbdSlam` (tracker.odometry), which owns the map, the keyframes and the motion state.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from octolog.tracker.depth_bias import DepthBias, bias_from_map
+from octolog.tracker.features import FrameFeatures
+from octolog.tracker.keyframe_map import depth_weight
+
+# the bias is fitted at every this many keyframes, from the newest WINDOW (bounded front-end time:
+# about 20 ms for 40 keyframes here), once the map has MIN_KEYFRAMES
+CHECK_EVERY = 10
+WINDOW = 40
+MIN_KEYFRAMES = 20
+
+
+def recorrected(feats: FrameFeatures, delta: float) -> FrameFeatures:
+    """`feats` with every depth reading corrected by `delta` more: 1/z <- 1/z - delta."""
+    has = feats.z > 0.0
+    factor = np.where(has, 1.0 / np.where(has, 1.0 - delta * feats.z, 1.0), 1.0)
+    return FrameFeatures(uv=feats.uv, octave=feats.octave, desc=feats.desc, z=feats.z * factor,
+                         xyz=feats.xyz * factor[:, None])
+
+
+class DepthCorrection:
+    """The online depth-bias correction of `RgbdSlam`."""
+
+    depth_offset: float  # the correction every reading takes now (1/m): the configured one plus what was found
+    depth_corrections: int  # how many times the map was corrected
+
+    def depth_bias(self) -> DepthBias | None:
+        """The depth camera's systematic error as the map has it (tracker/depth_bias.py), or None.
+        With the correction on, it is what remains after the correction."""
+        return bias_from_map(self._keyframes, self._map.xyz)
+
+    def _bias_found(self) -> DepthBias | None:
+        """A confident bias in the newest keyframes' readings, when a check is due; else None."""
+        n = len(self._keyframes)
+        if not self.params.depth.correct_bias or n < MIN_KEYFRAMES or n % CHECK_EVERY:
+            return None
+        estimate = bias_from_map(self._keyframes[-WINDOW:], self._map.xyz)
+        if estimate is None or not estimate.confident:
+            return None
+        # a correction that would take more than half of a reading at the range limit is not a bias
+        return estimate if abs(self.depth_offset + estimate.inverse_offset) * self.params.depth.max_m < 0.5 else None
+
+    def _correct_depth(self, pose: np.ndarray, feats: FrameFeatures
+                       ) -> tuple[dict[int, np.ndarray], np.ndarray, FrameFeatures] | None:
+        """Correct the map by a confident bias found in it (see the module); returns every
+        keyframe's new pose, the frame's pose and its readings corrected the same way. None when no
+        check is due or the bias is not confident. Only with no back-end job in flight."""
+        found = self._bias_found()
+        if found is None:
+            return None
+        delta, s = found.inverse_offset, found.scale
+        mp, n = self._map, self._map.size
+        shift = np.zeros((n, 3))
+        wsum = np.zeros(n)
+        for kf in self._keyframes:
+            old = kf.feats
+            kf.feats = recorrected(old, delta)
+            kf.world_from_camera[:3, 3] *= s
+            z = old.z[kf.obs_kp]
+            d = z > 0.0
+            w = depth_weight(z[d])
+            moved = (kf.feats.xyz[kf.obs_kp[d]] - old.xyz[kf.obs_kp[d]]) @ kf.world_from_camera[:3, :3].T
+            np.add.at(shift, kf.obs_pid[d], moved * w[:, None])
+            np.add.at(wsum, kf.obs_pid[d], w)
+        mp.xyz[:n] = mp.xyz[:n] * s + shift / np.maximum(wsum, 1e-300)[:, None]
+        self._kf_pos *= s
+        self._frames = [(stamp, k, _scaled(T, s)) for stamp, k, T in self._frames]
+        self._loop_edges = [(a, b, _scaled(T, s)) for a, b, T in self._loop_edges]
+        self._loop_candidate = (-1, None)
+        if self._last_pose is not None:
+            self._last_pose = _scaled(self._last_pose, s)
+        if self._velocity is not None:
+            rotvec, trans, dt = self._velocity
+            self._velocity = (rotvec, trans * s, dt)
+        self.depth_offset += delta
+        self.depth_corrections += 1
+        return self.keyframe_poses(), _scaled(pose, s), recorrected(feats, delta)
+
+
+def _scaled(T: np.ndarray, s: float) -> np.ndarray:
+    out = T.copy()
+    out[:3, 3] *= s
+    return out
