@@ -11,6 +11,9 @@
     distortion = [0.0, 0.0, 0.0, 0.0, 0.0]   # plumb-bob k1 k2 p1 p2 k3; optional
     depth_scale_m = 0.0002                    # metres per depth unit; optional (the source's own)
     readout_ms = 0.0                          # colour rolling-shutter readout; optional, 0 = global shutter
+    depth_baseline_m = 0.075                  # the depth camera's error model (kit/depthmodel.py); optional:
+    depth_focal_px = 580.0                    #   baseline, its own focal length (default fx) and
+    depth_disparity_sigma_px = 0.062          #   disparity noise (one sigma), all or none
 
 A TUM folder whose name does not say freiburg1/2/3, or an MCAP recording without CameraInfo, takes
 one with `--set replay.camera=PATH.toml`. Any missing or invalid key is a one-line error naming it.
@@ -23,6 +26,8 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
+from octolog.kit import depthmodel
+from octolog.kit.depthmodel import DepthModel
 from octolog.kit.errors import InputError
 from octolog.kit.geometry import Intrinsics
 
@@ -33,6 +38,7 @@ class Calibration:
     intrinsics: Intrinsics
     depth_scale_m: float | None  # None: the source's own
     readout_s: float
+    depth_model: DepthModel | None = None  # None: the file does not say
 
 
 def is_calibration_file(camera: str) -> bool:
@@ -62,7 +68,7 @@ def load_calibration(path: str | Path) -> Calibration:
         return float(value)
 
     unknown = sorted(set(data) - {"name", "width", "height", "fx", "fy", "cx", "cy", "distortion", "depth_scale_m",
-                                  "readout_ms"})
+                                  "readout_ms", *depthmodel.FIELDS})
     if unknown:
         raise InputError(f"{p}: unknown calibration key {unknown[0]!r}")
     distortion = data.get("distortion", [])
@@ -78,4 +84,8 @@ def load_calibration(path: str | Path) -> Calibration:
     readout = number("readout_ms", default=0.0, positive=False) / 1e3
     if readout > 0.1:
         raise InputError(f"{p}: calibration key 'readout_ms' = {readout * 1e3:g}: want 0..100 ms")
-    return Calibration(str(data.get("name", p.stem)), intrinsics, scale, readout)
+    try:
+        model = depthmodel.from_fields(data, focal_px=intrinsics.fx)
+    except ValueError as exc:
+        raise InputError(f"{p}: calibration key {exc}") from None
+    return Calibration(str(data.get("name", p.stem)), intrinsics, scale, readout, model)

@@ -15,6 +15,7 @@ from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
+from octolog.kit import depthmodel
 from octolog.kit.bus import Bus
 from octolog.kit.errors import DeviceLost, RecorderError
 from octolog.kit.geometry import EncodedRgbd, RgbdFrame
@@ -189,7 +190,9 @@ class BusPublisher:
             assert self._device.color is not None
             c, d = cap.color, cap.aligned_depth
             if self._props.count == 0:  # before the first frame: the D455's colour camera has a global shutter
-                self._props.put(streammsgs.camera_properties_msg(self._device.name, 0.0, c.stamp_ns))
+                depth = self._device.depth
+                model = depthmodel.realsense(self._device.name, depth.fx) if depth is not None else None
+                self._props.put(streammsgs.camera_properties_msg(self._device.name, 0.0, c.stamp_ns, model))
             if self._behind(c.stamp_ns):
                 self.held_back += 1  # the tracker would skip this one
                 return

@@ -14,6 +14,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from octolog.kit import depthmodel
 from octolog.kit.errors import InputError
 from octolog.kit.geometry import Intrinsics
 from octolog.kit.tum import TUM_DEPTH_SCALE_M, open_tum, read_list, read_png, read_rows, readout_for, seconds_to_ns
@@ -62,6 +63,8 @@ def import_tum(folder: Path, output: Path, *, overwrite: bool = False, compressi
             "depth_registered_to_color": "true",
             # the colour camera's rolling-shutter readout time (s), for the tracker; 0 = not known
             "color_readout_s": repr(readout_for(seq.camera)),
+            # the depth camera's error model (kit/depthmodel.py): the freiburg cameras are Kinect v1 / Xtion
+            **{k: repr(v) for k, v in depthmodel.KINECT.fields().items()},
             **intrinsics_fields("color", intr),
             "intrinsics_source": ("given on import" if intrinsics is not None
                                   else f"TUM RGB-D ROS default calibration of {seq.camera}"),

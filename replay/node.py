@@ -175,7 +175,7 @@ def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Pro
     bus.watch(["tracker"], required=False)  # see the end
     bus.publisher(CONFIGS["replay"]).put(streammsgs.config_msg("replay", to_dict(cfg)))
     # before the first frame, which depends on it (wire numbering): a tracker anywhere knows the camera
-    props_pub.put(streammsgs.camera_properties_msg(source.name, source.readout_s))
+    props_pub.put(streammsgs.camera_properties_msg(source.name, source.readout_s, depth=source.depth_model))
     end = None if cfg.end < 0 else cfg.end
     total = max(0, min(len(source), end if end is not None else len(source)) - cfg.start) * cfg.loop
     status = ReplayStatus(total=total)

@@ -15,13 +15,15 @@ from typing import Any, Protocol, TypeVar
 
 import numpy as np
 
+from octolog.kit import depthmodel
 from octolog.kit.calibration import is_calibration_file, load_calibration
+from octolog.kit.depthmodel import DepthModel
 from octolog.kit.errors import ConfigError, InputError
 from octolog.kit.geometry import EncodedRgbd, RgbdFrame
 from octolog.kit import metrics
 from octolog.kit.mcaplog import read_wire, summarize
 from octolog.kit.tum import open_tum, readout_for
-from octolog.replay import gravity
+from octolog.replay import depth_noise, gravity
 from octolog.replay.standard import has_standard_frames, open_standard
 from octolog.replay.synthetic import SyntheticScene
 from octolog.schemas import codec, posemsgs, rgbdmsgs
@@ -42,6 +44,7 @@ F = TypeVar("F", RgbdFrame, EncodedRgbd)
 class Source(Protocol):
     name: str
     readout_s: float  # the colour camera's rolling-shutter readout time in s (0: global shutter or unknown)
+    depth_model: DepthModel | None  # the depth camera's error model (kit/depthmodel.py); None: unknown
     encoded: bool  # it stores its images encoded (PNG/JPEG) and encoded_frames gives them undecoded
 
     def __len__(self) -> int: ...
@@ -77,10 +80,11 @@ class TumSource:
             cal = load_calibration(self.camera)
             seq = open_tum(self.path, cal.intrinsics, camera=cal.name)
             seq = dataclasses.replace(seq, depth_scale_m=cal.depth_scale_m or seq.depth_scale_m)
-            self.readout_s = cal.readout_s
+            self.readout_s, self.depth_model = cal.readout_s, cal.depth_model
         else:
             seq = open_tum(self.path, camera=self.camera)
             self.readout_s = readout_for(seq.camera)  # the colour camera's rolling shutter (0 = unknown)
+            self.depth_model = depthmodel.KINECT  # TUM's freiburg cameras: Kinect v1 / Xtion
         self.seq = seq if self.every == 1 else dataclasses.replace(seq, pairs=seq.pairs[:: self.every])
         self.name = f"tum:{self.path}" + (f" (every {self.every})" if self.every > 1 else "")
 
@@ -181,6 +185,24 @@ class McapSource:
             raise InputError(f"{self.path}: unreadable colour readout time in the metadata") from None
 
     @property
+    def depth_model(self) -> DepthModel | None:
+        """The depth camera's error model: a calibration file's, the recording's `calibration` record's
+        (kit/depthmodel.FIELDS), a RealSense's from its product name and its depth stream's focal length;
+        else None."""
+        if self._calibration is not None:
+            return self._calibration.depth_model
+        calib = self._metadata.get("calibration", {})
+        try:
+            given = depthmodel.from_fields(calib)
+            if given is not None:
+                return given
+            depth = json.loads(calib.get("depth_intrinsics") or "{}")
+        except ValueError as exc:
+            raise InputError(f"{self.path}: calibration metadata: {exc}") from None
+        name = str(self._metadata.get("device", {}).get("name", ""))
+        return depthmodel.realsense(name, float(depth["fx"])) if "fx" in depth else None
+
+    @property
     def duration_ns(self) -> int:
         if self._standard is not None:
             return self._standard.duration_ns
@@ -271,6 +293,12 @@ class SyntheticSource:
     readout_s = 0.0  # rendered, every row at once
     encoded = False  # rendered pixels
 
+    @property
+    def depth_model(self) -> DepthModel | None:
+        """The simulated sensor's (replay/depth_noise.py); None for exact depth."""
+        s = depth_noise.SENSORS.get(self.depth_noise)
+        return DepthModel(s.baseline_m, s.focal_px, s.sigma_px) if s is not None else None
+
     def __post_init__(self) -> None:
         self.scene = SyntheticScene(n_frames=self.n_frames, start_tilt_deg=self.start_tilt_deg, motion=self.motion,
                                     exposure_ms=self.exposure_ms, depth_noise=self.depth_noise,
@@ -314,7 +342,7 @@ class Subsampled:
 
     def __post_init__(self) -> None:
         self.name = f"{self.inner.name} (every {self.every})"
-        self.readout_s = self.inner.readout_s
+        self.readout_s, self.depth_model = self.inner.readout_s, self.inner.depth_model
         self.encoded = self.inner.encoded
 
     def __len__(self) -> int:
@@ -355,7 +383,7 @@ class Retimed:
 
     def __post_init__(self) -> None:
         self.name = f"{self.inner.name} at {self.factor}x speed"
-        self.readout_s = self.inner.readout_s
+        self.readout_s, self.depth_model = self.inner.readout_s, self.inner.depth_model
         self.encoded = self.inner.encoded
         first = self.inner.encoded_frames(0, 1) if self.encoded else self.inner.frames(0, 1)
         self.t0_ns = next(iter(first)).stamp_ns

@@ -74,7 +74,10 @@ ADDED_FIELDS = {("octolog_msgs/msg/TrackingStatus", "map_moved_m"): "0.0",
                 ("octolog_msgs/msg/TrackingStatus", "relocalised"): "false",
                 ("octolog_msgs/msg/Keyframe", "depth_inverse_offset"): "0.0",
                 ("octolog_msgs/msg/CompressedKeyframe", "depth_inverse_offset"): "0.0",
-                ("octolog_msgs/msg/KeyframePoses", "depth_inverse_offset"): "0.0"}
+                ("octolog_msgs/msg/KeyframePoses", "depth_inverse_offset"): "0.0",
+                ("octolog_msgs/msg/CameraProperties", "depth_baseline_m"): "0.0",
+                ("octolog_msgs/msg/CameraProperties", "depth_focal_px"): "0.0",
+                ("octolog_msgs/msg/CameraProperties", "depth_disparity_sigma_px"): "0.0"}
 # TrackingStatus.state -> diagnostic level (OK=0, WARN=1, ERROR=2): INIT and SKIPPED warn, LOST is an error
 _STATE_LEVEL = {0: 1, 1: 0, 2: 2, 3: 1}
 

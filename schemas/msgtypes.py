@@ -117,6 +117,9 @@ class CameraPropertiesMsg(Protocol):
     header: Header
     camera: str
     readout_s: float
+    depth_baseline_m: float
+    depth_focal_px: float
+    depth_disparity_sigma_px: float
 
 
 class StreamEndMsg(Protocol):

@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 from typing import Any
 
+from octolog.kit import depthmodel
+from octolog.kit.depthmodel import DepthModel
 from octolog.schemas.codec import header, msgtype
 from octolog.schemas.msgtypes import CAMERA_PROPERTIES, STREAM_END, CameraPropertiesMsg, StreamEndMsg, String
 
@@ -18,7 +20,18 @@ def stream_end_msg(topic: str, count: int, stamp: int = 0) -> StreamEndMsg:
     return msg
 
 
-def camera_properties_msg(camera: str, readout_s: float, stamp: int = 0) -> CameraPropertiesMsg:
+def camera_properties_msg(camera: str, readout_s: float, stamp: int = 0, depth: DepthModel | None = None
+                          ) -> CameraPropertiesMsg:
+    """The camera's properties; `depth` its depth error model (zeros when unknown)."""
+    fields = depth.fields() if depth is not None else dict.fromkeys(depthmodel.FIELDS, 0.0)
     msg: CameraPropertiesMsg = msgtype(CAMERA_PROPERTIES)(header=header(stamp, ""), camera=camera,
-                                                          readout_s=float(readout_s))
+                                                          readout_s=float(readout_s), **fields)
     return msg
+
+
+def depth_model_from(msg: CameraPropertiesMsg) -> DepthModel | None:
+    """The depth error model a CameraProperties carries, None when it has none (zeros) or a bad one."""
+    try:
+        return DepthModel(msg.depth_baseline_m, msg.depth_focal_px, msg.depth_disparity_sigma_px)
+    except ValueError:
+        return None

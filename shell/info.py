@@ -50,6 +50,8 @@ def depth_bias_line(b: dict) -> str:
     at = ", ".join(f"{-100 * v['bias_m'] / float(z):+.2f} ± {100 * v['sigma_m'] / float(z):.2f} % at {z} m"
                    for z, v in bands.items()) if bands else \
         ", ".join(f"{-100 * v / float(z):+.2f} % at {z} m" for z, v in b["bias_m"].items() if float(z) in (2.0, 4.0))
+    if b.get("disparity_offset_px") is not None:
+        at += f" (a disparity offset of {b['disparity_offset_px']:+.3f} px)"
     corrected = float(b.get("corrected_per_m", 0.0))
     if corrected:
         return (f"  depth bias (from the map): reads short by {at}; corrected by {corrected:.5f} 1/m"

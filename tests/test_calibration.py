@@ -14,7 +14,9 @@ import pytest
 from test_importers import SMALL, _layout_mcap
 from test_tum import make_tum
 
+from octolog.kit import depthmodel
 from octolog.kit.calibration import load_calibration
+from octolog.kit.depthmodel import DepthModel
 from octolog.kit.errors import InputError
 from octolog.replay.sources import open_source
 
@@ -72,6 +74,9 @@ def test_an_mcap_recording_without_camera_info_runs_with_a_calibration_file(tmp_
     (lambda t: t + "fov = 90\n", "unknown calibration key 'fov'"),
     (lambda t: t.replace("fx = 50.0", "fx = nan"), "'fx' = nan"),
     (lambda t: t.replace("name =", "name"), "invalid TOML"),
+    (lambda t: t + "depth_baseline_m = 0.05\n", "depth_disparity_sigma_px missing"),
+    (lambda t: t + "depth_baseline_m = 0\ndepth_disparity_sigma_px = 0.1\n", "depth_baseline_m = 0.0: want a positive"),
+    (lambda t: t + "depth_baseline_m = 0.05\ndepth_disparity_sigma_px = 'x'\n", "depth_disparity_sigma_px = 'x'"),
 ])
 def test_a_bad_calibration_file_is_one_line_naming_the_key(tmp_path, edit, message):
     with pytest.raises(InputError, match=message) as err:
@@ -84,3 +89,20 @@ def test_replay_camera_takes_a_calibration_file_only_where_it_means_something(tm
 
     with pytest.raises(ConfigError, match="replay.camera"):
         open_source("synthetic:5", camera=_cal(tmp_path))
+
+
+def test_the_depth_error_model_comes_from_the_calibration_file_or_the_camera_the_source_names(tmp_path):
+    """Baseline, focal length (default fx) and disparity noise from the file's keys; a TUM folder's
+    freiburg camera is the Kinect model; a file without the keys leaves the model unknown."""
+    folder = make_tum(tmp_path / "my_sequence", n=2)
+    given = open_source(f"tum:{folder}", camera=_cal(tmp_path, CAL + "depth_baseline_m = 0.05\n"
+                                                                 "depth_disparity_sigma_px = 0.1\n"))
+    assert given.depth_model == DepthModel(0.05, 50.0, 0.1)
+    assert open_source(f"tum:{folder}", camera=_cal(tmp_path)).depth_model is None
+    tum = open_source(f"tum:{make_tum(tmp_path / 'rgbd_dataset_freiburg1_x', n=2)}")
+    assert tum.depth_model == depthmodel.KINECT
+    # what the model says: Khoshelham and Elberink's Kinect, 1.4 mm at 1 m and 3.6 cm at 5 m
+    assert depthmodel.KINECT.sigma_m(1.0) == pytest.approx(1.43e-3, rel=0.01)
+    assert depthmodel.KINECT.sigma_m(5.0) == pytest.approx(0.0357, rel=0.01)
+    assert depthmodel.realsense("Intel RealSense D435I", 213.0).baseline_m == 0.050
+    assert depthmodel.realsense("Orbbec Astra", 570.0) is None

@@ -9,7 +9,11 @@ import numpy as np
 import pytest
 
 from octolog.kit.errors import ConfigError
-from octolog.tracker.config import TrackerConfig
+from octolog.kit import depthmodel
+from octolog.replay.synthetic import SyntheticScene
+from octolog.tracker.config import TrackerConfig, with_depth_model
+from octolog.tracker.factory import set_depth_model
+from octolog.tracker.odometry import RgbdSlam
 from octolog.tracker.depth_bias import MIN_POINTS, estimate_depth_bias
 
 
@@ -66,3 +70,30 @@ def test_the_correction_setting_is_checked():
     bad = dataclasses.replace(cfg, depth=dataclasses.replace(cfg.depth, inverse_offset=0.1))
     with pytest.raises(ConfigError, match="depth.inverse_offset"):
         bad.validate()
+
+
+def test_a_cameras_depth_model_makes_far_readings_bearings_and_leaves_the_known_cameras_as_they_are():
+    """kit/depthmodel.py through the tracker: the TUM Kinect's and the D455's models change no
+    parameter (their metric ranges, 14 and 9 m, lie beyond tracker.depth.max_m); a 50 mm stereo
+    camera at 280 px (metric to 3.5 m) makes the tracker take no reading beyond that range."""
+    params = TrackerConfig().odometry_params()
+    for model in (depthmodel.KINECT, depthmodel.d455(382.0)):
+        assert with_depth_model(params, model) == params
+    weak = depthmodel.realsense("Intel RealSense D435", 280.0)
+    assert 3.0 < weak.metric_range_m < 4.0
+    frame = SyntheticScene(n_frames=2).render(0)
+    far = []
+    for model in (None, weak):
+        odo = RgbdSlam(params)
+        set_depth_model(odo, model)
+        odo.track(frame)
+        far.append(float(odo._keyframes[0].feats.z.max()))
+    assert far[0] > weak.metric_range_m >= far[1] > 0, far
+
+
+def test_the_bias_is_reported_in_disparity_pixels_when_the_camera_is_known():
+    est = estimate_depth_bias(*_readings(0.0023, noise=1.4e-3))
+    assert est.disparity_px is None
+    known = est.after(0.001, 1, depthmodel.KINECT.fb)
+    assert known.disparity_px == pytest.approx((est.inverse_offset + 0.001) * 43.5)
+    assert f"{known.disparity_px:+.3f} px" in known.summary() and known.as_dict()["disparity_offset_px"] == known.disparity_px

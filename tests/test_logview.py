@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from octolog.kit import depthmodel
 from octolog.kit.errors import InputError
 from octolog.kit.mcaplog import McapWriter, read_messages, read_wire, summarize
 from octolog.replay.sources import SyntheticSource
@@ -60,6 +61,7 @@ def test_bookkeeping_messages_become_diagnostics():
         assert {kv.key: kv.value for kv in diag.status[0].values}["seq"] == str(2**64 - 1)
     _round_trip(topics.RGBD_END, streammsgs.stream_end_msg("camera/rgbd/ümlaut \"quoted\"", 300, 5))
     _round_trip(topics.CAMERA_PROPERTIES, streammsgs.camera_properties_msg("D455", 1 / 3))
+    _round_trip(topics.CAMERA_PROPERTIES, streammsgs.camera_properties_msg("D455", 0.0, 7, depthmodel.d455(382.0)))
     parts = _round_trip(topics.KEYFRAME_POSES, posemsgs.keyframe_poses_msg({3: np.eye(4), 1: np.eye(4)}))
     assert parts[0][:2] == ("tracker/keyframe_poses/poses", logview.POSE_ARRAY)
     _round_trip(topics.KEYFRAME_POSES, posemsgs.keyframe_poses_msg({}))

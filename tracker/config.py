@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
+from octolog.kit.depthmodel import DepthModel
 from octolog.kit.errors import ConfigError
 from octolog.schemas.wirecompression import parse_wire_compression
 
@@ -325,3 +326,18 @@ def _validate_back_end(b: BundleAdjustmentParams, lp: LoopParams) -> None:
           f"want > loops.min_correction_m ({lp.min_correction_m})")
     _want(lp.max_correction_deg > lp.min_correction_deg, "loops.max_correction_deg", lp.max_correction_deg,
           f"want > loops.min_correction_deg ({lp.min_correction_deg})")
+
+
+def with_depth_model(params: OdometryParams, model: DepthModel) -> OdometryParams:
+    """`params` for a camera whose depth error `model` says (kit/depthmodel.py): readings beyond its
+    metric range are bearings (no depth residual, no new map point), and no inverse-depth sigma is
+    below what the camera measures. The TUM Kinects' and the D455's models change nothing of the
+    defaults (metric range 9-14 m, inverse-depth sigma 0.0014-0.0022 1/m); a camera with a short
+    baseline or a low resolution does."""
+    metric = model.metric_range_m
+    d = replace(params.depth, max_m=min(params.depth.max_m, metric),
+                max_new_point_m=min(params.depth.max_new_point_m, metric))
+    t = replace(params.tracking, inv_depth_sigma=max(params.tracking.inv_depth_sigma, model.inverse_sigma))
+    b = replace(params.bundle_adjustment,
+                inv_depth_sigma=max(params.bundle_adjustment.inv_depth_sigma, model.inverse_sigma))
+    return replace(params, depth=d, tracking=t, bundle_adjustment=b)

@@ -56,10 +56,17 @@ class DepthBias:
     # tracker.depth.correct_bias added, `corrections` times); the camera's bias is both together
     corrected: float = 0.0
     corrections: int = 0
+    fb: float = 0.0  # the camera's focal length times baseline (px m), when known: the bias in disparity
 
-    def after(self, corrected: float, corrections: int) -> DepthBias:
-        """This estimate, made from readings that had taken the correction `corrected`."""
-        return replace(self, corrected=corrected, corrections=corrections)
+    def after(self, corrected: float, corrections: int, fb: float = 0.0) -> DepthBias:
+        """This estimate, made from readings that had taken the correction `corrected`, of a camera
+        with focal length times baseline `fb` (0: unknown)."""
+        return replace(self, corrected=corrected, corrections=corrections, fb=fb)
+
+    @property
+    def disparity_px(self) -> float | None:
+        """The camera's bias as a disparity offset (px; > 0: reads short), when its fb is known."""
+        return (self.inverse_offset + self.corrected) * self.fb if self.fb else None
 
     @property
     def confident(self) -> bool:
@@ -85,14 +92,15 @@ class DepthBias:
         verdict = "" if self.confident else " (not significant)"
         done = (f"{self.corrected:.5f} 1/m corrected" + (f" ({self.corrections} times while tracking)"
                                                           if self.corrections else "") + ", ") if self.corrected else ""
-        return (f"depth reads short by {at}; {done}inverse offset {self.inverse_offset:.5f} ± {self.sigma:.5f} 1/m "
+        px = f" (a disparity offset of {self.disparity_px:+.3f} px)" if self.disparity_px is not None else ""
+        return (f"depth reads short by {at}{px}; {done}inverse offset {self.inverse_offset:.5f} ± {self.sigma:.5f} 1/m "
                 f"left{verdict}, from {self.points} points seen at least twice")
 
     def as_dict(self) -> dict:
         return {"inverse_offset_per_m": self.inverse_offset, "sigma_per_m": self.sigma, "scale": self.scale,
                 "points": self.points, "readings": self.readings, "confident": self.confident,
                 "bias_m": {f"{z:g}": b for z, b in self.bias_m.items()}, "corrected_per_m": self.corrected,
-                "corrections": self.corrections,
+                "corrections": self.corrections, "disparity_offset_px": self.disparity_px,
                 "bands": {f"{z:g}": {"bias_m": b, "sigma_m": sd, "readings": self.bands[z][2]}
                           for z, (b, sd) in self.band_bias_m.items()}}
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from octolog.kit.depthmodel import DepthModel
 from octolog.tracker.depth_bias import DepthBias, bias_from_map
 from octolog.tracker.features import FrameFeatures
 from octolog.tracker.keyframe_map import depth_weight
@@ -44,11 +45,16 @@ class DepthCorrection:
 
     depth_offset: float  # the correction every reading takes now (1/m): the configured one plus what was found
     depth_corrections: int  # how many times the map was corrected
+    depth_model: DepthModel | None = None  # the camera's depth error model, when the stream says it (factory.set_depth_model)
 
     def depth_bias(self) -> DepthBias | None:
-        """The depth camera's systematic error as the map has it (tracker/depth_bias.py), or None.
-        With the correction on, it is what remains after the correction."""
-        return bias_from_map(self._keyframes, self._map.xyz)
+        """The depth camera's systematic error as the map has it (tracker/depth_bias.py), or None:
+        what is left in the readings after the correction they took (`corrected`), and the camera's."""
+        estimate = bias_from_map(self._keyframes, self._map.xyz)
+        if estimate is None:
+            return None
+        return estimate.after(self.depth_offset, self.depth_corrections,
+                              self.depth_model.fb if self.depth_model is not None else 0.0)
 
     def _bias_found(self) -> DepthBias | None:
         """A confident bias in the newest keyframes' readings, when a check is due; else None."""

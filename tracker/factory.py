@@ -7,7 +7,8 @@ from __future__ import annotations
 
 import dataclasses
 
-from octolog.tracker.config import TrackerConfig
+from octolog.kit.depthmodel import DepthModel
+from octolog.tracker.config import TrackerConfig, with_depth_model
 from octolog.tracker.interface import Tracker
 from octolog.tracker.odometry import RgbdSlam
 from octolog.tracker.orbslam3 import OrbSlam3Odometry
@@ -35,3 +36,13 @@ def set_readout(odometry: Tracker, readout_s: float) -> None:
     params = getattr(odometry, "params", None)
     if params is not None and hasattr(params, "readout_s"):
         odometry.params = dataclasses.replace(params, readout_s=float(readout_s))
+
+
+def set_depth_model(odometry: Tracker, model: DepthModel | None) -> None:
+    """Give a tracker the depth camera's error model before its first frame (tracker.config.
+    with_depth_model); a tracker without one (ORB-SLAM3) or an unknown camera: nothing changes."""
+    params = getattr(odometry, "params", None)
+    if model is None or params is None or not hasattr(params, "depth"):
+        return
+    odometry.params = with_depth_model(params, model)
+    odometry.depth_model = model

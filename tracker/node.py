@@ -43,7 +43,7 @@ from octolog.schemas.topics import (
 )
 from octolog.tracker.config import TrackerConfig
 from octolog.tracker.depth_bias import DepthBias
-from octolog.tracker.factory import make_odometry, set_readout
+from octolog.tracker.factory import make_odometry, set_depth_model, set_readout
 from octolog.tracker.intake import FRAME_PRODUCERS, Intake
 from octolog.tracker.interface import Tracker, TrackingState, TrackResult
 
@@ -175,8 +175,6 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
     estimate = getattr(odometry, "depth_bias", None)  # the native tracker's; ORB-SLAM3 has none
     result.depth_bias = estimate() if estimate is not None else None
     if result.depth_bias is not None:
-        result.depth_bias = result.depth_bias.after(odometry.depth_offset, odometry.depth_corrections)
-    if result.depth_bias is not None:
         viz.text("tracker/events", result.depth_bias.summary())
     bus.linger("mapper")
     return result
@@ -261,8 +259,10 @@ def warm_up() -> None:
 
 
 def use_camera(odometry: Tracker, cfg: TrackerConfig, props: Any) -> None:
-    """The stream's camera properties: its readout unless the config sets one (then a warning if
-    they disagree), so a tracker on another machine tracks as `octolog run` does."""
+    """The stream's camera properties: its depth error model (kit/depthmodel.py), its readout unless
+    the config sets one (then a warning if they disagree), so a tracker on another machine tracks as
+    `octolog run` does."""
+    set_depth_model(odometry, streammsgs.depth_model_from(props))
     if cfg.rolling_shutter_ms is None:
         set_readout(odometry, props.readout_s)
     elif abs(cfg.rolling_shutter_ms - props.readout_s * 1e3) > 1e-6:
