@@ -55,6 +55,9 @@ class MapperConfig:
     # publish the map (octomap, occupied voxels, 2D grid) every n keyframes and at the end; 0: end only.
     # Counted in keyframes, not seconds, so the session log stays deterministic.
     publish_every: int = 10
+    # an earlier session's folder whose map this one starts from and extends (mapper/prior.py; `octolog
+    # run --map` sets it, with that session's grid_up); "": an empty map
+    prior: str = ""
     # cameras farther than this from the origin are refused (OctoMap's 5 cm key range is ±1638 m)
     max_extent_m: float = 1000.0
     # 2D occupancy grid: the band of heights projected, in a level frame whose +z is `grid_up`

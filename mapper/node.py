@@ -15,6 +15,7 @@ from octolog.mapper.config import MapperConfig
 from octolog.mapper.core import Mapper, make_mapper
 from octolog.mapper.fleet.node import run_fleet
 from octolog.mapper.mapframe import MapFrame
+from octolog.mapper.prior import seed
 from octolog.mapper.process import INBOX_KEYFRAMES, MapperResult, MapSnapshots, answer_save, finish, log_map
 from octolog.schemas import codec, posemsgs, rgbdmsgs, streammsgs
 from octolog.schemas.topics import (
@@ -35,13 +36,15 @@ def run(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: str = "o
     if cfg.robots:
         return run_fleet(cfg, bus_cfg, out_dir=out_dir, rerun=rerun, recording_id=recording_id)
     mapper = make_mapper(cfg)
+    prior = seed(mapper, cfg.prior) if cfg.prior else 0  # before the bus: a bad prior stops nothing running
     with Bus(bus_cfg, "mapper", inbox_size=INBOX_KEYFRAMES) as bus, Viz(rerun, "mapper", recording_id) as viz:
         publisher = MapSnapshots(bus, mapper, cfg.publish_every)
         publisher.frame = MapFrame(mapper, bus, viz, from_imu=not cfg.grid_up)
         result = consume(mapper, cfg, bus, viz, publisher, out_dir)
         publisher.frame.resolve()  # before the last snapshot, if none came before it
         found = publisher.frame.found
-        finish(mapper, result, bus, viz, publisher, out_dir, {"map_frame": found} if found else None)
+        extra = ({"map_frame": found} if found else {}) | ({"prior_keyframes": prior, "prior": cfg.prior} if prior else {})
+        finish(mapper, result, bus, viz, publisher, out_dir, extra or None)
     return result
 
 

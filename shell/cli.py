@@ -106,8 +106,11 @@ def cmd_track(args: argparse.Namespace) -> int:
     from octolog.tracker.config import TrackerConfig
 
     cfg = load(TrackerConfig, args.config, args.set, section="tracker")
+    if args.map:
+        cfg = dataclasses.replace(cfg, map=args.map)
     res = node.run(cfg, bus_config(args), trajectory=Path(args.trajectory) if args.trajectory else None,
-                   rerun=args.rerun, recording_id=recording_id(args))
+                   rerun=args.rerun, recording_id=recording_id(args),
+                   save_map=Path(args.save_map) if args.save_map else None)
     print(f"tracker: {res.frames} frames, {res.tracked} tracked, {res.lost} lost, {res.skipped} skipped, "
           f"{res.rejected} rejected, {res.keyframes} keyframes, {res.loops} loops closed, "
           f"{res.relocalisations} relocalisations"
@@ -117,6 +120,11 @@ def cmd_track(args: argparse.Namespace) -> int:
     if res.depth_bias is not None:
         print(f"tracker: {res.depth_bias.summary()}")
         errorfile.FINDINGS["depth_bias"] = res.depth_bias.as_dict()
+    if res.prior is not None:
+        from octolog.shell.info import prior_line
+
+        print(f"tracker: {prior_line(res.prior)}")
+        errorfile.FINDINGS["prior_map"] = res.prior
     return 0
 
 
@@ -157,7 +165,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         source=args.source, out=Path(args.out), config=args.config, overrides=args.set, rerun=args.rerun,
         recording_id=recording_id(args), quiet=args.quiet, overwrite=args.overwrite,
         duration_s=getattr(args, "duration", 0.0), router=getattr(args, "router", None),
-        ros2_domain=args.ros2_domain,
+        ros2_domain=args.ros2_domain, prior_map=getattr(args, "map", None),
     )
     print(run.format_summary(summary))
     return 0
@@ -271,6 +279,9 @@ def _add_session_commands(sub: Any) -> None:
     p.add_argument("--router", metavar="ENDPOINT",
                    help="the stages join this Zenoh router (e.g. tcp/127.0.0.1:7447) instead of one hosted on a "
                         "free loopback port: to watch or probe the session's topics from another process")
+    p.add_argument("--map", metavar="SESSION_OR_MAP",
+                   help="track in the SLAM map an earlier session saved (its folder, or its slam_map.npz): "
+                        "tracker.map; tracker.mode=localize only tracks in it")
     _session_arguments(p)
     p.set_defaults(func=cmd_run)
 
@@ -296,6 +307,8 @@ def _add_stage_commands(sub: Any) -> None:
 
     p = _stage_parser(sub, "track", "run the tracker on frames from the bus")
     p.add_argument("--trajectory", help="write the TUM-format trajectory here at the end")
+    p.add_argument("--map", help="track in a saved SLAM map: a session folder or its slam_map.npz (tracker.map)")
+    p.add_argument("--save-map", help="write the SLAM map here at the end (the format: docs/formats.md)")
     p.set_defaults(func=cmd_track)
 
     p = _stage_parser(sub, "map", "run the mapper on keyframes from the bus")

@@ -132,3 +132,15 @@ def describe_map(path: Path) -> str:
             free += 1
     return (f"{path}: OctoMap {fields['id'].strip()}, resolution {res:g} m, {expected} nodes, "
             f"{occupied} occupied and {free} free leaves")
+
+
+def prior_line(p: dict) -> str:
+    """What became of a saved map the tracker was given (summary.json `prior_map`)."""
+    mode = " (localize: not changed)" if p.get("mode") == "localize" else ""
+    if p.get("dropped"):
+        return (f"saved map {p['map']}: the camera was not found in it within {p['frames_before']} frames; "
+                f"tracked as a separate map, not merged")
+    if p.get("found_at_frame", -1) < 0:
+        return f"saved map {p['map']}: the camera was never found in it ({p['frames_before']} frames LOST)"
+    return (f"saved map {p['map']} ({p['keyframes']} keyframes){mode}: found at frame {p['found_at_frame']}, "
+            f"after {p['frames_before']} frames not found")

@@ -36,10 +36,12 @@ from octolog.schemas.topics import RGBD, RGBD_COMPRESSED, TRACKING_STATUS
 from octolog.schemas.wirecompression import SOURCE
 from octolog.shell import errorfile
 from octolog.shell.children import StageProcesses, hosted_router
-from octolog.shell.info import depth_bias_line
+from octolog.shell.info import depth_bias_line, prior_line
 from octolog.shell.sessiondir import INCOMPLETE, incomplete_reason, prepare_out
 from octolog.shell.versions import versions
 from octolog.tracker.config import TrackerConfig, for_source
+from octolog.tracker.mapfile import FILENAME as MAP_FILENAME
+from octolog.tracker.mapfile import load_map, map_path
 
 STAGES = ("log", "mapper", "tracker", "replay")
 
@@ -63,6 +65,7 @@ class SessionSummary:
     malformed: dict[str, dict[str, int]] = field(default_factory=dict)  # stage -> topic -> samples dropped
     map_frame: str = NOT_ALIGNED  # whether the map frame's z is up, and where that came from
     depth_bias: dict | None = None  # the tracker's estimate of the depth camera's systematic error (summary.json)
+    prior_map: dict | None = None  # what became of the saved map the tracker was given (tracker.map)
 
 
 # Live sources: a D455 (pyrealsense2) or the simulated one (its software device, paced at the
@@ -157,10 +160,23 @@ def _live_resolution(rec: Any, config: str | None, sets: list[str]) -> Any:
     return dataclasses.replace(rec, **sizes)
 
 
+def _prior_mapper(cfg: MapperConfig, folder: Path) -> MapperConfig:
+    """The mapper of a session tracked in `folder`'s saved map: it starts from that session's map, in
+    its frame (its config.toml's grid_up), unless the config says otherwise; a bare map file (no
+    session log beside it) gives the tracker's world alone."""
+    if cfg.prior or not (folder / "session.mcap").is_file():
+        return cfg
+    try:
+        up = tomllib.loads((folder / "config.toml").read_text()).get("mapper", {}).get("grid_up")
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise InputError(f"{folder}: unreadable config.toml of the saved map's session ({exc})") from None
+    return dataclasses.replace(cfg, prior=str(folder.resolve()), grid_up=up or cfg.grid_up)
+
+
 def run_session(*, source: str, out: Path, config: str | None = None, overrides: list[str] | None = None,
                 rerun: str = "save", recording_id: str, quiet: bool = False,
                 overwrite: bool = False, duration_s: float = 0.0, router: str | None = None,
-                ros2_domain: int = -1) -> SessionSummary:
+                ros2_domain: int = -1, prior_map: str | None = None) -> SessionSummary:
     """Run the whole pipeline on `source` into `out` (config, logs, session.mcap, map, trajectory).
 
     Until it succeeds, `out` holds an INCOMPLETE file; a failed run writes its error there.
@@ -169,6 +185,8 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     # a live camera: the tracker keeps up by skipping frames (each skip on record), and the camera
     # publishes no frame while the tracker has two in hand and lags (it would skip it), unless told otherwise
     live_sets = ["tracker.live=true", "recorder.publish_window=2"] if live else []
+    if prior_map:  # `--map`: the tracker's saved map, read here first so a bad one stops the run before it starts
+        live_sets.append(f"tracker.map={map_path(prior_map).resolve()}")
     cfgs = _resolve_configs(source, config, _split_overrides(live_sets + (overrides or []), live=live))
     replay_cfg = cfgs["replay"]
     feed_tracker = replay_cfg.play == "tracker"  # a log player stands in for the tracker
@@ -181,6 +199,9 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
                                                       retime=replay_cfg.retime,
                                                       keyframes_only=feed_tracker)
     cfgs["tracker"] = for_source(cfgs["tracker"], src)  # an unset rolling shutter: the source's camera
+    if cfgs["tracker"].map:
+        load_map(cfgs["tracker"].map)
+        cfgs["mapper"] = _prior_mapper(cfgs["mapper"], map_path(cfgs["tracker"].map).parent)
     if live and not any(o.split("=", 1)[0].strip() == "recorder.publish_lag_ms" for o in overrides or []):
         # the camera holds back only what the tracker would skip: a burst within its lag it tracks in order
         cfgs["recorder"] = dataclasses.replace(cfgs["recorder"], publish_lag_ms=cfgs["tracker"].live_lag_ms)
@@ -268,7 +289,8 @@ def _start_stages(children: StageProcesses, plan: SessionPlan, endpoint: str, re
                            "--compression", plan.log_compression, "--stages", producers])
     children.start("mapper", ["map", *bus, *viz, *conf, "--out", str(out)])
     if not plan.feed_tracker:
-        children.start("tracker", ["track", *bus, *viz, *conf, "--trajectory", str(out / "trajectory.txt")])
+        children.start("tracker", ["track", *bus, *viz, *conf, "--trajectory", str(out / "trajectory.txt"),
+                                    "--save-map", str(out / MAP_FILENAME)])
     quiet_flag = [] if not plan.quiet else ["--quiet"]
     if plan.live:  # the camera in full to recording.mcap; its images reach Rerun through the tracker
         children.start("recorder", ["record", str(out / "recording.mcap"), "--publish", *bus, "--rerun", "off",
@@ -378,12 +400,13 @@ def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, re
     # where each stage's CPU went (kit/cpuclock.py); CPU time differs run to run: not for comparing outputs
     cpu = {p.name.removesuffix(".report.json"): errorfile.read_cpu(p) for p in sorted((out / "logs").glob("*.report.json"))}
     s.depth_bias = errorfile.read_finding(out / "logs" / "tracker.report.json", "depth_bias")
+    s.prior_map = errorfile.read_finding(out / "logs" / "tracker.report.json", "prior_map")
     if s.depth_bias is not None:  # the map's own record of the camera that made it
         s.map["depth_bias"] = s.depth_bias
         (out / "map_stats.json").write_text(json.dumps(s.map, indent=2, sort_keys=True) + "\n")
     (out / "summary.json").write_text(json.dumps(
         {"source": source, "frames": frames, "tracked_frames": s.frames, "wall_s": round(wall, 3),
-         "malformed": s.malformed, "map_frame": s.map_frame, "cpu_s": cpu, "depth_bias": s.depth_bias,
+         "malformed": s.malformed, "map_frame": s.map_frame, "cpu_s": cpu, "depth_bias": s.depth_bias, "prior_map": s.prior_map,
          "duration_s": s.duration_s, "ate": s.ate, "map": s.map, "files": sorted(s.files),
          "recording_id": recording_id, "versions": versions()},
         indent=2, sort_keys=True) + "\n")
@@ -403,6 +426,8 @@ def format_summary(s: SessionSummary) -> str:
     lines.append(f"  map frame: {s.map_frame}")
     if s.depth_bias:
         lines.append(depth_bias_line(s.depth_bias))
+    if s.prior_map:
+        lines.append("  " + prior_line(s.prior_map))
     for stage, counts in s.malformed.items():
         lines.append(f"  {stage} dropped malformed samples: " + ", ".join(f"{n} on {t}" for t, n in counts.items()))
     lines.append("  files: " + ", ".join(sorted(s.files)))

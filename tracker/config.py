@@ -17,6 +17,7 @@ from octolog.kit.depthmodel import DepthModel
 from octolog.kit.errors import ConfigError
 from octolog.schemas.wirecompression import parse_wire_compression
 
+MODES = ("map", "localize")
 BACKENDS = ("native", "orbslam3")
 
 
@@ -154,6 +155,8 @@ class OdometryParams:
     relocalise: bool
     bow_candidates: int
     readout_s: float  # rolling-shutter readout, first row to last (0: global shutter)
+    localize: bool = False  # tracker.mode = "localize": no keyframes, the map is not changed
+    map_find_frames: int = 30  # frames a saved map may take to find the camera in (tracker/prior.py)
 
 
 @dataclass(frozen=True)
@@ -214,6 +217,15 @@ class TrackerConfig:
     # benchmarks take it from the source (TUM freiburg1: 20 ms, see docs/architecture.md), a tracker
     # on the bus from the stream's camera properties (camera/rgbd/properties), else 0.
     rolling_shutter_ms: float | None = None
+    # native: a map an earlier session saved (its folder, or its slam_map.npz; `--map`): the tracker
+    # finds the camera in it by place recognition and tracks in its world ("": a new map)
+    map: str = ""
+    # with a map: "map" extends it where the camera sees new places; "localize" only tracks in it
+    # (no keyframes: neither the tracker's map nor the mapper's changes)
+    mode: str = "map"
+    # with a map: frames the camera may take to be found in it; then the tracker says so and makes a
+    # map of its own (a separate map, not merged)
+    map_find_frames: int = 30
     # native core, by stage (docs/cli.md lists every key)
     features: FeatureParams = field(default_factory=FeatureParams)
     depth: DepthParams = field(default_factory=DepthParams)
@@ -236,6 +248,10 @@ class TrackerConfig:
         _want(self.ba_window >= 1, "ba_window", self.ba_window, "want >= 1")
         _want(self.global_ba_keyframes >= 0, "global_ba_keyframes", self.global_ba_keyframes, "want >= 0 (0: none)")
         _want(self.bow_candidates >= 1, "bow_candidates", self.bow_candidates, "want >= 1")
+        _want(self.mode in MODES, "mode", self.mode, f"want one of {', '.join(MODES)}")
+        _want(self.mode == "map" or bool(self.map), "mode", self.mode, "localize needs a saved map (tracker.map, --map)")
+        _want(not self.map or self.backend == "native", "map", self.map, "a saved map needs backend = native")
+        _want(self.map_find_frames >= 1, "map_find_frames", self.map_find_frames, "want >= 1")
         if self.rolling_shutter_ms is not None:
             _want(0.0 <= self.rolling_shutter_ms <= 100.0, "rolling_shutter_ms", self.rolling_shutter_ms,
                   "want 0 to 100 (0 = global shutter)")
@@ -256,6 +272,7 @@ class TrackerConfig:
             bundle_adjustment=self.bundle_adjustment, global_ba_keyframes=self.global_ba_keyframes,
             loop_closing=self.loop_closing, loops=self.loops, relocalise=self.relocalise,
             bow_candidates=self.bow_candidates, readout_s=(self.rolling_shutter_ms or 0.0) / 1e3,
+            localize=self.mode == "localize", map_find_frames=self.map_find_frames,
         )
 
 

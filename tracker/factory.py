@@ -10,6 +10,7 @@ import dataclasses
 from octolog.kit.depthmodel import DepthModel
 from octolog.tracker.config import TrackerConfig, with_depth_model
 from octolog.tracker.interface import Tracker
+from octolog.tracker.mapfile import load_map
 from octolog.tracker.odometry import RgbdSlam
 from octolog.tracker.orbslam3 import OrbSlam3Odometry
 from octolog.tracker.vocab import load as load_vocabulary
@@ -25,9 +26,12 @@ def make_odometry(cfg: TrackerConfig) -> Tracker:
     params = cfg.odometry_params()
     vocabulary = load_vocabulary(cfg.vocabulary) if cfg.vocabulary else None
     background = Worker(min_job_s=cfg.backend_throttle_ms / 1e3) if cfg.background else False
-    return RgbdSlam(params, vocabulary=vocabulary, background=background,
-                        defer_backend=cfg.live_backend_defer if cfg.live else 0,
-                        backend_deferred_at=frozenset(int(s) for s in cfg.backend_deferred))
+    slam = RgbdSlam(params, vocabulary=vocabulary, background=background,
+                    defer_backend=cfg.live_backend_defer if cfg.live else 0,
+                    backend_deferred_at=frozenset(int(s) for s in cfg.backend_deferred))
+    if cfg.map:  # a saved map to track in (tracker/prior.py); InputError when it cannot be read
+        slam.adopt_map(load_map(cfg.map))
+    return slam
 
 
 def set_readout(odometry: Tracker, readout_s: float) -> None:

@@ -40,6 +40,8 @@ class LocalMapping:
         keyframe that holds most of the frame's inliers (ORB-SLAM's), not the newest: a camera back
         in a place the map already covers adds nothing, so a session that keeps revisiting a room
         keeps a map (and a back end) the size of the room, not of the session."""
+        if self.params.localize:  # tracker.mode = "localize": the map stays as it was
+            return False
         local = self._local_keyframes(pose, self.params.local_map.n_keyframes)
         shared_by = [int(np.isin(tracked.map_idx, self._keyframes[i].point_ids, assume_unique=True).sum())
                      for i in local]

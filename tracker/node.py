@@ -70,13 +70,22 @@ class TrackerRunSummary:
     poses: list[np.ndarray] = field(default_factory=list)
     ms: list[float] = field(default_factory=list)
     depth_bias: DepthBias | None = None  # the camera's depth error as the final map has it
+    # with a saved map (tracker.map): its keyframes, the frame the camera was found at in it (-1:
+    # never), and whether the tracker gave it up for a map of its own
+    prior: dict | None = None
 
 
 def run(cfg: TrackerConfig, bus_cfg: BusConfig, *, trajectory: Path | None = None, rerun: str = "off",
-        recording_id: str = "octolog") -> TrackerRunSummary:
+        recording_id: str = "octolog", save_map: Path | None = None) -> TrackerRunSummary:
     odometry = make_odometry(cfg)
     with Bus(bus_cfg, "tracker") as bus, Viz(rerun, "tracker", recording_id) as viz:
         result = track(odometry, cfg, bus, viz)
+    if cfg.map:
+        result.prior = {"map": cfg.map, "mode": cfg.mode, "keyframes": odometry.prior_keyframes,
+                        "found_at_frame": odometry.prior_found_at, "frames_before": odometry.prior_misses,
+                        "dropped": odometry.prior_dropped}
+    if save_map is not None and hasattr(odometry, "save_map") and result.tracked:
+        odometry.save_map(save_map)
     if trajectory is not None:
         # native: every tracked frame through the final pose of its keyframe, so what BA and loop
         # closing corrected reaches the whole trajectory (LOST frames have no pose to give)

@@ -27,6 +27,7 @@ from octolog.tracker.backend import BackendResult, run_backend
 from octolog.tracker.backend_handoff import BackendHandoff
 from octolog.tracker.config import OdometryParams, TrackerConfig
 from octolog.tracker.depth_correction import DepthCorrection
+from octolog.tracker.prior import PriorMap
 from octolog.tracker.features import (
     FrameFeatures,
     OrbExtractor,
@@ -46,8 +47,7 @@ from octolog.tracker.vocab import Vocabulary
 from octolog.tracker.worker import Worker
 
 _RANSAC_SEED = 0x0C70
-# PnP RANSAC stops once a consensus is this likely found (OpenCV's default is 0.99).
-RANSAC_CONFIDENCE = 0.999
+RANSAC_CONFIDENCE = 0.999  # PnP RANSAC stops once a consensus is this likely found (OpenCV's: 0.99)
 # The motion model extrapolates at most this many frame intervals: a long gap is a stall.
 MAX_PREDICTION_STEPS = 4.0
 # The second matching attempt widens the search window by this factor.
@@ -57,10 +57,9 @@ WIDE_SEARCH_FACTOR = 3.0
 CONFIDENT_INLIER_FACTOR = 3
 
 
-class RgbdSlam(LocalMapping, BackendHandoff, DepthCorrection):
+class RgbdSlam(LocalMapping, BackendHandoff, DepthCorrection, PriorMap):
     """RGB-D SLAM: frame-to-local-map tracking, keyframe insertion and the back end (loop closing, bundle
-    adjustment). Call `track` once per frame, in time order,
-    and `finish` at the end of the stream; implements tracker.interface.Tracker.
+    adjustment). Call `track` once per frame, in time order, and `finish` at the end of the stream.
 
     `params` (default: `TrackerConfig()`'s) holds every tunable, by stage: features, depth gating,
     matching and pose fitting (`tracking`), keyframes, the local map, local and final bundle
@@ -149,7 +148,8 @@ class RgbdSlam(LocalMapping, BackendHandoff, DepthCorrection):
         feats = self._features(frame, extracted)
         if not self._keyframes:
             return self._try_initialise(frame, feats)
-
+        if self._last_pose is None:  # a saved map (tracker/prior.py), the camera not found in it yet
+            return self._find_in_prior(frame, feats)
         predicted = self._predict(frame.stamp_ns)
         tracked, relocalised = self._locate(feats, predicted, frame.stamp_ns)
         if tracked is None:
@@ -232,7 +232,8 @@ class RgbdSlam(LocalMapping, BackendHandoff, DepthCorrection):
         """Wait for the back end and apply its last result; returns the keyframe poses it moved."""
         before = self.keyframe_poses()
         self._sync_backend(np.eye(4))
-        if self.params.global_ba_keyframes > 0 and self.params.local_ba and len(self._keyframes) >= 2:
+        if self.params.global_ba_keyframes > 0 and self.params.local_ba and len(self._keyframes) >= 2 and \
+                not self.params.localize:
             # a last bundle adjustment, as ORB-SLAM runs after a loop, so what is written out has the
             # whole map's support: every keyframe (the first fixed) up to `global_ba_keyframes`, else
             # the newest that many, bounded in time and memory (in the worker when there is one)
@@ -256,7 +257,8 @@ class RgbdSlam(LocalMapping, BackendHandoff, DepthCorrection):
         intr = frame.intrinsics
         if intr != self._intrinsics:
             if self._intrinsics is not None and self._keyframes:
-                raise TrackingError(f"frame {frame.seq}: intrinsics changed while tracking")
+                raise TrackingError(f"frame {frame.seq}: intrinsics {intr} differ from the map's "
+                                    f"{self._intrinsics}: another camera or resolution")
             self._intrinsics = intr
             self._undistort = Undistorter(intr)
         return gray

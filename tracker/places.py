@@ -189,6 +189,10 @@ class BowIndex:
         self._vectors: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # each keyframe's, made once
         self.size = 0
 
+    @property
+    def vocabulary(self) -> Vocabulary:
+        return self._voc
+
     def vector(self, desc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(sorted word ids, L1-normalised TF-IDF weights) of a descriptor set."""
         if desc.shape[0] == 0:
