@@ -177,6 +177,23 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return cmd_run(args)
 
 
+def cmd_merge(args: argparse.Namespace) -> int:
+    """`octolog merge`: sessions recorded apart into one map."""
+    from octolog.mapper.config import MapperConfig
+    from octolog.shell.merge import merge_sessions
+
+    cfg = load(MapperConfig, args.config, args.set, section="mapper")
+    stats = merge_sessions([Path(f) for f in args.sessions], Path(args.out), cfg, overwrite=args.overwrite)
+    print(f"merge: {len(args.sessions)} sessions -> {args.out}: {stats['keyframes']} keyframes, "
+          f"{stats['occupied_voxels']} occupied voxels, {len(stats['merges'])} placed by a shared place")
+    for m in stats["merges"]:
+        print(f"  {m['robot']}: its keyframe {m['robot_keyframe']} sees map keyframe {m['map_keyframe']} "
+              f"({m['inliers']} of {m['matches']} matches agree)")
+    for problem in stats["problems"]:
+        print(f"merge: {problem}")
+    return 0
+
+
 def cmd_import(args: argparse.Namespace) -> int:
     """`octolog import`: a TUM folder or a ROS/RealSense bag into octolog's MCAP layout."""
     from octolog.recorder.importers import import_source, parse_topic_map
@@ -357,6 +374,14 @@ def _add_file_commands(sub: Any) -> None:
     p = sub.add_parser("info", help="summary of an MCAP file")
     p.add_argument("file")
     p.set_defaults(func=cmd_info)
+
+    p = sub.add_parser("merge", help="sessions recorded apart into one map, placed by the places they share")
+    p.add_argument("sessions", nargs="+", help="session folders (octolog run --out); the first one's world is the map's")
+    p.add_argument("--out", required=True, help="folder for the merged map.bt, cloud.ply, map_stats.json")
+    p.add_argument("--overwrite", action="store_true", help="replace a merged map already in --out")
+    p.add_argument("--config", help="TOML file with a [mapper] section")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="mapper config override")
+    p.set_defaults(func=cmd_merge)
 
 
 def _add_vocab_command(sub: Any) -> None:

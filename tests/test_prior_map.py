@@ -143,7 +143,9 @@ def split_sessions(tmp_path_factory, first300_run) -> dict[str, Path]:
         octolog("run", "--source", seq, "--out", str(root / mode), "--set", "replay.start=150", "--map",
                 str(root / "first"), "--set", f"tracker.mode={mode}", "--quiet")
         assert {p.name: p.read_bytes() for p in (root / "first").iterdir() if p.is_file()} == digest, mode
-    return {"first": root / "first", "map": root / "map", "localize": root / "localize", "whole": first300_run[0]}
+    octolog("run", "--source", seq, "--out", str(root / "apart"), "--set", "replay.start=150", "--quiet")
+    return {"first": root / "first", "map": root / "map", "localize": root / "localize", "apart": root / "apart",
+            "whole": first300_run[0]}
 
 
 def _ate_in(traj: Path, gt: metrics.Trajectory, alignment: np.ndarray) -> float:
@@ -184,3 +186,29 @@ def test_a_second_session_lands_in_the_first_sessions_world(split_sessions, mode
     assert stats["prior_keyframes"] == first_stats["keyframes"] < stats["keyframes"]
     share, n_voxels = occupied_disagreement(_cells(s[mode] / "map.bt"), _cells(s["whole"] / "map.bt"), tolerance=1)
     assert share <= 0.05 and n_voxels > 1000, (share, n_voxels)
+
+
+@pytest.mark.slow
+def test_sessions_recorded_apart_merge_into_the_single_runs_map(split_sessions, tmp_path):
+    """`octolog merge` of the two parts recorded with no map in common: the second placed by a place
+    both saw, the map agreeing with the single run's as a second session tracked in the first's map
+    does; the same bytes from a second merge; the evidence in map_stats.json."""
+    from test_fleet import _cells, occupied_disagreement
+
+    s = split_sessions
+    for out in ("m1", "m2"):
+        octolog("merge", str(s["first"]), str(s["apart"]), "--out", str(tmp_path / out))
+    for name in ("map.bt", "cloud.ply", "map_stats.json", "keyframes_session1.txt"):
+        assert (tmp_path / "m1" / name).read_bytes() == (tmp_path / "m2" / name).read_bytes(), name
+    stats = json.loads((tmp_path / "m1" / "map_stats.json").read_text())
+    assert [m["robot"] for m in stats["merges"]] == ["session1"] and stats["unmerged"] == []
+    assert stats["merges"][0]["inliers"] >= 50
+    share, n_voxels = occupied_disagreement(_cells(tmp_path / "m1" / "map.bt"), _cells(s["whole"] / "map.bt"), tolerance=1)
+    assert share <= 0.05 and n_voxels > 1000, (share, n_voxels)
+
+
+def test_merge_refuses_what_is_not_a_session_in_one_line(tmp_path):
+    (tmp_path / "a").mkdir()
+    r = octolog("merge", str(tmp_path / "a"), str(tmp_path / "a"), "--out", str(tmp_path / "m"), check=False)
+    assert r.returncode != 0 and "not a session folder (no session.mcap)" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "m").exists()
