@@ -37,11 +37,12 @@ from octolog.schemas.wirecompression import SOURCE
 from octolog.shell import errorfile
 from octolog.shell.children import StageProcesses, hosted_router
 from octolog.shell.info import depth_bias_line, prior_line
+from octolog.shell.priormap import check_prior, prior_mapper
 from octolog.shell.sessiondir import INCOMPLETE, incomplete_reason, prepare_out
 from octolog.shell.versions import versions
 from octolog.tracker.config import TrackerConfig, for_source
 from octolog.tracker.mapfile import FILENAME as MAP_FILENAME
-from octolog.tracker.mapfile import load_map, map_path
+from octolog.tracker.mapfile import map_path
 
 STAGES = ("log", "mapper", "tracker", "replay")
 
@@ -160,19 +161,6 @@ def _live_resolution(rec: Any, config: str | None, sets: list[str]) -> Any:
     return dataclasses.replace(rec, **sizes)
 
 
-def _prior_mapper(cfg: MapperConfig, folder: Path) -> MapperConfig:
-    """The mapper of a session tracked in `folder`'s saved map: it starts from that session's map, in
-    its frame (its config.toml's grid_up), unless the config says otherwise; a bare map file (no
-    session log beside it) gives the tracker's world alone."""
-    if cfg.prior or not (folder / "session.mcap").is_file():
-        return cfg
-    try:
-        up = tomllib.loads((folder / "config.toml").read_text()).get("mapper", {}).get("grid_up")
-    except (OSError, tomllib.TOMLDecodeError) as exc:
-        raise InputError(f"{folder}: unreadable config.toml of the saved map's session ({exc})") from None
-    return dataclasses.replace(cfg, prior=str(folder.resolve()), grid_up=up or cfg.grid_up)
-
-
 def run_session(*, source: str, out: Path, config: str | None = None, overrides: list[str] | None = None,
                 rerun: str = "save", recording_id: str, quiet: bool = False,
                 overwrite: bool = False, duration_s: float = 0.0, router: str | None = None,
@@ -200,8 +188,8 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
                                                       keyframes_only=feed_tracker)
     cfgs["tracker"] = for_source(cfgs["tracker"], src)  # an unset rolling shutter: the source's camera
     if cfgs["tracker"].map:
-        load_map(cfgs["tracker"].map)
-        cfgs["mapper"] = _prior_mapper(cfgs["mapper"], map_path(cfgs["tracker"].map).parent)
+        check_prior(cfgs["tracker"].map, src, source)
+        cfgs["mapper"] = prior_mapper(cfgs["mapper"], map_path(cfgs["tracker"].map).parent)
     if live and not any(o.split("=", 1)[0].strip() == "recorder.publish_lag_ms" for o in overrides or []):
         # the camera holds back only what the tracker would skip: a burst within its lag it tracks in order
         cfgs["recorder"] = dataclasses.replace(cfgs["recorder"], publish_lag_ms=cfgs["tracker"].live_lag_ms)

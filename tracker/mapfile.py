@@ -1,7 +1,7 @@
 """The tracker's SLAM map on disk (`slam_map.npz` in a session folder): saved at the end of a run,
 loaded by the next one (`octolog run --map`, `octolog track --map`) to track in the same world.
 
-Format (`FORMAT`, version `VERSION`): a NumPy `.npz` (a zip of `.npy` arrays, deflated; entries in a
+Format (`FORMAT`, version `VERSION`): a NumPy `.npz` (a zip of `.npy` arrays, stored; entries in a
 fixed order, zip times fixed), so the same map gives the same bytes. `header` is a JSON document
 (format, version, intrinsics, the depth correction, counts, the versions of the libraries whose
 arithmetic the map depends on); the rest are arrays, keyframes flattened with offsets:
@@ -108,7 +108,7 @@ def save_map(path: Path, *, intrinsics: Intrinsics, keyframes: list[Keyframe], p
               "depth_inverse_offset": depth_offset, "keyframes": K, "map_points": n, "loops": len(loop_edges),
               "versions": {"numpy": np.__version__, "opencv": cv2.__version__}}
     tmp = path.with_name(path.name + ".tmp")
-    with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as z:
+    with zipfile.ZipFile(tmp, "w", zipfile.ZIP_STORED) as z:
         _entry(z, "header.json", json.dumps(header, indent=2, sort_keys=True).encode())
         for name, value in arrays.items():
             buf = io.BytesIO()
@@ -119,7 +119,7 @@ def save_map(path: Path, *, intrinsics: Intrinsics, keyframes: list[Keyframe], p
 
 def _entry(z: zipfile.ZipFile, name: str, data: bytes) -> None:
     info = zipfile.ZipInfo(name, date_time=(1980, 1, 1, 0, 0, 0))  # fixed: same map, same bytes
-    info.compress_type = zipfile.ZIP_DEFLATED
+    info.compress_type = zipfile.ZIP_STORED  # deflate saves a quarter (descriptors and floats) at ten times the time
     z.writestr(info, data)
 
 

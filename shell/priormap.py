@@ -1,0 +1,38 @@
+"""`octolog run --map`: the saved map a session tracks in, checked before any process starts, and the
+mapper that starts from that session's map (mapper/prior.py)."""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from octolog.kit.errors import InputError
+from octolog.mapper.config import MapperConfig
+from octolog.replay.sources import Source
+from octolog.tracker.mapfile import load_map
+
+
+def check_prior(path: str, src: Source | Any, source: str) -> None:
+    """A saved map the session can track in: readable, and of the source's camera (a file source's
+    first frame); InputError naming the problem, before any process starts."""
+    saved = load_map(path)
+    if not hasattr(src, "frames") or len(src) == 0:
+        return
+    intr = next(iter(src.frames(0, 1))).intrinsics
+    if intr != saved.intrinsics:
+        raise InputError(f"--map {path}: a map of another camera ({saved.intrinsics}) than {source}'s ({intr})")
+
+
+def prior_mapper(cfg: MapperConfig, folder: Path) -> MapperConfig:
+    """The mapper of a session tracked in `folder`'s saved map: it starts from that session's map, in
+    its frame (its config.toml's grid_up), unless the config says otherwise; a bare map file (no
+    session log beside it) gives the tracker's world alone."""
+    if cfg.prior or not (folder / "session.mcap").is_file():
+        return cfg
+    try:
+        up = tomllib.loads((folder / "config.toml").read_text()).get("mapper", {}).get("grid_up")
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise InputError(f"{folder}: unreadable config.toml of the saved map's session ({exc})") from None
+    return dataclasses.replace(cfg, prior=str(folder.resolve()), grid_up=up or cfg.grid_up)
