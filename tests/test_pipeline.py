@@ -42,7 +42,7 @@ def test_session_leaves_every_output(runs):
 
 
 DETERMINISTIC_FILES = ("trajectory.txt", "map.bt", "map.ot", "cloud.ply", "cloud.pcd", "map.pgm", "map.yaml",
-                       "map_stats.json", "config.toml")
+                       "map_stats.json", "config.toml", "slam_map.npz")
 DETERMINISTIC_TOPICS = ("camera/rgbd", "tracker/pose", "tracker/keyframe", "mapper/octomap", "mapper/occupied",
                         "mapper/grid", "camera/rgbd/end", "tracker/keyframe/end", "mapper/end")
 
