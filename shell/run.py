@@ -389,9 +389,6 @@ def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, re
     cpu = {p.name.removesuffix(".report.json"): errorfile.read_cpu(p) for p in sorted((out / "logs").glob("*.report.json"))}
     s.depth_bias = errorfile.read_finding(out / "logs" / "tracker.report.json", "depth_bias")
     s.prior_map = errorfile.read_finding(out / "logs" / "tracker.report.json", "prior_map")
-    if s.depth_bias is not None:  # the map's own record of the camera that made it
-        s.map["depth_bias"] = s.depth_bias
-        (out / "map_stats.json").write_text(json.dumps(s.map, indent=2, sort_keys=True) + "\n")
     (out / "summary.json").write_text(json.dumps(
         {"source": source, "frames": frames, "tracked_frames": s.frames, "wall_s": round(wall, 3),
          "malformed": s.malformed, "map_frame": s.map_frame, "cpu_s": cpu, "depth_bias": s.depth_bias, "prior_map": s.prior_map,

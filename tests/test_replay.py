@@ -18,6 +18,7 @@ class FakeSource:
 
     name = "fake"
     readout_s = 0.0
+    depth_model = None
     encoded = False
 
     def __init__(self, n: int = 10) -> None:
