@@ -99,6 +99,11 @@ class MapFrame:
                     self._apply(up, f"gravity-aligned (the live camera's accelerometer{on})")
         self._announce()
 
+    def use(self, up: object, note: str) -> None:
+        """Build `map` on `up` from now on, whatever was announced, and announce it."""
+        self._apply(up, note)
+        self._announce()
+
     def _apply(self, up: object, note: str) -> None:
         """Build `map` on `up` (what is integrated moves into it) and say where it came from."""
         up_t = tuple(float(v) for v in up)  # type: ignore[attr-defined]

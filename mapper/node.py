@@ -15,7 +15,7 @@ from octolog.mapper.config import MapperConfig
 from octolog.mapper.core import Mapper, make_mapper
 from octolog.mapper.fleet.node import run_fleet
 from octolog.mapper.mapframe import MapFrame
-from octolog.mapper.prior import seed
+from octolog.mapper.prior import PriorSeed
 from octolog.mapper.process import INBOX_KEYFRAMES, MapperResult, MapSnapshots, answer_save, finish, log_map
 from octolog.schemas import codec, posemsgs, rgbdmsgs, streammsgs
 from octolog.schemas.topics import (
@@ -36,21 +36,23 @@ def run(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: str = "o
     if cfg.robots:
         return run_fleet(cfg, bus_cfg, out_dir=out_dir, rerun=rerun, recording_id=recording_id)
     mapper = make_mapper(cfg)
-    prior = seed(mapper, cfg.prior) if cfg.prior else 0  # before the bus: a bad prior stops nothing running
+    prior = PriorSeed(cfg.prior) if cfg.prior else None  # before the bus: a bad prior stops nothing running
     with Bus(bus_cfg, "mapper", inbox_size=INBOX_KEYFRAMES) as bus, Viz(rerun, "mapper", recording_id) as viz:
         publisher = MapSnapshots(bus, mapper, cfg.publish_every)
         publisher.frame = MapFrame(mapper, bus, viz, from_imu=not cfg.grid_up)
-        result = consume(mapper, cfg, bus, viz, publisher, out_dir)
+        result = consume(mapper, cfg, bus, viz, publisher, out_dir, prior)
         publisher.frame.resolve()  # before the last snapshot, if none came before it
         found = publisher.frame.found
-        extra = ({"map_frame": found} if found else {}) | ({"prior_keyframes": prior, "prior": cfg.prior} if prior else {})
+        extra = ({"map_frame": found} if found else {}) | \
+            ({"prior": cfg.prior, "prior_keyframes": prior.taken, "prior_note": prior.note} if prior else {})
         finish(mapper, result, bus, viz, publisher, out_dir, extra or None)
     return result
 
 
 def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: MapSnapshots,
-            out_dir: Path) -> MapperResult:
-    """Integrate keyframes and corrections until every one the tracker announced has arrived."""
+            out_dir: Path, prior: PriorSeed | None = None) -> MapperResult:
+    """Integrate keyframes and corrections until every one the tracker announced has arrived; with
+    a `prior`, the earlier session's map first if the tracker's first item says it tracks in it."""
     pub_update = bus.publisher(MAP_UPDATE)
     bus.accept(MAP_SAVE)
     bus.start([KEYFRAME, KEYFRAME_COMPRESSED, KEYFRAME_POSES, KEYFRAME_END], wait_for=cfg.wait_for,
@@ -83,6 +85,8 @@ def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: Ma
         if r.topic == MAP_SAVE:
             answer_save(r, mapper, out_dir)
             continue
+        if prior is not None and prior.pending:
+            _decide(prior, mapper, publisher, r.decode().id if r.topic in (KEYFRAME, KEYFRAME_COMPRESSED) else None)
         if r.topic == KEYFRAME_POSES:
             received_poses += 1
             try:
@@ -93,7 +97,14 @@ def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: Ma
             continue
         received += 1
         _integrate_keyframe(r, mapper, result, viz, publisher, pub_update)
+    if prior is not None and prior.pending:  # no keyframe, no correction (localizing): the earlier map
+        _decide(prior, mapper, publisher, None)
     return result
+
+
+def _decide(prior: PriorSeed, mapper: Mapper, publisher: MapSnapshots, first_keyframe_id: int | None) -> None:
+    if prior.decide(mapper, first_keyframe_id) and prior.up is not None and publisher.frame is not None:
+        publisher.frame.use(prior.up, f"the map frame of {prior.folder} (mapper.prior)")
 
 
 def _integrate_keyframe(r: Any, mapper: Mapper, result: MapperResult, viz: Viz, publisher: MapSnapshots,

@@ -4,7 +4,6 @@ mapper that starts from that session's map (mapper/prior.py)."""
 from __future__ import annotations
 
 import dataclasses
-import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -27,12 +26,8 @@ def check_prior(path: str, src: Source | Any, source: str) -> None:
 
 def prior_mapper(cfg: MapperConfig, folder: Path) -> MapperConfig:
     """The mapper of a session tracked in `folder`'s saved map: it starts from that session's map, in
-    its frame (its config.toml's grid_up), unless the config says otherwise; a bare map file (no
-    session log beside it) gives the tracker's world alone."""
+    that session's frame, once the tracker shows it found the camera there (mapper/prior.py), unless
+    the config names another prior; a bare map file (no session log beside it) gives no prior."""
     if cfg.prior or not (folder / "session.mcap").is_file():
         return cfg
-    try:
-        up = tomllib.loads((folder / "config.toml").read_text()).get("mapper", {}).get("grid_up")
-    except (OSError, tomllib.TOMLDecodeError) as exc:
-        raise InputError(f"{folder}: unreadable config.toml of the saved map's session ({exc})") from None
-    return dataclasses.replace(cfg, prior=str(folder.resolve()), grid_up=up or cfg.grid_up)
+    return dataclasses.replace(cfg, prior=str(folder.resolve()))

@@ -212,3 +212,25 @@ def test_merge_refuses_what_is_not_a_session_in_one_line(tmp_path):
     r = octolog("merge", str(tmp_path / "a"), str(tmp_path / "a"), "--out", str(tmp_path / "m"), check=False)
     assert r.returncode != 0 and "not a session folder (no session.mcap)" in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "m").exists()
+
+
+@pytest.mark.slow
+def test_the_mapper_takes_the_earlier_map_only_when_the_tracker_tracks_in_it(split_sessions):
+    """mapper/prior.py: a first keyframe numbered after the saved ones (or a correction) takes the
+    earlier session's map, in its frame; a first keyframe numbered from 0 (the tracker started a map
+    of its own) leaves it out."""
+    from octolog.mapper.config import MapperConfig
+    from octolog.mapper.core import make_mapper
+    from octolog.mapper.prior import PriorSeed
+
+    first = split_sessions["first"]
+    stats = json.loads((first / "map_stats.json").read_text())
+    own, taken = make_mapper(MapperConfig()), make_mapper(MapperConfig())
+    seed = PriorSeed(first)
+    assert seed.keyframes == stats["keyframes"]
+    assert not seed.decide(own, 0) and not own.keyframes and "did not find the camera" in seed.note
+    seed = PriorSeed(first)
+    assert seed.decide(taken, seed.keyframes) and len(taken.keyframes) == seed.taken == stats["keyframes"]
+    assert taken.map_from_world.tolist() == stats["map_from_world"]
+    with pytest.raises(InputError, match="no session.mcap there"):
+        PriorSeed(first.parent)
