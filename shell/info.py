@@ -139,8 +139,10 @@ def prior_line(p: dict) -> str:
     mode = " (localize: not changed)" if p.get("mode") == "localize" else ""
     if p.get("dropped"):
         return (f"saved map {p['map']}: the camera was not found in it within {p['frames_before']} frames; "
-                f"tracked as a separate map, not merged")
+                f"tracked as a separate map in its own world, not merged")
     if p.get("found_at_frame", -1) < 0:
         return f"saved map {p['map']}: the camera was never found in it ({p['frames_before']} frames LOST)"
+    placed = (f"; the {p['placed_keyframes']} keyframes tracked before were placed in it"
+              if p.get("placed_keyframes") else "")
     return (f"saved map {p['map']} ({p['keyframes']} keyframes){mode}: found at frame {p['found_at_frame']}, "
-            f"after {p['frames_before']} frames not found")
+            f"after {p['frames_before']} frames not found (LOST){placed}")

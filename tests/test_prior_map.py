@@ -81,16 +81,51 @@ def test_localize_mode_changes_nothing_of_the_map(saved):
 
 
 def test_a_camera_never_found_in_the_map_goes_on_in_a_map_of_its_own(saved):
-    """Another room (another seed's textures): not found within map_find_frames frames, LOST until
-    then, then a separate map of its own from the next frame."""
+    """Another room (another seed's textures): LOST while it is looked for in the saved map; after
+    map_find_frames frames the map of its own it was tracked in meanwhile becomes the map, its held
+    keyframes go out numbered from 0, and no frame is LOST after."""
     path, _, _ = saved
     other = SyntheticScene(n_frames=40, seed=7)
     cfg = TrackerConfig(map=str(path), map_find_frames=10)
     slam = RgbdSlam(cfg.odometry_params(), background=False)
     slam.adopt_map(load_map(path))
-    states = [slam.track(other.render(i)).state for i in range(20)]
-    assert states[:10] == [TrackingState.LOST] * 10 and slam.prior_dropped and slam.prior_found_at == -1
-    assert states[10] == TrackingState.INIT and TrackingState.LOST not in states[11:]
+    results = [slam.track(other.render(i)) for i in range(20)]
+    states = [r.state for r in results]
+    assert states[:9] == [TrackingState.LOST] * 9 and slam.prior_dropped and slam.prior_found_at == -1
+    assert TrackingState.LOST not in states[9:]
+    held = [r.hold for r in results[:10]]
+    assert sorted(results[9].placed) == list(range(sum(held))) and held[0]  # its first frame made keyframe 0
+    assert len(slam.trajectory()[0]) == 20 and slam.n_keyframes >= sum(held)
+
+
+@pytest.mark.slow
+def test_a_session_starting_where_the_map_never_looked_is_placed_when_it_walks_in(tmp_path):
+    """The room's loop: the map from its first 120 frames; a session from frame 400, on the far side,
+    LOST at first while tracked in a map of its own, found when it walks into the mapped part; then
+    that map is placed in the saved one: its held keyframes go out numbered after the saved ones,
+    and every one of its 200 frames is in the trajectory, in the saved map's world (the room's first
+    camera), within 3 cm of the truth."""
+    scene = SyntheticScene(n_frames=600)
+    first = RgbdSlam(background=False)
+    for i in range(120):
+        first.track(scene.render(i))
+    first.finish()
+    first.save_map(tmp_path / "map.npz")
+    saved = load_map(tmp_path / "map.npz")
+    slam = RgbdSlam(TrackerConfig(map=str(tmp_path / "map.npz")).odometry_params(), background=False)
+    slam.adopt_map(saved)
+    results = [slam.track(scene.render(i)) for i in range(400, 600)]
+    found = slam.prior_found_at
+    assert 410 <= found < 600 and all(r.state == TrackingState.LOST for r in results[:found - 400])
+    at = results[found - 400]
+    k = saved.header["keyframes"]
+    assert at.relocalised and sorted(at.placed) == list(range(k, k + len(at.placed)))
+    assert len(at.placed) == sum(r.hold for r in results) >= 1
+    assert all(r.state == TrackingState.OK for r in results[found - 400:])
+    stamps, poses = slam.trajectory()
+    truth = {scene.stamp_ns(i): T for i, T in enumerate(np.linalg.inv(scene.pose(0)) @ scene.poses())}
+    err = [np.linalg.norm(T[:3, 3] - truth[s][:3, 3]) for s, T in zip(stamps, poses, strict=True)]
+    assert len(stamps) == 200 and max(err) < 0.03, max(err)
 
 
 def _edit(src: Path, dst: Path, name: str, data: bytes | None) -> Path:

@@ -156,7 +156,7 @@ class OdometryParams:
     bow_candidates: int
     readout_s: float  # rolling-shutter readout, first row to last (0: global shutter)
     localize: bool = False  # tracker.mode = "localize": no keyframes, the map is not changed
-    map_find_frames: int = 30  # frames a saved map may take to find the camera in (tracker/prior.py)
+    map_find_frames: int = 150  # frames a saved map may take to find the camera in (tracker/prior.py)
 
 
 @dataclass(frozen=True)
@@ -223,9 +223,10 @@ class TrackerConfig:
     # with a map: "map" extends it where the camera sees new places; "localize" only tracks in it
     # (no keyframes: neither the tracker's map nor the mapper's changes)
     mode: str = "map"
-    # with a map: frames the camera may take to be found in it; then the tracker says so and makes a
-    # map of its own (a separate map, not merged)
-    map_find_frames: int = 30
+    # with a map: frames the camera may take to be found in it (LOST meanwhile, tracked in a map of its
+    # own that is placed in the saved one when found: 5 s at 30 fps, to walk in from an unmapped
+    # doorway); then the tracker says so and goes on in that map of its own (separate, not merged)
+    map_find_frames: int = 150
     # native core, by stage (docs/cli.md lists every key)
     features: FeatureParams = field(default_factory=FeatureParams)
     depth: DepthParams = field(default_factory=DepthParams)

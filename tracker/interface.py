@@ -64,6 +64,11 @@ class TrackResult:
     # the depth camera's bias correction this frame's readings took (1/m: 1/z <- 1/z - offset), the
     # one its keyframe and `corrected` carry to the mapper (tracker.depth)
     depth_inverse_offset: float = 0.0
+    # in a saved map not found yet (tracker/prior.py): this frame made a keyframe of a map not yet
+    # placed, keep the frame (`hold`); keyframes placed at this frame, id -> (the frame seq they were
+    # made from, world_from_camera): send them now, from the frames kept
+    hold: bool = False
+    placed: dict[int, tuple[int, np.ndarray]] = field(default_factory=dict)
 
 
 @runtime_checkable

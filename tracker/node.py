@@ -83,7 +83,7 @@ def run(cfg: TrackerConfig, bus_cfg: BusConfig, *, trajectory: Path | None = Non
     if cfg.map:
         result.prior = {"map": cfg.map, "mode": cfg.mode, "keyframes": odometry.prior_keyframes,
                         "found_at_frame": odometry.prior_found_at, "frames_before": odometry.prior_misses,
-                        "dropped": odometry.prior_dropped}
+                        "dropped": odometry.prior_dropped, "placed_keyframes": odometry.prior_placed}
     if save_map is not None and hasattr(odometry, "save_map") and result.tracked:
         odometry.save_map(save_map)
     if trajectory is not None:
@@ -104,6 +104,7 @@ class _Outputs:
         self.kf_end = bus.publisher(KEYFRAME_END)
         self.poses = bus.publisher(KEYFRAME_POSES)
         self.deferred = bus.publisher(BACKEND_DEFERRED)
+        self.held: dict[int, RgbdFrame] = {}  # frames of keyframes not yet placed in the saved map, by seq
 
     def untracked(self, msg: Any, state: TrackingState) -> None:
         """A frame skipped or rejected: its status only."""
@@ -120,6 +121,14 @@ class _Outputs:
             self.poses.put(posemsgs.keyframe_poses_msg(res.corrected, frame.stamp_ns, res.depth_inverse_offset))
         result.loops += res.loop is not None
         result.relocalisations += res.relocalised
+        if res.hold:  # a keyframe of a map not placed yet (tracker/prior.py): sent once it is
+            self.held[frame.seq] = frame
+        for kf_id, (seq, pose) in sorted(res.placed.items()):
+            kept = self.held[seq]
+            self.kf.put(kf_id, pose, replace(kept, depth_inverse_offset=res.depth_inverse_offset))
+            result.keyframes += 1
+        if res.placed:
+            self.held.clear()
         if res.is_keyframe:
             self.kf.put(res.keyframe_id, res.world_from_camera,
                         replace(frame, depth_inverse_offset=res.depth_inverse_offset) if res.depth_inverse_offset else frame)

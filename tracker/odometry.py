@@ -149,7 +149,7 @@ class RgbdSlam(LocalMapping, BackendHandoff, DepthCorrection, PriorMap):
         if not self._keyframes:
             return self._try_initialise(frame, feats)
         if self._last_pose is None:  # a saved map (tracker/prior.py), the camera not found in it yet
-            return self._find_in_prior(frame, feats)
+            return self._find_in_prior(frame, feats, extracted)
         predicted = self._predict(frame.stamp_ns)
         tracked, relocalised = self._locate(feats, predicted, frame.stamp_ns)
         if tracked is None:
@@ -483,8 +483,7 @@ class RgbdSlam(LocalMapping, BackendHandoff, DepthCorrection, PriorMap):
                 ids, factor = plan[attempt]
                 ki, mi, _ = self._guided(feats, ids, guess_cw, self.params.tracking.search_radius_px * factor)
             else:
-                assert self._last_pose is not None
-                around = self._local_points(self._last_pose)
+                around = self._local_points(self._last_pose if self._last_pose is not None else invert(guess_cw))
                 q, tr, _ = match_brute_force(feats.desc, self._map.desc[around], max_distance=PLACE_MAX_HAMMING,
                                             ratio=PLACE_RATIO)
                 ki, mi = q, around[tr]
