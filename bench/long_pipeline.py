@@ -9,7 +9,7 @@ While it runs, every stage's memory (VmRSS of each process, the tracker's worker
 size of the outputs are sampled; afterwards the session log gives the tracker's time per frame and
 the mapper's per keyframe, per minute of sensor time.
 
-    python bench/long_pipeline.py [--minutes 10]
+    python bench/long_pipeline.py [--minutes 10] [--keep DIR]
 """
 
 from __future__ import annotations
@@ -107,6 +107,7 @@ def sample(run_pid: int, out: Path, stop: threading.Event, rows: list[dict], eve
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--minutes", type=float, default=10.0)
+    ap.add_argument("--keep", help="copy the session folder here (its slam_map.npz: bench/mapfile.py)")
     args = ap.parse_args()
     n_loop = round(LOOP_S * FPS)
     loops = max(1, round(args.minutes * 60 / LOOP_S))
@@ -134,6 +135,8 @@ def main() -> None:
             sys.exit(f"octolog run failed ({proc.returncode}): its logs are kept in {kept}/logs")
         report(out, rows, wall, loops * n_loop)
         print(summary_text)
+        if args.keep:
+            subprocess.run(["cp", "-r", str(out), args.keep], check=True)
 
 
 def _slope(t: np.ndarray, mb: np.ndarray, *, after_s: float | None = None) -> float:

@@ -95,7 +95,7 @@ class PriorMap:
         pose = invert(tracked.camera_from_world)
         placed: dict[int, tuple[int, np.ndarray]] = {}
         if own is not None and own.state != TrackingState.LOST:
-            placed = self._place_own(pose @ invert(own.world_from_camera))
+            placed = self._place_own(pose, own.world_from_camera)
         self._sandbox = None
         if self._frames and self._frames[-1][0] == frame.stamp_ns:  # the map of its own had this frame too
             self._frames.pop()
@@ -107,12 +107,14 @@ class PriorMap:
                            tracked.n_inliers, relocalised=True, residual=tracked.residual,
                            depth_inverse_offset=self.depth_offset, placed=placed)
 
-    def _place_own(self, W: np.ndarray) -> dict[int, tuple[int, np.ndarray]]:
-        """The map of its own into the saved one, `W` = world_from_own: keyframes numbered after the
-        saved ones, points after theirs, poses and points moved by W; its tracked frames join the
-        trajectory. Returns the placed keyframes: id -> (frame seq, world_from_camera)."""
+    def _place_own(self, pose: np.ndarray, own_pose: np.ndarray) -> dict[int, tuple[int, np.ndarray]]:
+        """The map of its own into the saved one, by the frame's pose in each (world_from_own = pose @
+        own_pose^-1): keyframes numbered after the saved ones, points after theirs, poses and points
+        moved; its tracked frames join the trajectory. Returns the placed keyframes: id -> (frame seq,
+        world_from_camera)."""
         own = self._sandbox
-        own._sync_backend(np.eye(4))  # its last back-end result in, as a keyframe would take it
+        _, _, own_pose = own._sync_backend(own_pose)  # its last back-end result in; the frame moves with it
+        W = pose @ invert(own_pose)
         k0, p0, n = len(self._keyframes), self._map.size, own._map.size
         mp = self._map
         mp._grow(p0 + n)
