@@ -12,7 +12,8 @@ join the trajectory, and the held keyframes go out at their placed poses (`Track
 tracking goes on in the saved map's world and, in `map` mode, extends it. Not found within
 `map_find_frames` frames, the tracker gives the saved map up: the held map becomes the map (its
 keyframes go out numbered from 0, in its own world: `prior_dropped`). In `localize` mode no
-keyframe is made and nothing of the map changes (nothing is held either).
+keyframe is made and nothing of the map changes: nothing is held, and the camera is looked for
+until the stream ends.
 
 A mixin of `RgbdSlam` (tracker.odometry), which owns the map and the motion state.
 """
@@ -89,8 +90,8 @@ class PriorMap:
                 tracked = None
         if tracked is None or tracked.n_inliers < self.params.tracking.relocalise_min_inliers:
             self.prior_misses += 1
-            if self.prior_misses >= self.params.map_find_frames:
-                return self._give_up(frame, own)
+            if self.prior_misses >= self.params.map_find_frames and not self.params.localize:
+                return self._give_up(frame, own)  # localizing keeps looking: it makes no map of its own
             return TrackResult(frame.seq, frame.stamp_ns, np.eye(4), TrackingState.LOST, False, -1, 0, 0, hold=hold)
         pose = invert(tracked.camera_from_world)
         placed: dict[int, tuple[int, np.ndarray]] = {}
@@ -145,7 +146,7 @@ class PriorMap:
         is not this session's world); its held keyframes go out, numbered from 0."""
         self.prior_dropped = True
         sandbox, self._sandbox = self._sandbox, None
-        if sandbox is None or own is None:  # localizing: a map of its own from the next frame
+        if own is None:  # no map of its own to go on in: one from the next frame
             self._map, self._keyframes, self._loop_edges, self._frames = MapPoints(), [], [], []
             self._kf_pos, self._kf_axis = np.zeros((0, 3)), np.zeros((0, 3))
             self._bow = BowIndex(self._bow.vocabulary) if self._bow is not None else None
