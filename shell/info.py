@@ -142,7 +142,7 @@ def prior_line(p: dict) -> str:
                 f"tracked as a separate map in its own world, not merged")
     if p.get("found_at_frame", -1) < 0:
         return f"saved map {p['map']}: the camera was never found in it ({p['frames_before']} frames LOST)"
-    placed = (f"; the {p['placed_keyframes']} keyframes tracked before were placed in it"
-              if p.get("placed_keyframes") else "")
+    n = p.get("placed_keyframes", 0)
+    placed = f"; {n} keyframe{'s' if n != 1 else ''} made while looking placed in it" if n else ""
     return (f"saved map {p['map']} ({p['keyframes']} keyframes){mode}: found at frame {p['found_at_frame']}, "
             f"after {p['frames_before']} frames not found (LOST){placed}")

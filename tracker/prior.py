@@ -106,7 +106,7 @@ class PriorMap:
         self.prior_found_at = frame.seq
         return TrackResult(frame.seq, frame.stamp_ns, pose.copy(), TrackingState.OK, False, -1, tracked.n_matches,
                            tracked.n_inliers, relocalised=True, residual=tracked.residual,
-                           depth_inverse_offset=self.depth_offset, placed=placed)
+                           depth_inverse_offset=self.depth_offset, hold=hold, placed=placed)
 
     def _place_own(self, pose: np.ndarray, own_pose: np.ndarray) -> dict[int, tuple[int, np.ndarray]]:
         """The map of its own into the saved one, by the frame's pose in each (world_from_own = pose @
@@ -154,7 +154,7 @@ class PriorMap:
         for name in _MAP_STATE:
             setattr(self, name, getattr(sandbox, name))
         placed = {kf.id: (self._held[kf.id], kf.world_from_camera.copy()) for kf in self._keyframes}
-        return replace(own, placed=placed, is_keyframe=False, keyframe_id=-1)
+        return replace(own, hold=own.is_keyframe, placed=placed, is_keyframe=False, keyframe_id=-1)
 
 
 # what a map of its own brings when it becomes the tracker's map (RgbdSlam's map and motion state)
