@@ -360,6 +360,7 @@ class VizLog:
         self._q: queue.Queue[_Shown | None] = queue.Queue(self.QUEUE)
         self._thread = threading.Thread(target=self._run, name="tracker-viz", daemon=True)
         self.error: BaseException | None = None
+        self._keyframe_shown = False  # the keyframe camera's pinhole goes with the first keyframe logged
 
     def __enter__(self) -> Self:
         if self.viz.enabled:
@@ -377,7 +378,9 @@ class VizLog:
         if not self.viz.enabled:
             return
         kp = odometry.keypoints()
-        self._q.put(_Shown(frame, res, result.frames == 1, res.is_keyframe and result.keyframes == 1, result.ms[-1],
+        first_keyframe, self._keyframe_shown = res.is_keyframe and not self._keyframe_shown, \
+            self._keyframe_shown or res.is_keyframe
+        self._q.put(_Shown(frame, res, result.frames == 1, first_keyframe, result.ms[-1],
                            list(result.poses) if res.is_keyframe else None,
                            None if kp is None else (kp[0].copy(), kp[1].copy()),
                            odometry.local_map() if res.is_keyframe else None))
