@@ -358,13 +358,22 @@ def played_ns(duration_ns: int, frames: int, loop: int) -> int:
     return loop * duration_ns + (loop - 1) * gap
 
 
+def _status_span_ns(out: Path) -> int:
+    """Sensor time between the first and the last frame the tracker consumed (its statuses' stamps):
+    what a replay played, a start/end window or loops included; 0 without statuses."""
+    stamps = [codec.stamp_ns(codec.decode(m.data, m.msgtype).header)
+              for m in read_wire(out / "session.mcap", [TRACKING_STATUS.name])]
+    return max(stamps) - min(stamps) if stamps else 0
+
+
 def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, recording_id: str, *,
                loop: int = 1) -> SessionSummary:
     if isinstance(src, LiveSource):  # how long the camera ran: the frames the session log holds
         t = next((t for name, t in summarize(out / "session.mcap").topics.items() if name in (RGBD.name,
                   RGBD_COMPRESSED.name)), None)
         src.duration_ns = t.last_ns - t.first_ns if t is not None else 0
-    played = src.duration_ns if isinstance(src, LiveSource) else played_ns(src.duration_ns, len(src), loop)
+    played = src.duration_ns if isinstance(src, LiveSource) else \
+        (_status_span_ns(out) or played_ns(src.duration_ns, len(src), loop))
     s = SessionSummary(out=out, source=source, wall_s=wall, duration_s=played * 1e-9)
     s.map = json.loads((out / "map_stats.json").read_text())
     if "map_frame" in s.map:  # a live camera: the mapper found up from its accelerometer

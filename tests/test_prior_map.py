@@ -269,3 +269,14 @@ def test_the_mapper_takes_the_earlier_map_only_when_the_tracker_tracks_in_it(spl
     assert taken.map_from_world.tolist() == stats["map_from_world"]
     with pytest.raises(InputError, match="no session.mcap there"):
         PriorSeed(first.parent)
+
+
+@pytest.mark.slow
+def test_a_windowed_replay_reports_the_sensor_time_it_played(split_sessions):
+    """`replay.end=150` played frames 0-149: summary.json's duration (and so the real-time factor) is
+    their sensor time, not the whole sequence's."""
+    first = split_sessions["first"]
+    traj = metrics.read_tum(first / "trajectory.txt")
+    summary = json.loads((first / "summary.json").read_text())
+    assert len(traj) == 150
+    assert summary["duration_s"] == pytest.approx((traj.stamps_ns[-1] - traj.stamps_ns[0]) * 1e-9, abs=1e-6)
