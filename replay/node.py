@@ -229,7 +229,9 @@ def camera_tree(source: Source, frame_id: str) -> list[tuple[str, str, np.ndarra
 
 
 def play_tracker_log(cfg: ReplayConfig, bus_cfg: BusConfig) -> ReplayResult:
-    """Stand in for the tracker: publish its logged keyframes and pose corrections, in log order."""
+    """Stand in for the tracker: publish its logged keyframes and pose corrections, in log order; with
+    `start`/`end`, only the keyframes made from frames in that window (the corrections all: a mapper
+    passes over the ids it does not have)."""
     kind, _, path = cfg.source.partition(":")
     if kind != "mcap" or not path:
         raise ConfigError(f"replay.play = tracker needs an mcap:PATH source, got {cfg.source!r}")
@@ -245,11 +247,16 @@ def play_tracker_log(cfg: ReplayConfig, bus_cfg: BusConfig) -> ReplayResult:
         end_pub = bus.publisher(remapped(KEYFRAME_END, cfg.remap))
         bus.start([], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
         bus.watch(["mapper"], required=False)  # as the tracker: keyframes stay until the mapper is done
+        windowed = cfg.start > 0 or cfg.end >= 0
         for i, m in enumerate(read_wire(path, list(pubs))):
             try:
                 checks.checked(m.data, pubs[m.topic].topic.msgtype)  # as the mapper's bus will
             except InputError as exc:
                 raise InputError(f"{path}: message {i} on /{m.topic}: {exc}") from None
+            if windowed and m.topic == kf_topic.name:
+                seq = int(codec.decode(m.data, m.msgtype).frame_seq)
+                if seq < cfg.start or 0 <= cfg.end <= seq:
+                    continue
             pubs[m.topic].put_raw(m.data)
         end_pub.put(streammsgs.stream_end_msg(KEYFRAME_POSES.name, pubs[KEYFRAME_POSES.name].count))
         end_pub.put(streammsgs.stream_end_msg(kf_topic.name, pubs[kf_topic.name].count))

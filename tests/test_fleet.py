@@ -132,21 +132,24 @@ def test_robots_running_ahead_never_starve_the_one_the_merge_awaits():
 def test_fleets_of_three_and_five_robots_complete(tmp_path, octolog_run, n_robots):
     """docs/deployment.md's fleet layout with 3 and with 5 robots and no start poses: a router, one
     mapper for every robot, and per robot its tracker's keyframe stream replayed from a session log
-    (`replay.play = "tracker"`, one log for all, so every robot shares its first place with the
-    first). The mapper ends; every robot is placed, every keyframe of every robot is in the map, and
-    each robot's keyframe trajectory in the common world is the first robot's."""
+    (`replay.play = "tracker"`). Each robot replays another window of the log: robot k the keyframes
+    made from frame 4k on, so each starts at a view of its own and shares places with the first.
+    The mapper ends; every robot is placed, every keyframe of every robot is in the map, and each
+    keyframe lies where the first robot has it (the log's one world), within 2 cm."""
     from octolog.kit.metrics import read_tum
 
     log = octolog_run(f"synthetic:{FRAMES}")[0] / "session.mcap"
     robots = [f"r{k + 1}" for k in range(n_robots)]
+    starts = [4 * k for k in range(n_robots)]
     out = tmp_path / "fleet"
     procs, bus = _router(out)
     try:
         procs["mapper"] = _start(out / "mapper.log", "map", *bus, "--out", str(out), "--rerun", "off",
                                  "--set", f"robots={json.dumps(robots)}")
-        for robot in robots:
+        for robot, start in zip(robots, starts):
             procs[robot] = _start(out / f"{robot}.log", "replay", *bus, "--namespace", robot, "--quiet",
-                                  "--source", f"mcap:{log}", "--set", "play=tracker", "--set", 'wait_for=["mapper"]')
+                                  "--source", f"mcap:{log}", "--set", "play=tracker", "--set", f"start={start}",
+                                  "--set", 'wait_for=["mapper"]')
         for name in ("mapper", *robots):
             assert procs[name].wait(timeout=600) == 0, (name, (out / f"{name}.log").read_text())
     finally:
@@ -154,12 +157,13 @@ def test_fleets_of_three_and_five_robots_complete(tmp_path, octolog_run, n_robot
     stats = json.loads((out / "map_stats.json").read_text())
     per_robot = [stats["robots"][r]["keyframes"] for r in robots]
     assert all(stats["robots"][r]["merged"] for r in robots), stats["robots"]
-    assert per_robot[0] > 1 and per_robot == [per_robot[0]] * n_robots and stats["keyframes"] == sum(per_robot)
+    assert per_robot[0] > per_robot[-1] >= 1 and stats["keyframes"] == sum(per_robot), per_robot
     first = read_tum(out / "keyframes_r1.txt")
+    where = dict(zip(first.stamps_ns.tolist(), first.positions))
     for robot in robots[1:]:
         traj = read_tum(out / f"keyframes_{robot}.txt")
-        assert np.array_equal(traj.stamps_ns, first.stamps_ns)
-        assert np.abs(traj.positions - first.positions).max() < 0.02, robot
+        assert traj.stamps_ns[0] != first.stamps_ns[0]  # a view of its own to start from
+        assert max(np.linalg.norm(p - where[t]) for t, p in zip(traj.stamps_ns.tolist(), traj.positions)) < 0.02, robot
 
 
 def test_config_checks_robots_and_start_poses():
