@@ -218,10 +218,11 @@ def _voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:
     return np.floor(points / voxel_m).astype(np.int64)
 
 
-def _linear_keys(parts: list[np.ndarray], voxel_m: float) -> np.ndarray:
+def _linear_keys(parts: list[np.ndarray], voxel_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One int64 per point of the parts (in order) whose order is the lexicographic order of the
-    voxel triples (kx, ky, kz). Part by part, so the (N,3) keys of the whole cloud never exist at
-    once. The bounds come from the points' own: floor(p / voxel_m) is monotone in p."""
+    voxel triples (kx, ky, kz), with the box it is counted in (its lowest triple, its span). Part by
+    part, so the (N,3) keys of the whole cloud never exist at once. The bounds come from the points'
+    own: floor(p / voxel_m) is monotone in p."""
     lo = np.floor(np.min([p.min(axis=0) for p in parts], axis=0) / voxel_m).astype(np.int64)
     hi = np.floor(np.max([p.max(axis=0) for p in parts], axis=0) / voxel_m).astype(np.int64)
     span = hi - lo + 1
@@ -233,7 +234,7 @@ def _linear_keys(parts: list[np.ndarray], voxel_m: float) -> np.ndarray:
         k = _voxel_keys(points, voxel_m) - lo
         out[at:at + len(k)] = (k[:, 0] * span[1] + k[:, 1]) * span[2] + k[:, 2]
         at += len(k)
-    return out
+    return out, lo, span
 
 
 def voxel_downsample(
@@ -250,14 +251,23 @@ def voxel_downsample(
     return _merge_voxels([(points, colours)], voxel_m)
 
 
-def _merge_voxels(parts: list[tuple[np.ndarray, np.ndarray]], voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
+def _merge_voxels(parts: list[tuple[np.ndarray, np.ndarray]], voxel_m: float,
+                  keys: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """`voxel_downsample` of the parts' concatenation (checked clouds), the same bytes, without
-    concatenating the clouds: a column at a time, so the sums run over the points in the same order."""
+    concatenating the clouds: a column at a time, so the sums run over the points in the same order.
+    With `keys`, the output points' voxel triples (N,3) int64 are appended to it."""
     points = [p for p, _ in parts if len(p)]
     colours = [c for _, c in parts if len(c)]
     if not points:
+        if keys is not None:
+            keys.append(np.zeros((0, 3), np.int64))
         return _EMPTY_POINTS.copy(), _EMPTY_COLOURS.copy()
-    _, inverse, counts = np.unique(_linear_keys(points, voxel_m), return_inverse=True, return_counts=True)
+    linear, lo, span = _linear_keys(points, voxel_m)
+    unique, inverse, counts = np.unique(linear, return_inverse=True, return_counts=True)
+    if keys is not None:
+        x, rem = np.divmod(unique, span[1] * span[2])
+        y, z = np.divmod(rem, span[2])
+        keys.append(np.stack([x, y, z], axis=1) + lo)
     m = counts.shape[0]
     out_p = np.empty((m, 3), dtype=np.float64)
     out_c = np.empty((m, 3), dtype=np.float64)
@@ -346,6 +356,7 @@ class DenseCloud:
         self.voxel_m = float(voxel_m)
         self._parts: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._cache: tuple[np.ndarray, np.ndarray] | None = None
+        self._keys: list[np.ndarray] = []  # the cached cloud's voxel triples, once computed
 
     def add(self, keyframe_id: int, points_world: np.ndarray, colours: np.ndarray) -> None:
         """Set (or replace) keyframe `keyframe_id`'s contribution."""
@@ -379,14 +390,17 @@ class DenseCloud:
                 np.concatenate([self._parts[i][1][::step] for i in ids]))
 
     def cloud(self) -> tuple[np.ndarray, np.ndarray]:
-        """The merged cloud (points (N,3) float64, colours (N,3) uint8), voxel-down-sampled."""
+        """The merged cloud (points (N,3) float64, colours (N,3) uint8), voxel-down-sampled; sorted
+        by voxel triple (x, then y, then z)."""
         if self._cache is None:
-            ids = sorted(self._parts)
-            if not ids:
-                self._cache = (_EMPTY_POINTS.copy(), _EMPTY_COLOURS.copy())
-            else:
-                self._cache = _merge_voxels([self._parts[i] for i in ids], self.voxel_m)
+            self._keys = []
+            self._cache = _merge_voxels([self._parts[i] for i in sorted(self._parts)], self.voxel_m, self._keys)
         return self._cache[0].copy(), self._cache[1].copy()
+
+    def voxel_keys(self) -> np.ndarray:
+        """The voxel triple (N,3) int64, floor(p / voxel_m), of each point of `cloud()`."""
+        self.cloud()
+        return self._keys[0].copy()
 
 
 _PLY_DTYPE = np.dtype(

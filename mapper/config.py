@@ -12,6 +12,7 @@ from octolog.mapper.fleet.order import start_pose_matrix
 from octolog.mapper.grid import DEFAULT_UP
 from octolog.mapper.params import BACKENDS, CloudParams, GridParams, MapperParams, OccupancyParams
 from octolog.mapper.sensor_model import PROBABILITIES, SensorModel
+from octolog.mapper.tiles import Tiles, parse_shard
 
 _OCTOMAP = SensorModel()  # OctoMap's defaults
 
@@ -86,6 +87,11 @@ class MapperConfig:
     # default: at the joint graph's 1 % drift, 2 m make ~2 cm, as much as a link's own error; a link
     # sooner would weigh its error against a robot's better own path. 0: links only while placing
     relink_after_m: float = 2.0
+    # one shard of a map split across mapper processes (mapper/tiles.py): "K/N" keeps the voxels of
+    # the tiles shard K of N owns, `octolog stitch` joins the shards' folders into the whole map;
+    # "": the whole map. Tiles are `tile_m` squares on the map's floor
+    shard: str = ""
+    tile_m: float = 8.0
 
     def validate(self) -> None:
         """The one check of every value; the core and the backends trust what passes it."""
@@ -120,6 +126,7 @@ class MapperConfig:
         if wrong is not None:
             what, why = wrong
             raise ConfigError(f"mapper.{what} {why}" if what in PROBABILITIES else f"mapper {what} {why}")
+        self.tiles()
         for robot in self.robots:
             if not robot.strip("/") or any(c in robot for c in "*$?#"):
                 raise ConfigError(f"mapper.robots {robot!r}: want a Zenoh key prefix such as robot1")
@@ -149,7 +156,25 @@ class MapperConfig:
             grid=GridParams(up=self.grid_up or DEFAULT_UP, camera_height_m=self.grid_camera_height_m, z_min_m=self.grid_z_min_m,
                             z_max_m=self.grid_z_max_m, resolution_m=self.grid_resolution_m),
             max_extent_m=self.max_extent_m,
+            tiles=self.tiles(),
         )
+
+    @property
+    def stage(self) -> str:
+        """The name the mapper announces itself by on the bus: "mapper", or "mapper-K" for shard K
+        (each shard is a stage of its own; a replay waits for every shard by name)."""
+        return f"mapper-{parse_shard(self.shard)[0]}" if self.shard else "mapper"
+
+    def tiles(self) -> Tiles | None:
+        """This shard's tiles (`shard` K/N), or None for the whole map."""
+        if not self.shard:
+            return None
+        k, n = parse_shard(self.shard)
+        if self.backend != "numpy":
+            raise ConfigError(f"mapper.shard {self.shard!r} needs mapper.backend = \"numpy\"")
+        if not (math.isfinite(self.tile_m) and self.tile_m > 0):
+            raise ConfigError(f"mapper.tile_m {self.tile_m}: want > 0")
+        return Tiles(k, n, float(self.tile_m), self.resolution_m, self.voxel_m)
 
     def start_pose_matrices(self) -> list[np.ndarray]:
         """world_from_<robot> for each robot (identity when no start poses are given)."""

@@ -28,7 +28,7 @@ from octolog.mapper.grid import OccupancyGrid2D, map_from_world_for_up, project_
 from octolog.mapper.occupancy import OccupancyMap, make_occupancy_map
 from octolog.mapper.params import GridParams, MapperParams
 
-__all__ = ["KeyframeCloud", "Mapper", "bt_payload", "make_mapper", "project_grid"]
+__all__ = ["KeyframeCloud", "Mapper", "bt_payload", "make_mapper", "project_grid", "write_map_files"]
 
 
 @dataclass
@@ -95,7 +95,8 @@ class Mapper:
 
     def _new_octree(self) -> OccupancyMap:
         occ = self.params.occupancy
-        return make_occupancy_map(occ.backend, occ.resolution_m, colour=occ.colour, model=occ.sensor)
+        return make_occupancy_map(occ.backend, occ.resolution_m, colour=occ.colour, model=occ.sensor,
+                                  region=self.params.tiles)
 
     def _check_pose(self, kf_id: int, T: np.ndarray) -> None:
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
@@ -145,7 +146,12 @@ class Mapper:
     def _insert(self, kf_id: int, kf: KeyframeCloud) -> None:
         map_from_camera = self.map_from_world @ kf.world_from_camera
         pts = transform(kf.points_cam, map_from_camera)
-        self._cloud.add(kf_id, pts, kf.colours)
+        tiles = self.params.tiles
+        if tiles is None:
+            self._cloud.add(kf_id, pts, kf.colours)
+        else:  # a shard: the cloud's points in its tiles; the octree keeps its tiles' voxels itself
+            mine = tiles.keep_points(pts)
+            self._cloud.add(kf_id, pts[mine], kf.colours[mine])
         # the range limit was applied when back-projecting (depth <= max_range_m), so the dense cloud
         # and the octree hold the same points; a second, Euclidean cut here would make them differ
         colour = self.params.occupancy.colour
@@ -207,19 +213,24 @@ class Mapper:
 
     def write(self, out_dir: Path, stem: str = "map") -> dict[str, str]:
         """Write the map files (.bt, .ot, cloud .ply/.pcd, the 2D grid if any); returns {kind: path}."""
-        out_dir.mkdir(parents=True, exist_ok=True)
-        bt, ply, pcd = out_dir / f"{stem}.bt", out_dir / "cloud.ply", out_dir / "cloud.pcd"
-        ot = out_dir / f"{stem}.ot"
-        self.octree.write_bt(bt)
-        self.octree.write_ot(ot)
         pts, cols = self.cloud.cloud()
-        write_ply(ply, pts, cols)
-        write_pcd(pcd, pts, cols)
-        files = {"bt": str(bt), "ot": str(ot), "ply": str(ply), "pcd": str(pcd)}
-        grid = self.project_grid()
-        if grid is not None:
-            files.update({f"grid_{k}": v for k, v in write_map_server(grid, out_dir / stem).items()})
-        return files
+        return write_map_files(out_dir, self.octree, pts, cols, self.project_grid(), stem)
+
+
+def write_map_files(out_dir: Path, octree: OccupancyMap, points: np.ndarray, colours: np.ndarray,
+                    grid: OccupancyGrid2D | None, stem: str = "map") -> dict[str, str]:
+    """The map files of an octree, a dense cloud and a grid (None: no grid files); {kind: path}."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    bt, ply, pcd = out_dir / f"{stem}.bt", out_dir / "cloud.ply", out_dir / "cloud.pcd"
+    ot = out_dir / f"{stem}.ot"
+    octree.write_bt(bt)
+    octree.write_ot(ot)
+    write_ply(ply, points, colours)
+    write_pcd(pcd, points, colours)
+    files = {"bt": str(bt), "ot": str(ot), "ply": str(ply), "pcd": str(pcd)}
+    if grid is not None:
+        files.update({f"grid_{k}": v for k, v in write_map_server(grid, out_dir / stem).items()})
+    return files
 
 
 def make_mapper(cfg: MapperConfig) -> Mapper:

@@ -37,7 +37,7 @@ def run(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: str = "o
         return run_fleet(cfg, bus_cfg, out_dir=out_dir, rerun=rerun, recording_id=recording_id)
     mapper = make_mapper(cfg)
     prior = PriorSeed(cfg.prior) if cfg.prior else None  # before the bus: a bad prior stops nothing running
-    with Bus(bus_cfg, "mapper", inbox_size=INBOX_KEYFRAMES) as bus, Viz(rerun, "mapper", recording_id) as viz:
+    with Bus(bus_cfg, cfg.stage, inbox_size=INBOX_KEYFRAMES) as bus, Viz(rerun, "mapper", recording_id) as viz:
         publisher = MapSnapshots(bus, mapper, cfg.publish_every)
         publisher.frame = MapFrame(mapper, bus, viz, from_imu=not cfg.grid_up)
         result = consume(mapper, cfg, bus, viz, publisher, out_dir, prior)

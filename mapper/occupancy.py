@@ -15,7 +15,7 @@ from octolog.kit.errors import MapError
 from octolog.mapper.octree import OccupancyOctree
 from octolog.mapper.params import BACKENDS
 from octolog.mapper.sensor_model import SensorModel
-from octolog.mapper.voxelmap import VoxelOccupancyMap
+from octolog.mapper.voxelmap import Region, VoxelOccupancyMap
 
 __all__ = ["BACKENDS", "OccupancyMap", "make_occupancy_map"]
 
@@ -51,14 +51,17 @@ class OccupancyMap(Protocol):
 
 
 def make_occupancy_map(backend: str = "numpy", resolution: float = 0.05, *, colour: bool = True,
-                       model: SensorModel = SensorModel()) -> OccupancyMap:
+                       model: SensorModel = SensorModel(), region: Region | None = None) -> OccupancyMap:
     """An occupancy map with the common interface (`OccupancyMap`).
 
     backend "numpy": `VoxelOccupancyMap` (own, vectorised); "octomap": `OccupancyOctree`
     (pyoctomap, the reference), with a `ColorOcTree` mirror for colour when `colour` is true.
+    `region` (a shard's tiles) keeps only its voxels: the numpy backend only.
     """
     if backend == "numpy":
-        return VoxelOccupancyMap(resolution, model=model, colour=colour)
+        return VoxelOccupancyMap(resolution, model=model, colour=colour, region=region)
+    if region is not None:
+        raise MapError("a map shard (mapper.shard) needs mapper.backend = \"numpy\"")
     if backend == "octomap":
         return OccupancyOctree(resolution, model=model, colour=colour)
     raise MapError(f"unknown occupancy map backend {backend!r} (want 'numpy' or 'octomap')")

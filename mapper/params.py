@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from octolog.mapper.sensor_model import SensorModel
+from octolog.mapper.tiles import Tiles
 
 __all__ = ["BACKENDS", "CloudParams", "GridParams", "MapperParams", "OccupancyParams"]
 
@@ -60,3 +61,4 @@ class MapperParams:
     occupancy: OccupancyParams
     grid: GridParams
     max_extent_m: float  # cameras farther than this from the origin are refused
+    tiles: Tiles | None = None  # a shard of the map: only these tiles' voxels (mapper.tiles)

@@ -16,6 +16,7 @@ from octolog.kit.viz import Viz
 from octolog.mapper.core import Mapper, bt_payload
 from octolog.mapper.grid import OccupancyGrid2D, occupancy_grid_msg
 from octolog.mapper.mapframe import MapFrame
+from octolog.mapper.shards import write_shard
 from octolog.schemas import codec, mapmsgs, streammsgs
 from octolog.schemas.topics import GRID, MAP_END, MAP_QUERY, MAP_SAVE, MAP_UPDATE, OCCUPIED, OCTOMAP
 
@@ -84,9 +85,13 @@ def finish(mapper: Mapper, result: MapperResult, bus: Bus, viz: Viz, publisher: 
     result.files = mapper.write(out_dir)
     result.stats = mapper.stats()
     result.cloud_points = len(mapper.cloud.cloud()[0])
+    if mapper.params.tiles is not None:
+        result.stats["shard"] = mapper.params.tiles.name
     (out_dir / "map_stats.json").write_text(json.dumps(
         {**result.stats, "cloud_points": result.cloud_points, "skipped_keyframes": result.skipped,
          "corrections": result.corrections, **(extra_stats or {})}, indent=2, sort_keys=True) + "\n")
+    if mapper.params.tiles is not None:  # last: a shard killed before this has no shard file
+        result.files["shard"] = str(write_shard(mapper, out_dir))
     if viz.enabled:
         log_map(viz, mapper, last_stamp, publisher.grid, final=True)
     bus.publisher(MAP_END).put(streammsgs.stream_end_msg(MAP_UPDATE.name, result.keyframes + result.skipped))

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
@@ -41,7 +42,15 @@ from octolog.mapper.sensor_model import SensorModel
 from octolog.mapper.voxelstore import VoxelStore
 from octolog.mapper.treebuild import build_tree
 
-__all__ = ["VoxelOccupancyMap"]
+__all__ = ["Region", "VoxelOccupancyMap"]
+
+
+class Region(Protocol):
+    """The voxels a map keeps (mapper.tiles.Tiles: a shard's tiles)."""
+
+    def keep_packed(self, packed: np.ndarray) -> np.ndarray: ...
+
+    def touches_keys(self, lo: np.ndarray, hi: np.ndarray) -> bool: ...
 
 _DBL_MAX = float(np.finfo(np.float64).max)
 _DENSE_MAX_CELLS = 1 << 26  # per-scan scratch grid limit (64 MiB of uint8), beyond it use np.unique
@@ -192,9 +201,11 @@ class VoxelOccupancyMap:
 
     backend = "numpy"
 
-    def __init__(self, resolution: float = 0.05, *, model: SensorModel = SensorModel(), colour: bool = True) -> None:
+    def __init__(self, resolution: float = 0.05, *, model: SensorModel = SensorModel(), colour: bool = True,
+                 region: Region | None = None) -> None:
         model.check(resolution)
         self.resolution = float(resolution)
+        self.region = region  # a shard's tiles (mapper.tiles): only their voxels are kept
         self.model = model
         self.colour = bool(colour)
         lo = model.logodds()
@@ -208,6 +219,14 @@ class VoxelOccupancyMap:
     def clear(self) -> None:
         """Forget everything (e.g. before re-integrating keyframes after a loop closure)."""
         self._store = VoxelStore()  # packed keys sorted and unique, log-odds, colour (255,255,255: none)
+
+    def voxels(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every known voxel: packed keys (sorted), log-odds, colours (copies)."""
+        return tuple(a.copy() for a in self._store.arrays())
+
+    def set_voxels(self, packed: np.ndarray, logodds: np.ndarray, colours: np.ndarray) -> None:
+        """Replace the map by these voxels (packed keys sorted and unique), e.g. tiles stitched together."""
+        self._store = VoxelStore.of(packed, logodds, colours)
 
     @property
     def _keys(self) -> np.ndarray:
@@ -304,10 +323,14 @@ class VoxelOccupancyMap:
         glo = np.minimum(lo, ray_keys.min(axis=0))
         ghi = np.maximum(hi, ray_keys.max(axis=0))
         # Pad one voxel: the DDA never leaves the segment's key box, but be safe at borders.
+        if self.region is not None and not self.region.touches_keys(glo - 1, ghi + 1):
+            return  # no ray of this scan reaches the shard's tiles
         grid = _ScanGrid(glo - 1, ghi + 1)
         for s in range(0, ends.shape[0], _RAY_CHUNK):
             _cast_rays(grid, o32, ends[s:s + _RAY_CHUNK], res)
         free, occ = grid.result(grid.lin(occ_keys))
+        if self.region is not None:
+            free, occ = free[self.region.keep_packed(free)], occ[self.region.keep_packed(occ)]
 
         self._apply_updates(free, occ)
 
@@ -334,7 +357,11 @@ class VoxelOccupancyMap:
         for j in range(3):
             mean[:, j] = np.bincount(idx, weights=colours[pt_ok, j].astype(np.float64), minlength=m)
         mean = np.clip(np.rint(mean[has] / cnt[has, None]), 0, 255).astype(np.int64)
-        self._store.average_colour(box._to_packed(ulin[has]), mean)
+        packed = box._to_packed(ulin[has])
+        if self.region is not None:
+            mine = self.region.keep_packed(packed)
+            packed, mean = packed[mine], mean[mine]
+        self._store.average_colour(packed, mean)
 
     # ---- queries -------------------------------------------------------------------------------
 

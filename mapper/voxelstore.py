@@ -38,6 +38,15 @@ class VoxelStore:
         self._main = _empty()
         self._new = _empty()
 
+    @classmethod
+    def of(cls, keys: np.ndarray, logodds: np.ndarray, colours: np.ndarray) -> VoxelStore:
+        """A store holding these voxels (keys sorted and unique; the arrays are taken, not copied)."""
+        if keys.shape[0] > 1 and not np.all(keys[1:] > keys[:-1]):
+            raise ValueError("voxel keys must be sorted and unique")
+        store = cls()
+        store._main = (keys.astype(np.int64), logodds.astype(np.float32), colours.astype(np.uint8))
+        return store
+
     def __len__(self) -> int:
         return int(self._main[0].shape[0] + self._new[0].shape[0])
 

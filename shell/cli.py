@@ -194,6 +194,13 @@ def cmd_merge(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_stitch(args: argparse.Namespace) -> int:
+    """`octolog stitch`: a map's shards into the whole map (shell/merge.py)."""
+    from octolog.shell.merge import cmd_stitch as stitch
+
+    return stitch(args)
+
+
 def cmd_import(args: argparse.Namespace) -> int:
     """`octolog import`: a TUM folder or a ROS/RealSense bag into octolog's MCAP layout."""
     from octolog.recorder.importers import import_source, parse_topic_map
@@ -382,6 +389,11 @@ def _add_file_commands(sub: Any) -> None:
     p.add_argument("--config", help="TOML file with a [mapper] section")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="mapper config override")
     p.set_defaults(func=cmd_merge)
+    p = sub.add_parser("stitch", help="a map's shards (octolog map --set shard=K/N) into the whole map")
+    p.add_argument("shards", nargs="+", help="the shards' --out folders (each with shard.npz)")
+    p.add_argument("--out", required=True, help="folder for the stitched map.bt, cloud.ply, grid, map_stats.json")
+    p.add_argument("--overwrite", action="store_true", help="replace a map already in --out")
+    p.set_defaults(func=cmd_stitch)
 
 
 def _add_vocab_command(sub: Any) -> None:

@@ -1,4 +1,5 @@
-"""`octolog merge A B ... --out MERGED`: sessions recorded apart, one map, offline.
+"""`octolog merge A B ... --out MERGED`: sessions recorded apart, one map, offline; and `octolog
+stitch S1 S2 ... --out MAP`: a map's shards (mapper/shards.py) joined into the whole map.
 
 Each session folder's log holds its tracker's keyframes and corrections; they go through the
 fleet's merge (mapper/fleet) as if each session were a robot of one fleet, with no start poses:
@@ -13,6 +14,7 @@ clock: the same sessions give the same bytes.
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import json
 import shutil
@@ -100,3 +102,18 @@ def merge_sessions(folders: list[Path], out: Path, cfg: MapperConfig | None = No
              "unmerged": [str(folders[r]) for r in unplaced], "problems": problems}
     (out / "map_stats.json").write_text(json.dumps(stats, indent=2, sort_keys=True) + "\n")
     return stats
+
+
+def cmd_stitch(args: argparse.Namespace) -> int:
+    """`octolog stitch`: the shards' tiles into one map; exit status 3 when a shard is missing."""
+    from octolog.mapper.shards import stitch
+
+    out = Path(args.out)
+    _prepare(out, args.overwrite)
+    stats = stitch([Path(f) for f in args.shards], out)
+    print(f"stitch: {len(stats['shards'])} shards -> {out}: {stats['occupied_voxels']} occupied voxels, "
+          f"{stats['cloud_points']} cloud points")
+    for problem in stats["problems"]:
+        print(f"stitch: {problem}")
+    return 3 if stats["missing_shards"] else 0
+

@@ -26,8 +26,6 @@ such a map, another version, or a map of another camera is a one-line `InputErro
 
 from __future__ import annotations
 
-import io
-import json
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,6 +35,7 @@ import cv2
 import numpy as np
 
 from octolog.kit.errors import InputError
+from octolog.kit.files import read_npz, write_npz
 from octolog.kit.geometry import Intrinsics
 from octolog.tracker.features import FrameFeatures
 from octolog.tracker.keyframe_map import Keyframe, MapPoints
@@ -107,35 +106,19 @@ def save_map(path: Path, *, intrinsics: Intrinsics, keyframes: list[Keyframe], p
                              "distortion": list(intrinsics.distortion)},
               "depth_inverse_offset": depth_offset, "keyframes": K, "map_points": n, "loops": len(loop_edges),
               "versions": {"numpy": np.__version__, "opencv": cv2.__version__}}
-    tmp = path.with_name(path.name + ".tmp")
-    with zipfile.ZipFile(tmp, "w", zipfile.ZIP_STORED) as z:
-        _entry(z, "header.json", json.dumps(header, indent=2, sort_keys=True).encode())
-        for name, value in arrays.items():
-            buf = io.BytesIO()
-            np.save(buf, np.ascontiguousarray(value), allow_pickle=False)
-            _entry(z, f"{name}.npy", buf.getvalue())
-    tmp.replace(path)
-
-
-def _entry(z: zipfile.ZipFile, name: str, data: bytes) -> None:
-    info = zipfile.ZipInfo(name, date_time=(1980, 1, 1, 0, 0, 0))  # fixed: same map, same bytes
-    info.compress_type = zipfile.ZIP_STORED  # deflate saves a quarter (descriptors and floats) at ten times the time
-    z.writestr(info, data)
+    write_npz(path, header, arrays)
 
 
 def load_map(given: str | Path) -> SavedMap:
     """Read a saved map (a file, or a session folder's); InputError naming what is wrong."""
     path = map_path(given)
     try:
-        with zipfile.ZipFile(path) as z:
-            header = json.loads(z.read("header.json"))
-            if header.get("format") != FORMAT:
-                raise InputError(f"{path}: not an octolog SLAM map (format {header.get('format')!r})")
-            if header.get("version") != VERSION:
-                raise InputError(f"{path}: SLAM map version {header.get('version')!r}; this octolog reads "
-                                 f"version {VERSION} (make the map again with this version)")
-            a = {n.removesuffix(".npy"): np.load(io.BytesIO(z.read(n)), allow_pickle=False)
-                 for n in z.namelist() if n.endswith(".npy")}
+        header, a = read_npz(path)
+        if header.get("format") != FORMAT:
+            raise InputError(f"{path}: not an octolog SLAM map (format {header.get('format')!r})")
+        if header.get("version") != VERSION:
+            raise InputError(f"{path}: SLAM map version {header.get('version')!r}; this octolog reads "
+                             f"version {VERSION} (make the map again with this version)")
     except FileNotFoundError:
         raise InputError(f"{path}: no saved SLAM map there ({FILENAME} is written by `octolog run`)") from None
     except (zipfile.BadZipFile, EOFError, ValueError, KeyError, OSError) as exc:

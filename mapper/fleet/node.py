@@ -63,8 +63,8 @@ def run_fleet(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: st
     namespace. Keyframes are merged in the order mapper/fleet/order.py defines."""
     mapper = make_mapper(cfg)
     with contextlib.ExitStack() as stack:
-        bus = stack.enter_context(Bus(bus_cfg, "mapper", inbox_size=INBOX_KEYFRAMES))
-        robot_buses = [stack.enter_context(Bus(dataclasses.replace(bus_cfg, namespace=r), "mapper",
+        bus = stack.enter_context(Bus(bus_cfg, cfg.stage, inbox_size=INBOX_KEYFRAMES))
+        robot_buses = [stack.enter_context(Bus(dataclasses.replace(bus_cfg, namespace=r), cfg.stage,
                                                inbox_size=ROBOT_INBOX)) for r in cfg.robots]
         viz = stack.enter_context(Viz(rerun, "mapper", recording_id))
         frame = MapFrame(mapper, bus, viz, from_imu=False, ask=None if cfg.grid_up else robot_buses[0])
