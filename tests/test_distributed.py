@@ -339,3 +339,106 @@ def test_three_robots_on_three_hosts_merge_without_start_poses(hosts, tmp_path):
                   for stamp, p in zip(traj.stamps_ns, traj.positions, strict=True)]
         print(f"{robot}: {len(errors)} keyframes, ATE max {max(errors) * 100:.2f} cm")
         assert max(errors) < 0.03, (robot, errors)
+
+
+# Waits on one host for a mapper shard's first map update (its `mapper/update`, published per
+# keyframe in its own namespace) and says so: the event a test kills the shard on.
+_FIRST_UPDATE = """
+import sys
+from octolog.kit.bus import Bus, BusConfig
+from octolog.schemas.topics import MAP_UPDATE
+cfg = BusConfig(mode="client", connect=(sys.argv[1],), multicast_scouting=False, namespace=sys.argv[2])
+with Bus(cfg, "probe") as bus:
+    bus.start([MAP_UPDATE])
+    print("listening", flush=True)
+    while bus.receive(timeout_s=60.0) is None:
+        pass
+    print("updated", flush=True)
+"""
+
+
+def _sharded_run(names: dict, addr: dict, log: Path, out: Path, shards: tuple[str, ...], *, whole: bool,
+                 kill: str = "") -> dict[str, int]:
+    """Router on host d; mapper shard K of 2 on host a (K=1) or b (K=2), each in namespace map/sK,
+    and with `whole` one unsharded mapper on d (namespace map/all); two robots' keyframe streams
+    replayed on host c from a session log, r2 from frame 4 on, no start poses. With `kill`, that
+    shard is SIGKILLed at its first map update. The processes' exit codes."""
+    out.mkdir(parents=True, exist_ok=True)
+    procs = {"router": _start(names["d"], "router", "--listen", "tcp/0.0.0.0:7447", log=out / "router.log")}
+    codes = {}
+    try:
+        def bus(h: str) -> list[str]:
+            where = f"tcp/{addr[h][0]}:7447" if h != "d" else "tcp/127.0.0.1:7447"
+            return ["--mode", "client", "--connect", where, "--no-multicast"]
+
+        fleet = ["--rerun", "off", "--set", 'robots=["r1", "r2"]', "--set", "tile_m=2.0"]
+        if kill:
+            k = kill.split("/")[0]
+            procs["probe"] = subprocess.Popen(
+                ["ip", "netns", "exec", names["d"], sys.executable, "-c", _FIRST_UPDATE, "tcp/127.0.0.1:7447",
+                 f"map/s{k}"], cwd=ROOT, text=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+            read_until(procs["probe"], "listening")
+        waits = []
+        for shard in shards:
+            k = shard.split("/")[0]
+            procs[f"mapper-{k}"] = _start(names["a" if k == "1" else "b"], "map", *bus("a" if k == "1" else "b"),
+                                          "--namespace", f"map/s{k}", "--out", str(out / f"s{k}"), *fleet,
+                                          "--set", f"shard={shard}", log=out / f"mapper-{k}.log")
+            waits.append(f"mapper-{k}")
+        if whole:
+            procs["mapper"] = _start(names["d"], "map", *bus("d"), "--namespace", "map/all", "--out",
+                                     str(out / "all"), *fleet, log=out / "mapper.log")
+            waits.append("mapper")
+        for robot, start in (("r1", 0), ("r2", 4)):
+            procs[robot] = _start(names["c"], "replay", *bus("c"), "--namespace", robot, "--quiet", "--source",
+                                  f"mcap:{log}", "--set", "play=tracker", "--set", f"start={start}",
+                                  "--set", f"wait_for={json.dumps(waits)}", log=out / f"{robot}.log")
+        if kill:
+            read_until(procs["probe"], "updated")
+            procs[f"mapper-{kill.split('/')[0]}"].kill()
+        for name, p in procs.items():
+            if name not in ("router", "probe"):
+                codes[name] = p.wait(timeout=300)
+    finally:
+        stop_all(procs)
+    return codes
+
+
+@pytest.mark.root
+@pytest.mark.slow
+def test_map_shards_on_two_hosts_stitch_into_one_mappers_map(hosts, single_host, tmp_path):
+    """docs/deployment.md's sharded layout: two robots (keyframe streams replayed on host c), the
+    map in 2 m tiles over two mapper shards on hosts a and b, and one whole mapper on d for
+    reference, all at once, no start poses. `octolog stitch` of the two shards gives the whole
+    mapper's map files byte for byte. Then shard 2 is killed at its first map update: the robots and
+    shard 1 finish, the stitch writes shard 1's tiles and names shard 2 in one line (exit 3); shard 2
+    run again on the same log alone fills the map to the same bytes."""
+    names, addr = hosts
+    log = single_host / "session.mcap"
+    first = tmp_path / "first"
+    codes = _sharded_run(names, addr, log, first, ("1/2", "2/2"), whole=True)
+    assert set(codes.values()) == {0}, codes
+    stitched = octolog("stitch", str(first / "s1"), str(first / "s2"), "--out", str(first / "stitched"), check=False)
+    assert stitched.returncode == 0, stitched.stdout + stitched.stderr
+    stats = json.loads((first / "all" / "map_stats.json").read_text())
+    assert "r2" in {m["robot"] for m in stats["merges"]}, stats  # placed by a shared place, in each mapper
+    for name in ("map.bt", "map.ot", "cloud.ply", "map.pgm"):
+        assert (first / "stitched" / name).read_bytes() == (first / "all" / name).read_bytes(), name
+    for k in ("1", "2"):
+        assert json.loads((first / f"s{k}" / "map_stats.json").read_text())["occupied_voxels"] > 0
+
+    second = tmp_path / "second"
+    codes = _sharded_run(names, addr, log, second, ("1/2", "2/2"), whole=False, kill="2/2")
+    assert codes["mapper-2"] < 0 and codes["mapper-1"] == codes["r1"] == codes["r2"] == 0, codes
+    assert not (second / "s2" / "shard.npz").exists()
+    partial = octolog("stitch", str(second / "s1"), str(second / "s2"), "--out", str(second / "partial"), check=False)
+    assert partial.returncode == 3, partial.stdout + partial.stderr
+    assert [line for line in partial.stdout.splitlines() if "shard 2/2 missing" in line], partial.stdout
+    assert (second / "partial" / "map.bt").read_bytes() == (first / "s1" / "map.bt").read_bytes()
+    codes = _sharded_run(names, addr, log, second / "again", ("2/2",), whole=False)
+    assert set(codes.values()) == {0}, codes
+    filled = octolog("stitch", str(second / "s1"), str(second / "again" / "s2"), "--out", str(second / "filled"),
+                     check=False)
+    assert filled.returncode == 0, filled.stdout + filled.stderr
+    for name in ("map.bt", "map.ot", "cloud.ply", "map.pgm"):
+        assert (second / "filled" / name).read_bytes() == (first / "all" / name).read_bytes(), name
