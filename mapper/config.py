@@ -89,9 +89,11 @@ class MapperConfig:
     relink_after_m: float = 2.0
     # one shard of a map split across mapper processes (mapper/tiles.py): "K/N" keeps the voxels of
     # the tiles shard K of N owns, `octolog stitch` joins the shards' folders into the whole map;
-    # "": the whole map. Tiles are `tile_m` squares on the map's floor
+    # "": the whole map. Tiles are `tile_m` squares on the map's floor; a keyframe reaches ~13 m across
+    # (4 m of depth at a D455's field of view), so tiles larger than that spare a shard most of the
+    # keyframes of its neighbours' tiles
     shard: str = ""
-    tile_m: float = 8.0
+    tile_m: float = 16.0
 
     def validate(self) -> None:
         """The one check of every value; the core and the backends trust what passes it."""

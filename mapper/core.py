@@ -35,13 +35,17 @@ __all__ = ["KeyframeCloud", "Mapper", "bt_payload", "make_mapper", "project_grid
 class KeyframeCloud:
     """One integrated keyframe: its filtered cloud in the camera frame and its current pose."""
 
-    points_cam: np.ndarray  # (N, 3) float64, filtered, camera frame
-    colours: np.ndarray  # (N, 3) uint8
+    points_cam: np.ndarray | None  # (N, 3) float64, filtered, camera frame (None: see `frame`)
+    colours: np.ndarray | None  # (N, 3) uint8
     world_from_camera: np.ndarray  # 4x4
     stamp_ns: int
     seq: int
     stride: int = 0  # the pixel stride it was back-projected at (0: not recorded)
     inverse_offset: float = 0.0  # the depth correction its points took (Keyframe.depth_inverse_offset)
+    # a shard keeps a keyframe that cannot reach its tiles as its frame, and makes its cloud only if a
+    # correction brings it within reach: then as at arrival, with the depth re-corrections since
+    frame: RgbdFrame | None = None
+    recorrections: tuple[float, ...] = ()
 
 
 class Mapper:
@@ -114,21 +118,43 @@ class Mapper:
             raise InputError(f"keyframe {kf_id}: already integrated")
         if not np.any(frame.depth):
             raise InputError(f"keyframe {kf_id}: no valid depth")
-        c = self.params.cloud
         stride = self._stride(frame.stamp_ns)
-        pts, cols = keyframe_cloud(
-            frame.depth, frame.rgb, frame.intrinsics, frame.depth_scale_m, np.eye(4),
-            max_range_m=c.max_range_m, stride=stride, nb_neighbors=c.sor_neighbors,
-            std_ratio=c.sor_std_ratio, voxel_m=c.voxel_m, sor_first=c.sor_first, outliers=c.outliers,
-            inverse_offset=frame.depth_inverse_offset)
-        if len(pts) == 0:
-            raise InputError(f"keyframe {kf_id}: no valid depth within {c.max_range_m} m")
-        kf = KeyframeCloud(pts, cols, world_from_camera.copy(), frame.stamp_ns, frame.seq, stride,
-                           frame.depth_inverse_offset)
+        kf = KeyframeCloud(None, None, world_from_camera.copy(), frame.stamp_ns, frame.seq, stride,
+                           frame.depth_inverse_offset, frame=frame)
+        if self._within_reach(kf) and self._make_cloud(kf) == 0:
+            raise InputError(f"keyframe {kf_id}: no valid depth within {self.params.cloud.max_range_m} m")
         self.keyframes[kf_id] = kf
         if not self._stale:  # else the coming rebuild inserts it
             self._insert(kf_id, kf)
+        return 0 if kf.points_cam is None else len(kf.points_cam)
+
+    def _make_cloud(self, kf: KeyframeCloud) -> int:
+        """The keyframe's filtered camera-frame cloud from its frame (then dropped); its size."""
+        c, frame = self.params.cloud, kf.frame
+        pts, cols = keyframe_cloud(
+            frame.depth, frame.rgb, frame.intrinsics, frame.depth_scale_m, np.eye(4),
+            max_range_m=c.max_range_m, stride=kf.stride, nb_neighbors=c.sor_neighbors,
+            std_ratio=c.sor_std_ratio, voxel_m=c.voxel_m, sor_first=c.sor_first, outliers=c.outliers,
+            inverse_offset=frame.depth_inverse_offset)
+        for delta in kf.recorrections:
+            pts = pts / (1.0 - delta * pts[:, 2:3])
+        kf.points_cam, kf.colours, kf.frame, kf.recorrections = pts, cols, None, ()
         return len(pts)
+
+    def _within_reach(self, kf: KeyframeCloud) -> bool:
+        """Can the keyframe's points (and so its rays) reach this map's tiles at its current pose?
+        Always, for a whole map. A shard bounds them by the camera position and the longest ray of
+        the frustum at `max_range_m` after the depth correction, with a margin."""
+        tiles = self.params.tiles
+        if tiles is None or kf.frame is None:
+            return True
+        c, K = self.params.cloud, kf.frame.intrinsics
+        corner = max(np.hypot(np.hypot((u - K.cx) / K.fx, (v - K.cy) / K.fy), 1.0)
+                     for u in (0, K.width) for v in (0, K.height))
+        longest = c.max_range_m / max(1e-3, 1.0 - max(0.0, kf.inverse_offset) * c.max_range_m)
+        reach = 1.1 * corner * longest + self.resolution_m
+        centre = (self.map_from_world @ kf.world_from_camera)[:3, 3]
+        return tiles.touches_box(centre[:2] - reach, centre[:2] + reach)
 
     def _stride(self, stamp_ns: int) -> int:
         """The pixel stride for a keyframe taken at `stamp_ns`: `cloud.pixel_stride`, or
@@ -144,6 +170,11 @@ class Mapper:
         return c.pixel_stride if recent < c.full_per_s else max(c.pixel_stride, c.burst_stride)
 
     def _insert(self, kf_id: int, kf: KeyframeCloud) -> None:
+        if kf.points_cam is None:
+            if not self._within_reach(kf):
+                self._cloud.remove(kf_id)
+                return
+            self._make_cloud(kf)
         map_from_camera = self.map_from_world @ kf.world_from_camera
         pts = transform(kf.points_cam, map_from_camera)
         tiles = self.params.tiles
@@ -183,7 +214,11 @@ class Mapper:
         for i in ids:
             kf = self.keyframes[i]
             delta = inverse_offset - kf.inverse_offset
-            if delta:
+            if delta and kf.points_cam is None:
+                kf.recorrections += (delta,)
+                kf.inverse_offset = inverse_offset
+                changed.add(i)
+            elif delta:
                 kf.points_cam = kf.points_cam / (1.0 - delta * kf.points_cam[:, 2:3])
                 kf.inverse_offset = inverse_offset
                 changed.add(i)

@@ -83,6 +83,13 @@ class Tiles:
         ti, tj = np.meshgrid(np.arange(i0, i1 + 1), np.arange(j0, j1 + 1), indexing="ij")
         return bool(self.owns(ti, tj).any())
 
+    def touches_box(self, lo: np.ndarray, hi: np.ndarray) -> bool:
+        """Does the floor box [lo, hi] (map frame x, y, metres) reach one of this shard's tiles?"""
+        i0, j0 = (int(v) for v in np.floor(np.asarray(lo, float) / self.tile_m))
+        i1, j1 = (int(v) for v in np.floor(np.asarray(hi, float) / self.tile_m))
+        ti, tj = np.meshgrid(np.arange(i0, i1 + 1), np.arange(j0, j1 + 1), indexing="ij")
+        return bool(self.owns(ti, tj).any())
+
     def keep_points(self, points_map: np.ndarray) -> np.ndarray:
         """Per dense-cloud point (map frame): is its cloud voxel in this shard's tiles?"""
         n = _cells(self.tile_m, self.voxel_m, "")

@@ -98,3 +98,30 @@ def test_every_voxel_belongs_to_exactly_one_shard():
         tiles = [Tiles(k, n, 4.0, 0.05, 0.01) for k in range(1, n + 1)]
         assert np.all(sum(t.keep_packed(packed).astype(int) for t in tiles) == 1)
         assert np.all(sum(t.keep_points(points).astype(int) for t in tiles) == 1)
+
+
+def test_a_shard_builds_clouds_only_for_keyframes_that_reach_its_tiles(keyframes, tmp_path):
+    """The room laid down twice, 40 m apart, in 16 m tiles over four shards, then corrected (poses
+    moved, the depth re-corrected): each shard makes the clouds of the keyframes that can reach its
+    tiles only (a keyframe reaches 2 x 2 tiles here, so three shards of four), and the stitched map
+    is still the single mapper's, byte for byte."""
+    frames, poses, corrected = keyframes
+    far = np.eye(4)
+    far[0, 3] = 40.0
+    twice = (frames + frames, poses + [far @ T for T in poses], corrected + [far @ T for T in corrected])
+    outs, built = [], []
+    for shard in ("", "1/4", "2/4", "3/4", "4/4"):
+        mapper = make_mapper(MapperConfig(tile_m=16.0, shard=shard))
+        for k, (frame, pose) in enumerate(zip(twice[0], twice[1])):
+            mapper.integrate(k, pose, frame)
+        mapper.correct({k: T for k, T in enumerate(twice[2]) if k % 3}, depth_inverse_offset=0.002)
+        out = tmp_path / (shard.replace("/", "of") or "one")
+        mapper.write(out)
+        if shard:
+            write_shard(mapper, out)
+            outs.append(out)
+        built.append(sum(kf.points_cam is not None for kf in mapper.keyframes.values()))
+    assert built[0] == len(twice[0]) and sum(built[1:]) <= 3 * len(twice[0]), built
+    stitch(outs, tmp_path / "stitched")
+    for name in MAP_FILES:
+        assert (tmp_path / "stitched" / name).read_bytes() == (tmp_path / "one" / name).read_bytes(), name
