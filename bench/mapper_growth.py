@@ -34,9 +34,7 @@ def main() -> None:
     ap.add_argument("--every", type=int, default=15)
     args = ap.parse_args()
     marks = sorted(int(r) for r in args.rooms.split(","))
-    scene = SyntheticScene(n_frames=args.frames)
-    frames = [scene.render(i) for i in range(0, args.frames, args.every)]
-    poses = scene.poses()[::args.every]
+    frames, poses = room_keyframes(args.frames, args.every)
     mapper = make_mapper(MapperConfig())
     side = math.ceil(math.sqrt(marks[-1]))
     room_m2 = ROOM_SIZE_M[0] * ROOM_SIZE_M[1]
@@ -46,8 +44,7 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|")
     kid = 0
     for room in range(marks[-1]):
-        shift = np.eye(4)
-        shift[0, 3], shift[2, 3] = SPACING_M * (room % side), SPACING_M * (room // side)  # x and z: the floor
+        shift = room_shift(room, side)
         ms = []
         for frame, pose in zip(frames, poses):
             t = time.perf_counter()
@@ -60,6 +57,19 @@ def main() -> None:
             print(f"| {room + 1} | {(room + 1) * room_m2:.0f} | {kid} | {np.median(ms):.1f} / "
                   f"{np.percentile(ms, 90):.1f} | {st['occupied_voxels'] + st['free_voxels']} | "
                   f"{st['memory_bytes'] / 2**20:.0f} | {rss:.0f} |", flush=True)
+
+
+def room_keyframes(n_frames: int, every: int) -> tuple[list, list]:
+    """The synthetic room's every `every`-th frame of `n_frames`, and its ground-truth pose."""
+    scene = SyntheticScene(n_frames=n_frames)
+    return [scene.render(i) for i in range(0, n_frames, every)], scene.poses()[::every]
+
+
+def room_shift(room: int, side: int) -> np.ndarray:
+    """Where copy `room` of the room lies: on a grid `side` rooms wide, SPACING_M apart on the floor."""
+    shift = np.eye(4)
+    shift[0, 3], shift[2, 3] = SPACING_M * (room % side), SPACING_M * (room // side)  # x and z: the floor
+    return shift
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ from scipy.spatial import cKDTree
 from octolog.kit.errors import MapError
 from octolog.kit.files import write_bytes_atomic
 from octolog.kit.geometry import Intrinsics
+from octolog.mapper.kernels import nearest_mean_distances
 
 __all__ = [
     "DenseCloud",
@@ -166,13 +167,12 @@ def image_outlier_removal(
     p, c = backproject(depth, rgb, intrinsics, depth_scale_m, max_range_m=max_range_m, stride=stride)
     if len(p) == 0:
         return p, c
-    dist = _window_distances(p, _valid_grid(depth, depth_scale_m, max_range_m, stride), radius)
-    # the mean over its `IMAGE_NEAREST` nearest neighbours in the window: a point on an object's edge
-    # has that many on its own surface, a flying pixel between two surfaces has none (no valid
-    # neighbour: inf, an outlier)
-    nearest = np.partition(dist, IMAGE_NEAREST - 1, axis=0)[:IMAGE_NEAREST]
+    # the mean over its `IMAGE_NEAREST` nearest neighbours in the window (mapper/kernels.py): a point on
+    # an object's edge has that many on its own surface, a flying pixel between two surfaces has none
+    # (no valid neighbour: inf, an outlier)
+    valid = _valid_grid(depth, depth_scale_m, max_range_m, stride)
     footprint = p[:, 2] * (stride / intrinsics.fx)
-    mean_d = np.sqrt(nearest.astype(np.float64)).sum(axis=0) / IMAGE_NEAREST / footprint
+    mean_d = nearest_mean_distances(p, valid, radius, IMAGE_NEAREST) / IMAGE_NEAREST / footprint
     finite = np.isfinite(mean_d)
     if not finite.any():
         return _EMPTY_POINTS.copy(), _EMPTY_COLOURS.copy()
@@ -180,37 +180,6 @@ def image_outlier_removal(
     sigma = float(mean_d[finite].std(ddof=1)) if finite.sum() > 1 else 0.0
     keep = finite & (mean_d <= mu + std_ratio * sigma)
     return p[keep], c[keep]
-
-
-def _window_distances(p: np.ndarray, valid: np.ndarray, r: int) -> np.ndarray:
-    """Squared distances (float32, ((2r+1)^2 - 1, N)) from each point `p` (the `valid` pixels of the
-    grid, row-major) to the point of each other pixel of its window; inf where that pixel has none."""
-    h, w = valid.shape
-    # one padded float32 plane per coordinate; an invalid pixel is inf, so a distance to it is inf
-    # (from a valid point, whose coordinates are finite; inf - inf at invalid centres is never read)
-    planes = np.full((3, h + 2 * r, w + 2 * r), np.inf, dtype=np.float32)
-    for j in range(3):
-        planes[j, r:r + h, r:r + w][valid] = p[:, j]
-    centre = planes[:, r:r + h, r:r + w]
-    dist = np.empty(((2 * r + 1) ** 2 - 1, int(valid.sum())), dtype=np.float32)
-    sq = np.empty((h, w), dtype=np.float32)
-    tmp = np.empty((h, w), dtype=np.float32)
-    k = 0
-    with np.errstate(invalid="ignore"):  # inf - inf at invalid centres, not read
-        for dy in range(-r, r + 1):
-            for dx in range(-r, r + 1):
-                if dy == 0 and dx == 0:
-                    continue
-                other = planes[:, r + dy:r + dy + h, r + dx:r + dx + w]
-                np.subtract(other[0], centre[0], out=sq)
-                np.multiply(sq, sq, out=sq)
-                for j in (1, 2):
-                    np.subtract(other[j], centre[j], out=tmp)
-                    np.multiply(tmp, tmp, out=tmp)
-                    np.add(sq, tmp, out=sq)
-                dist[k] = sq[valid]
-                k += 1
-    return dist
 
 
 def _voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:

@@ -38,6 +38,7 @@ import numpy as np
 from octolog.kit.errors import MapError
 from octolog.kit.files import write_bytes_atomic
 from octolog.mapper.octokeys import TREE_MAX_VAL, key_to_coord, norm32, pack, to_key, unpack
+from octolog.mapper.kernels import walk_rays
 from octolog.mapper.sensor_model import SensorModel
 from octolog.mapper.voxelstore import VoxelStore
 from octolog.mapper.treebuild import build_tree
@@ -133,9 +134,14 @@ def _cast_rays(grid: _ScanGrid, origin32: np.ndarray, ends32: np.ndarray, res: f
     grid.mark_free(grid.lin(ko[None, :]))
 
     length, step, t_max, t_delta = _dda_start(origin32, ends32, ko, res)
+    n_steps = np.abs(ke - ko).sum(axis=1)
+    if grid.dense:  # compiled, a ray at a time (mapper/kernels.py)
+        if not walk_rays(t_max, t_delta, step * grid.strides[None, :], length, int(grid.lin(ko[None, :])[0]),
+                         grid.lin(ke), grid.grid, int(n_steps.max()) + 8):
+            raise MapError("ray casting did not terminate (inconsistent ray geometry)")
+        return
 
     # Longest rays first, so finished rays are mostly a suffix and the live set is a slice.
-    n_steps = np.abs(ke - ko).sum(axis=1)
     order = np.argsort(-n_steps, kind="stable")
     lin_step = (step * grid.strides[None, :])[order]
     tx, ty, tz = (np.ascontiguousarray(t_max[order, i]) for i in range(3))

@@ -31,9 +31,11 @@ _AVX512 = "AVX512_SKX,AVX512_COMMON,AVX512_KNL,AVX512_KNM,AVX512_CNL,AVX512_CLX,
 _NPY_AVX512 = "X86_V4 AVX512_ICL AVX512_SPR"
 # What each library does on a CPU of that level (features a CPU lacks are ignored).
 LEVELS: dict[str, dict[str, str]] = {
-    "avx2": {"OPENCV_CPU_DISABLE": _AVX512, "NPY_DISABLE_CPU_FEATURES": _NPY_AVX512, "OPENBLAS_CORETYPE": "Haswell"},
+    "avx2": {"OPENCV_CPU_DISABLE": _AVX512, "NPY_DISABLE_CPU_FEATURES": _NPY_AVX512, "OPENBLAS_CORETYPE": "Haswell",
+             "NUMBA_CPU_NAME": "haswell"},
     "sse4.2": {"OPENCV_CPU_DISABLE": "AVX,FP16,AVX2,FMA3," + _AVX512,
-               "NPY_DISABLE_CPU_FEATURES": "X86_V3 " + _NPY_AVX512, "OPENBLAS_CORETYPE": "Nehalem"},
+               "NPY_DISABLE_CPU_FEATURES": "X86_V3 " + _NPY_AVX512, "OPENBLAS_CORETYPE": "Nehalem",
+               "NUMBA_CPU_NAME": "nehalem"},
 }
 # Each library alone, and OpenCV down to its x86-64 baseline (SSE3; numpy's baseline is SSE4.2).
 ALONE: dict[str, dict[str, str]] = {

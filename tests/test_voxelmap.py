@@ -103,6 +103,21 @@ def test_same_tree_as_octomap_on_raw_clouds(max_range):
     assert own.bt_bytes() == ref.bt_bytes()
 
 
+def test_compiled_and_vectorised_ray_walks_give_the_same_tree(monkeypatch):
+    """The compiled walk (mapper/kernels.py, dense scan grids) and the vectorised one (kept for scan
+    boxes too large for a dense grid) mark the same voxels: forced onto the vectorised path, the
+    same scans give the same .ot bytes, and both are OctoMap's."""
+    from octolog.mapper import voxelmap
+
+    clouds = raw_clouds(stride=3)
+    ref, compiled = both(clouds, max_range=2.2)
+    monkeypatch.setattr(voxelmap, "_DENSE_MAX_CELLS", 0)
+    vectorised = VoxelOccupancyMap(RES)
+    for pts, _, T in clouds:
+        vectorised.insert(pts, T[:3, 3], max_range_m=2.2)
+    assert compiled.ot_bytes(colour=False) == vectorised.ot_bytes(colour=False) == ref.ot_bytes()
+
+
 def test_same_tree_as_octomap_on_filtered_clouds():
     depth, rgb = scene()
     clouds = []
