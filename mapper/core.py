@@ -22,7 +22,7 @@ import numpy as np
 
 from octolog.kit.errors import InputError, MapError
 from octolog.kit.geometry import RgbdFrame
-from octolog.mapper.cloud import DenseCloud, keyframe_cloud, transform, write_pcd, write_ply
+from octolog.mapper.cloud import DenseCloud, keyframe_cloud, rows_where, transform, write_pcd, write_ply
 from octolog.mapper.config import MapperConfig
 from octolog.mapper.grid import OccupancyGrid2D, map_from_world_for_up, project_octree, write_map_server
 from octolog.mapper.occupancy import OccupancyMap, make_occupancy_map
@@ -182,7 +182,7 @@ class Mapper:
             self._cloud.add(kf_id, pts, kf.colours)
         else:  # a shard: the cloud's points in its tiles; the octree keeps its tiles' voxels itself
             mine = tiles.keep_points(pts)
-            self._cloud.add(kf_id, pts[mine], kf.colours[mine])
+            self._cloud.add(kf_id, rows_where(pts, mine), rows_where(kf.colours, mine))
         # the range limit was applied when back-projecting (depth <= max_range_m), so the dense cloud
         # and the octree hold the same points; a second, Euclidean cut here would make them differ
         colour = self.params.occupancy.colour

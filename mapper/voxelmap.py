@@ -38,6 +38,7 @@ import numpy as np
 from octolog.kit.errors import MapError
 from octolog.kit.files import write_bytes_atomic
 from octolog.mapper.octokeys import TREE_MAX_VAL, key_to_coord, norm32, pack, to_key, unpack
+from octolog.mapper.cloud import column_max, column_min
 from octolog.mapper.kernels import walk_rays
 from octolog.mapper.sensor_model import SensorModel
 from octolog.mapper.voxelstore import VoxelStore
@@ -326,8 +327,8 @@ class VoxelOccupancyMap:
 
         # Ray end voxels may lie outside the points' box (rays cut at max range stay inside it).
         ray_keys = to_key(ends, rf)
-        glo = np.minimum(lo, ray_keys.min(axis=0))
-        ghi = np.maximum(hi, ray_keys.max(axis=0))
+        glo = np.minimum(lo, column_min(ray_keys))
+        ghi = np.maximum(hi, column_max(ray_keys))
         # Pad one voxel: the DDA never leaves the segment's key box, but be safe at borders.
         if self.region is not None and not self.region.touches_keys(glo - 1, ghi + 1):
             return  # no ray of this scan reaches the shard's tiles
