@@ -15,7 +15,7 @@ from scipy.spatial import cKDTree
 from octolog.kit.errors import MapError
 from octolog.kit.files import write_bytes_atomic
 from octolog.kit.geometry import Intrinsics
-from octolog.mapper.kernels import nearest_mean_distances
+from octolog.mapper.kernels import accumulate_rows, nearest_mean_distances
 
 __all__ = [
     "DenseCloud",
@@ -260,12 +260,13 @@ def _merge_voxels(parts: list[tuple[np.ndarray, np.ndarray]], voxel_m: float,
         y, z = np.divmod(rem, span[2])
         keys.append(np.stack([x, y, z], axis=1) + lo)
     m = counts.shape[0]
-    out_p = np.empty((m, 3), dtype=np.float64)
-    out_c = np.empty((m, 3), dtype=np.float64)
-    for j in range(3):
-        out_p[:, j] = np.bincount(inverse, weights=np.concatenate([p[:, j] for p in points]), minlength=m)
-        out_c[:, j] = np.bincount(inverse, weights=np.concatenate([c[:, j] for c in colours], dtype=np.float64),
-                                  minlength=m)
+    out_p = np.zeros((m, 3), dtype=np.float64)
+    out_c = np.zeros((m, 3), dtype=np.float64)
+    at = 0
+    for p, c in zip(points, colours):  # each voxel's sums over its points in input order (np.bincount's)
+        accumulate_rows(inverse, at, p, out_p)
+        accumulate_rows(inverse, at, c, out_c)
+        at += len(p)
     out_p /= counts[:, None]
     out_c /= counts[:, None]
     out_c = np.clip(np.rint(out_c), 0, 255).astype(np.uint8)

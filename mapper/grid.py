@@ -212,6 +212,12 @@ def project_octree(octree: Any, **kwargs: Any) -> OccupancyGrid2D:
     `resolution_m` defaults to the octree's; other keyword arguments are those of `project_grid`.
     """
     kwargs.setdefault("resolution_m", octree.resolution)
+    T = kwargs.get("map_from_world")
+    if hasattr(octree, "band_centres") and T is not None and np.array_equal(T, np.eye(4)):
+        # the octree is in the map frame already: only the band's voxels need their centres (a
+        # tenth of the map), the same numbers project_grid computes for them
+        occ, free = octree.band_centres(kwargs["z_min_m"], kwargs["z_max_m"])
+        return project_grid(occ, free, **kwargs)
     return project_grid(octree.occupied_centres(), octree.free_centres(), **kwargs)
 
 

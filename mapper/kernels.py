@@ -14,6 +14,10 @@ IMAGE_NEAREST of them, their square roots summed in float64 from the smallest up
 Every operation is a single IEEE rounding in a fixed order (numba fuses no multiply-add without
 `fastmath`), so the bytes do not depend on the CPU either.
 
+**Sums per voxel** (mapper/cloud.py: `_merge_voxels`, the 1 cm grid): each row added to its
+voxel's sum in row order, as `np.bincount` adds its weights, so the same sums; one pass for all
+columns instead of one `bincount` per column.
+
 numba (and its llvmlite) is a well-kept compiler of NumPy-style Python, ~45 MB of wheels with no
 system libraries; a kernel compiles once per machine (~1 s) and is cached beside this file.
 """
@@ -23,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["nearest_mean_distances", "walk_rays"]
+__all__ = ["accumulate_rows", "nearest_mean_distances", "walk_rays"]
 
 
 @njit(cache=True, nogil=True)
@@ -121,3 +125,16 @@ def nearest_mean_distances(points: np.ndarray, valid: np.ndarray, radius: int, n
         planes[j, radius:radius + h, radius:radius + w][valid] = points[:, j]
     return _nearest_means(planes, np.ascontiguousarray(valid), int(points.shape[0]), int(radius),
                           _ring_offsets(int(radius)), int(nearest))
+
+
+@njit(cache=True, nogil=True)
+def _accumulate(inverse: np.ndarray, offset: int, values: np.ndarray, out: np.ndarray) -> None:
+    for i in range(values.shape[0]):
+        g = inverse[offset + i]
+        for j in range(values.shape[1]):
+            out[g, j] += values[i, j]
+
+
+def accumulate_rows(inverse: np.ndarray, offset: int, values: np.ndarray, out: np.ndarray) -> None:
+    """`out[inverse[offset + i]] += values[i]` for every row i of `values`, in row order (float64 `out`)."""
+    _accumulate(inverse, int(offset), np.ascontiguousarray(values), out)

@@ -403,6 +403,15 @@ class VoxelOccupancyMap:
         """Centres (N,3) of free voxels, sorted by (x, y, z) index."""
         return self._centres(False, max_voxels)
 
+    def band_centres(self, z_min: float, z_max: float) -> tuple[np.ndarray, np.ndarray]:
+        """Centres (N,3) of the occupied and of the free voxels whose centre's z is in [z_min, z_max],
+        each sorted by (x, y, z) index."""
+        keys, logodds = self._keys, self._logodds
+        z = key_to_coord(keys & 0xFFFF, self.resolution)
+        band = (z >= z_min) & (z <= z_max)
+        occupied = logodds >= self._thres
+        return tuple(key_to_coord(unpack(keys[band & sel]), self.resolution) for sel in (occupied, ~occupied))
+
     def occupied_colours(self) -> np.ndarray:
         """Colours (N,3) uint8 of `occupied_centres()`."""
         return self._rgb[self.occupied_mask()].copy()

@@ -171,6 +171,22 @@ def test_project_octree() -> None:
     assert g.data[cam[0], cam[1]] == FREE
 
 
+def test_the_numpy_maps_band_path_gives_the_grid_of_all_centres() -> None:
+    """project_octree on our NumPy map in its own frame takes only the band's voxel centres
+    (VoxelOccupancyMap.band_centres): the same grid, cell for cell, as projecting every centre."""
+    from octolog.mapper.voxelmap import VoxelOccupancyMap
+
+    tree = VoxelOccupancyMap(0.05)
+    rng = np.random.default_rng(2)
+    for origin in ([0.0, -1.0, 0.3], [0.4, -0.8, 0.9]):
+        tree.insert(rng.uniform([-2, 0.5, -0.5], [2, 2.5, 1.5], (4000, 3)), np.array(origin))
+    kw = dict(map_from_world=np.eye(4), z_min_m=-0.2, z_max_m=0.35, resolution_m=0.05)
+    fast = project_octree(tree, **kw)
+    full = project_grid(tree.occupied_centres(), tree.free_centres(), **kw)
+    assert np.array_equal(fast.data, full.data) and fast.origin_xy == full.origin_xy
+    assert (fast.data == OCCUPIED).any() and (fast.data == FREE).any()
+
+
 # ---- map_from_world_for_up ----------------------------------------------------------------------
 
 
