@@ -110,19 +110,21 @@ def main() -> None:
     print(head)
     print("-" * len(head))
     for label, clouds in (("raw", raw), ("filtered", filt)):
-        ref_states = None
+        ref_states = ref_bt = None
         medians = {}
         for method in ("octomap", "octomap discretize", "numpy", "numpy +colour"):
             ms, m, _ = run(method, clouds, args.max_range)
             peak = run(method, clouds[:5], args.max_range, trace=True)[2]  # tracing slows Python: separate pass
             st = states(m)
             if method == "octomap discretize":
-                ref_states = st
+                ref_states, ref_bt = st, m.bt_bytes()
+            same_bt = "" if ref_bt is None or method == "octomap discretize" else \
+                f"  .bt {'equal' if m.bt_bytes() == ref_bt else 'DIFFERS'}"
             agree = agreement(ref_states, st) * 100 if ref_states is not None else float("nan")
             s = m.stats()
             medians[method] = float(np.median(ms))
             print(f"{label:9} {method:19} {np.median(ms):9.1f} {np.percentile(ms, 90):8.1f} {sum(ms) / 1e3:8.2f} "
-                  f"{s['occupied_voxels']:9d} {s['free_voxels']:8d} {agree:8.3f} {peak:8.1f} {s['memory_bytes'] / 2**20:8.1f}")
+                  f"{s['occupied_voxels']:9d} {s['free_voxels']:8d} {agree:8.3f} {peak:8.1f} {s['memory_bytes'] / 2**20:8.1f}{same_bt}")
         for method in ("octomap", "octomap discretize"):
             print(f"{'':9} median speed-up numpy vs {method}: {medians[method] / medians['numpy']:.2f}x "
                   f"(with colour {medians[method] / medians['numpy +colour']:.2f}x)")

@@ -231,7 +231,8 @@ def camera_tree(source: Source, frame_id: str) -> list[tuple[str, str, np.ndarra
 def play_tracker_log(cfg: ReplayConfig, bus_cfg: BusConfig) -> ReplayResult:
     """Stand in for the tracker: publish its logged keyframes and pose corrections, in log order; with
     `start`/`end`, only the keyframes made from frames in that window (the corrections all: a mapper
-    passes over the ids it does not have)."""
+    passes over the ids it does not have). At once (`rate` 0), or each at its sensor stamp played
+    `rate` times faster than the camera took it (a mapper's capacity, bench/mapper_rates.py)."""
     kind, _, path = cfg.source.partition(":")
     if kind != "mcap" or not path:
         raise ConfigError(f"replay.play = tracker needs an mcap:PATH source, got {cfg.source!r}")
@@ -248,6 +249,8 @@ def play_tracker_log(cfg: ReplayConfig, bus_cfg: BusConfig) -> ReplayResult:
         bus.start([], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
         bus.watch(["mapper"], required=False)  # as the tracker: keyframes stay until the mapper is done
         windowed = cfg.start > 0 or cfg.end >= 0
+        first_ns: int | None = None
+        wall0 = time.monotonic()
         for i, m in enumerate(read_wire(path, list(pubs))):
             try:
                 checks.checked(m.data, pubs[m.topic].topic.msgtype)  # as the mapper's bus will
@@ -257,6 +260,10 @@ def play_tracker_log(cfg: ReplayConfig, bus_cfg: BusConfig) -> ReplayResult:
                 seq = int(codec.decode(m.data, m.msgtype).frame_seq)
                 if seq < cfg.start or 0 <= cfg.end <= seq:
                     continue
+            if cfg.rate > 0:  # paced by the items' sensor stamps
+                stamp = codec.stamp_ns(codec.decode(m.data, m.msgtype).header)
+                first_ns = stamp if first_ns is None else first_ns
+                time.sleep(max(0.0, wall0 + (stamp - first_ns) * 1e-9 / cfg.rate - time.monotonic()))
             pubs[m.topic].put_raw(m.data)
         end_pub.put(streammsgs.stream_end_msg(KEYFRAME_POSES.name, pubs[KEYFRAME_POSES.name].count))
         end_pub.put(streammsgs.stream_end_msg(kf_topic.name, pubs[kf_topic.name].count))
