@@ -38,8 +38,8 @@ import numpy as np
 from octolog.kit.errors import MapError
 from octolog.kit.files import write_bytes_atomic
 from octolog.mapper.octokeys import TREE_MAX_VAL, key_to_coord, norm32, pack, to_key, unpack
-from octolog.mapper.cloud import column_max, column_min
-from octolog.mapper.kernels import walk_rays
+from octolog.mapper.cloud import column_max, column_min, rows_where
+from octolog.mapper.kernels import accumulate_rows, walk_rays
 from octolog.mapper.sensor_model import SensorModel
 from octolog.mapper.voxelstore import VoxelStore
 from octolog.mapper.treebuild import build_tree
@@ -360,9 +360,8 @@ class VoxelOccupancyMap:
         idx = inverse[pt_ok]
         cnt = np.bincount(idx, minlength=m)
         has = cnt > 0
-        mean = np.empty((m, 3), dtype=np.float64)
-        for j in range(3):
-            mean[:, j] = np.bincount(idx, weights=colours[pt_ok, j].astype(np.float64), minlength=m)
+        mean = np.zeros((m, 3), dtype=np.float64)
+        accumulate_rows(idx, 0, rows_where(colours, pt_ok), mean)  # np.bincount's sums, one pass
         mean = np.clip(np.rint(mean[has] / cnt[has, None]), 0, 255).astype(np.int64)
         packed = box._to_packed(ulin[has])
         if self.region is not None:

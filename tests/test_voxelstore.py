@@ -3,16 +3,19 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from octolog.mapper import voxelstore
 from octolog.mapper.voxelstore import VoxelStore
 
 
-def test_two_levels_hold_what_one_sorted_table_holds(monkeypatch):
+@pytest.mark.parametrize("window_min", [1 << 20, 0], ids=["plain", "windowed-search"])
+def test_two_levels_hold_what_one_sorted_table_holds(monkeypatch, window_min):
     """Scans of random keys (new ones and ones seen before), with hits, misses and colour, through
     merges of the small level (MERGE_MIN lowered so they happen often): after every scan the merged
     arrays, read now and then, equal a dict-based table updated the same way, bit for bit."""
     monkeypatch.setattr(voxelstore, "MERGE_MIN", 64)
+    monkeypatch.setattr(voxelstore, "WINDOW_MIN", window_min)
     rng = np.random.default_rng(3)
     store, table, colour = VoxelStore(), {}, {}
     lmin, lmax = np.float32(-2.0), np.float32(3.5)
