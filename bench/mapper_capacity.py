@@ -23,7 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from octolog.mapper.cloud import keyframe_cloud
+from octolog.mapper import voxelmap
+from octolog.mapper.cloud import backproject, image_outlier_removal, keyframe_cloud, voxel_downsample
 from octolog.mapper.config import MapperConfig
 from octolog.mapper.core import make_mapper
 from octolog.mapper.fleet.order import CorrectionItem
@@ -31,11 +32,34 @@ from octolog.schemas import posemsgs, rgbdmsgs
 from octolog.shell.merge import session_items
 
 
-def one_pass(items: list, cfg: MapperConfig) -> tuple[list[float], list[float], list[float]]:
-    """(whole ms, cloud-building ms) per keyframe, and ms per correction."""
+STEPS = ("back-projection", "outlier measure (image grid)", "1 cm voxel grid", "occupancy insert with colour",
+         "the rest: dense cloud, snapshots (grid, rebuilds)")
+
+
+def one_pass(items: list, cfg: MapperConfig) -> tuple[list[float], list[float], list[float], list[tuple]]:
+    """(whole ms, cloud-building ms) per keyframe, ms per correction, and per keyframe the ms of
+    each of STEPS (the cloud's steps timed again on their own, the insert inside `integrate`)."""
     mapper = make_mapper(cfg)
     c = mapper.params.cloud
-    whole, cloud, corrections = [], [], []
+    whole, cloud, corrections, steps = [], [], [], []
+    inserts: list[float] = []
+    insert = voxelmap.VoxelOccupancyMap.insert
+
+    def timed_insert(self, *args, **kw):  # noqa: ANN001, ANN002, ANN003
+        t = time.perf_counter()
+        out = insert(self, *args, **kw)
+        inserts.append((time.perf_counter() - t) * 1e3)
+        return out
+
+    voxelmap.VoxelOccupancyMap.insert = timed_insert
+    try:
+        _pass(items, cfg, mapper, c, whole, cloud, corrections, steps, inserts)
+    finally:
+        voxelmap.VoxelOccupancyMap.insert = insert
+    return whole, cloud, corrections, steps
+
+
+def _pass(items, cfg, mapper, c, whole, cloud, corrections, steps, inserts) -> None:  # noqa: ANN001
     for item in items:
         if isinstance(item, CorrectionItem):
             t0 = time.perf_counter()
@@ -43,19 +67,32 @@ def one_pass(items: list, cfg: MapperConfig) -> tuple[list[float], list[float], 
             corrections.append((time.perf_counter() - t0) * 1e3)  # the rebuild it asks for comes at the next snapshot
             continue
         kf_id, pose, frame = rgbdmsgs.keyframe_from_msg(item.payload)
+        stride = mapper._stride(frame.stamp_ns)
         t0 = time.perf_counter()
         keyframe_cloud(frame.depth, frame.rgb, frame.intrinsics, frame.depth_scale_m, np.eye(4),
-                       max_range_m=c.max_range_m, stride=mapper._stride(frame.stamp_ns), nb_neighbors=c.sor_neighbors,
+                       max_range_m=c.max_range_m, stride=stride, nb_neighbors=c.sor_neighbors,
                        std_ratio=c.sor_std_ratio, voxel_m=c.voxel_m, sor_first=c.sor_first, outliers=c.outliers,
                        inverse_offset=frame.depth_inverse_offset)
         t1 = time.perf_counter()
+        inserts.clear()
         mapper.integrate(kf_id, pose, frame)
+        insert_ms = sum(inserts)
         if cfg.publish_every and len(mapper.keyframes) % cfg.publish_every == 0:
             mapper.project_grid()  # a snapshot: the octree (rebuilt if a correction left it stale) and the grid
         t2 = time.perf_counter()
         cloud.append((t1 - t0) * 1e3)
         whole.append((t2 - t1) * 1e3)
-    return whole, cloud, corrections
+        a = time.perf_counter()
+        backproject(frame.depth, frame.rgb, frame.intrinsics, frame.depth_scale_m, max_range_m=c.max_range_m,
+                    stride=stride)
+        b = time.perf_counter()
+        p, col = image_outlier_removal(frame.depth, frame.rgb, frame.intrinsics, frame.depth_scale_m,
+                                       max_range_m=c.max_range_m, stride=stride, std_ratio=c.sor_std_ratio)
+        d = time.perf_counter()
+        voxel_downsample(p, col, c.voxel_m)
+        e = time.perf_counter()
+        steps.append(((b - a) * 1e3, (d - b - (b - a)) * 1e3, (e - d) * 1e3, insert_ms,
+                      whole[-1] - cloud[-1] - insert_ms))
 
 
 def main() -> None:
@@ -68,6 +105,7 @@ def main() -> None:
           "median | insert, dense cloud, snapshots, median | corrections: count, ms each | "
           "capacity, keyframes/s | robots served |")
     print("|---|---|---|---|---|---|---|---|")
+    breakdown = {}
     for folder in map(Path, args.sessions):
         items = session_items(folder)
         summary = json.loads((folder / "summary.json").read_text())
@@ -75,11 +113,19 @@ def main() -> None:
         whole = [statistics.median(v) for v in zip(*(p[0] for p in passes))]
         cloud = [statistics.median(v) for v in zip(*(p[1] for p in passes))]
         corr = [statistics.median(v) for v in zip(*(p[2] for p in passes))]
+        n_kf = len(passes[0][3])
+        breakdown[folder.name] = [float(np.median([statistics.median(p[3][i][j] for p in passes) for i in range(n_kf)]))
+                                  for j in range(len(STEPS))]
         rate = len(whole) / summary["duration_s"]
         capacity = 1000.0 / float(np.mean(whole))
         print(f"| {summary['source']} | {len(whole)}, {rate:.1f} | {np.median(whole):.1f} / {np.mean(whole):.1f} / "
               f"{np.percentile(whole, 90):.1f} | {np.median(cloud):.1f} | {np.median(whole) - np.median(cloud):.1f} | "
               f"{len(corr)}, {np.median(corr) if corr else 0:.0f} | {capacity:.1f} | {capacity / rate:.1f} |", flush=True)
+    print("\nper keyframe, medians (ms): " + ", ".join(breakdown))
+    print("| step | " + " | ".join(breakdown) + " |")
+    print("|---|" + "---|" * len(breakdown))
+    for j, step in enumerate(STEPS):
+        print(f"| {step} | " + " | ".join(f"{v[j]:.1f}" for v in breakdown.values()) + " |")
 
 
 if __name__ == "__main__":
