@@ -23,6 +23,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -38,7 +39,7 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def one_rate(log: Path, rate: float, out: Path) -> dict:
+def one_rate(log: Path, rate: float, out: Path, mapper_sets: list[str]) -> dict:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     env = {**os.environ, "RERUN_DISABLE_ANALYTICS": "1"}
     octolog = [sys.executable, "-m", "octolog"]
@@ -51,7 +52,7 @@ def one_rate(log: Path, rate: float, out: Path) -> dict:
         updates = []
         with Bus(BusConfig(mode="client", connect=(endpoint,), multicast_scouting=False), "probe") as probe:
             probe.start([MAP_UPDATE])
-            mapper = subprocess.Popen([*octolog, "map", *bus, "--rerun", "off", "--out", str(out)], env=env,
+            mapper = subprocess.Popen([*octolog, "map", *bus, "--rerun", "off", "--out", str(out), *mapper_sets], env=env,
                                       stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
             procs.append(mapper)
             procs.append(subprocess.Popen([*octolog, "replay", *bus, "--quiet", "--source", f"mcap:{log}",
@@ -90,13 +91,16 @@ def main() -> None:
     ap.add_argument("--rates", default="1,2,4,8,16")
     args = ap.parse_args()
     log = args.session / "session.mcap"
+    # the session's map frame, as `octolog run` gave its mapper (no camera here to ask for gravity)
+    up = tomllib.loads((args.session / "config.toml").read_text()).get("mapper", {}).get("grid_up")
+    mapper_sets = ["--set", f"grid_up={json.dumps(up)}"] if up else []
     tmp = Path(tempfile.mkdtemp(prefix="octolog-rates-"))
     print(f"{args.session}: its logged keyframes into a mapper process, played faster than the camera")
     print("| rate | keyframes | offered, keyframes/s | mapper ms per keyframe, median | lag at the end, s | "
           "median lag, s | keeps up |")
     print("|---|---|---|---|---|---|---|")
     for rate in (float(r) for r in args.rates.split(",")):
-        r = one_rate(log, rate, tmp / f"r{rate:g}")
+        r = one_rate(log, rate, tmp / f"r{rate:g}", mapper_sets)
         keeps = r["lag_end"] < 0.5
         print(f"| {rate:g}× | {r['keyframes']} | {r['offered']:.1f} | {r['ms']:.1f} | {r['lag_end']:.2f} | "
               f"{r['lag_median']:.2f} | {'yes' if keeps else 'no'} |", flush=True)
