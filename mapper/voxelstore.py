@@ -4,8 +4,13 @@ Two levels, so a scan's new voxels cost what the scan has, not what the map has:
 and a small sorted level that takes the new keys. Inserting into one sorted array moves everything
 after each insertion point, a copy of the whole map per scan (62 ms of a keyframe's 91 at 6.4
 million voxels). The small level is merged into the main one once it holds `1/MERGE_FRACTION` of
-it, so each voxel is moved a bounded number of times. Every key lives in exactly one level, and
-readers get the merged arrays (`arrays`): the same arrays, so the same map bytes, as one level gives.
+it, so each voxel is moved a bounded number of times. Every key lives in exactly one level.
+
+And in slabs: the voxels of each `SLAB_VOXELS` of x (3.2 m at 5 cm) are a two-level store of their
+own. Packed keys sort x first, so the slabs in x order, each sorted, are the whole map sorted. A
+scan touches the few slabs it sees: its binary searches run through those slabs, not through a
+building's hundred million voxels, and a merge copies one slab. Readers get the slabs' merged
+arrays side by side (`arrays`): the same arrays, so the same map bytes, as one sorted table gives.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ from octolog.mapper.treebuild import WHITE  # OctoMap's "no colour"
 # the new level is merged into the main one once it holds this fraction of it, or MERGE_MIN keys
 MERGE_FRACTION = 8
 MERGE_MIN = 1 << 16
+SLAB_SHIFT = 32 + 6  # packed key >> SLAB_SHIFT: the slab (SLAB_VOXELS = 64 keys of x)
 WINDOW_MIN = 1 << 20  # a level this large is searched within the wanted keys' slice
 
 
@@ -39,21 +45,75 @@ def _find(keys: np.ndarray, wanted: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return pos, found
 
 
+def _runs(keys: np.ndarray) -> list[tuple[int, int, int]]:
+    """(slab, start, end) of each slab's run of sorted packed `keys`."""
+    slab = keys >> SLAB_SHIFT
+    cut = np.flatnonzero(slab[1:] != slab[:-1]) + 1
+    starts = np.concatenate([[0], cut])
+    ends = np.concatenate([cut, [keys.shape[0]]])
+    return [(int(slab[a]), int(a), int(b)) for a, b in zip(starts, ends)]
+
+
 class VoxelStore:
-    """Packed voxel keys with float32 log-odds and uint8 colour (see the module)."""
+    """Packed voxel keys with float32 log-odds and uint8 colour, in slabs of x (see the module)."""
+
+    def __init__(self) -> None:
+        self._slabs: dict[int, _Slab] = {}
+        self._whole: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # `arrays`, until a change
+
+    @classmethod
+    def of(cls, keys: np.ndarray, logodds: np.ndarray, colours: np.ndarray) -> VoxelStore:
+        """A store holding these voxels (keys sorted and unique)."""
+        if keys.shape[0] > 1 and not np.all(keys[1:] > keys[:-1]):
+            raise ValueError("voxel keys must be sorted and unique")
+        store = cls()
+        keys, logodds, colours = keys.astype(np.int64), logodds.astype(np.float32), colours.astype(np.uint8)
+        for slab, a, b in (_runs(keys) if keys.shape[0] else []):
+            store._slabs[slab] = _Slab()
+            store._slabs[slab]._main = (keys[a:b].copy(), logodds[a:b].copy(), colours[a:b].copy())
+        return store
+
+    def __len__(self) -> int:
+        return sum(len(s) for s in self._slabs.values())
+
+    @property
+    def nbytes(self) -> int:
+        return sum(s.nbytes for s in self._slabs.values())
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(keys, log-odds, colours), sorted by key, the slabs side by side (read-only use: kept
+        until the next change)."""
+        if self._whole is None:
+            parts = [self._slabs[k].arrays() for k in sorted(self._slabs)]
+            self._whole = tuple(np.concatenate([p[j] for p in parts]) for j in range(3)) if parts else _empty()
+        return self._whole
+
+    def update(self, keys: np.ndarray, delta: np.ndarray, lmin: float, lmax: float) -> None:
+        """Add `delta` (float32) to the log-odds of sorted unique `keys`, clamped to [lmin, lmax];
+        a key not in the map starts at 0 with no colour."""
+        if keys.shape[0] == 0:
+            return
+        self._whole = None
+        for slab, a, b in _runs(keys):
+            self._slabs.setdefault(slab, _Slab()).update(keys[a:b], delta[a:b], lmin, lmax)
+
+    def average_colour(self, keys: np.ndarray, mean: np.ndarray) -> None:
+        """OctoMap's averageNodeColor: each of `keys` (sorted, in the map) takes `mean` (int64),
+        averaged with its colour if it has one."""
+        if keys.shape[0] == 0:
+            return
+        self._whole = None
+        for slab, a, b in _runs(keys):
+            if slab in self._slabs:
+                self._slabs[slab].average_colour(keys[a:b], mean[a:b])
+
+
+class _Slab:
+    """One slab's voxels in two levels (see the module)."""
 
     def __init__(self) -> None:
         self._main = _empty()
         self._new = _empty()
-
-    @classmethod
-    def of(cls, keys: np.ndarray, logodds: np.ndarray, colours: np.ndarray) -> VoxelStore:
-        """A store holding these voxels (keys sorted and unique; the arrays are taken, not copied)."""
-        if keys.shape[0] > 1 and not np.all(keys[1:] > keys[:-1]):
-            raise ValueError("voxel keys must be sorted and unique")
-        store = cls()
-        store._main = (keys.astype(np.int64), logodds.astype(np.float32), colours.astype(np.uint8))
-        return store
 
     def __len__(self) -> int:
         return int(self._main[0].shape[0] + self._new[0].shape[0])
@@ -63,7 +123,7 @@ class VoxelStore:
         return sum(a.nbytes for a in (*self._main, *self._new))
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(keys, log-odds, colours), one level, sorted by key; the store's own arrays (writable)."""
+        """(keys, log-odds, colours), one level, sorted by key."""
         self._merge()
         return self._main
 

@@ -9,8 +9,9 @@ from octolog.mapper import voxelstore
 from octolog.mapper.voxelstore import VoxelStore
 
 
-@pytest.mark.parametrize("window_min", [1 << 20, 0], ids=["plain", "windowed-search"])
-def test_two_levels_hold_what_one_sorted_table_holds(monkeypatch, window_min):
+@pytest.mark.parametrize(("window_min", "spread"), [(1 << 20, 1), (0, 1), (1 << 20, 1 << 35)],
+                         ids=["one-slab", "windowed-search", "many-slabs"])
+def test_two_levels_hold_what_one_sorted_table_holds(monkeypatch, window_min, spread):
     """Scans of random keys (new ones and ones seen before), with hits, misses and colour, through
     merges of the small level (MERGE_MIN lowered so they happen often): after every scan the merged
     arrays, read now and then, equal a dict-based table updated the same way, bit for bit."""
@@ -20,7 +21,7 @@ def test_two_levels_hold_what_one_sorted_table_holds(monkeypatch, window_min):
     store, table, colour = VoxelStore(), {}, {}
     lmin, lmax = np.float32(-2.0), np.float32(3.5)
     for scan in range(40):
-        keys = np.unique(rng.integers(0, 3000, rng.integers(1, 200)))
+        keys = np.unique(rng.integers(0, 3000, rng.integers(1, 200))) * spread  # spread: x across slabs
         delta = rng.choice(np.array([0.85, -0.4], np.float32), keys.shape[0])
         store.update(keys, delta, lmin, lmax)
         for k, d in zip(keys.tolist(), delta):
