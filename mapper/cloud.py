@@ -333,7 +333,7 @@ def keyframe_cloud(
         p, c = image_outlier_removal(depth, rgb, intrinsics, depth_scale_m, max_range_m=max_range_m, stride=stride,
                                      std_ratio=std_ratio)
         p, c = voxel_downsample(_unbias(p, inverse_offset), c, voxel_m)
-        return transform(p, world_from_camera), c
+        return _placed(p, world_from_camera), c
     p, c = backproject(depth, rgb, intrinsics, depth_scale_m, max_range_m=max_range_m, stride=stride)
     p = _unbias(p, inverse_offset)
     if sor_first:
@@ -342,7 +342,13 @@ def keyframe_cloud(
     else:
         p, c = voxel_downsample(p, c, voxel_m)
         p, c = statistical_outlier_removal(p, c, nb_neighbors=nb_neighbors, std_ratio=std_ratio)
-    return transform(p, world_from_camera), c
+    return _placed(p, world_from_camera), c
+
+
+def _placed(p: np.ndarray, world_from_camera: np.ndarray) -> np.ndarray:
+    """`transform`, or the points themselves for the identity (the mapper keeps clouds in the camera
+    frame): the product with I adds only zeros, so the values are the same."""
+    return p if np.array_equal(world_from_camera, np.eye(4)) else transform(p, world_from_camera)
 
 
 def _unbias(p: np.ndarray, inverse_offset: float) -> np.ndarray:

@@ -9,14 +9,12 @@ from octolog.mapper import voxelstore
 from octolog.mapper.voxelstore import VoxelStore
 
 
-@pytest.mark.parametrize(("window_min", "spread"), [(1 << 20, 1), (0, 1), (1 << 20, 1 << 35)],
-                         ids=["one-slab", "windowed-search", "many-slabs"])
-def test_two_levels_hold_what_one_sorted_table_holds(monkeypatch, window_min, spread):
+@pytest.mark.parametrize("spread", [1, 1 << 35], ids=["one-slab", "many-slabs"])
+def test_two_levels_hold_what_one_sorted_table_holds(monkeypatch, spread):
     """Scans of random keys (new ones and ones seen before), with hits, misses and colour, through
     merges of the small level (MERGE_MIN lowered so they happen often): after every scan the merged
     arrays, read now and then, equal a dict-based table updated the same way, bit for bit."""
     monkeypatch.setattr(voxelstore, "MERGE_MIN", 64)
-    monkeypatch.setattr(voxelstore, "WINDOW_MIN", window_min)
     rng = np.random.default_rng(3)
     store, table, colour = VoxelStore(), {}, {}
     lmin, lmax = np.float32(-2.0), np.float32(3.5)
@@ -40,3 +38,18 @@ def test_two_levels_hold_what_one_sorted_table_holds(monkeypatch, window_min, sp
         assert np.array_equal(l_all, np.array([table[k] for k in sorted(table)], np.float32))
         want = np.array([colour.get(k, (255, 255, 255)) for k in sorted(table)], np.uint8)
         assert np.array_equal(c_all, want)
+
+
+def test_the_compiled_lookup_is_a_binary_search():
+    """mapper/kernels.py: find_sorted gives np.searchsorted's positions, and whether each key is
+    there, for dense keys, sparse keys with gaps to gallop over, and keys beyond either end."""
+    from octolog.mapper.kernels import find_sorted
+
+    rng = np.random.default_rng(4)
+    for n_keys, n_wanted, span in ((5000, 400, 20000), (5000, 50, 10**9), (0, 10, 100), (100, 0, 100)):
+        keys = np.unique(rng.integers(0, span, n_keys))
+        wanted = np.unique(np.concatenate([rng.choice(keys, min(len(keys), n_wanted // 2)) if len(keys) else [],
+                                           rng.integers(-10, span + 10, n_wanted // 2)]).astype(np.int64))
+        pos, found = find_sorted(keys, wanted)
+        assert np.array_equal(pos, np.searchsorted(keys, wanted))
+        assert np.array_equal(found, np.isin(wanted, keys))
