@@ -1,4 +1,4 @@
-"""The mapper's two inner loops, compiled (numba): a point or a ray at a time, no array per step.
+"""The mapper's inner loops, compiled (numba): a point, a ray or a key at a time, no array per step.
 
 **The ray walk** of OctoMap's `computeRayKeys`. The vectorised walk (mapper/voxelmap.py) advances every ray one voxel per NumPy pass, about ten
 array operations a step over all rays still going: at 20,000 rays of 2-4 m that was a third of the
