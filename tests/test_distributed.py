@@ -412,7 +412,7 @@ def test_map_shards_on_two_hosts_stitch_into_one_mappers_map(hosts, single_host,
     reference, all at once, no start poses. `octolog stitch` of the two shards gives the whole
     mapper's map files byte for byte. Then shard 2 is killed at its first map update: the robots and
     shard 1 finish, the stitch writes shard 1's tiles and names shard 2 in one line (exit 3); shard 2
-    run again on the same log alone fills the map to the same bytes."""
+    run again on the same log alone fills the map."""
     names, addr = hosts
     log = single_host / "session.mcap"
     first = tmp_path / "first"
