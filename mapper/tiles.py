@@ -78,16 +78,17 @@ class Tiles:
 
     def touches_keys(self, lo: np.ndarray, hi: np.ndarray) -> bool:
         """Does the box of octree keys [lo, hi] (inclusive, x y z) reach one of this shard's tiles?"""
-        (i0, j0), (i1, j1) = (self._tiles_of_keys(int(lo[0]), int(lo[1])),
-                              self._tiles_of_keys(int(hi[0]), int(hi[1])))
-        ti, tj = np.meshgrid(np.arange(i0, i1 + 1), np.arange(j0, j1 + 1), indexing="ij")
-        return bool(self.owns(ti, tj).any())
+        return self._owns_any(self._tiles_of_keys(int(lo[0]), int(lo[1])), self._tiles_of_keys(int(hi[0]), int(hi[1])))
 
     def touches_box(self, lo: np.ndarray, hi: np.ndarray) -> bool:
         """Does the floor box [lo, hi] (map frame x, y, metres) reach one of this shard's tiles?"""
-        i0, j0 = (int(v) for v in np.floor(np.asarray(lo, float) / self.tile_m))
-        i1, j1 = (int(v) for v in np.floor(np.asarray(hi, float) / self.tile_m))
-        ti, tj = np.meshgrid(np.arange(i0, i1 + 1), np.arange(j0, j1 + 1), indexing="ij")
+        first = tuple(int(v) for v in np.floor(np.asarray(lo, float) / self.tile_m))
+        last = tuple(int(v) for v in np.floor(np.asarray(hi, float) / self.tile_m))
+        return self._owns_any(first, last)
+
+    def _owns_any(self, first: tuple, last: tuple) -> bool:
+        """Is one of the tiles from `first` to `last` (i, j, inclusive) this shard's?"""
+        ti, tj = np.meshgrid(np.arange(first[0], last[0] + 1), np.arange(first[1], last[1] + 1), indexing="ij")
         return bool(self.owns(ti, tj).any())
 
     def keep_points(self, points_map: np.ndarray) -> np.ndarray:
