@@ -17,13 +17,16 @@ from octolog.kit.mcaplog import read_wire, summarize
 from octolog.kit.tftree import LINK_FROM_OPTICAL
 from octolog.kit.viz import Viz
 from octolog.replay import gravity
+from octolog.replay.imu import ImuFeed, source_imu
 from octolog.replay.config import ReplayConfig, remapped
 from octolog.replay.sources import McapSource, Source, open_source
 from octolog.schemas import checks, codec, posemsgs, rgbdmsgs, streammsgs, wirecompression
 from octolog.schemas.topics import (
+    ACCEL,
     CAMERA_PROPERTIES,
     GRAVITY,
     CONFIGS,
+    GYRO,
     KEYFRAME,
     KEYFRAME_COMPRESSED,
     KEYFRAME_END,
@@ -188,8 +191,12 @@ def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Pro
     up_bytes: list[bytes] = []  # what a mapper's `get` on camera/gravity receives (nothing: no up)
     bus.serve(GRAVITY, lambda: up_bytes[0] if up_bytes else None)
     viz.text("replay/events", f"replaying {source.name}: {total} frames")  # the images: the tracker logs them
+    # the IMU's samples up to each frame, just before it (a looped replay has none: its time jumps back)
+    imu = ImuFeed(source_imu(source) if cfg.loop == 1 else None, bus.publisher(remapped(GYRO, cfg.remap)),
+                  bus.publisher(remapped(ACCEL, cfg.remap)), round(cfg.time_shift_s * 1e9))
     for frame in looped(source, cfg, encoded=passthrough):
         pacer.wait(frames_pub.count, frame.stamp_ns)
+        imu.before(frame.stamp_ns)
         if frames_pub.count == 0:  # the camera's own frames, before its first image (the tracker hangs world on their root)
             bus.publisher(TF_STATIC).put(posemsgs.tf_msg(camera_tree(source, frame.frame_id), frame.stamp_ns))
             if up is not None:

@@ -278,7 +278,7 @@ def backend_deferred(path: Path) -> list[int]:
 
 
 SYNTHETIC_SPEC = ("synthetic[:N][:tilt=DEG][:motion=loop|turns][:exposure=MS][:noise=none|kinect|d455][:bias=PX]"
-                  "[:seed=S]")
+                  "[:seed=S][:imu=HZ][:blank=AT+SECONDS]")
 
 
 @dataclass
@@ -290,6 +290,8 @@ class SyntheticSource:
     depth_noise: str = "none"  # `noise=kinect|d455`: the depth that sensor would read
     depth_bias_px: float = 0.0  # `bias=PX`: the depth sensor's systematic disparity offset (reads short if > 0)
     seed: int = 0  # `seed=S`: another room's textures and another draw of the depth noise
+    imu_hz: float = 0.0  # `imu=HZ`: a simulated D455 IMU at HZ (replay/synthetic_imu.py)
+    blank: tuple[float, float] = (0.0, 0.0)  # `blank=AT+S`: no texture in sight from AT s for S s
     readout_s = 0.0  # rendered, every row at once
     encoded = False  # rendered pixels
 
@@ -302,13 +304,15 @@ class SyntheticSource:
     def __post_init__(self) -> None:
         self.scene = SyntheticScene(n_frames=self.n_frames, start_tilt_deg=self.start_tilt_deg, motion=self.motion,
                                     exposure_ms=self.exposure_ms, depth_noise=self.depth_noise,
-                                    depth_bias_px=self.depth_bias_px, seed=self.seed)
+                                    depth_bias_px=self.depth_bias_px, seed=self.seed, imu_hz=self.imu_hz,
+                                    blank_at_s=self.blank[0], blank_s=self.blank[1])
         options = {"tilt": f"{self.start_tilt_deg:g}" if self.start_tilt_deg else "",
                    "motion": "" if self.motion == "loop" else self.motion,
                    "exposure": f"{self.exposure_ms:g}" if self.exposure_ms else "",
                    "noise": "" if self.depth_noise == "none" else self.depth_noise,
                    "bias": f"{self.depth_bias_px:g}" if self.depth_bias_px else "",
-                   "seed": str(self.seed) if self.seed else ""}
+                   "seed": str(self.seed) if self.seed else "", "imu": f"{self.imu_hz:g}" if self.imu_hz else "",
+                   "blank": "{:g}+{:g}".format(*self.blank) if self.blank[1] else ""}
         self.name = ":".join([f"synthetic:{self.n_frames}", *(f"{k}={v}" for k, v in options.items() if v)])
 
     def gravity_up(self) -> np.ndarray | None:
@@ -452,7 +456,7 @@ def _synthetic(spec: str, arg: str) -> SyntheticSource:
     """`synthetic[:N][:KEY=VALUE...]` (SYNTHETIC_SPEC); a bad count, key or value is a one-line error."""
     count, *options = arg.split(":") if arg else [""]
     keys = {"tilt": "start_tilt_deg", "motion": "motion", "exposure": "exposure_ms", "noise": "depth_noise",
-            "bias": "depth_bias_px", "seed": "seed"}
+            "bias": "depth_bias_px", "seed": "seed", "imu": "imu_hz", "blank": "blank"}
     kwargs: dict[str, Any] = {}
     try:
         n = int(count) if count else 150
@@ -460,7 +464,10 @@ def _synthetic(spec: str, arg: str) -> SyntheticSource:
             key, eq, value = option.partition("=")
             if not eq or key not in keys or keys[key] in kwargs:
                 raise ValueError(option)
-            kwargs[keys[key]] = value if key in ("motion", "noise") else int(value) if key == "seed" else float(value)
+            kwargs[keys[key]] = (value if key in ("motion", "noise") else int(value) if key == "seed" else
+                                 tuple(float(v) for v in value.split("+", 1)) if key == "blank" else float(value))
+            if key == "blank" and len(kwargs["blank"]) != 2:
+                raise ValueError(option)
         source = SyntheticSource(n, **kwargs)
     except ValueError:
         raise ConfigError(f"source {spec!r}: want {SYNTHETIC_SPEC}") from None

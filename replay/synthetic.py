@@ -21,15 +21,18 @@ from typing import Any
 import cv2
 import numpy as np
 
+from octolog.kit import imu
 from octolog.kit.geometry import Intrinsics, RgbdFrame, matrix_to_pose
 from octolog.kit.opencv import baseline_simd
-from octolog.replay import depth_noise
+from octolog.replay import depth_noise, synthetic_imu
 from octolog.replay.gravity import simulated_up
 from octolog.replay.synthetic_room import OBJECTS, ROOM, scene_faces, scene_triangles
 from octolog.replay.synthetic_textures import Textures, scene_textures
+from octolog.replay.synthetic_imu import SimulatedImu
 from octolog.replay.synthetic_trajectory import MOTIONS, camera_trajectory
 
 EPOCH_NS = 1_700_000_000 * 1_000_000_000
+BLANK_GREY = 128  # the colour of a textureless stretch (`blank_s`)
 
 
 @dataclass(frozen=True)
@@ -56,6 +59,9 @@ class SyntheticConfig:
     motion: str = "loop"  # loop (a walk round the pillar) or turns (the walk with fast head turns)
     exposure_ms: float = 0.0  # colour exposure: > 0 blurs colour by the camera's rotation over it
     depth_bias_px: float = 0.0  # the depth sensor's systematic disparity offset (replay.depth_noise.apply)
+    imu_hz: float = 0.0  # > 0: a simulated D455 IMU at this rate (replay.synthetic_imu)
+    blank_at_s: float = 0.0  # with blank_s > 0: from this time on the colour camera sees no texture
+    blank_s: float = 0.0  # for this long (a blank wall, a covered lens; depth is unchanged)
 
     def __post_init__(self) -> None:
         """Checked once, where the parameters are built."""
@@ -71,6 +77,9 @@ class SyntheticConfig:
             raise ValueError(f"depth_noise {self.depth_noise!r}: want one of {', '.join(depth_noise.names())}")
         if self.depth_bias_px and self.depth_noise == "none":
             raise ValueError("depth_bias_px: a disparity offset needs a depth sensor (depth_noise kinect or d455)")
+        if self.imu_hz < 0 or self.blank_s < 0 or self.blank_at_s < 0:
+            raise ValueError(f"imu_hz, blank_at_s, blank_s: want >= 0 (got {self.imu_hz}, {self.blank_at_s}, "
+                             f"{self.blank_s})")
         if not abs(self.depth_bias_px) <= 1.0:
             raise ValueError(f"depth_bias_px {self.depth_bias_px}: want -1 to 1 px")
 
@@ -142,6 +151,15 @@ class SyntheticScene:
         def rotation_at(t: float) -> np.ndarray:
             return self._trajectory(np.array([t]))[1][0]
         return simulated_up(rotation_at, 0.0, self.config.seed)
+
+    @cached_property
+    def simulated_imu(self) -> SimulatedImu | None:
+        """The camera's IMU over the sequence (D455 noise), None unless `imu_hz` > 0."""
+        cfg = self.config
+        if cfg.imu_hz <= 0:
+            return None
+        return synthetic_imu.simulate(self._trajectory, max(cfg.n_frames - 1, 0) / cfg.fps, cfg.imu_hz, imu.D455,
+                                      cfg.seed, cfg.start_ns)
 
     def pose(self, i: int) -> np.ndarray:
         """Ground-truth world_from_camera 4x4 of frame i (optical camera convention)."""
@@ -359,6 +377,8 @@ class SyntheticScene:
         rgb, depth = self.render_pose(self.pose(i), noise)
         if self.config.exposure_ms > 0:
             rgb = self._motion_blur(int(i), rgb)
+        if self.config.blank_s > 0 and 0.0 <= i / self.config.fps - self.config.blank_at_s < self.config.blank_s:
+            rgb = np.full_like(rgb, BLANK_GREY)
         return RgbdFrame(
             seq=int(i),
             stamp_ns=self.stamp_ns(i),

@@ -78,8 +78,8 @@ ADDED_FIELDS = {("octolog_msgs/msg/TrackingStatus", "map_moved_m"): "0.0",
                 ("octolog_msgs/msg/CameraProperties", "depth_baseline_m"): "0.0",
                 ("octolog_msgs/msg/CameraProperties", "depth_focal_px"): "0.0",
                 ("octolog_msgs/msg/CameraProperties", "depth_disparity_sigma_px"): "0.0"}
-# TrackingStatus.state -> diagnostic level (OK=0, WARN=1, ERROR=2): INIT and SKIPPED warn, LOST is an error
-_STATE_LEVEL = {0: 1, 1: 0, 2: 2, 3: 1}
+# TrackingStatus.state -> diagnostic level (OK=0, WARN=1, ERROR=2): INIT, SKIPPED and INERTIAL warn, LOST is an error
+_STATE_LEVEL = {0: 1, 1: 0, 2: 2, 3: 1, 4: 1}
 
 
 def is_split(msgtype: str) -> bool:

@@ -137,6 +137,7 @@ class TrackingStatusMsg(Protocol):
     OK: ClassVar[int]
     LOST: ClassVar[int]
     SKIPPED: ClassVar[int]
+    INERTIAL: ClassVar[int]
     header: Header
     seq: int
     state: int

@@ -82,7 +82,7 @@ CONFIGS = {stage: Topic(f"{stage}/config", "std_msgs/msg/String") for stage in (
 
 ALL = (RGBD, RGBD_END, POSE, TRACKING_STATUS, KEYFRAME, KEYFRAME_END, KEYFRAME_POSES, MAP_UPDATE, OCTOMAP,
        OCCUPIED, GRID, MAP_END, RGBD_COMPRESSED, KEYFRAME_COMPRESSED, CAMERA_PROPERTIES, TF, TF_STATIC, TRAJECTORY,
-       MAP_MERGE, GRAVITY, BACKEND_DEFERRED,
+       MAP_MERGE, GRAVITY, BACKEND_DEFERRED, GYRO, ACCEL,
        *CONFIGS.values())
 # The camera frames: what stays on a robot when the log runs elsewhere (`octolog log --no-frames`)
 FRAMES = (RGBD, RGBD_COMPRESSED)

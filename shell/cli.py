@@ -102,6 +102,7 @@ def cmd_view(args: argparse.Namespace) -> int:
 
 def cmd_track(args: argparse.Namespace) -> int:
     """`octolog track`: the tracker process."""
+    from octolog.shell.info import imu_line
     from octolog.tracker import node
     from octolog.tracker.config import TrackerConfig
 
@@ -117,6 +118,8 @@ def cmd_track(args: argparse.Namespace) -> int:
           + (f", {res.backend_deferred} keyframes without waiting for the back end" if res.backend_deferred else ""))
     for problem in res.problems[:5]:
         print(f"tracker: rejected {problem}")
+    errorfile.FINDINGS["imu"] = res.imu
+    print(f"tracker: {imu_line(res.imu)}")
     if res.depth_bias is not None:
         print(f"tracker: {res.depth_bias.summary()}")
         errorfile.FINDINGS["depth_bias"] = res.depth_bias.as_dict()

@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
+
 from octolog.kit.errors import InputError, MapError, McapError
 from octolog.kit.mcaplog import summarize
 from octolog.shell.sessiondir import INCOMPLETE, incomplete_reason
@@ -59,6 +61,18 @@ def depth_bias_line(b: dict) -> str:
                 + f", {b['inverse_offset_per_m']:.5f} 1/m left" + ("" if b["confident"] else " (not significant)"))
     return (f"  depth bias (from the map): reads short by {at}" + ("" if b["confident"] else " (not significant)")
             + f"; inverse offset {b['inverse_offset_per_m']:.5f} 1/m (tracker.depth.inverse_offset corrects it)")
+
+
+def imu_line(imu: dict | None) -> str:
+    """Whether the tracker used an IMU and what it found (summary.json `imu`)."""
+    if not imu:
+        return "IMU: none (vision only)"
+    if imu.get("initialised_at_ns", -1) < 0:
+        return f"IMU: {imu['samples']} samples, gravity and velocity never aligned (rotation prediction only)"
+    bg = [round(float(np.degrees(v)), 3) for v in imu["gyro_bias"]]
+    ba = [round(float(v), 3) for v in imu["accel_bias"]]
+    return (f"IMU: used ({imu['samples']} samples), {imu['inertial_frames']} frames placed by the IMU alone "
+            f"(INERTIAL); gyro bias {bg} deg/s, accelerometer bias {ba} m/s²")
 
 
 def describe_mcap(path: Path) -> str:

@@ -36,7 +36,7 @@ from octolog.schemas.topics import RGBD, RGBD_COMPRESSED, TRACKING_STATUS
 from octolog.schemas.wirecompression import SOURCE
 from octolog.shell import errorfile
 from octolog.shell.children import StageProcesses, hosted_router
-from octolog.shell.info import depth_bias_line, prior_line
+from octolog.shell.info import depth_bias_line, imu_line, prior_line
 from octolog.shell.priormap import check_prior, prior_mapper
 from octolog.shell.sessiondir import INCOMPLETE, incomplete_reason, prepare_out
 from octolog.shell.versions import versions
@@ -66,6 +66,7 @@ class SessionSummary:
     malformed: dict[str, dict[str, int]] = field(default_factory=dict)  # stage -> topic -> samples dropped
     map_frame: str = NOT_ALIGNED  # whether the map frame's z is up, and where that came from
     depth_bias: dict | None = None  # the tracker's estimate of the depth camera's systematic error (summary.json)
+    imu: dict | None = None  # what the tracker's IMU did (summary.json; None: no IMU, or vision only)
     prior_map: dict | None = None  # what became of the saved map the tracker was given (tracker.map)
 
 
@@ -398,9 +399,11 @@ def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, re
     cpu = {p.name.removesuffix(".report.json"): errorfile.read_cpu(p) for p in sorted((out / "logs").glob("*.report.json"))}
     s.depth_bias = errorfile.read_finding(out / "logs" / "tracker.report.json", "depth_bias")
     s.prior_map = errorfile.read_finding(out / "logs" / "tracker.report.json", "prior_map")
+    s.imu = errorfile.read_finding(out / "logs" / "tracker.report.json", "imu")
     (out / "summary.json").write_text(json.dumps(
         {"source": source, "frames": frames, "tracked_frames": s.frames, "wall_s": round(wall, 3),
          "malformed": s.malformed, "map_frame": s.map_frame, "cpu_s": cpu, "depth_bias": s.depth_bias, "prior_map": s.prior_map,
+         "imu": s.imu,
          "duration_s": s.duration_s, "ate": s.ate, "map": s.map, "files": sorted(s.files),
          "recording_id": recording_id, "versions": versions()},
         indent=2, sort_keys=True) + "\n")
@@ -418,6 +421,7 @@ def format_summary(s: SessionSummary) -> str:
     lines.append(f"  map: {m.get('keyframes', 0)} keyframes, {m.get('occupied_voxels', 0)} occupied / "
                  f"{m.get('free_voxels', 0)} free voxels at {m.get('resolution_m', 0) * 100:.0f} cm, {m.get('cloud_points', 0)} cloud points")
     lines.append(f"  map frame: {s.map_frame}")
+    lines.append("  " + imu_line(s.imu))
     if s.depth_bias:
         lines.append(depth_bias_line(s.depth_bias))
     if s.prior_map:

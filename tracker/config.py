@@ -157,6 +157,8 @@ class OdometryParams:
     readout_s: float  # rolling-shutter readout, first row to last (0: global shutter)
     localize: bool = False  # tracker.mode = "localize": no keyframes, the map is not changed
     map_find_frames: int = 150  # frames a saved map may take to find the camera in (tracker/prior.py)
+    imu: bool = True  # use the camera's IMU when the stream has one (tracker/inertial.py)
+    max_inertial_s: float = 1.5  # the longest a pose may come from the IMU alone (INERTIAL)
 
 
 @dataclass(frozen=True)
@@ -227,6 +229,13 @@ class TrackerConfig:
     # own that is placed in the saved one when found: 5 s at 30 fps, to walk in from an unmapped
     # doorway); then the tracker says so and goes on in that map of its own (separate, not merged)
     map_find_frames: int = 150
+    # native: fuse the camera's IMU (camera/gyro/sample, camera/accel/sample) when the stream has one:
+    # gyro-predicted rotation, biases, gravity and velocity online; false: vision only (a stream
+    # without an IMU runs the same either way)
+    imu: bool = True
+    # native, with an IMU: a frame vision cannot place takes the IMU's pose (INERTIAL) for at most this
+    # long after the last one it placed; then LOST
+    max_inertial_s: float = 1.5
     # native core, by stage (docs/cli.md lists every key)
     features: FeatureParams = field(default_factory=FeatureParams)
     depth: DepthParams = field(default_factory=DepthParams)
@@ -253,6 +262,7 @@ class TrackerConfig:
         _want(self.mode == "map" or bool(self.map), "mode", self.mode, "localize needs a saved map (tracker.map, --map)")
         _want(not self.map or self.backend == "native", "map", self.map, "a saved map needs backend = native")
         _want(self.map_find_frames >= 1, "map_find_frames", self.map_find_frames, "want >= 1")
+        _want(0.0 <= self.max_inertial_s <= 10.0, "max_inertial_s", self.max_inertial_s, "want 0 to 10 s")
         if self.rolling_shutter_ms is not None:
             _want(0.0 <= self.rolling_shutter_ms <= 100.0, "rolling_shutter_ms", self.rolling_shutter_ms,
                   "want 0 to 100 (0 = global shutter)")
@@ -273,7 +283,8 @@ class TrackerConfig:
             bundle_adjustment=self.bundle_adjustment, global_ba_keyframes=self.global_ba_keyframes,
             loop_closing=self.loop_closing, loops=self.loops, relocalise=self.relocalise,
             bow_candidates=self.bow_candidates, readout_s=(self.rolling_shutter_ms or 0.0) / 1e3,
-            localize=self.mode == "localize", map_find_frames=self.map_find_frames,
+            localize=self.mode == "localize", map_find_frames=self.map_find_frames, imu=self.imu,
+            max_inertial_s=self.max_inertial_s,
         )
 
 

@@ -24,9 +24,11 @@ from octolog.kit.bus import Bus, Received
 from octolog.kit.cpuclock import charge
 from octolog.kit.errors import InputError
 from octolog.kit.geometry import RgbdFrame
+from octolog.kit.imu import ImuSamples
 from octolog.kit.viz import encode_jpeg
 from octolog.schemas import codec, rgbdmsgs
 from octolog.schemas.topics import RGBD, RGBD_COMPRESSED, RGBD_END
+from octolog.tracker.imu_intake import ImuIntake
 from octolog.tracker.interface import Tracker
 
 Decoded = tuple[Any, RgbdFrame | InputError, Any]
@@ -72,6 +74,8 @@ class Intake:
         self._decoder = ThreadPoolExecutor(1, thread_name_prefix="decode")
         self._stop = threading.Event()
         self._reader = threading.Thread(target=self._read, name="intake", daemon=True)
+        self.imu = ImuIntake()  # the IMU's samples, each frame marked with how many came before it
+        self._imu_marks: dict[int, tuple[int, int]] = {}  # id(frame sample) -> its mark
 
     def __enter__(self) -> Intake:
         self._reader.start()
@@ -96,8 +100,10 @@ class Intake:
         try:
             while not self._stop.is_set():
                 r = self.bus.receive()
-                if r is None:
+                if r is None or self.imu.offer(r):
                     continue
+                if is_frame(r):
+                    self._imu_marks[id(r)] = self.imu.mark()
                 if r.topic == RGBD_END:  # the stream is all off the bus: its source may leave now
                     for producer in FRAME_PRODUCERS:
                         self.bus.unwatch(producer)
@@ -158,6 +164,11 @@ class Intake:
             return item
         self._held.insert(0, item)
         return None
+
+    def imu_before(self, r: Received) -> ImuSamples:
+        """The IMU samples that came before frame `r` and were not taken yet."""
+        mark = self._imu_marks.pop(id(r), None)
+        return self.imu.take(mark) if mark is not None else ImuSamples.empty()
 
     def prepared(self, r: Received, fut: Future | None) -> Decoded:
         """The frame's decoding and preparation, waiting for it (or doing it here if it was cancelled)."""

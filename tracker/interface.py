@@ -18,12 +18,13 @@ from octolog.kit.geometry import RgbdFrame
 
 class TrackingState(enum.StrEnum):
     """A frame's tracking state. The values are the strings logged and the names of the
-    `TrackingStatus` message's constants (INIT=0, OK=1, LOST=2, SKIPPED=3), which are the wire codes."""
+    `TrackingStatus` message's constants (INIT=0, OK=1, LOST=2, SKIPPED=3, INERTIAL=4), which are the wire codes."""
 
     INIT = "INIT"  # the first keyframe was made from this frame (the world origin)
     OK = "OK"  # pose estimated against the map
     LOST = "LOST"  # no reliable pose: the motion model's prediction is reported
     SKIPPED = "SKIPPED"  # tracker.node only: a live tracker took a newer frame, this one was not tracked
+    INERTIAL = "INERTIAL"  # vision could not place the frame: the pose is the IMU's, propagated from the last one
 
 
 class KeypointState(enum.IntEnum):

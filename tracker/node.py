@@ -9,6 +9,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
+import dataclasses
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Self
@@ -44,6 +45,7 @@ from octolog.schemas.topics import (
 from octolog.tracker.config import TrackerConfig
 from octolog.tracker.depth_bias import DepthBias
 from octolog.tracker.factory import make_odometry, set_depth_model, set_readout
+from octolog.tracker.imu_intake import IMU_TOPICS
 from octolog.tracker.intake import FRAME_PRODUCERS, Intake
 from octolog.tracker.interface import Tracker, TrackingState, TrackResult
 
@@ -66,6 +68,8 @@ class TrackerRunSummary:
     keyframes: int = 0
     loops: int = 0
     relocalisations: int = 0
+    inertial: int = 0  # frames whose pose came from the IMU alone (INERTIAL)
+    imu: dict | None = None  # what the IMU did (tracker/inertial.py: InertialState); None: no samples
     stamps_ns: list[int] = field(default_factory=list)
     poses: list[np.ndarray] = field(default_factory=list)
     ms: list[float] = field(default_factory=list)
@@ -163,7 +167,9 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
         worker.ready()  # its imports done before the stream: not competing for the cores with the first frames
     tree = StaticTree()  # the camera's own frames, from whoever knows the camera (recorder, replay)
     bus.listen(TF_STATIC, tree.add)
-    bus.start([RGBD, RGBD_COMPRESSED, RGBD_END, CAMERA_PROPERTIES], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
+    imu_topics = list(IMU_TOPICS) if cfg.imu and hasattr(odometry, "add_imu") else []
+    bus.start([RGBD, RGBD_COMPRESSED, RGBD_END, CAMERA_PROPERTIES, *imu_topics], wait_for=cfg.wait_for,
+              timeout_s=cfg.wait_timeout_s)
     bus.publisher(CONFIGS["tracker"]).put(streammsgs.config_msg("tracker", to_dict(cfg)))
     bus.watch(FRAME_PRODUCERS)  # whichever sends the frames: a replay, or a recorder publishing live
     bus.watch(["mapper"], required=False)  # a mapper may restart: keep its keyframes until it is done
@@ -187,11 +193,15 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
             result.frames += 1
             if cfg.live and intake.behind(r):
                 far = odometry.n_keyframes > YOUNG_MAP_KEYFRAMES and intake.behind(r, FAR_BEHIND)
-                r, prep = _skip_behind(intake, r, prep, out, result, far=far)
+                r, prep = _skip_behind(intake, odometry, r, prep, out, result, far=far)
+            if imu_topics:
+                _feed_imu(odometry, intake, r, tree)
             _track_frame(odometry, cfg, functools.partial(intake.prepared, r, prep), out, tree, result, shown)
     out.finish(odometry, result)
     estimate = getattr(odometry, "depth_bias", None)  # the native tracker's; ORB-SLAM3 has none
     result.depth_bias = estimate() if estimate is not None else None
+    if (imu := getattr(odometry, "imu_state", None)) is not None:
+        result.imu = {**dataclasses.asdict(imu), "inertial_frames": result.inertial}
     if result.depth_bias is not None:
         viz.text("tracker/events", result.depth_bias.summary())
     bus.linger("mapper")
@@ -205,13 +215,15 @@ FAR_BEHIND = 4.0
 YOUNG_MAP_KEYFRAMES = 5
 
 
-def _skip_behind(intake: Intake, r: Any, prep: Any, out: _Outputs, result: TrackerRunSummary, *,
-                 far: bool) -> tuple[Any, Any]:
+def _skip_behind(intake: Intake, odometry: Tracker, r: Any, prep: Any, out: _Outputs, result: TrackerRunSummary,
+                 *, far: bool) -> tuple[Any, Any]:
     """Stay real-time, on record: behind, this frame is skipped for the next one, never two in a row
     (a tracked frame is at most two camera frames after the last: a fast turn stays trackable,
     where jumping to the newest made gaps of several frames and lost track); `far` behind, the
     newest waiting frame wins and every older one is skipped, so latency stays bounded."""
     while (newer := intake.newer_frame()) is not None:
+        if hasattr(odometry, "add_imu"):  # the motion goes on: its samples still count
+            odometry.add_imu(intake.imu_before(r))
         out.untracked(r.decode(), TrackingState.SKIPPED)
         result.skipped += 1
         result.frames += 1
@@ -248,8 +260,27 @@ def _track_frame(odometry: Tracker, cfg: TrackerConfig, prepare: Callable[[], tu
     result.poses.append(res.world_from_camera)
     result.tracked += res.state == TrackingState.OK
     result.lost += res.state == TrackingState.LOST
+    result.inertial += res.state == TrackingState.INERTIAL
     out.tracked(frame, res, tree, ms, result)
     shown.put(frame, res, result, odometry)
+
+
+def _feed_imu(odometry: Any, intake: Intake, r: Any, tree: StaticTree) -> None:
+    """The IMU samples that came before frame `r`, to the tracker; with the first, where the IMU
+    sits on the camera (the camera's /tf_static; none: the IMU's axes are the colour camera's)."""
+    samples = intake.imu_before(r)
+    if len(samples) and odometry.imu_state is None:
+        odometry.set_camera_from_imu(camera_from_imu(tree, r.decode().header.frame_id, intake.imu.frame_id))
+    odometry.add_imu(samples)
+
+
+def camera_from_imu(tree: StaticTree, camera_frame: str, imu_frame: str) -> np.ndarray:
+    """camera_from_imu (4x4) from the static tree; the identity if it does not join the two frames."""
+    if not imu_frame or imu_frame == camera_frame:
+        return np.eye(4)
+    root_c, root_from_camera = tree.root_from(camera_frame)
+    root_i, root_from_imu = tree.root_from(imu_frame)
+    return invert(root_from_camera) @ root_from_imu if root_c == root_i else np.eye(4)
 
 
 def warm_up() -> None:

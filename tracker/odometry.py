@@ -41,15 +41,14 @@ from octolog.tracker.features import (
 from octolog.tracker.interface import KeypointState, TrackingState, TrackResult
 from octolog.tracker.keyframe_map import METRES_PER_RADIAN, Keyframe, MapPoints
 from octolog.tracker.local_mapping import LocalMapping, TrackedFrame
+from octolog.tracker.motion import MAX_PREDICTION_STEPS, MotionModel
 from octolog.tracker.places import PLACE_MAX_HAMMING, PLACE_RATIO, BowIndex, relocalisation_guess
-from octolog.tracker.pose import optimize_pose, so3_exp, so3_log, unroll_rolling_shutter, unsupported_jump
+from octolog.tracker.pose import optimize_pose, so3_log, unroll_rolling_shutter, unsupported_jump
 from octolog.tracker.vocab import Vocabulary
 from octolog.tracker.worker import Worker
 
 _RANSAC_SEED = 0x0C70
 RANSAC_CONFIDENCE = 0.999  # PnP RANSAC stops once a consensus is this likely found (OpenCV's: 0.99)
-# The motion model extrapolates at most this many frame intervals: a long gap is a stall.
-MAX_PREDICTION_STEPS = 4.0
 # The second matching attempt widens the search window by this factor.
 WIDE_SEARCH_FACTOR = 3.0
 # A pose with this many times `min_inliers` inliers (and `confident_ratio` of its matches) is final;
@@ -57,7 +56,7 @@ WIDE_SEARCH_FACTOR = 3.0
 CONFIDENT_INLIER_FACTOR = 3
 
 
-class RgbdSlam(LocalMapping, BackendHandoff, DepthCorrection, PriorMap):
+class RgbdSlam(LocalMapping, MotionModel, BackendHandoff, DepthCorrection, PriorMap):
     """RGB-D SLAM: frame-to-local-map tracking, keyframe insertion and the back end (loop closing, bundle
     adjustment). Call `track` once per frame, in time order, and `finish` at the end of the stream.
 
@@ -147,16 +146,22 @@ class RgbdSlam(LocalMapping, BackendHandoff, DepthCorrection, PriorMap):
         extracted = prepared[1] if prepared is not None and prepared[0] is frame else self._extractor.extract(gray)
         feats = self._features(frame, extracted)
         if not self._keyframes:
-            return self._try_initialise(frame, feats)
+            res = self._try_initialise(frame, feats)
+            if res.state == TrackingState.INIT:
+                self._imu_observe(frame.stamp_ns, res.world_from_camera, continuous=False)
+            return res
         if self._last_pose is None:  # a saved map (tracker/prior.py), the camera not found in it yet
             return self._find_in_prior(frame, feats, extracted)
-        predicted = self._predict(frame.stamp_ns)
+        predicted, propagated = self._imu_predict(self._predict(frame.stamp_ns), frame.stamp_ns)
         tracked, relocalised = self._locate(feats, predicted, frame.stamp_ns)
         if tracked is None:
-            self._last_ok = False  # the prediction keeps coming from the last tracked frame
+            coasted = self._imu_coast(frame, propagated)
+            if coasted is not None:
+                return coasted
+            self._last_ok = self._coasting = False  # the prediction keeps coming from the last tracked frame
             return TrackResult(frame.seq, frame.stamp_ns, predicted.copy(), TrackingState.LOST, False, -1, 0, 0)
         feats = tracked.feats
-        pose = invert(tracked.camera_from_world)
+        pose = seen = invert(tracked.camera_from_world)
         kf_id, loop, deferred, map_moved_m = -1, None, False, 0.0
         corrected: dict[int, np.ndarray] = {}
         # A frame without enough depth adds no map points, so it must not replace the reference.
@@ -180,6 +185,8 @@ class RgbdSlam(LocalMapping, BackendHandoff, DepthCorrection, PriorMap):
                 self._submit_backend()
         ref = self._keyframes[-1]
         self._frames.append((frame.stamp_ns, ref.id, invert(ref.world_from_camera) @ pose))
+        self._imu_observe(frame.stamp_ns, pose, continuous=not relocalised,
+                          moved=None if pose is seen else pose @ invert(seen))
         self._remember(frame.stamp_ns, pose, continuous=not relocalised)
         return TrackResult(
             frame.seq, frame.stamp_ns, pose.copy(), TrackingState.OK, kf_id >= 0, kf_id, tracked.n_matches,
@@ -205,7 +212,7 @@ class RgbdSlam(LocalMapping, BackendHandoff, DepthCorrection, PriorMap):
             tracked = None
         # after a tracked frame, or a few LOST frames after one, the motion model's prediction is
         # meaningful: the pose is judged as a step from it
-        continuous = self._last_ok or (self._velocity is not None and
+        continuous = self._last_ok or self._coasting or (self._velocity is not None and
                                        stamp_ns - self._last_stamp <= MAX_PREDICTION_STEPS * self._velocity[2])
         if tracked is not None and not by_place and self._velocity is not None and continuous and \
                 unsupported_jump(self.params.tracking, predicted, invert(tracked.camera_from_world), tracked.n_inliers,
@@ -280,36 +287,6 @@ class RgbdSlam(LocalMapping, BackendHandoff, DepthCorrection, PriorMap):
         self._last_pts = pts
         self._last_kp_state = np.zeros(len(pts), np.uint8)
         return FrameFeatures(uv=uv, octave=octave, desc=desc, z=z, xyz=backproject(uv, z, self._undistort.K))
-
-    # -- motion model ---------------------------------------------------------------------------
-
-    def _predict(self, stamp_ns: int) -> np.ndarray:
-        """Constant-velocity prediction of world_from_camera from the last tracked frame, scaled to
-        the interval since it (at most MAX_PREDICTION_STEPS frames: a LOST stretch keeps that pose
-        instead of spinning on with the velocity it had)."""
-        assert self._last_pose is not None
-        if self._velocity is None:
-            return self._last_pose.copy()
-        rotvec, trans, dt_ns = self._velocity
-        dt_new = stamp_ns - self._last_stamp
-        s = dt_new / dt_ns if dt_ns > 0 and dt_new > 0 else 1.0
-        s = min(s, MAX_PREDICTION_STEPS)
-        step = np.eye(4)
-        step[:3, :3] = so3_exp(rotvec * s)
-        step[:3, 3] = trans * s
-        return self._last_pose @ step
-
-    def _remember(self, stamp_ns: int, pose: np.ndarray, *, continuous: bool = True) -> None:
-        """Keep a tracked frame's pose, and the velocity from the last tracked one (over any short
-        LOST gap); found again, the velocity is unknown. A LOST frame changes neither."""
-        if continuous and self._last_pose is not None:
-            step = invert(self._last_pose) @ pose
-            self._velocity = (so3_log(step[:3, :3]), step[:3, 3].copy(), stamp_ns - self._last_stamp)
-        else:
-            self._velocity = None
-        self._last_pose = pose.copy()
-        self._last_stamp = stamp_ns
-        self._last_ok = True
 
     # -- initialisation -------------------------------------------------------------------------
 

@@ -1,0 +1,94 @@
+"""A replay source's IMU: the samples the replay publishes on `camera/gyro/sample` and
+`camera/accel/sample` (sensor_msgs/Imu) before each frame, as a D455 would have sent them.
+
+- The synthetic room with `imu=HZ`: the simulated D455 IMU (replay/synthetic_imu.py), in the colour
+  camera's optical frame.
+- A TUM-layout folder with `imu.txt` (kit/imu.py: read_imu_txt): in the colour camera's optical frame.
+- An octolog recording: its own `camera/gyro/sample` and `camera/accel/sample`, in the frames they
+  name (the recording's `/tf_static` places them).
+
+Every N-th frame (`replay.every`) keeps the whole IMU stream: the frames are fewer, the motion the
+same. Retimed (`replay.retime`) has none: a faster camera would feel other accelerations.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from octolog.kit.imu import ImuSamples, read_imu_txt, unite
+from octolog.kit.mcaplog import read_messages
+from octolog.replay.sources import McapSource, Retimed, Subsampled, SyntheticSource, TumSource
+from octolog.schemas import codec, sensormsgs
+from octolog.schemas.topics import ACCEL, GYRO
+
+COLOR_FRAME = "camera_color_optical_frame"
+
+
+@dataclass(frozen=True)
+class SourceImu:
+    samples: ImuSamples
+    frame_id: str  # the IMU's frame (the /tf_static tree places it)
+
+
+def source_imu(source: object) -> SourceImu | None:
+    """The IMU samples of a replay source (octolog.replay.sources), None if it has none."""
+    if isinstance(source, Subsampled):
+        return source_imu(source.inner)
+    if isinstance(source, Retimed):
+        return None
+    if isinstance(source, SyntheticSource):
+        sim = source.scene.simulated_imu
+        return None if sim is None else SourceImu(sim.samples, COLOR_FRAME)
+    if isinstance(source, TumSource):
+        path = source.path / "imu.txt"
+        return SourceImu(read_imu_txt(path), COLOR_FRAME) if path.is_file() else None
+    if isinstance(source, McapSource):
+        return recorded_imu(source.path)
+    return None
+
+
+def recorded_imu(path: Path) -> SourceImu | None:
+    """A recording's gyro and accelerometer samples, united on the gyro's stamps (None without both)."""
+    streams: dict[str, list[tuple[int, float, float, float]]] = {GYRO.name: [], ACCEL.name: []}
+    frame_id = ""
+    for m in read_messages(path, [GYRO.name, ACCEL.name]):
+        name = m.topic.lstrip("/")
+        msg = codec.decode(m.data, GYRO.msgtype)
+        v = msg.angular_velocity if name == GYRO.name else msg.linear_acceleration
+        streams[name].append((codec.stamp_ns(msg.header), v.x, v.y, v.z))
+        if name == GYRO.name:
+            frame_id = frame_id or msg.header.frame_id
+    gyro, accel = (sorted(streams[n]) for n in (GYRO.name, ACCEL.name))
+    if len(gyro) < 2 or len(accel) < 2:
+        return None
+    g_ns, a_ns = (np.array([row[0] for row in rows], np.int64) for rows in (gyro, accel))
+    g, a = (np.array([row[1:] for row in rows], np.float64) for rows in (gyro, accel))
+    return SourceImu(unite(g_ns, g, a_ns, a), frame_id)
+
+
+class ImuFeed:
+    """Publishes a source's IMU samples up to each frame's stamp just before the frame (one
+    numbered publisher per stream: the frame's dependencies bring them to a subscriber first)."""
+
+    LEAD_NS = 50_000_000  # before the first frame: the samples of this long
+
+    def __init__(self, imu: SourceImu | None, gyro_pub, accel_pub, shift_ns: int = 0) -> None:
+        self.imu, self.gyro_pub, self.accel_pub, self.shift_ns = imu, gyro_pub, accel_pub, shift_ns
+        self.last_ns: int | None = None
+        self.count = 0
+
+    def before(self, frame_stamp_ns: int) -> None:
+        if self.imu is None:
+            return
+        t = frame_stamp_ns - self.shift_ns  # on the source's clock
+        after = t - self.LEAD_NS if self.last_ns is None else self.last_ns
+        batch = self.imu.samples.between(after, t)
+        fid = self.imu.frame_id
+        for stamp, w, a in zip(batch.stamp_ns.tolist(), batch.gyro.tolist(), batch.accel.tolist()):
+            self.gyro_pub.put(sensormsgs.imu_msg(stamp + self.shift_ns, fid, angular_velocity=tuple(w)))
+            self.accel_pub.put(sensormsgs.imu_msg(stamp + self.shift_ns, fid, linear_acceleration=tuple(a)))
+        self.count += len(batch)
+        self.last_ns = max(t, after)

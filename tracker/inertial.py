@@ -1,0 +1,333 @@
+"""The tracker's IMU: preintegration between frames, the gyro's bias, gravity, velocity and the
+accelerometer's bias, estimated online from the visual poses, and the pose through a visual dropout.
+
+- Preintegration is gtsam's `PreintegratedImuMeasurements` (Forster et al.'s on-manifold
+  preintegration); its `predict` re-applies a changed bias to first order, which also gives the
+  bias Jacobians below (by differences, with no re-integration).
+- The gyro's bias: each tracked frame adds the rotation over the last `GYRO_SPAN` frames, the
+  visual one against the gyro's, to running normal equations (forgetting over `GYRO_MEMORY_S`);
+  the bias is their solution, rotation prediction uses it from the first frames on.
+- Gravity, the velocity and the accelerometer's bias: a linear least-squares alignment over the
+  newest `WINDOW_S` of tracked frames (nodes every `NODE_STEP` frames): the preintegrated velocity
+  and position changes against the visual positions, which RGB-D gives in metres, so no scale and
+  no special motion is needed (at rest the accelerometer alone says where gravity is; the bias
+  has a prior). Gravity's magnitude is held at 9.81 m/s².
+- The state (pose, velocity) is propagated frame to frame; a frame vision cannot place is given
+  the propagated pose (INERTIAL) for up to `max_inertial_s`, and tracking resumes from it.
+
+All in the tracker's world frame (the first keyframe's camera frame); the IMU's frame is placed on
+the camera by `camera_from_imu`. Deterministic: the same samples and poses give the same bytes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+
+from octolog.kit.imu import D455, GRAVITY_MS2, ImuNoise, ImuSamples
+
+GYRO_SPAN = 6  # frames each gyro-bias rotation spans (200 ms at 30 fps)
+GYRO_MEMORY_S = 30.0  # the gyro-bias estimate forgets older rotations over this long (bias drift)
+VISUAL_ROTATION_SIGMA = 3e-4  # rad: a tracked frame's rotation error
+VISUAL_POSITION_SIGMA = 4e-3  # m: a tracked frame's position error
+MAX_ROTATION_RESIDUAL = np.radians(2.0)  # a span the gyro disagrees with more is not evidence (a bad pose)
+# a span turning faster is not gyro-bias evidence: its images are blurred, their rotations uncertain
+MAX_EVIDENCE_RATE = np.radians(60.0)
+WINDOW_S = 2.0  # gravity, velocity and accelerometer-bias alignment: the newest tracked time
+NODE_STEP = 5  # frames between the alignment's nodes
+INIT_S = 1.0  # tracked time before the alignment is trusted
+REALIGN_EVERY = 10  # tracked frames between alignments
+ACCEL_BIAS_SIGMA = 0.1  # m/s²: the accelerometer bias's prior spread (a consumer MEMS part)
+GYRO_BIAS_SIGMA = np.radians(1.0)  # rad/s: the gyro bias's prior spread
+MAX_GAP_NS = 100_000_000  # an IMU silent this long between samples leaves the interval unmeasured
+_EPS_BIAS = 1e-4
+
+
+@dataclass
+class _Record:
+    stamp_ns: int
+    world_from_imu: np.ndarray  # (4, 4)
+    visual: bool  # placed by vision (else propagated: INERTIAL)
+    continuous: bool  # the step from the record before it is motion (not a relocalisation)
+    segments: tuple[np.ndarray, np.ndarray, np.ndarray] | None  # dt, gyro, accel since the record before
+
+
+@dataclass
+class InertialState:
+    """What the summary reports of the IMU."""
+
+    samples: int = 0
+    initialised_at_ns: int = -1
+    gyro_bias: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    accel_bias: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    gravity: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+
+
+class Inertial:
+    """One camera's IMU in the tracker: `add` samples as they come, `step_to` at each frame (the
+    rotation and pose it predicts), then `observe` the frame's visual pose or `coast` through it."""
+
+    def __init__(self, camera_from_imu: np.ndarray | None = None, noise: ImuNoise = D455,
+                 max_inertial_s: float = 1.5) -> None:
+        self.camera_from_imu = np.eye(4) if camera_from_imu is None else np.asarray(camera_from_imu, float)
+        self.imu_from_camera = np.linalg.inv(self.camera_from_imu)
+        self.noise, self.max_inertial_s = noise, max_inertial_s
+        p = gtsam.PreintegrationParams(np.zeros(3))
+        p.setGyroscopeCovariance(np.eye(3) * noise.gyro_noise**2)
+        p.setAccelerometerCovariance(np.eye(3) * noise.accel_noise**2)
+        p.setIntegrationCovariance(np.eye(3) * 1e-8)
+        self._params = p
+        self._t = np.zeros(0, np.int64)
+        self._w = np.zeros((0, 3))
+        self._a = np.zeros((0, 3))
+        self.bg, self.ba = np.zeros(3), np.zeros(3)
+        self.gravity: np.ndarray | None = None  # world frame, once aligned
+        self._H, self._g = np.eye(3) / GYRO_BIAS_SIGMA**2, np.zeros(3)
+        self._records: list[_Record] = []
+        self._velocity: np.ndarray | None = None  # world, at the newest record
+        self._since_align = 0
+        self._pending: tuple[int, tuple[np.ndarray, np.ndarray, np.ndarray] | None] | None = None
+        self.state = InertialState()
+
+    # -- samples --------------------------------------------------------------------------------
+
+    def add(self, samples: ImuSamples) -> None:
+        """Samples in time order (older than the newest held: ignored)."""
+        if len(samples) == 0:
+            return
+        keep = samples.stamp_ns > (self._t[-1] if self._t.size else np.iinfo(np.int64).min)
+        self._t = np.concatenate([self._t, samples.stamp_ns[keep]])
+        self._w = np.concatenate([self._w, samples.gyro[keep]])
+        self._a = np.concatenate([self._a, samples.accel[keep]])
+        self.state.samples += int(keep.sum())
+
+    @property
+    def has_samples(self) -> bool:
+        return self._t.size > 0
+
+    def _segments(self, t0: int, t1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """Zero-order-hold pieces (dt s, gyro, accel) covering [t0, t1], each sample held until the next;
+        None where the IMU does not cover the interval."""
+        t = self._t
+        if t.size == 0 or t1 <= t0 or t[0] > t0 or t[-1] < t1 - MAX_GAP_NS:
+            return None
+        lo = int(np.searchsorted(t, t0, side="right")) - 1
+        hi = int(np.searchsorted(t, t1, side="left"))
+        edges = np.concatenate([[t0], t[lo + 1:hi], [t1]])
+        if np.diff(edges).max() > MAX_GAP_NS:
+            return None
+        idx = np.arange(lo, lo + len(edges) - 1)
+        return np.diff(edges) * 1e-9, self._w[idx], self._a[idx]
+
+    def _preintegrate(self, segments: tuple[np.ndarray, np.ndarray, np.ndarray]) -> gtsam.PreintegratedImuMeasurements:
+        pim = gtsam.PreintegratedImuMeasurements(self._params, gtsam.imuBias.ConstantBias(self.ba, self.bg))
+        for dt, w, a in zip(*segments):
+            if dt > 0:
+                pim.integrateMeasurement(a, w, float(dt))
+        return pim
+
+    @staticmethod
+    def _delta(pim: gtsam.PreintegratedImuMeasurements, ba: np.ndarray, bg: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(ΔR, Δp, Δv) of an interval for biases (ba, bg), first order about its integration's."""
+        s = pim.predict(gtsam.NavState(), gtsam.imuBias.ConstantBias(ba, bg))
+        return s.attitude().matrix(), np.asarray(s.position()), np.asarray(s.velocity())
+
+    # -- per frame ------------------------------------------------------------------------------
+
+    def step_to(self, stamp_ns: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """For the frame at `stamp_ns`, after the newest record: the camera's rotation over the
+        interval (camera_prev_from_camera, 3x3; None without IMU data) and, once aligned, the
+        propagated world_from_camera (None before). Call `observe` or `coast` after."""
+        self._pending = None
+        if not self._records:
+            return None, None
+        last = self._records[-1]
+        seg = self._segments(last.stamp_ns, stamp_ns)
+        self._pending = (stamp_ns, seg)
+        if seg is None:
+            return None, None
+        pim = self._preintegrate(seg)
+        dR, dp, dv = self._delta(pim, self.ba, self.bg)
+        Rci = self.camera_from_imu[:3, :3]
+        rotation = Rci @ dR @ Rci.T
+        if self.gravity is None or self._velocity is None or not self._can_coast(stamp_ns):
+            return rotation, None
+        R, p = last.world_from_imu[:3, :3], last.world_from_imu[:3, 3]
+        dt = float(seg[0].sum())
+        T = np.eye(4)
+        T[:3, :3] = R @ dR
+        T[:3, 3] = p + self._velocity * dt + 0.5 * self.gravity * dt * dt + R @ dp
+        self._propagated = (T, self._velocity + self.gravity * dt + R @ dv)
+        return rotation, T @ self.imu_from_camera
+
+    def _can_coast(self, stamp_ns: int) -> bool:
+        last_visual = next((r.stamp_ns for r in reversed(self._records) if r.visual), None)
+        return last_visual is not None and (stamp_ns - last_visual) * 1e-9 <= self.max_inertial_s
+
+    def coast(self) -> bool:
+        """The frame `step_to` propagated to takes the propagated pose (INERTIAL); False if there is none."""
+        if self._pending is None or self._pending[1] is None or self.gravity is None or self._velocity is None:
+            return False
+        stamp_ns, seg = self._pending
+        if not self._can_coast(stamp_ns):
+            return False
+        T, v = self._propagated
+        self._records.append(_Record(stamp_ns, T, False, True, seg))
+        self._velocity = v
+        self._pending = None
+        return True
+
+    def observe(self, stamp_ns: int, world_from_camera: np.ndarray, *, continuous: bool = True) -> None:
+        """The frame's visual pose (after `step_to`): evidence for the biases, the velocity and gravity."""
+        seg = self._pending[1] if self._pending is not None and self._pending[0] == stamp_ns else None
+        self._pending = None
+        T = world_from_camera @ self.camera_from_imu
+        if seg is not None and continuous and self._velocity is not None and self.gravity is not None:
+            pim = self._preintegrate(seg)
+            R = self._records[-1].world_from_imu[:3, :3]
+            _, _, dv = self._delta(pim, self.ba, self.bg)
+            self._velocity = self._velocity + self.gravity * float(seg[0].sum()) + R @ dv
+        elif not continuous or seg is None:
+            self._velocity = None
+        self._records.append(_Record(stamp_ns, T, True, continuous and seg is not None, seg))
+        self._gyro_evidence()
+        self._since_align += 1
+        if self._since_align >= REALIGN_EVERY or (self.gravity is None or self._velocity is None):
+            self._align()
+        self._trim()
+
+    def rebase(self, correction: np.ndarray) -> None:
+        """The map moved (a back-end correction, 4x4 world_new_from_world_old): so do the recent poses."""
+        for r in self._records:
+            r.world_from_imu = correction @ r.world_from_imu
+        if self._velocity is not None:
+            self._velocity = correction[:3, :3] @ self._velocity
+
+    # -- estimation -----------------------------------------------------------------------------
+
+    def _chain(self, n: int) -> list[_Record] | None:
+        """The newest n+1 records if they are one unbroken chain of visual frames with IMU between."""
+        recs = self._records[-(n + 1):]
+        if len(recs) < n + 1 or not all(r.visual for r in recs) or \
+                not all(r.continuous and r.segments is not None for r in recs[1:]):
+            return None
+        return recs
+
+    def _span_segments(self, recs: list[_Record]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        parts = [r.segments for r in recs[1:]]
+        return tuple(np.concatenate([p[k] for p in parts]) for k in range(3))  # type: ignore[return-value]
+
+    def _gyro_evidence(self) -> None:
+        """The rotation over the newest GYRO_SPAN frames into the gyro bias's normal equations."""
+        recs = self._chain(GYRO_SPAN)
+        if recs is None:
+            return
+        seg = self._span_segments(recs)
+        pim = self._preintegrate(seg)
+        dt = float(seg[0].sum())
+        vis = recs[0].world_from_imu[:3, :3].T @ recs[-1].world_from_imu[:3, :3]
+        R0, _, _ = self._delta(pim, self.ba, self.bg)
+        r = _log(R0.T @ vis)
+        if np.linalg.norm(r) > MAX_ROTATION_RESIDUAL or np.linalg.norm(_log(R0)) > MAX_EVIDENCE_RATE * dt:
+            return
+        J = np.zeros((3, 3))
+        for k in range(3):
+            e = np.zeros(3)
+            e[k] = _EPS_BIAS
+            Rk, _, _ = self._delta(pim, self.ba, self.bg + e)
+            J[:, k] = _log(R0.T @ Rk) / _EPS_BIAS  # d rotation / d bias
+        # r(b) ~ r(bg) - J (b - bg): J b ~ r + J bg
+        sigma2 = 2 * VISUAL_ROTATION_SIGMA**2 + self.noise.gyro_noise**2 * dt
+        forget = np.exp(-dt / GYRO_SPAN / GYRO_MEMORY_S)
+        prior = np.eye(3) / GYRO_BIAS_SIGMA**2
+        self._H = prior + forget * (self._H - prior) + J.T @ J / sigma2
+        self._g = forget * self._g + J.T @ (r + J @ self.bg) / sigma2
+        self.bg = np.linalg.solve(self._H, self._g)
+        self.state.gyro_bias = self.bg.tolist()
+
+    def _align(self) -> None:
+        """Gravity, the nodes' velocities and the accelerometer bias from the newest WINDOW_S."""
+        recs = self._newest_chain()
+        if recs is None or (recs[-1].stamp_ns - recs[0].stamp_ns) * 1e-9 < INIT_S:
+            return
+        nodes = recs[::-1][::NODE_STEP][::-1]  # ends at the newest
+        idx = [recs.index(n) for n in nodes]
+        n = len(nodes)
+        rows, rhs, w = [], [], []
+        cols = 3 * n + 6  # velocities, gravity, accel bias change
+        for k in range(n - 1):
+            a, b = nodes[k], nodes[k + 1]
+            seg = self._span_segments(recs[idx[k]:idx[k + 1] + 1])
+            pim = self._preintegrate(seg)
+            dt = float(seg[0].sum())
+            _, dp, dv = self._delta(pim, self.ba, self.bg)
+            Jp, Jv = np.zeros((3, 3)), np.zeros((3, 3))
+            for j in range(3):
+                e = np.zeros(3)
+                e[j] = _EPS_BIAS
+                _, dpj, dvj = self._delta(pim, self.ba + e, self.bg)
+                Jp[:, j], Jv[:, j] = (dpj - dp) / _EPS_BIAS, (dvj - dv) / _EPS_BIAS
+            Ri, pi, pj = a.world_from_imu[:3, :3], a.world_from_imu[:3, 3], b.world_from_imu[:3, 3]
+            # p_j - p_i - R_i dp = v_i dt + g dt²/2 + R_i Jp δba
+            A = np.zeros((3, cols))
+            A[:, 3 * k:3 * k + 3] = np.eye(3) * dt
+            A[:, 3 * n:3 * n + 3] = np.eye(3) * 0.5 * dt * dt
+            A[:, 3 * n + 3:] = Ri @ Jp
+            rows.append(A), rhs.append(pj - pi - Ri @ dp), w.append(np.full(3, 1.0 / (np.sqrt(2) * VISUAL_POSITION_SIGMA)))
+            # v_j - v_i - g dt - R_i Jv δba = R_i dv
+            A = np.zeros((3, cols))
+            A[:, 3 * k + 3:3 * k + 6] = np.eye(3)
+            A[:, 3 * k:3 * k + 3] -= np.eye(3)
+            A[:, 3 * n:3 * n + 3] = -np.eye(3) * dt
+            A[:, 3 * n + 3:] = -Ri @ Jv
+            sigma_v = self.noise.accel_noise * np.sqrt(dt) + 1e-3
+            rows.append(A), rhs.append(Ri @ dv), w.append(np.full(3, 1.0 / sigma_v))
+        A = np.zeros((3, cols))
+        A[:, 3 * n + 3:] = np.eye(3)
+        rows.append(A), rhs.append(np.zeros(3)), w.append(np.full(3, 1.0 / ACCEL_BIAS_SIGMA))
+        A, y, wt = np.vstack(rows), np.concatenate(rhs), np.concatenate(w)
+        x = np.linalg.lstsq(A * wt[:, None], y * wt, rcond=None)[0]
+        g = x[3 * n:3 * n + 3]
+        if not 0.5 * GRAVITY_MS2 < np.linalg.norm(g) < 1.5 * GRAVITY_MS2:
+            return  # the window does not explain the accelerometer: wait for a better one
+        g = g / np.linalg.norm(g) * GRAVITY_MS2
+        # again with gravity's magnitude held: velocities and the bias change
+        keep = np.r_[0:3 * n, 3 * n + 3:cols]
+        x2 = np.linalg.lstsq(A[:, keep] * wt[:, None], (y - A[:, 3 * n:3 * n + 3] @ g) * wt, rcond=None)[0]
+        self.gravity = g
+        self.ba = self.ba + x2[3 * n:]
+        self._velocity = x2[3 * (n - 1):3 * n].copy()
+        self._since_align = 0
+        if self.state.initialised_at_ns < 0:
+            self.state.initialised_at_ns = recs[-1].stamp_ns
+        self.state.accel_bias, self.state.gravity = self.ba.tolist(), g.tolist()
+
+    def _newest_chain(self) -> list[_Record] | None:
+        """The newest visual records over WINDOW_S, back to the first break in the chain of motion."""
+        newest = self._records[-1].stamp_ns
+        out: list[_Record] = []
+        for r in reversed(self._records):
+            if not r.visual or (newest - r.stamp_ns) * 1e-9 > WINDOW_S:
+                break
+            out.append(r)
+            if not r.continuous or r.segments is None:
+                break  # it starts the chain
+        out.reverse()
+        return out if len(out) > NODE_STEP else None
+
+    def _trim(self) -> None:
+        """Keep the records and samples the estimates still need."""
+        newest = self._records[-1].stamp_ns
+        keep_from = newest - int((WINDOW_S + 1.0) * 1e9)
+        while len(self._records) > GYRO_SPAN + 1 and self._records[0].stamp_ns < keep_from:
+            self._records.pop(0)
+        cut = int(np.searchsorted(self._t, newest, side="left")) - 1
+        if cut > 0:
+            self._t, self._w, self._a = self._t[cut:], self._w[cut:], self._a[cut:]
+
+
+def _log(R: np.ndarray) -> np.ndarray:
+    return np.asarray(gtsam.Rot3.Logmap(gtsam.Rot3(R)))
