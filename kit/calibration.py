@@ -14,6 +14,13 @@
     depth_baseline_m = 0.075                  # the depth camera's error model (kit/depthmodel.py); optional:
     depth_focal_px = 580.0                    #   baseline, its own focal length (default fx) and
     depth_disparity_sigma_px = 0.062          #   disparity noise (one sigma), all or none
+    camera_from_imu = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]  # the IMU on the colour
+                                              #   camera (rows of a 4x4 rigid transform, metres); optional
+    imu_time_offset_ms = 0.0                  # added to the IMU's stamps to put them on the camera's clock
+    imu_gyro_noise = 2.44e-4                  # the IMU's noise (kit/imu.py: ImuNoise): densities and bias
+    imu_accel_noise = 1.57e-3                 #   random walks, all or none (default: the D455's)
+    imu_gyro_walk = 2.0e-5
+    imu_accel_walk = 3.0e-4
 
 A TUM folder whose name does not say freiburg1/2/3, or an MCAP recording without CameraInfo, takes
 one with `--set replay.camera=PATH.toml`. Any missing or invalid key is a one-line error naming it.
@@ -26,10 +33,13 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from octolog.kit import depthmodel
 from octolog.kit.depthmodel import DepthModel
 from octolog.kit.errors import InputError
 from octolog.kit.geometry import Intrinsics
+from octolog.kit.imu import IMU_NOISE_FIELDS, ImuNoise
 
 
 @dataclass(frozen=True)
@@ -39,6 +49,9 @@ class Calibration:
     depth_scale_m: float | None  # None: the source's own
     readout_s: float
     depth_model: DepthModel | None = None  # None: the file does not say
+    camera_from_imu: np.ndarray | None = None  # (4, 4); None: the IMU's axes are the colour camera's
+    imu_time_offset_s: float = 0.0  # added to the IMU's stamps
+    imu_noise: ImuNoise | None = None  # None: the file does not say
 
 
 def is_calibration_file(camera: str) -> bool:
@@ -68,7 +81,8 @@ def load_calibration(path: str | Path) -> Calibration:
         return float(value)
 
     unknown = sorted(set(data) - {"name", "width", "height", "fx", "fy", "cx", "cy", "distortion", "depth_scale_m",
-                                  "readout_ms", *depthmodel.FIELDS})
+                                  "readout_ms", *depthmodel.FIELDS, "camera_from_imu", "imu_time_offset_ms",
+                                  *IMU_NOISE_FIELDS})
     if unknown:
         raise InputError(f"{p}: unknown calibration key {unknown[0]!r}")
     distortion = data.get("distortion", [])
@@ -88,4 +102,27 @@ def load_calibration(path: str | Path) -> Calibration:
         model = depthmodel.from_fields(data, focal_px=intrinsics.fx)
     except ValueError as exc:
         raise InputError(f"{p}: calibration key {exc}") from None
-    return Calibration(str(data.get("name", p.stem)), intrinsics, scale, readout, model)
+    given = [k for k in IMU_NOISE_FIELDS if k in data]
+    if given and len(given) != len(IMU_NOISE_FIELDS):
+        missing = next(k for k in IMU_NOISE_FIELDS if k not in data)
+        raise InputError(f"{p}: calibration key {missing!r} missing (the IMU noise keys go together)")
+    noise = ImuNoise(*(number(k) for k in IMU_NOISE_FIELDS)) if given else None
+    offset = data.get("imu_time_offset_ms", 0.0)
+    if isinstance(offset, bool) or not isinstance(offset, int | float) or not math.isfinite(offset) or abs(offset) > 1000:
+        raise InputError(f"{p}: calibration key 'imu_time_offset_ms' = {offset!r}: want a number of ms, -1000 to 1000")
+    return Calibration(str(data.get("name", p.stem)), intrinsics, scale, readout, model,
+                       _rigid(data["camera_from_imu"], p) if "camera_from_imu" in data else None, offset / 1e3, noise)
+
+
+def _rigid(value: object, p: Path) -> np.ndarray:
+    """A 4x4 rigid transform given as its rows."""
+    try:
+        T = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        T = np.zeros(0)
+    ok = T.shape == (4, 4) and np.isfinite(T).all() and np.allclose(T[3], [0, 0, 0, 1]) and \
+        np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-5) and np.linalg.det(T[:3, :3]) > 0
+    if not ok:
+        raise InputError(f"{p}: calibration key 'camera_from_imu': want the 4 rows of a rigid transform "
+                         "(a rotation and a translation in metres)")
+    return T

@@ -28,6 +28,8 @@ class ImuNoise:
     accel_walk: float  # m/s³/√Hz
 
 
+IMU_NOISE_FIELDS = ("imu_gyro_noise", "imu_accel_noise", "imu_gyro_walk", "imu_accel_walk")  # calibration, CameraProperties
+
 # The D455's IMU (Bosch BMI055/BMI085 datasheets: gyro 0.014 deg/s/√Hz, accelerometer 150-160 µg/√Hz);
 # the random walks are typical of those MEMS parts in Kalibr calibrations.
 D455 = ImuNoise(gyro_noise=2.44e-4, accel_noise=1.57e-3, gyro_walk=2.0e-5, accel_walk=3.0e-4)

@@ -18,19 +18,21 @@ from pathlib import Path
 
 import numpy as np
 
-from octolog.kit.imu import ImuSamples, read_imu_txt, unite
+from octolog.kit.imu import ImuNoise, ImuSamples, read_imu_txt, unite
 from octolog.kit.mcaplog import read_messages
 from octolog.replay.sources import McapSource, Retimed, Subsampled, SyntheticSource, TumSource
 from octolog.schemas import codec, sensormsgs
 from octolog.schemas.topics import ACCEL, GYRO
 
 COLOR_FRAME = "camera_color_optical_frame"
+IMU_FRAME = "camera_imu_optical_frame"  # a calibration file's IMU, placed on the colour camera by camera_from_imu
 
 
 @dataclass(frozen=True)
 class SourceImu:
     samples: ImuSamples
     frame_id: str  # the IMU's frame (the /tf_static tree places it)
+    camera_from_imu: np.ndarray | None = None  # where a calibration file puts it (the replay publishes it)
 
 
 def source_imu(source: object) -> SourceImu | None:
@@ -43,11 +45,31 @@ def source_imu(source: object) -> SourceImu | None:
         sim = source.scene.simulated_imu
         return None if sim is None else SourceImu(sim.samples, COLOR_FRAME)
     if isinstance(source, TumSource):
-        path = source.path / "imu.txt"
-        return SourceImu(read_imu_txt(path), COLOR_FRAME) if path.is_file() else None
+        return tum_imu(source)
     if isinstance(source, McapSource):
         return recorded_imu(source.path)
     return None
+
+
+def source_imu_noise(source: object) -> ImuNoise | None:
+    """The IMU's noise a calibration file gives (None: the tracker takes the D455's)."""
+    inner = getattr(source, "inner", source)
+    cal = getattr(inner, "calibration", None)
+    return cal.imu_noise if cal is not None else None
+
+
+def tum_imu(source: TumSource) -> SourceImu | None:
+    """A TUM-layout folder's imu.txt, placed and clocked by its calibration file if it has one."""
+    path = source.path / "imu.txt"
+    if not path.is_file():
+        return None
+    samples, cal = read_imu_txt(path), source.calibration
+    if cal is None or (cal.camera_from_imu is None and not cal.imu_time_offset_s):
+        return SourceImu(samples, COLOR_FRAME)
+    shifted = ImuSamples(samples.stamp_ns + round(cal.imu_time_offset_s * 1e9), samples.gyro, samples.accel)
+    if cal.camera_from_imu is None:
+        return SourceImu(shifted, COLOR_FRAME)
+    return SourceImu(shifted, IMU_FRAME, cal.camera_from_imu)
 
 
 def recorded_imu(path: Path) -> SourceImu | None:

@@ -17,9 +17,9 @@ from octolog.kit.mcaplog import read_wire, summarize
 from octolog.kit.tftree import LINK_FROM_OPTICAL
 from octolog.kit.viz import Viz
 from octolog.replay import gravity
-from octolog.replay.imu import ImuFeed, source_imu
+from octolog.replay.imu import ImuFeed, source_imu, source_imu_noise
 from octolog.replay.config import ReplayConfig, remapped
-from octolog.replay.sources import McapSource, Source, open_source
+from octolog.replay.sources import McapSource, Source, TumSource, open_source
 from octolog.schemas import checks, codec, posemsgs, rgbdmsgs, streammsgs, wirecompression
 from octolog.schemas.topics import (
     ACCEL,
@@ -178,7 +178,8 @@ def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Pro
     bus.watch(["tracker"], required=False)  # see the end
     bus.publisher(CONFIGS["replay"]).put(streammsgs.config_msg("replay", to_dict(cfg)))
     # before the first frame, which depends on it (wire numbering): a tracker anywhere knows the camera
-    props_pub.put(streammsgs.camera_properties_msg(source.name, source.readout_s, depth=source.depth_model))
+    props_pub.put(streammsgs.camera_properties_msg(source.name, source.readout_s, depth=source.depth_model,
+                                                   imu_noise=source_imu_noise(source)))
     end = None if cfg.end < 0 else cfg.end
     total = max(0, min(len(source), end if end is not None else len(source)) - cfg.start) * cfg.loop
     status = ReplayStatus(total=total)
@@ -191,9 +192,7 @@ def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Pro
     up_bytes: list[bytes] = []  # what a mapper's `get` on camera/gravity receives (nothing: no up)
     bus.serve(GRAVITY, lambda: up_bytes[0] if up_bytes else None)
     viz.text("replay/events", f"replaying {source.name}: {total} frames")  # the images: the tracker logs them
-    # the IMU's samples up to each frame, just before it (a looped replay has none: its time jumps back)
-    imu = ImuFeed(source_imu(source) if cfg.loop == 1 else None, bus.publisher(remapped(GYRO, cfg.remap)),
-                  bus.publisher(remapped(ACCEL, cfg.remap)), round(cfg.time_shift_s * 1e9))
+    imu = imu_feed(source, cfg, bus)
     for frame in looped(source, cfg, encoded=passthrough):
         pacer.wait(frames_pub.count, frame.stamp_ns)
         imu.before(frame.stamp_ns)
@@ -227,12 +226,23 @@ def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Pro
     return ReplayResult(frames_pub.count, wall_s, duration)
 
 
+def imu_feed(source: Source, cfg: ReplayConfig, bus: Bus) -> ImuFeed:
+    """The source's IMU samples up to each frame, sent just before it (a looped replay has none:
+    its time jumps back)."""
+    return ImuFeed(source_imu(source) if cfg.loop == 1 else None, bus.publisher(remapped(GYRO, cfg.remap)),
+                   bus.publisher(remapped(ACCEL, cfg.remap)), round(cfg.time_shift_s * 1e9))
+
+
 def camera_tree(source: Source, frame_id: str) -> list[tuple[str, str, np.ndarray]]:
     """(parent, child, parent_from_child) of the camera's static frames: a recording's own (its
     /tf_static), else `camera_link` -> the images' optical frame (REP 103's axes)."""
     inner = getattr(source, "inner", source)  # a Subsampled source: the camera is the inner one's
     recorded = inner.static_transforms() if isinstance(inner, McapSource) else []
-    return recorded or [("camera_link", frame_id, LINK_FROM_OPTICAL)]
+    if recorded:
+        return recorded
+    imu = source_imu(source) if isinstance(inner, TumSource) else None  # a calibration file may place its IMU
+    placed = [(frame_id, imu.frame_id, imu.camera_from_imu)] if imu is not None and imu.camera_from_imu is not None else []
+    return [("camera_link", frame_id, LINK_FROM_OPTICAL), *placed]
 
 
 def play_tracker_log(cfg: ReplayConfig, bus_cfg: BusConfig) -> ReplayResult:

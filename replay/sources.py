@@ -16,7 +16,7 @@ from typing import Any, Protocol, TypeVar
 import numpy as np
 
 from octolog.kit import depthmodel
-from octolog.kit.calibration import is_calibration_file, load_calibration
+from octolog.kit.calibration import Calibration, is_calibration_file, load_calibration
 from octolog.kit.depthmodel import DepthModel
 from octolog.kit.errors import ConfigError, InputError
 from octolog.kit.geometry import EncodedRgbd, RgbdFrame
@@ -74,6 +74,7 @@ class TumSource:
     path: Path
     camera: str = ""  # freiburg1/2/3; "": the one the folder's name says (an error if it says none)
     every: int = 1  # every N-th pair only: the PNGs in between are never read
+    calibration: Calibration | None = None  # the calibration file's (`camera` names one), else None
 
     def __post_init__(self) -> None:
         if is_calibration_file(self.camera):  # a camera the folder's name cannot say
@@ -81,6 +82,7 @@ class TumSource:
             seq = open_tum(self.path, cal.intrinsics, camera=cal.name)
             seq = dataclasses.replace(seq, depth_scale_m=cal.depth_scale_m or seq.depth_scale_m)
             self.readout_s, self.depth_model = cal.readout_s, cal.depth_model
+            self.calibration = cal
         else:
             seq = open_tum(self.path, camera=self.camera)
             self.readout_s = readout_for(seq.camera)  # the colour camera's rolling shutter (0 = unknown)

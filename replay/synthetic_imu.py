@@ -55,12 +55,15 @@ def simulate(trajectory: Trajectory, duration_s: float, rate_hz: float, noise: I
     k = np.arange(n)
     t = k / rate_hz
     gyro, force = true_motion(trajectory, t)
-    rng = np.random.default_rng([seed, 0x1A0])
+    def draws(stream: int, sigma: float) -> np.ndarray:  # one generator per stream: sample k's draw is fixed
+        return np.random.default_rng([seed, 0x1A0, stream]).normal(0.0, sigma, (n, 3))
+
     dt = 1.0 / rate_hz
-    bg = rng.normal(0.0, TURN_ON_GYRO_RADS, 3) + np.cumsum(rng.normal(0.0, noise.gyro_walk * np.sqrt(dt), (n, 3)), 0)
-    ba = rng.normal(0.0, TURN_ON_ACCEL_MS2, 3) + np.cumsum(rng.normal(0.0, noise.accel_walk * np.sqrt(dt), (n, 3)), 0)
-    gyro = gyro + bg + rng.normal(0.0, noise.gyro_noise / np.sqrt(dt), (n, 3))
-    force = force + ba + rng.normal(0.0, noise.accel_noise / np.sqrt(dt), (n, 3))
+    turn_on = np.random.default_rng([seed, 0x1A0, 0])
+    bg = turn_on.normal(0.0, TURN_ON_GYRO_RADS, 3) + np.cumsum(draws(1, noise.gyro_walk * np.sqrt(dt)), 0)
+    ba = turn_on.normal(0.0, TURN_ON_ACCEL_MS2, 3) + np.cumsum(draws(2, noise.accel_walk * np.sqrt(dt)), 0)
+    gyro = gyro + bg + draws(3, noise.gyro_noise / np.sqrt(dt))
+    force = force + ba + draws(4, noise.accel_noise / np.sqrt(dt))
     stamps = start_ns + np.round(k * (1e9 / rate_hz)).astype(np.int64)
     return SimulatedImu(ImuSamples(stamps, gyro, force), bg, ba)
 

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from octolog.kit.errors import InputError
+from octolog.kit.imu import IMU_NOISE_FIELDS
 from octolog.schemas import codec
 
 DIAGNOSTICS = "diagnostic_msgs/msg/DiagnosticArray"
@@ -77,7 +78,8 @@ ADDED_FIELDS = {("octolog_msgs/msg/TrackingStatus", "map_moved_m"): "0.0",
                 ("octolog_msgs/msg/KeyframePoses", "depth_inverse_offset"): "0.0",
                 ("octolog_msgs/msg/CameraProperties", "depth_baseline_m"): "0.0",
                 ("octolog_msgs/msg/CameraProperties", "depth_focal_px"): "0.0",
-                ("octolog_msgs/msg/CameraProperties", "depth_disparity_sigma_px"): "0.0"}
+                ("octolog_msgs/msg/CameraProperties", "depth_disparity_sigma_px"): "0.0",
+                **{("octolog_msgs/msg/CameraProperties", k): "0.0" for k in IMU_NOISE_FIELDS}}
 # TrackingStatus.state -> diagnostic level (OK=0, WARN=1, ERROR=2): INIT, SKIPPED and INERTIAL warn, LOST is an error
 _STATE_LEVEL = {0: 1, 1: 0, 2: 2, 3: 1, 4: 1}
 

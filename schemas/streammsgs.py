@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import math
 from typing import Any
 
 from octolog.kit import depthmodel
 from octolog.kit.depthmodel import DepthModel
+from octolog.kit.imu import IMU_NOISE_FIELDS, ImuNoise
 from octolog.schemas.codec import header, msgtype
 from octolog.schemas.msgtypes import CAMERA_PROPERTIES, STREAM_END, CameraPropertiesMsg, StreamEndMsg, String
 
@@ -20,13 +23,20 @@ def stream_end_msg(topic: str, count: int, stamp: int = 0) -> StreamEndMsg:
     return msg
 
 
-def camera_properties_msg(camera: str, readout_s: float, stamp: int = 0, depth: DepthModel | None = None
-                          ) -> CameraPropertiesMsg:
-    """The camera's properties; `depth` its depth error model (zeros when unknown)."""
+def camera_properties_msg(camera: str, readout_s: float, stamp: int = 0, depth: DepthModel | None = None,
+                          imu_noise: ImuNoise | None = None) -> CameraPropertiesMsg:
+    """The camera's properties; `depth` its depth error model, `imu_noise` its IMU's (zeros when unknown)."""
     fields = depth.fields() if depth is not None else dict.fromkeys(depthmodel.FIELDS, 0.0)
+    fields.update(zip(IMU_NOISE_FIELDS, dataclasses.astuple(imu_noise) if imu_noise is not None else (0.0,) * 4))
     msg: CameraPropertiesMsg = msgtype(CAMERA_PROPERTIES)(header=header(stamp, ""), camera=camera,
                                                           readout_s=float(readout_s), **fields)
     return msg
+
+
+def imu_noise_from(msg: CameraPropertiesMsg) -> ImuNoise | None:
+    """The IMU noise a CameraProperties carries, None when it has none (zeros)."""
+    values = [float(getattr(msg, k)) for k in IMU_NOISE_FIELDS]
+    return ImuNoise(*values) if all(v > 0 and math.isfinite(v) for v in values) else None
 
 
 def depth_model_from(msg: CameraPropertiesMsg) -> DepthModel | None:

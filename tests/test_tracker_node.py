@@ -68,7 +68,8 @@ def test_bad_frames_are_lost_and_tracking_goes_on(tmp_path):
 
 def test_state_codes_on_the_wire_are_the_messages_constants():
     """The enum's values name TrackingStatus's constants; their codes never change (logs keep them)."""
-    assert [(str(s), status_code(s)) for s in TrackingState] == [("INIT", 0), ("OK", 1), ("LOST", 2), ("SKIPPED", 3)]
+    assert [(str(s), status_code(s)) for s in TrackingState] == [("INIT", 0), ("OK", 1), ("LOST", 2), ("SKIPPED", 3),
+                                                                         ("INERTIAL", 4)]
 
 
 def test_rerun_logging_runs_off_the_tracking_thread_in_frame_order(tmp_path):

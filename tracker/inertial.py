@@ -163,9 +163,13 @@ class Inertial:
         self._propagated = (T, self._velocity + self.gravity * dt + R @ dv)
         return rotation, T @ self.imu_from_camera
 
-    def _can_coast(self, stamp_ns: int) -> bool:
+    def since_visual_s(self, stamp_ns: int) -> float:
+        """Seconds from the newest frame vision placed to `stamp_ns` (inf: none)."""
         last_visual = next((r.stamp_ns for r in reversed(self._records) if r.visual), None)
-        return last_visual is not None and (stamp_ns - last_visual) * 1e-9 <= self.max_inertial_s
+        return float("inf") if last_visual is None else (stamp_ns - last_visual) * 1e-9
+
+    def _can_coast(self, stamp_ns: int) -> bool:
+        return self.since_visual_s(stamp_ns) <= self.max_inertial_s
 
     def coast(self) -> bool:
         """The frame `step_to` propagated to takes the propagated pose (INERTIAL); False if there is none."""

@@ -12,13 +12,21 @@ from __future__ import annotations
 import numpy as np
 
 from octolog.kit.geometry import RgbdFrame, invert
-from octolog.kit.imu import ImuSamples
+from octolog.kit.imu import D455, ImuNoise, ImuSamples
 from octolog.tracker.inertial import Inertial, InertialState
 from octolog.tracker.interface import TrackingState, TrackResult
 from octolog.tracker.pose import so3_exp, so3_log
 
 # The motion model extrapolates at most this many frame intervals: a long gap is a stall.
 MAX_PREDICTION_STEPS = 4.0
+# The gyro's rotation since the last pose, as a prior on the frame's: its sigma per 30 fps frame
+# interval (the last pose's own error and the gyro's over one frame, a bias not yet known)
+ROTATION_PRIOR_SIGMA = np.radians(0.15)
+FRAME_NS = 33_333_333
+# A fitted position this far from the IMU's propagated one (plus IMU_GATE_MS per second since vision
+# last placed a frame) is a wrong fit: the frame takes the IMU's pose
+IMU_GATE_M = 0.05
+IMU_GATE_MS = 0.1
 
 
 class MotionModel:
@@ -26,8 +34,13 @@ class MotionModel:
 
     _imu: Inertial | None = None
     _camera_from_imu: np.ndarray | None = None  # None: the IMU's axes are the colour camera's
+    _imu_noise: ImuNoise = D455
     _coasting = False  # the last pose came from the IMU
+    # camera_from_world's rotation as the gyro predicts it from the last pose, and its sigma (rad):
+    # one more residual of the frame's pose fit (tracker/pose.py: optimize_pose)
+    _rotation_prior: tuple[np.ndarray, float] | None = None
     inertial_frames = 0  # frames given the IMU's pose (INERTIAL)
+    imu_rejected = 0  # pose fits the IMU's motion could not have made (_imu_rejects)
 
     # -- motion model ---------------------------------------------------------------------------
 
@@ -63,12 +76,16 @@ class MotionModel:
         """Where the IMU sits on the colour camera (4x4); before the first samples."""
         self._camera_from_imu = np.asarray(camera_from_imu, np.float64)
 
+    def set_imu_noise(self, noise: ImuNoise) -> None:
+        """The IMU's noise (the camera's properties); before the first samples (default: the D455's)."""
+        self._imu_noise = noise
+
     def add_imu(self, samples: ImuSamples) -> None:
         """IMU samples in time order, up to (at least) the next frame's stamp."""
         if not self.params.imu or len(samples) == 0:
             return
         if self._imu is None:
-            self._imu = Inertial(self._camera_from_imu, max_inertial_s=self.params.max_inertial_s)
+            self._imu = Inertial(self._camera_from_imu, self._imu_noise, max_inertial_s=self.params.max_inertial_s)
         self._imu.add(samples)
 
     @property
@@ -80,16 +97,33 @@ class MotionModel:
         """The motion model's prediction with the gyro's rotation since the last pose (the
         propagated pose itself after INERTIAL frames), and the IMU's propagated pose (None before
         gravity and velocity are known, or without samples over the interval)."""
+        self._rotation_prior = None
         if self._imu is None or self._last_pose is None:
             return predicted, None
         rotation, propagated = self._imu.step_to(stamp_ns)
         if rotation is None:
             return predicted, None
         if self._coasting and propagated is not None:
-            return propagated.copy(), propagated
-        out = predicted.copy()
-        out[:3, :3] = self._last_pose[:3, :3] @ rotation
+            out = propagated.copy()
+        else:
+            out = predicted.copy()
+            out[:3, :3] = self._last_pose[:3, :3] @ rotation
+        if self._last_ok or self._coasting:  # the step from the last pose is the camera's motion
+            frames = max(1.0, (stamp_ns - self._last_stamp) / FRAME_NS)
+            self._rotation_prior = (out[:3, :3].T.copy(), ROTATION_PRIOR_SIGMA * np.sqrt(frames))
         return out, propagated
+
+    def _imu_rejects(self, camera_from_world: np.ndarray, propagated: np.ndarray | None) -> bool:
+        """Whether a fitted pose is further from the IMU's propagated one than the IMU can be wrong
+        by (IMU_GATE_M, and IMU_GATE_MS for each second since vision last placed a frame)."""
+        if propagated is None or self._imu is None:
+            return False
+        since_s = max(0.0, self._imu.since_visual_s(self._last_stamp))
+        moved = float(np.linalg.norm(invert(camera_from_world)[:3, 3] - propagated[:3, 3]))
+        if moved <= IMU_GATE_M + IMU_GATE_MS * since_s:
+            return False
+        self.imu_rejected += 1
+        return True
 
     def _imu_coast(self, frame: RgbdFrame, propagated: np.ndarray | None) -> TrackResult | None:
         """The frame vision could not place, with the IMU's pose (INERTIAL); None if the IMU has none."""

@@ -193,7 +193,7 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
             result.frames += 1
             if cfg.live and intake.behind(r):
                 far = odometry.n_keyframes > YOUNG_MAP_KEYFRAMES and intake.behind(r, FAR_BEHIND)
-                r, prep = _skip_behind(intake, odometry, r, prep, out, result, far=far)
+                r, prep = _skip_behind(intake, r, prep, out, result, far=far, odometry=odometry if imu_topics else None)
             if imu_topics:
                 _feed_imu(odometry, intake, r, tree)
             _track_frame(odometry, cfg, functools.partial(intake.prepared, r, prep), out, tree, result, shown)
@@ -215,14 +215,15 @@ FAR_BEHIND = 4.0
 YOUNG_MAP_KEYFRAMES = 5
 
 
-def _skip_behind(intake: Intake, odometry: Tracker, r: Any, prep: Any, out: _Outputs, result: TrackerRunSummary,
-                 *, far: bool) -> tuple[Any, Any]:
+def _skip_behind(intake: Intake, r: Any, prep: Any, out: _Outputs, result: TrackerRunSummary, *,
+                 far: bool, odometry: Any = None) -> tuple[Any, Any]:
     """Stay real-time, on record: behind, this frame is skipped for the next one, never two in a row
     (a tracked frame is at most two camera frames after the last: a fast turn stays trackable,
     where jumping to the newest made gaps of several frames and lost track); `far` behind, the
-    newest waiting frame wins and every older one is skipped, so latency stays bounded."""
+    newest waiting frame wins and every older one is skipped, so latency stays bounded. `odometry`
+    (with an IMU) takes the skipped frames' IMU samples."""
     while (newer := intake.newer_frame()) is not None:
-        if hasattr(odometry, "add_imu"):  # the motion goes on: its samples still count
+        if odometry is not None:  # with an IMU: the motion goes on, the skipped frame's samples count
             odometry.add_imu(intake.imu_before(r))
         out.untracked(r.decode(), TrackingState.SKIPPED)
         result.skipped += 1
@@ -308,10 +309,12 @@ def warm_up() -> None:
 
 
 def use_camera(odometry: Tracker, cfg: TrackerConfig, props: Any) -> None:
-    """The stream's camera properties: its depth error model (kit/depthmodel.py), its readout unless
+    """The stream's camera properties: its depth error model (kit/depthmodel.py), its IMU's noise, its readout unless
     the config sets one (then a warning if they disagree), so a tracker on another machine tracks as
     `octolog run` does."""
     set_depth_model(odometry, streammsgs.depth_model_from(props))
+    if (noise := streammsgs.imu_noise_from(props)) is not None and hasattr(odometry, "set_imu_noise"):
+        odometry.set_imu_noise(noise)
     if cfg.rolling_shutter_ms is None:
         set_readout(odometry, props.readout_s)
     elif abs(cfg.rolling_shutter_ms - props.readout_s * 1e3) > 1e-6:

@@ -154,6 +154,8 @@ class RgbdSlam(LocalMapping, MotionModel, BackendHandoff, DepthCorrection, Prior
             return self._find_in_prior(frame, feats, extracted)
         predicted, propagated = self._imu_predict(self._predict(frame.stamp_ns), frame.stamp_ns)
         tracked, relocalised = self._locate(feats, predicted, frame.stamp_ns)
+        if tracked is not None and not relocalised and self._imu_rejects(tracked.camera_from_world, propagated):
+            tracked = None  # a fit the IMU's motion cannot have made: the IMU's pose instead
         if tracked is None:
             coasted = self._imu_coast(frame, propagated)
             if coasted is not None:
@@ -385,7 +387,7 @@ class RgbdSlam(LocalMapping, MotionModel, BackendHandoff, DepthCorrection, Prior
             init_inl[inl.ravel()] = True
         inv_sigma = self.params.features.scale_factor ** (-feats.octave[kp_idx].astype(np.float64))
         T, inl_mask = optimize_pose(guess, pts_w, uv, inv_sigma, feats.z[kp_idx], K, inv_depth_sigma=t.inv_depth_sigma,
-                                    inliers=init_inl, rounds=rounds)
+                                    inliers=init_inl, rounds=rounds, rotation_prior=self._rotation_prior)
         if int(inl_mask.sum()) < t.min_inliers or not np.all(np.isfinite(T)):
             return None
         return T, inl_mask

@@ -115,8 +115,9 @@ def _pose_jacobian(pa: np.ndarray, obs: np.ndarray, fx: float, fy: float) -> np.
 
 
 def _gauss_newton_step(J: np.ndarray, r: np.ndarray, chi2: np.ndarray, idx: np.ndarray,
-                       dh: np.ndarray) -> np.ndarray | None:
-    """One Huber-weighted Gauss-Newton step on the active observations `idx`; None if singular."""
+                       dh: np.ndarray, prior: tuple[np.ndarray, float] | None = None) -> np.ndarray | None:
+    """One Huber-weighted Gauss-Newton step on the active observations `idx` (and the rotation
+    prior: (log(R R_prior^T), 1/sigma²)); None if singular."""
     m = idx.size
     rr = np.take(r, idx, axis=1).ravel()
     e = np.sqrt(np.take(chi2, idx))
@@ -124,6 +125,10 @@ def _gauss_newton_step(J: np.ndarray, r: np.ndarray, chi2: np.ndarray, idx: np.n
     Jw = (J.reshape(3, m, 6) * w[:, None]).reshape(3 * m, 6)
     H = Jw.T @ J
     g = Jw.T @ rr
+    if prior is not None:  # residual log(Exp(d) R R_prior^T) ~ e + d: identity Jacobian on rotation
+        e, info = prior
+        H[3:, 3:] += np.eye(3) * info
+        g[3:] += e * info
     H.flat[::7] += 1e-9 + 1e-6 * H.diagonal()
     try:
         return -np.linalg.solve(H, g)
@@ -133,7 +138,8 @@ def _gauss_newton_step(J: np.ndarray, r: np.ndarray, chi2: np.ndarray, idx: np.n
 
 def _gauss_newton(R: np.ndarray, t: np.ndarray, active: np.ndarray, res: tuple | None,
                   residuals: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]],
-                  per_obs: np.ndarray, fx: float, fy: float, iterations: int) -> tuple[np.ndarray, np.ndarray]:
+                  per_obs: np.ndarray, fx: float, fy: float, iterations: int,
+                  rotation_prior: tuple[np.ndarray, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """One round of optimize_pose: up to `iterations` Gauss-Newton steps on the `active`
     observations, from `res` (the residuals at R, t when already computed)."""
     for _ in range(iterations):
@@ -146,7 +152,9 @@ def _gauss_newton(R: np.ndarray, t: np.ndarray, active: np.ndarray, res: tuple |
         pa = np.take(p, idx, axis=0)
         obs = np.take(per_obs, idx, axis=0)
         J = _pose_jacobian(pa, obs, fx, fy)
-        dx = _gauss_newton_step(J, r, chi2, idx, obs[:, 1])
+        prior = None if rotation_prior is None else \
+            (so3_log(R @ rotation_prior[0].T), 1.0 / rotation_prior[1] ** 2)
+        dx = _gauss_newton_step(J, r, chi2, idx, obs[:, 1], prior)
         if dx is None:
             break
         dR = so3_exp(dx[3:])
@@ -169,6 +177,7 @@ def optimize_pose(
     inliers: np.ndarray | None = None,
     rounds: int = 4,
     iterations: int = 8,
+    rotation_prior: tuple[np.ndarray, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Refine camera_from_world on 3D-2D matches; returns the pose and the final inlier mask.
 
@@ -177,7 +186,8 @@ def optimize_pose(
     (1/m), which constrains translation along the optical axis that pixels alone see poorly.
     Gauss-Newton with Huber weights runs `rounds` times; between rounds observations are
     re-classified by a chi-square test so a wrong match cannot pull the pose (the scheme of
-    ORB-SLAM's pose-only optimisation).
+    ORB-SLAM's pose-only optimisation). `rotation_prior` (camera_from_world's rotation as the gyro
+    predicts it, its sigma in rad) adds that rotation as one more residual.
     """
     fx, fy = K[0, 0], K[1, 1]
     R = camera_from_world[:3, :3].copy()
@@ -199,7 +209,7 @@ def optimize_pose(
     for rnd in range(rounds):
         if int(active.sum()) < 6:
             break
-        R, t = _gauss_newton(R, t, active, res, residuals, per_obs, fx, fy, iterations)
+        R, t = _gauss_newton(R, t, active, res, residuals, per_obs, fx, fy, iterations, rotation_prior)
         res = residuals(R, t)  # also the next round's first residuals
         new_active = res[2] <= thr
         if rnd > 0 and np.array_equal(new_active, active):
