@@ -13,16 +13,17 @@ same. Retimed (`replay.retime`) has none: a faster camera would feel other accel
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from octolog.kit.imu import ImuNoise, ImuSamples, read_imu_txt, unite
-from octolog.kit.mcaplog import read_messages
+from octolog.kit.mcaplog import read_messages, read_wire
 from octolog.replay.sources import McapSource, Retimed, Subsampled, SyntheticSource, TumSource
 from octolog.schemas import codec, sensormsgs
-from octolog.schemas.topics import ACCEL, GYRO
+from octolog.schemas.topics import ACCEL, GYRO, TRACKING_STATUS
 
 COLOR_FRAME = "camera_color_optical_frame"
 IMU_FRAME = "camera_imu_optical_frame"  # a calibration file's IMU, placed on the colour camera by camera_from_imu
@@ -33,6 +34,10 @@ class SourceImu:
     samples: ImuSamples
     frame_id: str  # the IMU's frame (the /tf_static tree places it)
     camera_from_imu: np.ndarray | None = None  # where a calibration file puts it (the replay publishes it)
+    # a recording's streams as recorded (stamps, values), and per consumed frame the samples of each
+    # its tracker had (TrackingStatus imu_gyro_count, imu_accel_count): the replay hands over those
+    streams: tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
+    marks: dict[int, tuple[int, int]] | None = None
 
 
 def source_imu(source: object) -> SourceImu | None:
@@ -47,15 +52,18 @@ def source_imu(source: object) -> SourceImu | None:
     if isinstance(source, TumSource):
         return tum_imu(source)
     if isinstance(source, McapSource):
-        return recorded_imu(source.path)
+        imu = recorded_imu(source.path)
+        if imu is not None and source.only_consumed:
+            marks = consumed_imu_marks(source.path)
+            return dataclasses.replace(imu, marks=marks) if marks else imu
+        return imu
     return None
 
 
 def source_imu_noise(source: object) -> ImuNoise | None:
     """The IMU's noise a calibration file gives (None: the tracker takes the D455's)."""
     inner = getattr(source, "inner", source)
-    cal = getattr(inner, "calibration", None)
-    return cal.imu_noise if cal is not None else None
+    return inner.calibration.imu_noise if isinstance(inner, TumSource) and inner.calibration is not None else None
 
 
 def tum_imu(source: TumSource) -> SourceImu | None:
@@ -83,12 +91,26 @@ def recorded_imu(path: Path) -> SourceImu | None:
         streams[name].append((codec.stamp_ns(msg.header), v.x, v.y, v.z))
         if name == GYRO.name:
             frame_id = frame_id or msg.header.frame_id
-    gyro, accel = (sorted(streams[n]) for n in (GYRO.name, ACCEL.name))
-    if len(gyro) < 2 or len(accel) < 2:
+    if len(streams[GYRO.name]) < 2 or len(streams[ACCEL.name]) < 2:
         return None
-    g_ns, a_ns = (np.array([row[0] for row in rows], np.int64) for rows in (gyro, accel))
-    g, a = (np.array([row[1:] for row in rows], np.float64) for rows in (gyro, accel))
-    return SourceImu(unite(g_ns, g, a_ns, a), frame_id)
+
+    def arrays(rows: list[tuple[int, float, float, float]]) -> tuple[np.ndarray, np.ndarray]:
+        return np.array([r[0] for r in rows], np.int64), np.array([r[1:] for r in rows], np.float64)
+
+    logged = arrays(streams[GYRO.name]), arrays(streams[ACCEL.name])  # in log order: as the bus sent them
+    (g_ns, g), (a_ns, a) = (arrays(sorted(streams[n])) for n in (GYRO.name, ACCEL.name))
+    return SourceImu(unite(g_ns, g, a_ns, a), frame_id, streams=logged)
+
+
+def consumed_imu_marks(path: Path) -> dict[int, tuple[int, int]]:
+    """Per frame a logged tracker consumed, the IMU samples of each stream it had taken by then
+    (none: a log from before the record, or without an IMU)."""
+    marks = {}
+    for m in read_wire(path, [TRACKING_STATUS.name]):
+        st = codec.decode(m.data, TRACKING_STATUS.msgtype)
+        if st.imu_gyro_count or st.imu_accel_count:
+            marks[int(st.seq)] = (int(st.imu_gyro_count), int(st.imu_accel_count))
+    return marks
 
 
 class ImuFeed:
@@ -101,9 +123,13 @@ class ImuFeed:
         self.imu, self.gyro_pub, self.accel_pub, self.shift_ns = imu, gyro_pub, accel_pub, shift_ns
         self.last_ns: int | None = None
         self.count = 0
+        self._sent = [0, 0]  # recorded samples sent per stream (as recorded)
 
-    def before(self, frame_stamp_ns: int) -> None:
+    def before(self, seq: int, frame_stamp_ns: int) -> None:
         if self.imu is None:
+            return
+        if self.imu.marks is not None and self.imu.streams is not None:
+            self._as_recorded(self.imu.marks.get(seq))
             return
         t = frame_stamp_ns - self.shift_ns  # on the source's clock
         after = t - self.LEAD_NS if self.last_ns is None else self.last_ns
@@ -114,3 +140,16 @@ class ImuFeed:
             self.accel_pub.put(sensormsgs.imu_msg(stamp + self.shift_ns, fid, linear_acceleration=tuple(a)))
         self.count += len(batch)
         self.last_ns = max(t, after)
+
+    def _as_recorded(self, mark: tuple[int, int] | None) -> None:
+        """Each stream's recorded samples up to the counts the logged tracker had taken at this frame."""
+        if mark is None:
+            return
+        assert self.imu is not None and self.imu.streams is not None
+        fid = self.imu.frame_id
+        for k, (pub, (stamps, values)) in enumerate(zip((self.gyro_pub, self.accel_pub), self.imu.streams)):
+            for i in range(self._sent[k], min(mark[k], len(stamps))):
+                v = tuple(values[i].tolist())
+                pub.put(sensormsgs.imu_msg(int(stamps[i]), fid, **({"angular_velocity": v} if k == 0 else
+                                                                   {"linear_acceleration": v})))
+            self._sent[k] = max(self._sent[k], mark[k])

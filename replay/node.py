@@ -195,7 +195,7 @@ def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Pro
     imu = imu_feed(source, cfg, bus)
     for frame in looped(source, cfg, encoded=passthrough):
         pacer.wait(frames_pub.count, frame.stamp_ns)
-        imu.before(frame.stamp_ns)
+        imu.before(frame.seq, frame.stamp_ns)
         if frames_pub.count == 0:  # the camera's own frames, before its first image (the tracker hangs world on their root)
             bus.publisher(TF_STATIC).put(posemsgs.tf_msg(camera_tree(source, frame.frame_id), frame.stamp_ns))
             if up is not None:

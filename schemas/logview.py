@@ -73,6 +73,8 @@ PARTS: dict[str, tuple[Part, ...]] = {
 # Fields added to a wire type after logs of it were written, and what an older log's message reads as
 ADDED_FIELDS = {("octolog_msgs/msg/TrackingStatus", "map_moved_m"): "0.0",
                 ("octolog_msgs/msg/TrackingStatus", "relocalised"): "false",
+                ("octolog_msgs/msg/TrackingStatus", "imu_gyro_count"): "0",
+                ("octolog_msgs/msg/TrackingStatus", "imu_accel_count"): "0",
                 ("octolog_msgs/msg/Keyframe", "depth_inverse_offset"): "0.0",
                 ("octolog_msgs/msg/CompressedKeyframe", "depth_inverse_offset"): "0.0",
                 ("octolog_msgs/msg/KeyframePoses", "depth_inverse_offset"): "0.0",

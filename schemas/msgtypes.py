@@ -148,6 +148,8 @@ class TrackingStatusMsg(Protocol):
     processing_ms: float
     map_moved_m: float
     relocalised: bool
+    imu_gyro_count: int
+    imu_accel_count: int
 
 
 class MapUpdateMsg(Protocol):

@@ -71,8 +71,12 @@ def imu_line(imu: dict | None) -> str:
         return f"IMU: {imu['samples']} samples, gravity and velocity never aligned (rotation prediction only)"
     bg = [round(float(np.degrees(v)), 3) for v in imu["gyro_bias"]]
     ba = [round(float(v), 3) for v in imu["accel_bias"]]
-    return (f"IMU: used ({imu['samples']} samples), {imu['inertial_frames']} frames placed by the IMU alone "
-            f"(INERTIAL); gyro bias {bg} deg/s, accelerometer bias {ba} m/s²")
+    trusted = imu.get("trusted_frames", 0)
+    if not trusted:
+        return (f"IMU: {imu['samples']} samples, never trusted: its motion did not agree with vision's "
+                f"(the camera-IMU transform, clock offset or noise?); gyro bias {bg} deg/s")
+    return (f"IMU: used ({imu['samples']} samples, trusted at {trusted} frames), {imu['inertial_frames']} frames "
+            f"placed by the IMU alone (INERTIAL); gyro bias {bg} deg/s, accelerometer bias {ba} m/s²")
 
 
 def describe_mcap(path: Path) -> str:

@@ -125,6 +125,9 @@ class _Queue:
     def newer_frame(self):
         return self.waiting.pop(0) if self.waiting else None
 
+    def skip(self, r) -> None:
+        pass  # its IMU samples would go with the next frame
+
 
 class _Msg:
     def __init__(self, seq: int) -> None:

@@ -41,7 +41,13 @@ INIT_S = 1.0  # tracked time before the alignment is trusted
 REALIGN_EVERY = 10  # tracked frames between alignments
 ACCEL_BIAS_SIGMA = 0.1  # m/s²: the accelerometer bias's prior spread (a consumer MEMS part)
 GYRO_BIAS_SIGMA = np.radians(1.0)  # rad/s: the gyro bias's prior spread
-MAX_GAP_NS = 100_000_000  # an IMU silent this long between samples leaves the interval unmeasured
+MAX_GAP_NS = 100_000_000
+# The IMU is trusted (it may place a frame, and veto vision's fit) once its propagated position has
+# been within AGREE_M of vision's for TRUST_FRAMES frames in a row; vision overrules it after
+# MAX_DISAGREEING vetoes in a row
+AGREE_M = 0.02
+TRUST_FRAMES = 30
+MAX_DISAGREEING = 3  # an IMU silent this long between samples leaves the interval unmeasured
 _EPS_BIAS = 1e-4
 
 
@@ -63,6 +69,8 @@ class InertialState:
     gyro_bias: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     accel_bias: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     gravity: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    distrusted: int = 0  # times vision overruled the IMU (MAX_DISAGREEING vetoes in a row)
+    trusted_frames: int = 0  # frames the IMU's pose was trusted at (Inertial.trusted)
 
 
 class Inertial:
@@ -89,6 +97,8 @@ class Inertial:
         self._velocity: np.ndarray | None = None  # world, at the newest record
         self._since_align = 0
         self._pending: tuple[int, tuple[np.ndarray, np.ndarray, np.ndarray] | None] | None = None
+        self._propagated: tuple[int, np.ndarray, np.ndarray] | None = None  # stamp, world_from_imu, velocity
+        self._agreeing = self._disagreeing = 0
         self.state = InertialState()
 
     # -- samples --------------------------------------------------------------------------------
@@ -141,7 +151,7 @@ class Inertial:
         """For the frame at `stamp_ns`, after the newest record: the camera's rotation over the
         interval (camera_prev_from_camera, 3x3; None without IMU data) and, once aligned, the
         propagated world_from_camera (None before). Call `observe` or `coast` after."""
-        self._pending = None
+        self._pending = self._propagated = None
         if not self._records:
             return None, None
         last = self._records[-1]
@@ -160,8 +170,26 @@ class Inertial:
         T = np.eye(4)
         T[:3, :3] = R @ dR
         T[:3, 3] = p + self._velocity * dt + 0.5 * self.gravity * dt * dt + R @ dp
-        self._propagated = (T, self._velocity + self.gravity * dt + R @ dv)
-        return rotation, T @ self.imu_from_camera
+        self._propagated = (stamp_ns, T, self._velocity + self.gravity * dt + R @ dv)
+        self.state.trusted_frames += self.trusted
+        return rotation, (T @ self.imu_from_camera if self.trusted else None)
+
+    @property
+    def trusted(self) -> bool:
+        """The IMU's propagated poses have agreed with vision's for the last TRUST_FRAMES frames it
+        placed (a wrong extrinsic, clock offset or noise model never gets there)."""
+        return self._agreeing >= TRUST_FRAMES
+
+    def disagrees(self) -> bool:
+        """Vision placed this frame where the IMU says it cannot be: True while the IMU is trusted
+        and this has not gone on for MAX_DISAGREEING frames (then vision wins, the IMU must earn
+        trust again)."""
+        self._disagreeing += 1
+        if self._disagreeing > MAX_DISAGREEING:
+            self._agreeing = 0
+            self.state.distrusted += 1
+            return False
+        return self.trusted
 
     def since_visual_s(self, stamp_ns: int) -> float:
         """Seconds from the newest frame vision placed to `stamp_ns` (inf: none)."""
@@ -178,7 +206,9 @@ class Inertial:
         stamp_ns, seg = self._pending
         if not self._can_coast(stamp_ns):
             return False
-        T, v = self._propagated
+        if self._propagated is None or not self.trusted:
+            return False
+        _, T, v = self._propagated
         self._records.append(_Record(stamp_ns, T, False, True, seg))
         self._velocity = v
         self._pending = None
@@ -189,6 +219,11 @@ class Inertial:
         seg = self._pending[1] if self._pending is not None and self._pending[0] == stamp_ns else None
         self._pending = None
         T = world_from_camera @ self.camera_from_imu
+        if self._propagated is not None and self._propagated[0] == stamp_ns and continuous:
+            off = float(np.linalg.norm(T[:3, 3] - self._propagated[1][:3, 3]))
+            self._agreeing = self._agreeing + 1 if off <= AGREE_M else 0
+        self._propagated = None
+        self._disagreeing = 0
         if seg is not None and continuous and self._velocity is not None and self.gravity is not None:
             pim = self._preintegrate(seg)
             R = self._records[-1].world_from_imu[:3, :3]

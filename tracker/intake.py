@@ -165,10 +165,15 @@ class Intake:
         self._held.insert(0, item)
         return None
 
-    def imu_before(self, r: Received) -> ImuSamples:
-        """The IMU samples that came before frame `r` and were not taken yet."""
+    def imu_before(self, r: Received) -> tuple[ImuSamples, tuple[int, int]]:
+        """The IMU samples that came before frame `r` and were not taken yet, and how many of each
+        stream have been taken by then (the status's record of them)."""
         mark = self._imu_marks.pop(id(r), None)
-        return self.imu.take(mark) if mark is not None else ImuSamples.empty()
+        return (self.imu.take(mark), mark) if mark is not None else (ImuSamples.empty(), (0, 0))
+
+    def skip(self, r: Received) -> None:
+        """Frame `r` is skipped: its IMU samples go with the next frame taken."""
+        self._imu_marks.pop(id(r), None)
 
     def prepared(self, r: Received, fut: Future | None) -> Decoded:
         """The frame's decoding and preparation, waiting for it (or doing it here if it was cancelled)."""

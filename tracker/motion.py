@@ -108,19 +108,20 @@ class MotionModel:
         else:
             out = predicted.copy()
             out[:3, :3] = self._last_pose[:3, :3] @ rotation
-        if self._last_ok or self._coasting:  # the step from the last pose is the camera's motion
+        if (self._last_ok or self._coasting) and self._imu.trusted:  # the step from the last pose is motion
             frames = max(1.0, (stamp_ns - self._last_stamp) / FRAME_NS)
             self._rotation_prior = (out[:3, :3].T.copy(), ROTATION_PRIOR_SIGMA * np.sqrt(frames))
         return out, propagated
 
     def _imu_rejects(self, camera_from_world: np.ndarray, propagated: np.ndarray | None) -> bool:
         """Whether a fitted pose is further from the IMU's propagated one than the IMU can be wrong
-        by (IMU_GATE_M, and IMU_GATE_MS for each second since vision last placed a frame)."""
+        by (IMU_GATE_M, and IMU_GATE_MS for each second since vision last placed a frame), while
+        the IMU is trusted (tracker/inertial.py: Inertial.disagrees)."""
         if propagated is None or self._imu is None:
             return False
         since_s = max(0.0, self._imu.since_visual_s(self._last_stamp))
         moved = float(np.linalg.norm(invert(camera_from_world)[:3, 3] - propagated[:3, 3]))
-        if moved <= IMU_GATE_M + IMU_GATE_MS * since_s:
+        if moved <= IMU_GATE_M + IMU_GATE_MS * since_s or not self._imu.disagrees():
             return False
         self.imu_rejected += 1
         return True

@@ -110,12 +110,12 @@ class _Outputs:
         self.deferred = bus.publisher(BACKEND_DEFERRED)
         self.held: dict[int, RgbdFrame] = {}  # frames of keyframes not yet placed in the saved map, by seq
 
-    def untracked(self, msg: Any, state: TrackingState) -> None:
+    def untracked(self, msg: Any, state: TrackingState, imu_mark: tuple[int, int] = (0, 0)) -> None:
         """A frame skipped or rejected: its status only."""
-        self.status.put(_status(msg.seq, codec.stamp_ns(msg.header), state, False, -1, 0, 0, 0.0))
+        self.status.put(_status(msg.seq, codec.stamp_ns(msg.header), state, False, -1, 0, 0, 0.0, imu_mark=imu_mark))
 
     def tracked(self, frame: RgbdFrame, res: TrackResult, tree: StaticTree, ms: float,
-                result: TrackerRunSummary) -> None:
+                result: TrackerRunSummary, imu_mark: tuple[int, int] = (0, 0)) -> None:
         self.pose.put(posemsgs.pose_stamped_msg(res.world_from_camera, frame.stamp_ns))
         # world -> the camera tree's root (camera_link), so each frame keeps one parent (REP 105)
         root, root_from_camera = tree.root_from(frame.frame_id)
@@ -142,7 +142,7 @@ class _Outputs:
                 {"seq": frame.seq, "keyframe_id": res.keyframe_id, "stamp_ns": frame.stamp_ns})))
             result.backend_deferred += 1
         self.status.put(_status(frame.seq, frame.stamp_ns, res.state, res.is_keyframe, res.keyframe_id,
-                                res.n_matches, res.n_inliers, ms, res.map_moved_m, res.relocalised))
+                                res.n_matches, res.n_inliers, ms, res.map_moved_m, res.relocalised, imu_mark))
 
     def finish(self, odometry: Tracker, result: TrackerRunSummary) -> None:
         # the back end's last word: every keyframe at its final pose, so the map matches the
@@ -193,10 +193,9 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
             result.frames += 1
             if cfg.live and intake.behind(r):
                 far = odometry.n_keyframes > YOUNG_MAP_KEYFRAMES and intake.behind(r, FAR_BEHIND)
-                r, prep = _skip_behind(intake, r, prep, out, result, far=far, odometry=odometry if imu_topics else None)
-            if imu_topics:
-                _feed_imu(odometry, intake, r, tree)
-            _track_frame(odometry, cfg, functools.partial(intake.prepared, r, prep), out, tree, result, shown)
+                r, prep = _skip_behind(intake, r, prep, out, result, far=far)
+            mark = _feed_imu(odometry, intake, r, tree) if imu_topics else (0, 0)
+            _track_frame(odometry, cfg, functools.partial(intake.prepared, r, prep), out, tree, result, shown, mark)
     out.finish(odometry, result)
     estimate = getattr(odometry, "depth_bias", None)  # the native tracker's; ORB-SLAM3 has none
     result.depth_bias = estimate() if estimate is not None else None
@@ -216,15 +215,14 @@ YOUNG_MAP_KEYFRAMES = 5
 
 
 def _skip_behind(intake: Intake, r: Any, prep: Any, out: _Outputs, result: TrackerRunSummary, *,
-                 far: bool, odometry: Any = None) -> tuple[Any, Any]:
+                 far: bool) -> tuple[Any, Any]:
     """Stay real-time, on record: behind, this frame is skipped for the next one, never two in a row
     (a tracked frame is at most two camera frames after the last: a fast turn stays trackable,
     where jumping to the newest made gaps of several frames and lost track); `far` behind, the
-    newest waiting frame wins and every older one is skipped, so latency stays bounded. `odometry`
-    (with an IMU) takes the skipped frames' IMU samples."""
+    newest waiting frame wins and every older one is skipped, so latency stays bounded (a skipped
+    frame's IMU samples go to the next frame tracked)."""
     while (newer := intake.newer_frame()) is not None:
-        if odometry is not None:  # with an IMU: the motion goes on, the skipped frame's samples count
-            odometry.add_imu(intake.imu_before(r))
+        intake.skip(r)
         out.untracked(r.decode(), TrackingState.SKIPPED)
         result.skipped += 1
         result.frames += 1
@@ -235,7 +233,7 @@ def _skip_behind(intake: Intake, r: Any, prep: Any, out: _Outputs, result: Track
 
 
 def _track_frame(odometry: Tracker, cfg: TrackerConfig, prepare: Callable[[], tuple[Any, Any, Any]], out: _Outputs,
-                 tree: StaticTree, result: TrackerRunSummary, shown: VizLog) -> None:
+                 tree: StaticTree, result: TrackerRunSummary, shown: VizLog, imu_mark: tuple[int, int] = (0, 0)) -> None:
     """One frame through the tracker and out to the bus and the viewer; a frame that cannot be
     tracked at all is consumed and reported LOST (`prepare`: the frame's decoding and features, timed with it)."""
     t0 = time.perf_counter()
@@ -251,7 +249,7 @@ def _track_frame(odometry: Tracker, cfg: TrackerConfig, prepare: Callable[[], tu
         # intrinsics), is consumed and reported LOST, never a crash
         result.rejected += 1
         result.problems.append(f"frame {msg.seq}: {exc}")
-        out.untracked(msg, TrackingState.LOST)
+        out.untracked(msg, TrackingState.LOST, imu_mark)
         return
     if cfg.throttle_ms:
         time.sleep(max(0.0, cfg.throttle_ms / 1e3 - (time.perf_counter() - t0)))
@@ -262,17 +260,19 @@ def _track_frame(odometry: Tracker, cfg: TrackerConfig, prepare: Callable[[], tu
     result.tracked += res.state == TrackingState.OK
     result.lost += res.state == TrackingState.LOST
     result.inertial += res.state == TrackingState.INERTIAL
-    out.tracked(frame, res, tree, ms, result)
+    out.tracked(frame, res, tree, ms, result, imu_mark)
     shown.put(frame, res, result, odometry)
 
 
-def _feed_imu(odometry: Any, intake: Intake, r: Any, tree: StaticTree) -> None:
-    """The IMU samples that came before frame `r`, to the tracker; with the first, where the IMU
-    sits on the camera (the camera's /tf_static; none: the IMU's axes are the colour camera's)."""
-    samples = intake.imu_before(r)
+def _feed_imu(odometry: Any, intake: Intake, r: Any, tree: StaticTree) -> tuple[int, int]:
+    """The IMU samples that came before frame `r` (and skipped frames before it), to the tracker;
+    with the first, where the IMU sits on the camera (the camera's /tf_static; none: the IMU's axes
+    are the colour camera's). Returns the samples taken so far per stream, for the record."""
+    samples, mark = intake.imu_before(r)
     if len(samples) and odometry.imu_state is None:
         odometry.set_camera_from_imu(camera_from_imu(tree, r.decode().header.frame_id, intake.imu.frame_id))
     odometry.add_imu(samples)
+    return mark
 
 
 def camera_from_imu(tree: StaticTree, camera_frame: str, imu_frame: str) -> np.ndarray:
@@ -356,11 +356,11 @@ class KeyframeOut:
 
 
 def _status(seq: int, stamp: int, state: TrackingState, is_kf: bool, kf_id: int, n_matches: int, n_inliers: int,
-            ms: float, map_moved_m: float = 0.0, relocalised: bool = False):
+            ms: float, map_moved_m: float = 0.0, relocalised: bool = False, imu_mark: tuple[int, int] = (0, 0)):
     return codec.msgtype(TRACKING_STATUS.msgtype)(
         header=codec.header(stamp, "world"), seq=seq, state=status_code(state), is_keyframe=is_kf,
         keyframe_id=kf_id, n_matches=n_matches, n_inliers=n_inliers, processing_ms=ms, map_moved_m=map_moved_m,
-        relocalised=relocalised)
+        relocalised=relocalised, imu_gyro_count=imu_mark[0], imu_accel_count=imu_mark[1])
 
 
 # keypoint colours by KeypointState: unmatched grey, rejected red, tracked green, new map point blue
