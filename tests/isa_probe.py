@@ -4,7 +4,7 @@ Run as a script by tests/test_determinism.py under restricted instruction sets (
 NPY_DISABLE_CPU_FEATURES, OPENBLAS_CORETYPE) and compared with an unrestricted run. Not collected by
 pytest (no test_ prefix).
 
-usage: python tests/isa_probe.py SOURCE FRAMES   (SOURCE: synthetic:N or tum:PATH)
+usage: python tests/isa_probe.py SOURCE FRAMES   (SOURCE: synthetic:N[:imu=HZ...] or tum:PATH)
 OCTOLOG_PROBE_CV_UNOPTIMIZED=1: with cv2.setUseOptimized(False) for the whole run.
 """
 
@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from octolog.replay.imu import source_imu
 from octolog.replay.sources import open_source
 from octolog.tracker.config import TrackerConfig, for_source
 from octolog.tracker.factory import make_odometry
@@ -40,9 +41,14 @@ def main(source: str, n_frames: int) -> None:
                              n_levels=f.n_levels, scale_factor=f.scale_factor)
     odometry = make_odometry(cfg)
     h = {name: hashlib.sha256() for name in ("frames", "features", "poses")}
+    imu, last_ns = source_imu(src), None  # with one, the IMU's samples up to each frame, as the replay sends them
     for i, frame in enumerate(src.frames()):
         if i >= n_frames:
             break
+        if imu is not None:
+            odometry.add_imu(imu.samples.between(frame.stamp_ns - 50_000_000 if last_ns is None else last_ns,
+                                                 frame.stamp_ns))
+            last_ns = frame.stamp_ns
         h["frames"].update(frame.rgb.tobytes() + frame.depth.tobytes())
         for a in extractor.extract(grey_image(frame)):
             h["features"].update(np.ascontiguousarray(a).tobytes())
@@ -50,6 +56,8 @@ def main(source: str, n_frames: int) -> None:
     odometry.finish()
     _, poses = odometry.trajectory()
     h["poses"].update(np.ascontiguousarray(poses).tobytes())
+    if imu is not None:
+        h["poses"].update(repr(odometry.imu_state).encode())
     for name, digest in h.items():
         print(name, digest.hexdigest())
     print("openblas", openblas_core())

@@ -95,6 +95,15 @@ def test_tracker_core_same_bytes_under_restricted_instruction_sets(restriction):
     assert _probe(source, 24, env) == _probe(source, 24, {}), f"{restriction}: bytes differ from the default run"
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("level", list(LEVELS))
+def test_the_imu_path_same_bytes_under_restricted_instruction_sets(level):
+    """With the simulated IMU: preintegration (gtsam), the biases, gravity, the INERTIAL poses through
+    a textureless half second: the restricted run gives the same bytes."""
+    source = "synthetic:100:imu=200:blank=2.2+0.5"
+    assert _probe(source, 100, LEVELS[level]) == _probe(source, 100, {}), f"{level}: bytes differ from the default run"
+
+
 def test_an_octolog_process_pins_numpy_and_openblas_before_numpy_loads():
     """numpy's AVX-512 kernels off (their log/pow/arccos round differently from AVX2's), OpenBLAS on
     its Nehalem kernels with one thread; a feature the user disabled stays disabled."""

@@ -62,6 +62,8 @@ def test_a_live_session_counts_its_skips_and_its_log_replays_to_the_same_bytes(t
         assert levelled
     assert np.degrees(np.arccos(np.clip(up @ from_file, -1, 1))) < 1.0
     assert log.topics["tf_static"].count == 2  # the camera's tree (camera_link ...) and map -> world
+    # the camera's IMU reached the tracker over the bus, and is on record for the replay below
+    assert summary["imu"]["samples"] > 0 and log.topics["camera/gyro/sample"].count > 0
     again = tmp_path / "again"
     octolog("replay", str(live), "--out", str(again), "--quiet", "--rerun", "off", timeout=300)
     for name in ("trajectory.txt", "map.bt", "map.pgm", "map.yaml"):

@@ -46,6 +46,10 @@ MAX_GAP_NS = 100_000_000
 # been within AGREE_M of vision's for TRUST_FRAMES frames in a row; vision overrules it after
 # MAX_DISAGREEING vetoes in a row
 AGREE_M = 0.02
+# The gyro's rotation is a prior of the pose fit unless the median residual of the newest
+# GYRO_CHECK_SPANS spans (vision's rotation against the gyro's) is above GYRO_AGREE_RAD
+GYRO_CHECK_SPANS = 15
+GYRO_AGREE_RAD = np.radians(0.5)
 TRUST_FRAMES = 30
 MAX_DISAGREEING = 3  # an IMU silent this long between samples leaves the interval unmeasured
 _EPS_BIAS = 1e-4
@@ -99,6 +103,7 @@ class Inertial:
         self._pending: tuple[int, tuple[np.ndarray, np.ndarray, np.ndarray] | None] | None = None
         self._propagated: tuple[int, np.ndarray, np.ndarray] | None = None  # stamp, world_from_imu, velocity
         self._agreeing = self._disagreeing = 0
+        self._rot_residuals: list[float] = []  # the newest gyro-bias spans' rotation residuals (rad)
         self.state = InertialState()
 
     # -- samples --------------------------------------------------------------------------------
@@ -173,6 +178,13 @@ class Inertial:
         self._propagated = (stamp_ns, T, self._velocity + self.gravity * dt + R @ dv)
         self.state.trusted_frames += self.trusted
         return rotation, (T @ self.imu_from_camera if self.trusted else None)
+
+    @property
+    def gyro_trusted(self) -> bool:
+        """The gyro's rotations have not disagreed with vision's: the median of the newest
+        GYRO_CHECK_SPANS spans' residuals under GYRO_AGREE_RAD (a wrong camera-IMU rotation fails)."""
+        return len(self._rot_residuals) < GYRO_CHECK_SPANS or \
+            float(np.median(self._rot_residuals[-GYRO_CHECK_SPANS:])) <= GYRO_AGREE_RAD
 
     @property
     def trusted(self) -> bool:
@@ -270,6 +282,7 @@ class Inertial:
         vis = recs[0].world_from_imu[:3, :3].T @ recs[-1].world_from_imu[:3, :3]
         R0, _, _ = self._delta(pim, self.ba, self.bg)
         r = _log(R0.T @ vis)
+        self._rot_residuals = [*self._rot_residuals[-GYRO_CHECK_SPANS + 1:], float(np.linalg.norm(r))]
         if np.linalg.norm(r) > MAX_ROTATION_RESIDUAL or np.linalg.norm(_log(R0)) > MAX_EVIDENCE_RATE * dt:
             return
         J = np.zeros((3, 3))

@@ -108,7 +108,7 @@ class MotionModel:
         else:
             out = predicted.copy()
             out[:3, :3] = self._last_pose[:3, :3] @ rotation
-        if (self._last_ok or self._coasting) and self._imu.trusted:  # the step from the last pose is motion
+        if (self._last_ok or self._coasting) and self._imu.gyro_trusted:  # the step from the last pose is motion
             frames = max(1.0, (stamp_ns - self._last_stamp) / FRAME_NS)
             self._rotation_prior = (out[:3, :3].T.copy(), ROTATION_PRIOR_SIGMA * np.sqrt(frames))
         return out, propagated
