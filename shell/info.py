@@ -30,9 +30,11 @@ def describe_session(folder: Path) -> str:
     if why is None and not (folder / "summary.json").is_file():
         raise InputError(f"{folder}: not an octolog session folder (no summary.json, no {INCOMPLETE})")
     head = f"session {folder}: " + ("complete" if why is None else f"INCOMPLETE ({INCOMPLETE}: {why})")
-    bias = _summary(folder).get("depth_bias")
-    if bias:
-        head += "\n" + depth_bias_line(bias)
+    summary = _summary(folder)
+    if "imu" in summary:  # a run's summary says whether the tracker had an IMU
+        head += "\n  " + imu_line(summary["imu"])
+    if summary.get("depth_bias"):
+        head += "\n" + depth_bias_line(summary["depth_bias"])
     if not log.is_file():
         return f"{head}\n  no session.mcap"
     return f"{head}\n{describe_mcap(log)}"

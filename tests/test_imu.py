@@ -139,6 +139,7 @@ def test_the_pipeline_keeps_a_pose_from_the_imu_through_a_textureless_stretch(oc
     summary = json.loads((out / "summary.json").read_text())
     assert summary["imu"]["inertial_frames"] == round(BLANK_S * FPS)
     assert "IMU: used" in stdout
+    assert "IMU: used" in octolog("info", str(out)).stdout  # the session folder says so too
     assert _drift_over_stretch(out) < 0.05
     assert len(read_tum(out / "trajectory.txt").stamps_ns) == 180
 

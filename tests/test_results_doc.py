@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 RESULTS_MD = ROOT / "docs" / "results.md"
 CAPABILITIES = (
     "Tracker accuracy", "Tracker cost", "Fast motion", "Pipeline and live", "Mapper", "Recorder", "Transport",
-    "Determinism", "Hostile input", "Fleet",
+    "Determinism", "Hostile input", "Fleet", "IMU",
 )
 PYTEST_OPTIONS = {"-s", "-q", "-x", "-v", "-k", "--hypothesis-show-statistics"}
 _ORDINAL = (r"first|second|third|fourth|fifth|sixth|seventh|eighth|ninth|tenth|eleventh|twelfth|"
