@@ -120,6 +120,10 @@ class CameraPropertiesMsg(Protocol):
     depth_baseline_m: float
     depth_focal_px: float
     depth_disparity_sigma_px: float
+    imu_gyro_noise: float
+    imu_accel_noise: float
+    imu_gyro_walk: float
+    imu_accel_walk: float
 
 
 class StreamEndMsg(Protocol):

@@ -51,10 +51,11 @@ def test_frames_and_keyframes_keep_their_bytes(frame):
 
 def test_bookkeeping_messages_become_diagnostics():
     Status = codec.msgtype(topics.TRACKING_STATUS.msgtype)
-    for state, level in ((Status.INIT, 1), (Status.OK, 0), (Status.LOST, 2), (Status.SKIPPED, 1)):
+    for state, level in ((Status.INIT, 1), (Status.OK, 0), (Status.LOST, 2), (Status.SKIPPED, 1),
+                         (Status.INERTIAL, 1)):
         msg = Status(header=codec.header(12, "cam"), seq=2**64 - 1, state=state, is_keyframe=True,
                      keyframe_id=-1, n_matches=3, n_inliers=2, processing_ms=0.1,
-                     map_moved_m=0.0, relocalised=state == Status.OK)
+                     map_moved_m=0.0, relocalised=state == Status.OK, imu_gyro_count=7, imu_accel_count=2**32 - 1)
         (part,) = _round_trip(topics.TRACKING_STATUS, msg)
         diag = codec.decode(part[2], logview.DIAGNOSTICS)
         assert diag.status[0].level == level and diag.status[0].message == topics.TRACKING_STATUS.msgtype
@@ -72,15 +73,18 @@ def test_a_status_logged_before_its_later_fields_existed_reads_as_no_correction(
     message reads with the field's stated default, not as a broken log."""
     Status = codec.msgtype(topics.TRACKING_STATUS.msgtype)
     msg = Status(header=codec.header(12, "cam"), seq=4, state=Status.OK, is_keyframe=False, keyframe_id=-1,
-                 n_matches=3, n_inliers=2, processing_ms=0.1, map_moved_m=0.25, relocalised=True)
+                 n_matches=3, n_inliers=2, processing_ms=0.1, map_moved_m=0.25, relocalised=True,
+                 imu_gyro_count=40, imu_accel_count=20)
     (part,) = logview.split(topics.TRACKING_STATUS.name, topics.TRACKING_STATUS.msgtype, codec.encode(
         msg, topics.TRACKING_STATUS.msgtype))
     diag = codec.decode(part[2], logview.DIAGNOSTICS)
     diag.status[0].values = [kv for kv in diag.status[0].values
-                             if kv.key not in ("map_moved_m", "relocalised")]  # an older log
+                             if kv.key not in ("map_moved_m", "relocalised", "imu_gyro_count",
+                                               "imu_accel_count")]  # an older log
     old = codec.decode(logview.join(topics.TRACKING_STATUS.msgtype, codec.encode(diag, logview.DIAGNOSTICS), {}),
                        topics.TRACKING_STATUS.msgtype)
     assert (old.seq, old.n_inliers, old.map_moved_m, old.relocalised) == (4, 2, 0.0, False)
+    assert (old.imu_gyro_count, old.imu_accel_count) == (0, 0)
 
 
 @given(st.floats(allow_nan=True, allow_infinity=True), st.integers(0, 2**64 - 1), st.integers(0, 2**32 - 1))

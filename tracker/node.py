@@ -464,3 +464,5 @@ def _log(viz: Viz, shown: _Shown) -> None:
                      [0, 200, 255], radius=0.02)
     if res.relocalised:
         viz.text("tracker/events", f"relocalised at frame {frame.seq}")
+    if res.state == TrackingState.INERTIAL:
+        viz.text("tracker/events", f"frame {frame.seq}: no visual fix, the pose is the IMU's (INERTIAL)")
