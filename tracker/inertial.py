@@ -27,6 +27,7 @@ import gtsam
 import numpy as np
 
 from octolog.kit.imu import D455, GRAVITY_MS2, ImuNoise, ImuSamples
+from octolog.tracker.pose import so3_log
 
 GYRO_SPAN = 6  # frames each gyro-bias rotation spans (200 ms at 30 fps)
 GYRO_MEMORY_S = 30.0  # the gyro-bias estimate forgets older rotations over this long (bias drift)
@@ -117,10 +118,6 @@ class Inertial:
         self._w = np.concatenate([self._w, samples.gyro[keep]])
         self._a = np.concatenate([self._a, samples.accel[keep]])
         self.state.samples += int(keep.sum())
-
-    @property
-    def has_samples(self) -> bool:
-        return self._t.size > 0
 
     def _segments(self, t0: int, t1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """Zero-order-hold pieces (dt s, gyro, accel) covering [t0, t1], each sample held until the next;
@@ -213,13 +210,10 @@ class Inertial:
 
     def coast(self) -> bool:
         """The frame `step_to` propagated to takes the propagated pose (INERTIAL); False if there is none."""
-        if self._pending is None or self._pending[1] is None or self.gravity is None or self._velocity is None:
+        # step_to propagated to this frame only with gravity, a velocity and time left to coast
+        if self._pending is None or self._propagated is None or not self.trusted:
             return False
         stamp_ns, seg = self._pending
-        if not self._can_coast(stamp_ns):
-            return False
-        if self._propagated is None or not self.trusted:
-            return False
         _, T, v = self._propagated
         self._records.append(_Record(stamp_ns, T, False, True, seg))
         self._velocity = v
@@ -281,16 +275,16 @@ class Inertial:
         dt = float(seg[0].sum())
         vis = recs[0].world_from_imu[:3, :3].T @ recs[-1].world_from_imu[:3, :3]
         R0, _, _ = self._delta(pim, self.ba, self.bg)
-        r = _log(R0.T @ vis)
+        r = so3_log(R0.T @ vis)
         self._rot_residuals = [*self._rot_residuals[-GYRO_CHECK_SPANS + 1:], float(np.linalg.norm(r))]
-        if np.linalg.norm(r) > MAX_ROTATION_RESIDUAL or np.linalg.norm(_log(R0)) > MAX_EVIDENCE_RATE * dt:
+        if np.linalg.norm(r) > MAX_ROTATION_RESIDUAL or np.linalg.norm(so3_log(R0)) > MAX_EVIDENCE_RATE * dt:
             return
         J = np.zeros((3, 3))
         for k in range(3):
             e = np.zeros(3)
             e[k] = _EPS_BIAS
             Rk, _, _ = self._delta(pim, self.ba, self.bg + e)
-            J[:, k] = _log(R0.T @ Rk) / _EPS_BIAS  # d rotation / d bias
+            J[:, k] = so3_log(R0.T @ Rk) / _EPS_BIAS  # d rotation / d bias
         # r(b) ~ r(bg) - J (b - bg): J b ~ r + J bg
         sigma2 = 2 * VISUAL_ROTATION_SIGMA**2 + self.noise.gyro_noise**2 * dt
         forget = np.exp(-dt / GYRO_SPAN / GYRO_MEMORY_S)
@@ -379,7 +373,3 @@ class Inertial:
         cut = int(np.searchsorted(self._t, newest, side="left")) - 1
         if cut > 0:
             self._t, self._w, self._a = self._t[cut:], self._w[cut:], self._a[cut:]
-
-
-def _log(R: np.ndarray) -> np.ndarray:
-    return np.asarray(gtsam.Rot3.Logmap(gtsam.Rot3(R)))
