@@ -11,7 +11,7 @@ import pytest
 
 from octolog.tracker import bundle
 from octolog.tracker.bundle import BundleProblem, bundle_adjust, observation_chi2
-from octolog.tracker.pose import CHI2_2DOF, CHI2_3DOF, so3_exp
+from octolog.tracker.pose import CHI2_2DOF, CHI2_3DOF, rotation_angle, so3_exp
 
 K = (520.0, 515.0, 318.0, 243.0)
 
@@ -88,6 +88,12 @@ def _gtsam_reference(problem: BundleProblem, iterations: int) -> tuple[np.ndarra
                                                       cal_s))
             else:
                 graph.add(gtsam.GenericProjectionFactorCal3_S2(gtsam.Point2(u, v), noise, X(i), L(j), cal_m))
+        for (a, b), R, sigma in zip(problem.rot_pairs, problem.rot_ab, problem.rot_sigma):
+            # a rotation-only factor: a pose between factor whose translation is free (its whitened
+            # error is negligible), the rotation part of Pose3's log being the rotation's log
+            base = gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, sigma), np.full(3, 1e6)])
+            noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(math.sqrt(CHI2_3DOF)), base)
+            graph.add(gtsam.BetweenFactorPose3(X(a), X(b), gtsam.Pose3(gtsam.Rot3(R), gtsam.Point3(0, 0, 0)), noise))
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(iterations)
         out = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
@@ -173,3 +179,35 @@ def test_bundle_adjustment_is_byte_identical_run_to_run() -> None:
     problem, _ = _problem(5)
     a, b = bundle_adjust(problem, iterations=10), bundle_adjust(problem, iterations=10)
     assert a.poses_wc.tobytes() == b.poses_wc.tobytes() and a.points.tobytes() == b.points.tobytes()
+
+
+def _with_gyro(problem: BundleProblem, truth: list[np.ndarray], sigma: float, seed: int) -> BundleProblem:
+    """The problem with the gyro's rotation between consecutive keyframes: the truth's, off by sigma."""
+    rng = np.random.default_rng(seed)
+    pairs = np.array([(i, i + 1) for i in range(len(truth) - 1)], np.int64)
+    rot = np.stack([truth[a][:3, :3].T @ truth[b][:3, :3] @ so3_exp(rng.normal(0, sigma, 3)) for a, b in pairs])
+    return BundleProblem(**{**problem.__dict__, "rot_pairs": pairs, "rot_ab": rot,
+                            "rot_sigma": np.full(len(pairs), sigma)})
+
+
+def test_the_gyros_rotations_between_keyframes_reach_gtsams_optimum() -> None:
+    """Keyframe rotation factors (tracker/inertial.py: Inertial.keyframe_rotation) in the same
+    optimum as gtsam's between factors on the rotation, dense and sparse."""
+    problem, truth = _problem(6)
+    problem = _with_gyro(problem, truth, np.radians(0.05), 6)
+    ours = bundle_adjust(problem, iterations=20)
+    ref_poses, ref_pts = _gtsam_reference(problem, iterations=20)
+    _assert_same_optimum(ours, ref_poses, ref_pts)
+
+
+def test_the_gyro_holds_keyframes_that_vision_sees_poorly() -> None:
+    """With a handful of points, the free keyframes' rotations come out within the gyro's error
+    chained from the fixed keyframes, and at least twice closer to the truth than vision's alone."""
+    problem, truth = _problem(7, n_pts=25, outliers=0)
+    sigma = np.radians(0.02)
+
+    def worst(poses: np.ndarray) -> float:
+        return max(rotation_angle(truth[i][:3, :3].T @ poses[i][:3, :3]) for i in range(len(truth)))
+    vision = worst(bundle_adjust(problem, iterations=20).poses_wc)
+    fused = worst(bundle_adjust(_with_gyro(problem, truth, sigma, 7), iterations=20).poses_wc)
+    assert fused < 4 * sigma * np.sqrt(len(truth)) and fused < vision / 2, (np.degrees(fused), np.degrees(vision))

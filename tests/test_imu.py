@@ -80,19 +80,29 @@ def test_a_synthetic_imu_sample_does_not_depend_on_the_sequence_length():
 @pytest.mark.parametrize("motion", ["loop", "turns"])
 def test_the_imus_estimates_converge_on_the_synthetic_truth(motion):
     """Fed the true poses and the simulated D455 IMU (turn-on biases and random walk), the gyro's
-    bias comes within 20 % of the truth, gravity within a degree, and each frame's propagated pose
-    within 5 mm of the truth."""
+    bias comes within 20 % of the truth, gravity within a degree, each frame's propagated pose
+    within 5 mm of the truth, and the gyro's rotation between keyframes (the back end's factor)
+    within three of its sigmas of the true rotation once the bias is known."""
     scene = SyntheticScene(n_frames=360, motion=motion, imu_hz=200.0, seed=7)
     sim = scene.simulated_imu
     imu = Inertial(noise=D455)
-    errors = []
+    errors, keyframe_z = [], []
     for i in range(360):
         stamp = scene.stamp_ns(i)
         imu.add(sim.samples.between(stamp - 50_000_000 if i == 0 else scene.stamp_ns(i - 1), stamp))
         _, propagated = imu.step_to(stamp)
         if propagated is not None:
             errors.append(np.linalg.norm(propagated[:3, 3] - scene.pose(i)[:3, 3]))
+        if i % 8 == 0:
+            factor = imu.keyframe_rotation(i // 8, stamp)
+            assert (factor is None) == (i == 0)
+            if factor is not None and i >= 120:
+                prev, R, sigma = factor
+                true = scene.pose(i - 8)[:3, :3].T @ scene.pose(i)[:3, :3]
+                assert prev == i // 8 - 1 and sigma < np.radians(0.5)
+                keyframe_z.append(Rotation.from_matrix(R.T @ true).magnitude() / sigma)
         imu.observe(stamp, scene.pose(i))
+    assert keyframe_z and max(keyframe_z) < 3.0, keyframe_z  # |error| / sigma, 3-dof: 99 % below 3.4
     truth = sim.gyro_bias[-1]
     assert np.linalg.norm(imu.bg - truth) < 0.2 * np.linalg.norm(truth), (imu.bg, truth)
     up = imu.gravity / np.linalg.norm(imu.gravity)

@@ -126,8 +126,20 @@ def _ba_problem(mp: MapPoints, kfs: list[Keyframe], params: OdometryParams, K: n
         obs_z=np.concatenate(zz), obs_sigma=np.concatenate(sig),
         K=(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])),
         bf=1.0 / ba_params.inv_depth_sigma,
+        **_gyro_factors(kfs, ba_kf),
     )
     return ba, ba_kf, pids
+
+
+def _gyro_factors(kfs: list[Keyframe], ba_kf: np.ndarray) -> dict[str, np.ndarray]:
+    """The gyro's rotations between the BA's keyframes (BundleProblem's rot_* fields)."""
+    local = {int(k): li for li, k in enumerate(ba_kf)}
+    rows = [(local[kfs[k].gyro[0]], li, kfs[k].gyro[1], kfs[k].gyro[2])  # type: ignore[index]
+            for li, k in enumerate(ba_kf.tolist()) if kfs[k].gyro is not None and kfs[k].gyro[0] in local]
+    if not rows:
+        return {}
+    return {"rot_pairs": np.array([(a, b) for a, b, _, _ in rows], np.int64),
+            "rot_ab": np.stack([R for _, _, R, _ in rows]), "rot_sigma": np.array([s for _, _, _, s in rows])}
 
 
 def _loop_candidates(mp: MapPoints, kfs: list[Keyframe], params: OdometryParams, bow: BowIndex | None,

@@ -18,7 +18,7 @@ threads), so equal input gives equal bytes.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse
@@ -51,6 +51,11 @@ class BundleProblem:
     obs_sigma: np.ndarray  # (M,) pixel sigma (scale_factor ** octave)
     K: tuple[float, float, float, float]  # fx, fy, cx, cy
     bf: float  # virtual stereo baseline times fx, in pixel metres
+    # the gyro's rotations between keyframes (tracker/inertial.py: Inertial.keyframe_rotation): local
+    # indices (a, b), camera_a_from_camera_b rotation, and its sigma in rad
+    rot_pairs: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
+    rot_ab: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    rot_sigma: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 @dataclass(frozen=True)
@@ -168,6 +173,55 @@ def _skew(p: np.ndarray) -> np.ndarray:
     return S
 
 
+def _log_batch(E: np.ndarray) -> np.ndarray:
+    """Rotation vectors of (n, 3, 3) rotations (angles below pi)."""
+    w = 0.5 * np.stack([E[:, 2, 1] - E[:, 1, 2], E[:, 0, 2] - E[:, 2, 0], E[:, 1, 0] - E[:, 0, 1]], axis=1)
+    s = np.linalg.norm(w, axis=1)
+    theta = np.arctan2(s, 0.5 * (np.trace(E, axis1=1, axis2=2) - 1.0))
+    return w * np.where(s > 1e-12, theta / np.maximum(s, 1e-300), 1.0)[:, None]
+
+
+class _GyroFactors:
+    """The gyro's rotations between keyframes as residuals r = log(dR^T R_a^T R_b) / sigma (Huber at
+    the 3-dof chi-square bound), on the pairs with a free keyframe; each free keyframe's rotation
+    perturbed on the right as the observations' are."""
+
+    def __init__(self, problem: BundleProblem, cam: np.ndarray) -> None:
+        pairs = problem.rot_pairs
+        keep = (cam[pairs[:, 0]] >= 0) | (cam[pairs[:, 1]] >= 0) if pairs.size else np.zeros(0, bool)
+        self.a, self.b = pairs[keep, 0], pairs[keep, 1]
+        self.ca, self.cb = cam[self.a], cam[self.b]  # free-camera index, -1 on a fixed one
+        self.meas_t = _t(problem.rot_ab[keep])
+        self.inv_sigma = 1.0 / problem.rot_sigma[keep]
+        self.k = np.sqrt(CHI2_3DOF)
+
+    def residuals(self, poses: np.ndarray) -> tuple[float, tuple]:
+        Ra, Rb = poses[self.a, :3, :3], poses[self.b, :3, :3]
+        r = _log_batch(_nn(self.meas_t, _tn(Ra, Rb))) * self.inv_sigma[:, None]
+        cost, w = _huber((r * r).sum(axis=1), self.k)
+        return float(cost.sum()), (Ra, Rb, r, w)
+
+    def add_to(self, state: tuple, U: np.ndarray, gc: np.ndarray) -> list[tuple[int, int, np.ndarray]]:
+        """Adds the factors' blocks to the free cameras' U and gc; returns the cross blocks (ca, cb, 6x6)."""
+        Ra, Rb, r, w = state
+        sw = np.sqrt(w)[:, None, None] * self.inv_sigma[:, None, None]
+        Jb = (np.eye(3) + 0.5 * _skew(r / self.inv_sigma[:, None])) * sw  # right Jacobian inverse, first order
+        Ja = -_nn(Jb, _tn(Rb, Ra))
+        e = r * np.sqrt(w)[:, None]
+        cross = []
+        for n in range(self.a.size):
+            ca, cb = int(self.ca[n]), int(self.cb[n])
+            for c, J in ((ca, Ja[n]), (cb, Jb[n])):
+                if c >= 0:
+                    U[c, :3, :3] += J.T @ J
+                    gc[c, :3] += J.T @ e[n]
+            if ca >= 0 and cb >= 0:
+                block = np.zeros((6, 6))
+                block[:3, :3] = Ja[n].T @ Jb[n]
+                cross.append((ca, cb, block))
+        return cross
+
+
 class _Solve:
     """One Levenberg-Marquardt run over the observations `ms` of a problem."""
 
@@ -182,6 +236,7 @@ class _Solve:
         cam = np.full(len(problem.poses_wc), -1)
         cam[self.free] = np.arange(self.free.size)
         self.cam = cam[obs_kf]  # free-camera index of each observation, -1 on a fixed camera
+        self.gyro = _GyroFactors(problem, cam)
         self.pt = np.searchsorted(self.pts, obs_pt)  # point index of each observation
         self.k = np.sqrt(np.where(problem.obs_z[ms] > 0, CHI2_3DOF, CHI2_2DOF))
         self.has_d = problem.obs_z[ms] > 0
@@ -236,11 +291,12 @@ class _Solve:
         # a point behind its camera counts as a gross outlier: a step that puts it there costs
         chi2 = np.where(front, (e * e).sum(axis=1), BEHIND_CHI2)
         cost, w = _huber(chi2, self.k)
-        return float(cost.sum()), (RT, p, e, np.where(front, w, 0.0))
+        gyro_cost, gyro_state = self.gyro.residuals(poses)
+        return float(cost.sum()) + gyro_cost, (RT, p, e, np.where(front, w, 0.0), gyro_state)
 
     def normal_equations(self, state: tuple):
         fx, fy = self.problem.K[0], self.problem.K[1]
-        RT, p, e, w = state
+        RT, p, e, w, gyro_state = state
         iz = 1.0 / np.where(w > 0, p[:, 2], 1.0)
         d = self.has_d.astype(np.float64)
         A = np.zeros((p.shape[0], 3, 3))  # d(u, v, u_right) / d(camera-frame point)
@@ -263,7 +319,8 @@ class _Solve:
         U = np.add.reduceat(_tn(Jc, Jc), self.fm_cam_starts, axis=0) if fm.size else None
         gc = np.add.reduceat(_tv(Jc, ef), self.fm_cam_starts, axis=0) if fm.size else None
         W = _tn(Jc, Jpf)  # camera-point blocks of the free cameras' observations, in `fm` order
-        return U, V, W, gc, gp
+        cross = self.gyro.add_to(gyro_state, U, gc) if U is not None else []
+        return U, V, W, gc, gp, cross
 
     def _sum_free_by_point(self, values: np.ndarray) -> np.ndarray:
         """Per point: the sum of `values` (one row per free-camera observation, in `fm` order)."""
@@ -274,7 +331,7 @@ class _Solve:
 
     def step(self, eqs, lam: float) -> tuple[np.ndarray, np.ndarray]:
         """Camera and point increments of the damped system, the points eliminated first."""
-        U, V, W, gc, gp = eqs
+        U, V, W, gc, gp, cross = eqs
         nf, fm = self.free.size, self.fm
         D = _inverse_cholesky3(V + lam * np.eye(3))  # V^-1 = D^T D, per point
         if nf == 0:
@@ -296,6 +353,9 @@ class _Solve:
         blocks = S.reshape(nf, 6, nf, 6)
         for c in range(nf):
             blocks[c, :, c, :] += U[c] + lam * np.eye(6)
+        for ca, cb, block in cross:
+            blocks[ca, :, cb, :] += block
+            blocks[cb, :, ca, :] += block.T
         dc = np.linalg.solve(S, b.reshape(-1)).reshape(nf, 6)
         # back-substitution: dX = V^-1 (-gp - sum W^T dc)
         Wtd = _tv(W, dc[self.cam[fm]])

@@ -34,7 +34,8 @@ GYRO_MEMORY_S = 30.0  # the gyro-bias estimate forgets older rotations over this
 VISUAL_ROTATION_SIGMA = 3e-4  # rad: a tracked frame's rotation error
 VISUAL_POSITION_SIGMA = 4e-3  # m: a tracked frame's position error
 MAX_ROTATION_RESIDUAL = np.radians(2.0)  # a span the gyro disagrees with more is not evidence (a bad pose)
-# a span turning faster is not gyro-bias evidence: its images are blurred, their rotations uncertain
+# a span turning faster is no evidence for the gyro's bias or against its rotations (gyro_trusted):
+# its images are blurred, vision's rotations uncertain
 MAX_EVIDENCE_RATE = np.radians(60.0)
 WINDOW_S = 2.0  # gravity, velocity and accelerometer-bias alignment: the newest tracked time
 NODE_STEP = 5  # frames between the alignment's nodes
@@ -42,7 +43,6 @@ INIT_S = 1.0  # tracked time before the alignment is trusted
 REALIGN_EVERY = 10  # tracked frames between alignments
 ACCEL_BIAS_SIGMA = 0.1  # m/s²: the accelerometer bias's prior spread (a consumer MEMS part)
 GYRO_BIAS_SIGMA = np.radians(1.0)  # rad/s: the gyro bias's prior spread
-MAX_GAP_NS = 100_000_000
 # The IMU is trusted (it may place a frame, and veto vision's fit) once its propagated position has
 # been within AGREE_M of vision's for TRUST_FRAMES frames in a row; vision overrules it after
 # MAX_DISAGREEING vetoes in a row
@@ -52,7 +52,12 @@ AGREE_M = 0.02
 GYRO_CHECK_SPANS = 15
 GYRO_AGREE_RAD = np.radians(0.5)
 TRUST_FRAMES = 30
-MAX_DISAGREEING = 3  # an IMU silent this long between samples leaves the interval unmeasured
+MAX_DISAGREEING = 3
+MAX_GAP_NS = 100_000_000  # an IMU silent this long between samples leaves the interval unmeasured
+# A gyro's rotation is off by this fraction of the angle turned (the path's, there and back): its
+# scale-factor and cross-axis errors (BMI055: about 1 % each), a camera-IMU rotation known to a
+# fraction of a degree, and the sample-and-hold integration of a fast-changing rate
+GYRO_SCALE_ERROR = 0.01
 _EPS_BIAS = 1e-4
 
 
@@ -105,6 +110,7 @@ class Inertial:
         self._propagated: tuple[int, np.ndarray, np.ndarray] | None = None  # stamp, world_from_imu, velocity
         self._agreeing = self._disagreeing = 0
         self._rot_residuals: list[float] = []  # the newest gyro-bias spans' rotation residuals (rad)
+        self._keyframe_mark: tuple[int, int] | None = None  # the newest keyframe's id and stamp
         self.state = InertialState()
 
     # -- samples --------------------------------------------------------------------------------
@@ -120,8 +126,10 @@ class Inertial:
         self.state.samples += int(keep.sum())
 
     def _segments(self, t0: int, t1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        """Zero-order-hold pieces (dt s, gyro, accel) covering [t0, t1], each sample held until the next;
-        None where the IMU does not cover the interval."""
+        """Pieces (dt s, gyro, accel) covering [t0, t1] between consecutive samples, each with the
+        samples' values interpolated at its middle (as ORB-SLAM3 averages consecutive samples: holding
+        a sample until the next lags a changing rate by half a sample period, a 0.06 deg error over a
+        keyframe interval of a fast turn); None where the IMU does not cover the interval."""
         t = self._t
         if t.size == 0 or t1 <= t0 or t[0] > t0 or t[-1] < t1 - MAX_GAP_NS:
             return None
@@ -130,8 +138,11 @@ class Inertial:
         edges = np.concatenate([[t0], t[lo + 1:hi], [t1]])
         if np.diff(edges).max() > MAX_GAP_NS:
             return None
-        idx = np.arange(lo, lo + len(edges) - 1)
-        return np.diff(edges) * 1e-9, self._w[idx], self._a[idx]
+        mid = (edges[:-1] + edges[1:]) // 2
+        tk = t[lo:hi + 1] - t0  # the samples around the interval, as small numbers
+        w = np.stack([np.interp(mid - t0, tk, self._w[lo:hi + 1, k]) for k in range(3)], axis=1)
+        a = np.stack([np.interp(mid - t0, tk, self._a[lo:hi + 1, k]) for k in range(3)], axis=1)
+        return np.diff(edges) * 1e-9, w, a
 
     def _preintegrate(self, segments: tuple[np.ndarray, np.ndarray, np.ndarray]) -> gtsam.PreintegratedImuMeasurements:
         pim = gtsam.PreintegratedImuMeasurements(self._params, gtsam.imuBias.ConstantBias(self.ba, self.bg))
@@ -244,6 +255,29 @@ class Inertial:
             self._align()
         self._trim()
 
+    def keyframe_rotation(self, kf_id: int, stamp_ns: int) -> tuple[int, np.ndarray, float] | None:
+        """A keyframe at the frame `step_to` went to (or the first frame): the gyro's rotation since
+        the keyframe before (its id, camera_before_from_camera, sigma in rad) for the back end's
+        bundle adjustment; None without IMU over every interval since, or while the gyro disagrees
+        with vision (`gyro_trusted`)."""
+        prev, self._keyframe_mark = self._keyframe_mark, (kf_id, stamp_ns)
+        pending = self._pending
+        if prev is None or pending is None or pending[0] != stamp_ns or pending[1] is None or not self.gyro_trusted:
+            return None
+        since = [r for r in self._records if r.stamp_ns > prev[1]]
+        if not any(r.stamp_ns == prev[1] for r in self._records) or \
+                not all(r.continuous and r.segments is not None for r in since):
+            return None
+        parts = [r.segments for r in since] + [pending[1]]
+        seg = tuple(np.concatenate([p[k] for p in parts]) for k in range(3))  # type: ignore[index]
+        dR, _, _ = self._delta(self._preintegrate(seg), self.ba, self.bg)  # type: ignore[arg-type]
+        dt = float(seg[0].sum())
+        bias_sigma = float(np.sqrt(np.linalg.eigvalsh(np.linalg.inv(self._H)).max()))
+        turned = float(np.linalg.norm(seg[1] - self.bg, axis=1) @ seg[0])  # the path's angle, not the net
+        sigma = np.sqrt(self.noise.gyro_noise**2 * dt + (bias_sigma * dt) ** 2 + (GYRO_SCALE_ERROR * turned) ** 2)
+        Rci = self.camera_from_imu[:3, :3]
+        return prev[0], Rci @ dR @ Rci.T, float(sigma)
+
     def rebase(self, correction: np.ndarray) -> None:
         """The map moved (a back-end correction, 4x4 world_new_from_world_old): so do the recent poses."""
         for r in self._records:
@@ -276,8 +310,10 @@ class Inertial:
         vis = recs[0].world_from_imu[:3, :3].T @ recs[-1].world_from_imu[:3, :3]
         R0, _, _ = self._delta(pim, self.ba, self.bg)
         r = so3_log(R0.T @ vis)
+        if np.linalg.norm(so3_log(R0)) > MAX_EVIDENCE_RATE * dt:
+            return  # neither bias nor trust evidence: vision's rotation is the uncertain one
         self._rot_residuals = [*self._rot_residuals[-GYRO_CHECK_SPANS + 1:], float(np.linalg.norm(r))]
-        if np.linalg.norm(r) > MAX_ROTATION_RESIDUAL or np.linalg.norm(so3_log(R0)) > MAX_EVIDENCE_RATE * dt:
+        if np.linalg.norm(r) > MAX_ROTATION_RESIDUAL:
             return
         J = np.zeros((3, 3))
         for k in range(3):

@@ -99,6 +99,9 @@ class Keyframe:
     # Points of this keyframe matched in the first frame it was the reference keyframe of: the
     # overlap baseline later frames are compared with to decide when the view has changed enough.
     baseline_overlap: int = -1
+    # The gyro's rotation from an earlier keyframe: (its id, camera_earlier_from_camera rotation,
+    # sigma in rad), a factor of the back end's bundle adjustment (None: no IMU over the interval)
+    gyro: tuple[int, np.ndarray, float] | None = None
 
 
 def keyframe_wanted(ref: Keyframe, shared: int, pose: np.ndarray, z: np.ndarray, tracked_kp: np.ndarray,

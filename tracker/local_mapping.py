@@ -49,7 +49,8 @@ class LocalMapping:
         return keyframe_wanted(self._keyframes[int(local[best])], shared_by[best], pose, tracked.feats.z,
                                tracked.kp_idx, self.params.keyframes, max_new_point_m=self.params.depth.max_new_point_m)
 
-    def _insert_keyframe(self, seq: int, pose: np.ndarray, feats: FrameFeatures, tracked: TrackedFrame) -> int:
+    def _insert_keyframe(self, seq: int, stamp_ns: int, pose: np.ndarray, feats: FrameFeatures,
+                         tracked: TrackedFrame) -> int:
         """Add a keyframe: fuse depth into its matched points, create points for the rest."""
         mp, local = self._map, self.params.local_map
         R, t = pose[:3, :3], pose[:3, 3]
@@ -81,7 +82,8 @@ class LocalMapping:
         if self._bow is not None:
             self._bow.add(kf_id, feats.desc)
         self._keyframes.append(Keyframe(kf_id, seq, pose.copy(), point_ids, feats,
-                                         np.concatenate([kp_m, k]), np.concatenate([ids_m, new_ids]), sorted(covis)))
+                                         np.concatenate([kp_m, k]), np.concatenate([ids_m, new_ids]), sorted(covis),
+                                         gyro=self._imu_keyframe(kf_id, stamp_ns)))
         self._kf_pos = np.vstack([self._kf_pos, t[None, :]])
         self._kf_axis = np.vstack([self._kf_axis, R[:, 2][None, :]])
         return kf_id

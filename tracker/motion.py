@@ -142,6 +142,10 @@ class MotionModel:
         return TrackResult(frame.seq, frame.stamp_ns, propagated.copy(), TrackingState.INERTIAL, False, -1, 0, 0,
                            depth_inverse_offset=self.depth_offset)
 
+    def _imu_keyframe(self, kf_id: int, stamp_ns: int) -> tuple[int, np.ndarray, float] | None:
+        """A keyframe at this frame: the gyro's rotation since the keyframe before (Keyframe.gyro)."""
+        return None if self._imu is None else self._imu.keyframe_rotation(kf_id, stamp_ns)
+
     def _imu_observe(self, stamp_ns: int, pose: np.ndarray, *, continuous: bool,
                      moved: np.ndarray | None = None) -> None:
         """A frame vision placed at `pose`; `moved`: the correction the map took at it (the IMU's

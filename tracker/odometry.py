@@ -182,7 +182,7 @@ class RgbdSlam(LocalMapping, MotionModel, BackendHandoff, DepthCorrection, Prior
                 if sol is not None:
                     pose = invert(sol[0])
             map_moved_m = float(np.linalg.norm(pose[:3, 3] - before[:3, 3]))
-            kf_id = self._insert_keyframe(frame.seq, pose, feats, tracked)
+            kf_id = self._insert_keyframe(frame.seq, frame.stamp_ns, pose, feats, tracked)
             if self._pending is None:
                 self._submit_backend()
         ref = self._keyframes[-1]
@@ -298,7 +298,7 @@ class RgbdSlam(LocalMapping, MotionModel, BackendHandoff, DepthCorrection, Prior
             return TrackResult(frame.seq, frame.stamp_ns, pose, TrackingState.LOST, False, -1, 0, 0)
         empty = np.zeros(0, np.int64)
         tracked = TrackedFrame(np.eye(4), empty, empty, 0, 0, feats)
-        kf_id = self._insert_keyframe(frame.seq, pose, feats, tracked)
+        kf_id = self._insert_keyframe(frame.seq, frame.stamp_ns, pose, feats, tracked)
         self._frames.append((frame.stamp_ns, kf_id, np.eye(4)))
         self._remember(frame.stamp_ns, pose)
         return TrackResult(frame.seq, frame.stamp_ns, pose.copy(), TrackingState.INIT, True, kf_id, 0, 0)
