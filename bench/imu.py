@@ -4,9 +4,11 @@ bus, the session log and Rerun recordings on, as a user runs it).
 Each case runs twice: with the IMU (the default) and with `tracker.imu=false`. Paced at the
 camera's rate with the live tracker (`replay.rate=1`, `tracker.live=true`; `--lockstep`: every
 frame, unpaced). Per run, from its session log and summary: frames LOST, INERTIAL and SKIPPED, ATE
-against the ground truth, the tracker's wall ms per frame (median, p90), and for a case with a
+against the ground truth, the tracker's wall ms per frame (median, p90), for a case with a
 textureless stretch (`blank=AT+S`) the largest position drift over it relative to the last pose
-before it.
+before it, and the map frame's error: the angle between its up and the room's (with the IMU the
+tracker's estimate, without it the accelerometer's mean at the first frame, each levelled on a
+horizontal plane of the first frame when it has one).
 
 Cases (the synthetic room with its simulated D455 IMU at 200 Hz, 30 fps):
 - turns: fast head turns (150-210 deg/s) with 10 ms of motion blur; turns25: 25 ms (heavy blur)
@@ -59,7 +61,19 @@ def run(source: str, imu: bool, out: Path, lockstep: bool) -> dict:
     summary = json.loads((out / "summary.json").read_text())
     return {**counts, "ate_cm": summary["ate"]["rmse_m"] * 100, "ms_med": statistics.median(ms),
             "ms_p90": float(np.percentile(ms, 90)), "drift_cm": stretch_drift(out, source) * 100,
-            "imu": summary.get("imu")}
+            "up_deg": up_error_deg(out, source), "imu": summary.get("imu")}
+
+
+def up_error_deg(out: Path, source: str) -> float:
+    """The angle between the session's map frame's up (config.toml's `mapper.grid_up`) and the
+    synthetic room's true up, in the first camera's frame."""
+    import tomllib
+
+    from octolog.replay.sources import open_source
+
+    up = np.asarray(tomllib.loads((out / "config.toml").read_text())["mapper"]["grid_up"], float)
+    truth = open_source(source).scene.pose(0)[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+    return float(np.degrees(np.arccos(np.clip(up @ truth / np.linalg.norm(up), -1.0, 1.0))))
 
 
 def stretch_drift(out: Path, source: str) -> float:
@@ -98,7 +112,7 @@ def main() -> None:
     mode = "lockstep" if args.lockstep else "paced at 30 fps, live tracker"
     print(f"octolog run, {mode}; with the IMU | RGB-D only")
     print(f"{'case':<18} {'LOST':>9} {'INERTIAL':>9} {'SKIPPED':>9} {'ATE cm':>13} {'drift cm':>13} "
-          f"{'ms median':>13} {'ms p90':>13}")
+          f"{'ms median':>13} {'ms p90':>13} {'up err deg':>13}")
     for case in args.cases.split(","):
         for seed in (int(s) for s in args.seeds.split(",")):
             source = CASES[case] + (f":seed={seed}" if seed else "")
@@ -110,7 +124,7 @@ def main() -> None:
                 return f"{format(a[key], fmt)} | {format(b[key], fmt)}"
             print(f"{name:<18} {pair('LOST', 'd'):>9} {pair('INERTIAL', 'd'):>9} {pair('SKIPPED', 'd'):>9} "
                   f"{pair('ate_cm', '.2f'):>13} {pair('drift_cm', '.2f'):>13} {pair('ms_med', '.1f'):>13} "
-                  f"{pair('ms_p90', '.1f'):>13}")
+                  f"{pair('ms_p90', '.1f'):>13} {pair('up_deg', '.2f'):>13}")
             if a["imu"]:
                 bg = np.degrees(a["imu"]["gyro_bias"])
                 print(f"{'':<18} gyro bias estimate {np.round(bg, 3).tolist()} deg/s")

@@ -12,6 +12,11 @@ once. A mapper not told `grid_up` (one started on its own, `octolog map`) finds 
   rotated into that keyframe's optical frame and levelled on its dominant near-horizontal plane
   as a file's first frame is (octolog.kit.gravity); the keyframes integrated so far move into the
   new frame.
+A tracker with a trusted IMU then sends its own estimate (`tracker/gravity`, in `world`): gravity
+from its alignments, the accelerometer's bias estimated with it, which a single mean at the first
+frame cannot do. Unless up was given (`mapper.grid_up`, a prior map), the map moves onto it,
+levelled on the first keyframe's horizontal plane as above; its final estimate comes after the
+last keyframe, so the files are built on it.
 Without either the map assumes a level first camera (up = -y), as before. What the bus gave goes
 into map_stats.json (`map_frame`); `octolog run` copies it into the session's config.toml, so a
 replay of the session log (which carries no IMU stream to the mapper) draws the same map.
@@ -48,6 +53,7 @@ class MapFrame:
         self._first: tuple[int, str] | None = None  # the first keyframe's stamp and optical frame
         self._first_frame: RgbdFrame | None = None
         self._live = LiveUp() if from_imu else None
+        self.given = not from_imu  # up given (mapper.grid_up, a prior map): the tracker's IMU does not move it
         self._announced = False
         if self._live is None:
             if ask is None:
@@ -98,6 +104,18 @@ class MapFrame:
                     on = ", levelled on a horizontal plane of the first keyframe" if levelled else ""
                     self._apply(up, f"gravity-aligned (the live camera's accelerometer{on})")
         self._announce()
+
+    def from_tracker(self, msg: object) -> None:
+        """The tracker's IMU estimate of up in `world` (tracker/gravity), unless up was given."""
+        if self.given or self._ask is not None:
+            return
+        v = msg.vector  # type: ignore[attr-defined]
+        up = np.array([v.x, v.y, v.z], dtype=np.float64)
+        on = ""
+        if self._first_frame is not None:
+            up, levelled = level_on_plane(up, self._first_frame)
+            on = ", levelled on a horizontal plane of the first keyframe" if levelled else ""
+        self.use(up, f"gravity-aligned (the tracker's IMU estimate{on})")
 
     def use(self, up: object, note: str) -> None:
         """Build `map` on `up` from now on, whatever was announced, and announce it."""

@@ -27,6 +27,7 @@ from octolog.schemas.topics import (
     MAP_QUERY,
     MAP_SAVE,
     MAP_UPDATE,
+    TRACKER_GRAVITY,
 )
 
 
@@ -55,7 +56,7 @@ def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: Ma
     a `prior`, the earlier session's map first if the tracker's first item says it tracks in it."""
     pub_update = bus.publisher(MAP_UPDATE)
     bus.accept(MAP_SAVE)
-    bus.start([KEYFRAME, KEYFRAME_COMPRESSED, KEYFRAME_POSES, KEYFRAME_END], wait_for=cfg.wait_for,
+    bus.start([KEYFRAME, KEYFRAME_COMPRESSED, KEYFRAME_POSES, KEYFRAME_END, TRACKER_GRAVITY], wait_for=cfg.wait_for,
               timeout_s=cfg.wait_timeout_s)
     bus.publisher(CONFIGS["mapper"]).put(streammsgs.config_msg("mapper", to_dict(cfg)))
     bus.watch(["tracker"])
@@ -85,6 +86,10 @@ def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: Ma
         if r.topic == MAP_SAVE:
             answer_save(r, mapper, out_dir)
             continue
+        if r.topic == TRACKER_GRAVITY:
+            if publisher.frame is not None:
+                publisher.frame.from_tracker(r.decode())
+            continue
         if prior is not None and prior.pending:
             _decide(prior, mapper, publisher, r.decode().id if r.topic in (KEYFRAME, KEYFRAME_COMPRESSED) else None)
         if r.topic == KEYFRAME_POSES:
@@ -105,6 +110,7 @@ def consume(mapper: Mapper, cfg: MapperConfig, bus: Bus, viz: Viz, publisher: Ma
 def _decide(prior: PriorSeed, mapper: Mapper, publisher: MapSnapshots, first_keyframe_id: int | None) -> None:
     if prior.decide(mapper, first_keyframe_id) and prior.up is not None and publisher.frame is not None:
         publisher.frame.use(prior.up, f"the map frame of {prior.folder} (mapper.prior)")
+        publisher.frame.given = True
 
 
 def _integrate_keyframe(r: Any, mapper: Mapper, result: MapperResult, viz: Viz, publisher: MapSnapshots,

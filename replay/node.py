@@ -36,6 +36,7 @@ from octolog.schemas.topics import (
     RGBD_COMPRESSED,
     RGBD_END,
     TF_STATIC,
+    TRACKER_GRAVITY,
     TRACKING_STATUS,
 )
 
@@ -261,7 +262,8 @@ def play_tracker_log(cfg: ReplayConfig, bus_cfg: BusConfig) -> ReplayResult:
         raise InputError(f"{path}: no /{KEYFRAME.name} topic: nothing to feed a mapper with")
     t0 = time.monotonic()
     with Bus(bus_cfg, "tracker") as bus:
-        pubs = {t.name: bus.publisher(remapped(t, cfg.remap)) for t in (kf_topic, KEYFRAME_POSES)}
+        up = (TRACKER_GRAVITY,) if TRACKER_GRAVITY.name in summary.topics else ()  # the IMU's up, in order
+        pubs = {t.name: bus.publisher(remapped(t, cfg.remap)) for t in (kf_topic, KEYFRAME_POSES, *up)}
         end_pub = bus.publisher(remapped(KEYFRAME_END, cfg.remap))
         bus.start([], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
         bus.watch(["mapper"], required=False)  # as the tracker: keyframes stay until the mapper is done

@@ -23,6 +23,7 @@ import numpy as np
 
 from octolog.kit import imu
 from octolog.kit.geometry import Intrinsics, RgbdFrame, matrix_to_pose
+from octolog.kit.gravity import WINDOW_S, up_from_samples
 from octolog.kit.opencv import baseline_simd
 from octolog.replay import depth_noise, synthetic_imu
 from octolog.replay.gravity import simulated_up
@@ -147,7 +148,16 @@ class SyntheticScene:
         return camera_trajectory(t, start_tilt_deg=self.config.start_tilt_deg, motion=self.config.motion)
 
     def gravity_up(self) -> np.ndarray:
-        """Up in frame 0's optical frame, from a simulated accelerometer on the camera."""
+        """Up in frame 0's optical frame, from a simulated accelerometer on the camera: the
+        simulated IMU's (`imu_hz`) samples within WINDOW_S of frame 0 when there is one."""
+        sim = self.simulated_imu
+        if sim is not None:
+            t = sim.samples.stamp_ns
+            near = np.abs(t - self.stamp_ns(0)) <= int(WINDOW_S * 1e9)
+            up = up_from_samples(sim.samples.accel[near], np.eye(3), "the synthetic IMU")
+            if up is not None:
+                return up
+
         def rotation_at(t: float) -> np.ndarray:
             return self._trajectory(np.array([t]))[1][0]
         return simulated_up(rotation_at, 0.0, self.config.seed)

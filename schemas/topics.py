@@ -51,6 +51,10 @@ CAMERA_PROPERTIES = Topic("camera/rgbd/properties", "octolog_msgs/msg/CameraProp
 # accelerometer (octolog.replay.gravity), once before the first frame: a mapper that is not told
 # `grid_up` builds its `map` frame on it (mapper/mapframe.py)
 GRAVITY = Topic("camera/gravity", "geometry_msgs/msg/Vector3Stamped")
+# Up (unit vector, against gravity) in `world` as the tracker's IMU estimates it (tracker/inertial.py:
+# Inertial.up): once the IMU is trusted, and the session's estimate before the end of the keyframes;
+# a mapper whose `map` frame came from an accelerometer rebuilds on it (mapper/mapframe.py)
+TRACKER_GRAVITY = Topic("tracker/gravity", "geometry_msgs/msg/Vector3Stamped")
 POSE = Topic("tracker/pose", "geometry_msgs/msg/PoseStamped")
 TRACKING_STATUS = Topic("tracker/status", "octolog_msgs/msg/TrackingStatus")
 # A live tracker's keyframe that went in while the back end was still busy with the previous one
@@ -82,7 +86,7 @@ CONFIGS = {stage: Topic(f"{stage}/config", "std_msgs/msg/String") for stage in (
 
 ALL = (RGBD, RGBD_END, POSE, TRACKING_STATUS, KEYFRAME, KEYFRAME_END, KEYFRAME_POSES, MAP_UPDATE, OCTOMAP,
        OCCUPIED, GRID, MAP_END, RGBD_COMPRESSED, KEYFRAME_COMPRESSED, CAMERA_PROPERTIES, TF, TF_STATIC, TRAJECTORY,
-       MAP_MERGE, GRAVITY, BACKEND_DEFERRED, GYRO, ACCEL,
+       MAP_MERGE, GRAVITY, BACKEND_DEFERRED, GYRO, ACCEL, TRACKER_GRAVITY,
        *CONFIGS.values())
 # The camera frames: what stays on a robot when the log runs elsewhere (`octolog log --no-frames`)
 FRAMES = (RGBD, RGBD_COMPRESSED)

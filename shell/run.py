@@ -29,6 +29,7 @@ from octolog.kit.viz import parse_spec
 from octolog.mapper.config import MapperConfig
 from octolog.replay import gravity
 from octolog.replay.config import ReplayConfig
+from octolog.replay.imu import source_imu
 from octolog.replay.sources import Source, backend_deferred, open_source
 from octolog.schemas import codec
 from octolog.schemas import topics as T
@@ -91,12 +92,14 @@ class LiveSource:
         return None  # the live D455's accelerometer is not read for gravity yet
 
 
-def _map_frame(cfg: MapperConfig, src: Source | LiveSource) -> tuple[MapperConfig, dict[str, str] | None]:
+def _map_frame(cfg: MapperConfig, src: Source | LiveSource, *, imu: bool) -> tuple[MapperConfig, dict[str, str] | None]:
     """The mapper's config with `grid_up` from the source's accelerometer when the user left it
-    unset (octolog.replay.gravity), and what to record of it in the session's metadata."""
+    unset (octolog.replay.gravity), and what to record of it in the session's metadata; `imu`: the
+    tracker fuses an IMU, whose estimate the mapper takes later (the file's up is served on
+    camera/gravity meanwhile, mapper/mapframe.py)."""
     if cfg.grid_up:
         return cfg, {"note": "up given by mapper.grid_up"}
-    if isinstance(src, LiveSource):  # the mapper reads the live camera's accelerometer (mapper/mapframe.py)
+    if isinstance(src, LiveSource) or imu:  # the mapper reads the live camera's accelerometer (mapper/mapframe.py)
         return cfg, None
     found = gravity.source_up(src)
     if found is None:
@@ -194,7 +197,9 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     if live and not any(o.split("=", 1)[0].strip() == "recorder.publish_lag_ms" for o in overrides or []):
         # the camera holds back only what the tracker would skip: a burst within its lag it tracks in order
         cfgs["recorder"] = dataclasses.replace(cfgs["recorder"], publish_lag_ms=cfgs["tracker"].live_lag_ms)
-    cfgs["mapper"], map_frame = _map_frame(cfgs["mapper"], src)
+    cfgs["mapper"], map_frame = _map_frame(cfgs["mapper"], src,
+                                           imu=cfgs["tracker"].imu and not isinstance(src, LiveSource)
+                                           and source_imu(src) is not None)
     prepare_out(out, overwrite=overwrite)
     marker = out / INCOMPLETE
     # written first, removed last: even a kill -9 of this process leaves the folder marked
@@ -306,9 +311,8 @@ def _run(plan: SessionPlan) -> SessionSummary:
 
 
 def _keep_live_up(out: Path, found: dict) -> None:
-    """The up the mapper found from a live camera's IMU, into the session's config.toml and
-    metadata.json: a replay of the session (whose log gives the mapper no IMU stream) then draws the
-    same grid."""
+    """The up the mapper found (a live camera's accelerometer, the tracker's IMU), into the
+    session's config.toml and metadata.json: a replay of the session then draws the same grid."""
     config = tomllib.loads((out / "config.toml").read_text())
     config.setdefault("mapper", {})["grid_up"] = [float(v) for v in found["up"]]
     (out / "config.toml").write_text(to_toml(config))
@@ -377,7 +381,7 @@ def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, re
         (_status_span_ns(out) or played_ns(src.duration_ns, len(src), loop))
     s = SessionSummary(out=out, source=source, wall_s=wall, duration_s=played * 1e-9)
     s.map = json.loads((out / "map_stats.json").read_text())
-    if "map_frame" in s.map:  # a live camera: the mapper found up from its accelerometer
+    if "map_frame" in s.map:  # the mapper found up: a live camera's accelerometer, the tracker's IMU
         _keep_live_up(out, s.map["map_frame"])
     if (out / "metadata.json").exists():
         s.map_frame = json.loads((out / "metadata.json").read_text()).get("gravity", {}).get("note", NOT_ALIGNED)

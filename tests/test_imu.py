@@ -164,6 +164,25 @@ def test_without_the_imu_the_textureless_stretch_is_lost(octolog_run):
     assert "IMU: none" in stdout
 
 
+def test_the_map_stands_on_the_imus_gravity(octolog_run):
+    """The mapper builds `map` on the tracker's IMU estimate of up (tracker/gravity), at least twice
+    closer to the room's true up than the accelerometer's mean at the first frame, which the run
+    without the IMU takes; the session's config keeps it for its replays."""
+    import tomllib
+
+    from octolog.replay.sources import open_source
+
+    with_imu, _ = octolog_run(BLANK_SOURCE)
+    without, _ = octolog_run(BLANK_SOURCE, "--set", "tracker.imu=false")
+    truth = open_source(BLANK_SOURCE).scene.pose(0)[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+
+    def error_deg(out):
+        up = np.asarray(tomllib.loads((out / "config.toml").read_text())["mapper"]["grid_up"], float)
+        return np.degrees(np.arccos(np.clip(up @ truth / np.linalg.norm(up), -1.0, 1.0)))
+    assert "the tracker's IMU estimate" in json.loads((with_imu / "map_stats.json").read_text())["map_frame"]["note"]
+    assert error_deg(with_imu) < error_deg(without) / 2, (error_deg(with_imu), error_deg(without))
+
+
 def test_a_session_with_an_imu_replays_from_its_log_to_the_same_bytes(octolog_run, tmp_path):
     out, _ = octolog_run(BLANK_SOURCE)
     again = tmp_path / "again"

@@ -111,6 +111,7 @@ class Inertial:
         self._agreeing = self._disagreeing = 0
         self._rot_residuals: list[float] = []  # the newest gyro-bias spans' rotation residuals (rad)
         self._keyframe_mark: tuple[int, int] | None = None  # the newest keyframe's id and stamp
+        self._up_sum, self._up_n = np.zeros(3), 0  # the trusted alignments' up directions
         self.state = InertialState()
 
     # -- samples --------------------------------------------------------------------------------
@@ -186,6 +187,15 @@ class Inertial:
         self._propagated = (stamp_ns, T, self._velocity + self.gravity * dt + R @ dv)
         self.state.trusted_frames += self.trusted
         return rotation, (T @ self.imu_from_camera if self.trusted else None)
+
+    @property
+    def up(self) -> np.ndarray | None:
+        """Up (unit, against gravity) in the world frame: the mean direction of the alignments made
+        while the IMU was trusted (each from WINDOW_S of motion, its accelerometer bias confounded
+        with gravity differently as the camera turns); None before the first."""
+        if self._up_n == 0:
+            return None
+        return self._up_sum / np.linalg.norm(self._up_sum)
 
     @property
     def gyro_trusted(self) -> bool:
@@ -380,6 +390,8 @@ class Inertial:
         keep = np.r_[0:3 * n, 3 * n + 3:cols]
         x2 = np.linalg.lstsq(A[:, keep] * wt[:, None], (y - A[:, 3 * n:3 * n + 3] @ g) * wt, rcond=None)[0]
         self.gravity = g
+        if self.trusted:
+            self._up_sum, self._up_n = self._up_sum - g / GRAVITY_MS2, self._up_n + 1
         self.ba = self.ba + x2[3 * n:]
         self._velocity = x2[3 * (n - 1):3 * n].copy()
         self._since_align = 0

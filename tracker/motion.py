@@ -93,6 +93,11 @@ class MotionModel:
         """What the IMU did (None: no samples came)."""
         return None if self._imu is None else self._imu.state
 
+    @property
+    def imu_up(self) -> np.ndarray | None:
+        """Up in the world frame as the IMU estimates it (None: not trusted yet, or no IMU)."""
+        return None if self._imu is None else self._imu.up
+
     def _imu_predict(self, predicted: np.ndarray, stamp_ns: int) -> tuple[np.ndarray, np.ndarray | None]:
         """The motion model's prediction with the gyro's rotation since the last pose (the
         propagated pose itself after INERTIAL frames), and the IMU's propagated pose (None before

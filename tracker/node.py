@@ -39,6 +39,7 @@ from octolog.schemas.topics import (
     RGBD_END,
     TF,
     TF_STATIC,
+    TRACKER_GRAVITY,
     TRACKING_STATUS,
     TRAJECTORY,
 )
@@ -108,7 +109,17 @@ class _Outputs:
         self.kf_end = bus.publisher(KEYFRAME_END)
         self.poses = bus.publisher(KEYFRAME_POSES)
         self.deferred = bus.publisher(BACKEND_DEFERRED)
+        self.gravity = bus.publisher(TRACKER_GRAVITY)
         self.held: dict[int, RgbdFrame] = {}  # frames of keyframes not yet placed in the saved map, by seq
+
+    def up(self, odometry: Tracker, stamp_ns: int, *, final: bool = False) -> None:
+        """The IMU's up in `world` for the mapper's `map` frame: the first estimate once the IMU is
+        trusted, and (`final`) the session's, after the last keyframe (tracker/inertial.py: Inertial.up)."""
+        if self.gravity.count and not final:
+            return
+        up = getattr(odometry, "imu_up", None)
+        if up is not None:
+            self.gravity.put(posemsgs.vector3_stamped_msg(up, stamp_ns, "world"))
 
     def untracked(self, msg: Any, state: TrackingState, imu_mark: tuple[int, int] = (0, 0)) -> None:
         """A frame skipped or rejected: its status only."""
@@ -154,6 +165,8 @@ class _Outputs:
         # the whole trajectory at its final poses, for a log on another machine (the file is local)
         stamps, poses = odometry.trajectory()
         self.bus.publisher(TRAJECTORY).put(posemsgs.path_msg(stamps, poses))
+        if stamps:
+            self.up(odometry, int(stamps[-1]), final=True)
         self.kf_end.put(streammsgs.stream_end_msg(TRAJECTORY.name, 1))
         self.kf_end.put(streammsgs.stream_end_msg(KEYFRAME_POSES.name, self.poses.count))
         self.kf_end.put(streammsgs.stream_end_msg(self.kf.topic_name, self.kf.count))
@@ -261,6 +274,7 @@ def _track_frame(odometry: Tracker, cfg: TrackerConfig, prepare: Callable[[], tu
     result.lost += res.state == TrackingState.LOST
     result.inertial += res.state == TrackingState.INERTIAL
     out.tracked(frame, res, tree, ms, result, imu_mark)
+    out.up(odometry, frame.stamp_ns)
     shown.put(frame, res, result, odometry)
 
 
