@@ -6,7 +6,8 @@ camera's rate with the live tracker (`replay.rate=1`, `tracker.live=true`; `--lo
 frame, unpaced). Per run, from its session log and summary: frames LOST, INERTIAL and SKIPPED, ATE
 against the ground truth, the tracker's wall ms per frame (median, p90), for a case with a
 textureless stretch (`blank=AT+S`) the largest position drift over it relative to the last pose
-before it, and the map frame's error: the angle between its up and the room's (with the IMU the
+before it, and how far from level the map stands (the angle between its up and the room's true
+up seen from each tracked frame's estimated pose, averaged; with the IMU the map's up is the
 tracker's estimate, without it the accelerometer's mean at the first frame, each levelled on a
 horizontal plane of the first frame when it has one).
 
@@ -65,15 +66,25 @@ def run(source: str, imu: bool, out: Path, lockstep: bool) -> dict:
 
 
 def up_error_deg(out: Path, source: str) -> float:
-    """The angle between the session's map frame's up (config.toml's `mapper.grid_up`) and the
-    synthetic room's true up, in the first camera's frame."""
+    """How far from level the map stands, where the camera went: the angle between the map frame's
+    up (config.toml's `mapper.grid_up`, in `world`) and the room's true up as each tracked frame's
+    estimated pose puts it into `world`, averaged over the frames (a tracker whose attitude drifted
+    has no single right up; at frame 0 it is the first camera's true up)."""
     import tomllib
 
+    from octolog.kit.metrics import read_tum
     from octolog.replay.sources import open_source
 
     up = np.asarray(tomllib.loads((out / "config.toml").read_text())["mapper"]["grid_up"], float)
-    truth = open_source(source).scene.pose(0)[:3, :3].T @ np.array([0.0, 0.0, 1.0])
-    return float(np.degrees(np.arccos(np.clip(up @ truth / np.linalg.norm(up), -1.0, 1.0))))
+    up = up / np.linalg.norm(up)
+    scene = open_source(source).scene
+    seq = {scene.stamp_ns(i): i for i in range(len(scene))}
+    est = read_tum(out / "trajectory.txt")
+    angles = []
+    for k, stamp in enumerate(est.stamps_ns.tolist()):
+        seen = Rotation.from_quat(est.quats_xyzw[k]).as_matrix() @ scene.pose(seq[stamp])[:3, :3].T @ [0.0, 0.0, 1.0]
+        angles.append(np.degrees(np.arccos(np.clip(up @ seen, -1.0, 1.0))))
+    return float(np.mean(angles))
 
 
 def stretch_drift(out: Path, source: str) -> float:
