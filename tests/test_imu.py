@@ -110,6 +110,32 @@ def test_the_imus_estimates_converge_on_the_synthetic_truth(motion):
     assert errors and max(errors) < 0.005
 
 
+@pytest.mark.parametrize("off_deg", [0.0, 30.0, 90.0])
+def test_vision_overrules_a_gyro_whose_axes_are_wrong(off_deg):
+    """Told a camera-IMU rotation 30 or 90 degrees off (a calibration for another mounting, axes
+    swapped), the gyro's rotations disagree with vision's: it predicts nothing, propagates nothing
+    and gives the back end no factor (the tracker drops those it gave). The right one is confirmed
+    and gives a factor at every keyframe."""
+    scene = SyntheticScene(n_frames=90, motion="turns", imu_hz=200.0, seed=3)
+    sim = scene.simulated_imu
+    wrong = np.eye(4)
+    wrong[:3, :3] = Rotation.from_rotvec(np.radians(off_deg) * np.array([0.6, 0.8, 0.0])).as_matrix()
+    imu = Inertial(wrong, noise=D455)
+    factors = []
+    for i in range(90):
+        stamp = scene.stamp_ns(i)
+        imu.add(sim.samples.between(stamp - 50_000_000 if i == 0 else scene.stamp_ns(i - 1), stamp))
+        _, propagated = imu.step_to(stamp)
+        if i % 6 == 0:
+            factors.append(imu.keyframe_rotation(i // 6, stamp))
+        imu.observe(stamp, scene.pose(i))
+    confirmed = off_deg == 0.0
+    assert imu.gyro_trusted == imu.gyro_confirmed == confirmed
+    assert all(f is not None for f in factors[2:]) if confirmed else all(f is None for f in factors[-5:])
+    if not confirmed:
+        assert propagated is None or not imu.trusted
+
+
 def _status_states(session) -> list[int]:
     return [codec.decode(m.data, TRACKING_STATUS.msgtype).state
             for m in read_wire(session / "session.mcap", [TRACKING_STATUS.name])]

@@ -34,8 +34,8 @@ GYRO_MEMORY_S = 30.0  # the gyro-bias estimate forgets older rotations over this
 VISUAL_ROTATION_SIGMA = 3e-4  # rad: a tracked frame's rotation error
 VISUAL_POSITION_SIGMA = 4e-3  # m: a tracked frame's position error
 MAX_ROTATION_RESIDUAL = np.radians(2.0)  # a span the gyro disagrees with more is not evidence (a bad pose)
-# a span turning faster is no evidence for the gyro's bias or against its rotations (gyro_trusted):
-# its images are blurred, vision's rotations uncertain
+# a span turning faster is no evidence for the gyro's bias: its images are blurred, vision's
+# rotations uncertain
 MAX_EVIDENCE_RATE = np.radians(60.0)
 WINDOW_S = 2.0  # gravity, velocity and accelerometer-bias alignment: the newest tracked time
 NODE_STEP = 5  # frames between the alignment's nodes
@@ -47,10 +47,17 @@ GYRO_BIAS_SIGMA = np.radians(1.0)  # rad/s: the gyro bias's prior spread
 # been within AGREE_M of vision's for TRUST_FRAMES frames in a row; vision overrules it after
 # MAX_DISAGREEING vetoes in a row
 AGREE_M = 0.02
-# The gyro's rotation is a prior of the pose fit unless the median residual of the newest
-# GYRO_CHECK_SPANS spans (vision's rotation against the gyro's) is above GYRO_AGREE_RAD
+# Vision checks the gyro: over the newest GYRO_CHECK_SPANS spans of GYRO_CHECK_FRAMES frames turning
+# at least GYRO_CHECK_MIN_RAD, the median of vision's rotation against the gyro's, relative to the
+# angle turned, must be at most GYRO_AGREE_RATIO. A camera-IMU rotation off by some 15 degrees or
+# more fails (its residual is that angle's share of every turn), as do swapped axes and a made-up
+# IMU; vision's own rotation over two frames of a heavily blurred first turn erred by up to 0.2.
+# A gyro that fails predicts nothing (the motion model's constant velocity), and the gyro is a prior
+# of the pose fit and a back-end factor only once at least one span has passed (`gyro_confirmed`)
 GYRO_CHECK_SPANS = 15
-GYRO_AGREE_RAD = np.radians(0.5)
+GYRO_CHECK_FRAMES = 2  # frames each checked span covers: the first check two frames in
+GYRO_CHECK_MIN_RAD = np.radians(1.0)  # a span turning less says little about the axes
+GYRO_AGREE_RATIO = 0.25
 TRUST_FRAMES = 30
 MAX_DISAGREEING = 3
 MAX_GAP_NS = 100_000_000  # an IMU silent this long between samples leaves the interval unmeasured
@@ -109,7 +116,7 @@ class Inertial:
         self._pending: tuple[int, tuple[np.ndarray, np.ndarray, np.ndarray] | None] | None = None
         self._propagated: tuple[int, np.ndarray, np.ndarray] | None = None  # stamp, world_from_imu, velocity
         self._agreeing = self._disagreeing = 0
-        self._rot_residuals: list[float] = []  # the newest gyro-bias spans' rotation residuals (rad)
+        self._rot_residuals: list[float] = []  # the newest turning spans' residuals over the angle turned
         self._keyframe_mark: tuple[int, int] | None = None  # the newest keyframe's id and stamp
         self._up_sum, self._up_n = np.zeros(3), 0  # the trusted alignments' up directions
         self.state = InertialState()
@@ -199,10 +206,16 @@ class Inertial:
 
     @property
     def gyro_trusted(self) -> bool:
-        """The gyro's rotations have not disagreed with vision's: the median of the newest
-        GYRO_CHECK_SPANS spans' residuals under GYRO_AGREE_RAD (a wrong camera-IMU rotation fails)."""
-        return len(self._rot_residuals) < GYRO_CHECK_SPANS or \
-            float(np.median(self._rot_residuals[-GYRO_CHECK_SPANS:])) <= GYRO_AGREE_RAD
+        """Vision does not contradict the gyro's rotations: the median relative residual of the
+        newest GYRO_CHECK_SPANS turning spans is at most GYRO_AGREE_RATIO (true before the first
+        span; a wrong camera-IMU rotation, swapped axes or a made-up IMU fail at it)."""
+        return not self._rot_residuals or float(np.median(self._rot_residuals)) <= GYRO_AGREE_RATIO
+
+    @property
+    def gyro_confirmed(self) -> bool:
+        """Vision's turns have confirmed the gyro's rotations (`gyro_trusted` after the first
+        turning span): what the pose fit's prior and the back end's factors wait for."""
+        return bool(self._rot_residuals) and self.gyro_trusted
 
     @property
     def trusted(self) -> bool:
@@ -259,6 +272,7 @@ class Inertial:
         elif not continuous or seg is None:
             self._velocity = None
         self._records.append(_Record(stamp_ns, T, True, continuous and seg is not None, seg))
+        self._gyro_check()
         self._gyro_evidence()
         self._since_align += 1
         if self._since_align >= REALIGN_EVERY or (self.gravity is None or self._velocity is None):
@@ -268,11 +282,11 @@ class Inertial:
     def keyframe_rotation(self, kf_id: int, stamp_ns: int) -> tuple[int, np.ndarray, float] | None:
         """A keyframe at the frame `step_to` went to (or the first frame): the gyro's rotation since
         the keyframe before (its id, camera_before_from_camera, sigma in rad) for the back end's
-        bundle adjustment; None without IMU over every interval since, or while the gyro disagrees
-        with vision (`gyro_trusted`)."""
+        bundle adjustment; None without IMU over every interval since, or before vision has
+        confirmed the gyro (`gyro_confirmed`)."""
         prev, self._keyframe_mark = self._keyframe_mark, (kf_id, stamp_ns)
         pending = self._pending
-        if prev is None or pending is None or pending[0] != stamp_ns or pending[1] is None or not self.gyro_trusted:
+        if prev is None or pending is None or pending[0] != stamp_ns or pending[1] is None or not self.gyro_confirmed:
             return None
         since = [r for r in self._records if r.stamp_ns > prev[1]]
         if not any(r.stamp_ns == prev[1] for r in self._records) or \
@@ -309,6 +323,20 @@ class Inertial:
         parts = [r.segments for r in recs[1:]]
         return tuple(np.concatenate([p[k] for p in parts]) for k in range(3))  # type: ignore[return-value]
 
+    def _gyro_check(self) -> None:
+        """The rotation over the newest GYRO_CHECK_FRAMES frames, vision's against the gyro's,
+        relative to the angle turned, into the check of `gyro_trusted` (a span turning less than
+        GYRO_CHECK_MIN_RAD is no evidence)."""
+        recs = self._chain(GYRO_CHECK_FRAMES)
+        if recs is None:
+            return
+        R0, _, _ = self._delta(self._preintegrate(self._span_segments(recs)), self.ba, self.bg)
+        vis = recs[0].world_from_imu[:3, :3].T @ recs[-1].world_from_imu[:3, :3]
+        turned = max(float(np.linalg.norm(so3_log(R0))), float(np.linalg.norm(so3_log(vis))))
+        if turned >= GYRO_CHECK_MIN_RAD:
+            residual = float(np.linalg.norm(so3_log(R0.T @ vis))) / turned
+            self._rot_residuals = [*self._rot_residuals[-GYRO_CHECK_SPANS + 1:], residual]
+
     def _gyro_evidence(self) -> None:
         """The rotation over the newest GYRO_SPAN frames into the gyro bias's normal equations."""
         recs = self._chain(GYRO_SPAN)
@@ -320,10 +348,7 @@ class Inertial:
         vis = recs[0].world_from_imu[:3, :3].T @ recs[-1].world_from_imu[:3, :3]
         R0, _, _ = self._delta(pim, self.ba, self.bg)
         r = so3_log(R0.T @ vis)
-        if np.linalg.norm(so3_log(R0)) > MAX_EVIDENCE_RATE * dt:
-            return  # neither bias nor trust evidence: vision's rotation is the uncertain one
-        self._rot_residuals = [*self._rot_residuals[-GYRO_CHECK_SPANS + 1:], float(np.linalg.norm(r))]
-        if np.linalg.norm(r) > MAX_ROTATION_RESIDUAL:
+        if np.linalg.norm(r) > MAX_ROTATION_RESIDUAL or np.linalg.norm(so3_log(R0)) > MAX_EVIDENCE_RATE * dt:
             return
         J = np.zeros((3, 3))
         for k in range(3):

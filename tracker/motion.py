@@ -101,19 +101,21 @@ class MotionModel:
     def _imu_predict(self, predicted: np.ndarray, stamp_ns: int) -> tuple[np.ndarray, np.ndarray | None]:
         """The motion model's prediction with the gyro's rotation since the last pose (the
         propagated pose itself after INERTIAL frames), and the IMU's propagated pose (None before
-        gravity and velocity are known, or without samples over the interval)."""
+        gravity and velocity are known, or without samples over the interval). A gyro that vision's
+        turns contradict (`Inertial.gyro_trusted`: a wrong camera-IMU rotation) leaves the
+        constant-velocity prediction and propagates nothing."""
         self._rotation_prior = None
         if self._imu is None or self._last_pose is None:
             return predicted, None
         rotation, propagated = self._imu.step_to(stamp_ns)
-        if rotation is None:
+        if rotation is None or not self._imu.gyro_trusted:  # a gyro vision contradicts predicts nothing
             return predicted, None
         if self._coasting and propagated is not None:
             out = propagated.copy()
         else:
             out = predicted.copy()
             out[:3, :3] = self._last_pose[:3, :3] @ rotation
-        if (self._last_ok or self._coasting) and self._imu.gyro_trusted:  # the step from the last pose is motion
+        if (self._last_ok or self._coasting) and self._imu.gyro_confirmed:  # the step from the last pose is motion
             frames = max(1.0, (stamp_ns - self._last_stamp) / FRAME_NS)
             self._rotation_prior = (out[:3, :3].T.copy(), ROTATION_PRIOR_SIGMA * np.sqrt(frames))
         return out, propagated
@@ -148,8 +150,14 @@ class MotionModel:
                            depth_inverse_offset=self.depth_offset)
 
     def _imu_keyframe(self, kf_id: int, stamp_ns: int) -> tuple[int, np.ndarray, float] | None:
-        """A keyframe at this frame: the gyro's rotation since the keyframe before (Keyframe.gyro)."""
-        return None if self._imu is None else self._imu.keyframe_rotation(kf_id, stamp_ns)
+        """A keyframe at this frame: the gyro's rotation since the keyframe before (Keyframe.gyro).
+        While vision contradicts the gyro, the factors it gave leave every keyframe."""
+        if self._imu is None:
+            return None
+        if not self._imu.gyro_trusted:
+            for kf in self._keyframes:
+                kf.gyro = None
+        return self._imu.keyframe_rotation(kf_id, stamp_ns)
 
     def _imu_observe(self, stamp_ns: int, pose: np.ndarray, *, continuous: bool,
                      moved: np.ndarray | None = None) -> None:
