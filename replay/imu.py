@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from octolog.kit.imu import ImuNoise, ImuSamples, read_imu_txt, unite
-from octolog.kit.mcaplog import read_messages, read_wire
+from octolog.kit.mcaplog import message_counts, read_messages, read_wire
 from octolog.replay.sources import McapSource, Retimed, Subsampled, SyntheticSource, TumSource
 from octolog.schemas import codec, sensormsgs
 from octolog.schemas.topics import ACCEL, GYRO, TRACKING_STATUS
@@ -78,6 +78,15 @@ def tum_imu(source: TumSource) -> SourceImu | None:
     if cal.camera_from_imu is None:
         return SourceImu(shifted, COLOR_FRAME)
     return SourceImu(shifted, IMU_FRAME, cal.camera_from_imu)
+
+
+def has_imu(source: object) -> bool:
+    """Whether a replay source has IMU samples (a recording by its topic counts, without reading them)."""
+    inner = source.inner if isinstance(source, Subsampled) else source
+    counts = message_counts(inner.path) if isinstance(inner, McapSource) else None
+    if counts is not None:  # a complete recording's summary section
+        return all(counts.get(name, 0) >= 2 for name in (GYRO.name, ACCEL.name))
+    return source_imu(source) is not None
 
 
 def recorded_imu(path: Path) -> SourceImu | None:

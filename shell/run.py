@@ -29,7 +29,7 @@ from octolog.kit.viz import parse_spec
 from octolog.mapper.config import MapperConfig
 from octolog.replay import gravity
 from octolog.replay.config import ReplayConfig
-from octolog.replay.imu import source_imu
+from octolog.replay.imu import has_imu
 from octolog.replay.sources import Source, backend_deferred, open_source
 from octolog.schemas import codec
 from octolog.schemas import topics as T
@@ -199,7 +199,7 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
         cfgs["recorder"] = dataclasses.replace(cfgs["recorder"], publish_lag_ms=cfgs["tracker"].live_lag_ms)
     cfgs["mapper"], map_frame = _map_frame(cfgs["mapper"], src,
                                            imu=cfgs["tracker"].imu and not isinstance(src, LiveSource)
-                                           and source_imu(src) is not None)
+                                           and has_imu(src))
     prepare_out(out, overwrite=overwrite)
     marker = out / INCOMPLETE
     # written first, removed last: even a kill -9 of this process leaves the folder marked

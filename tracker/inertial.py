@@ -63,7 +63,7 @@ MAX_DISAGREEING = 3
 MAX_GAP_NS = 100_000_000  # an IMU silent this long between samples leaves the interval unmeasured
 # A gyro's rotation is off by this fraction of the angle turned (the path's, there and back): its
 # scale-factor and cross-axis errors (BMI055: about 1 % each), a camera-IMU rotation known to a
-# fraction of a degree, and the sample-and-hold integration of a fast-changing rate
+# fraction of a degree, and the discrete integration of a fast-changing rate
 GYRO_SCALE_ERROR = 0.01
 _EPS_BIAS = 1e-4
 
