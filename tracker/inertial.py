@@ -292,9 +292,8 @@ class Inertial:
         if not any(r.stamp_ns == prev[1] for r in self._records) or \
                 not all(r.continuous and r.segments is not None for r in since):
             return None
-        parts = [r.segments for r in since] + [pending[1]]
-        seg = tuple(np.concatenate([p[k] for p in parts]) for k in range(3))  # type: ignore[index]
-        dR, _, _ = self._delta(self._preintegrate(seg), self.ba, self.bg)  # type: ignore[arg-type]
+        seg = _joined([r.segments for r in since] + [pending[1]])  # type: ignore[list-item]
+        dR, _, _ = self._delta(self._preintegrate(seg), self.ba, self.bg)
         dt = float(seg[0].sum())
         bias_sigma = float(np.sqrt(np.linalg.eigvalsh(np.linalg.inv(self._H)).max()))
         turned = float(np.linalg.norm(seg[1] - self.bg, axis=1) @ seg[0])  # the path's angle, not the net
@@ -320,18 +319,27 @@ class Inertial:
         return recs
 
     def _span_segments(self, recs: list[_Record]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        parts = [r.segments for r in recs[1:]]
-        return tuple(np.concatenate([p[k] for p in parts]) for k in range(3))  # type: ignore[return-value]
+        return _joined([r.segments for r in recs[1:]])  # type: ignore[misc]
+
+    def _span(self, n: int) -> tuple[gtsam.PreintegratedImuMeasurements, float, np.ndarray, np.ndarray] | None:
+        """Over the newest n frames (an unbroken visual chain): the preintegration, its seconds, and
+        the rotation the gyro and vision each give (imu_first_from_imu_last); None without one."""
+        recs = self._chain(n)
+        if recs is None:
+            return None
+        seg = self._span_segments(recs)
+        pim = self._preintegrate(seg)
+        R0, _, _ = self._delta(pim, self.ba, self.bg)
+        return pim, float(seg[0].sum()), R0, recs[0].world_from_imu[:3, :3].T @ recs[-1].world_from_imu[:3, :3]
 
     def _gyro_check(self) -> None:
         """The rotation over the newest GYRO_CHECK_FRAMES frames, vision's against the gyro's,
         relative to the angle turned, into the check of `gyro_trusted` (a span turning less than
         GYRO_CHECK_MIN_RAD is no evidence)."""
-        recs = self._chain(GYRO_CHECK_FRAMES)
-        if recs is None:
+        span = self._span(GYRO_CHECK_FRAMES)
+        if span is None:
             return
-        R0, _, _ = self._delta(self._preintegrate(self._span_segments(recs)), self.ba, self.bg)
-        vis = recs[0].world_from_imu[:3, :3].T @ recs[-1].world_from_imu[:3, :3]
+        _, _, R0, vis = span
         turned = max(float(np.linalg.norm(so3_log(R0))), float(np.linalg.norm(so3_log(vis))))
         if turned >= GYRO_CHECK_MIN_RAD:
             residual = float(np.linalg.norm(so3_log(R0.T @ vis))) / turned
@@ -339,14 +347,10 @@ class Inertial:
 
     def _gyro_evidence(self) -> None:
         """The rotation over the newest GYRO_SPAN frames into the gyro bias's normal equations."""
-        recs = self._chain(GYRO_SPAN)
-        if recs is None:
+        span = self._span(GYRO_SPAN)
+        if span is None:
             return
-        seg = self._span_segments(recs)
-        pim = self._preintegrate(seg)
-        dt = float(seg[0].sum())
-        vis = recs[0].world_from_imu[:3, :3].T @ recs[-1].world_from_imu[:3, :3]
-        R0, _, _ = self._delta(pim, self.ba, self.bg)
+        pim, dt, R0, vis = span
         r = so3_log(R0.T @ vis)
         if np.linalg.norm(r) > MAX_ROTATION_RESIDUAL or np.linalg.norm(so3_log(R0)) > MAX_EVIDENCE_RATE * dt:
             return
@@ -446,3 +450,8 @@ class Inertial:
         cut = int(np.searchsorted(self._t, newest, side="left")) - 1
         if cut > 0:
             self._t, self._w, self._a = self._t[cut:], self._w[cut:], self._a[cut:]
+
+
+def _joined(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Consecutive intervals' pieces (dt, gyro, accel) as one interval's."""
+    return tuple(np.concatenate([p[k] for p in parts]) for k in range(3))  # type: ignore[return-value]
