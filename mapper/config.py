@@ -94,6 +94,12 @@ class MapperConfig:
     # keyframes of its neighbours' tiles
     shard: str = ""
     tile_m: float = 16.0
+    # a sharded fleet map has one placement authority: the shard without `follow` places the robots
+    # and publishes every call it makes on its map (stage `placement` in its namespace; its folder's
+    # placed.jsonl, mapper/fleet/journal.py). `follow` names it: its namespace (live), or
+    # "journal:PATH" (its folder or placed.jsonl) to build this shard again from the robots' logs.
+    # "": this mapper places the robots itself
+    follow: str = ""
 
     def validate(self) -> None:
         """The one check of every value; the core and the backends trust what passes it."""
@@ -108,6 +114,8 @@ class MapperConfig:
             raise ConfigError(f"mapper.backend {self.backend!r}: want numpy or octomap")
         if not (math.isfinite(self.robot_stall_s) and self.robot_stall_s >= 0):
             raise ConfigError(f"mapper.robot_stall_s {self.robot_stall_s}: want >= 0 (0: wait for every robot)")
+        if self.follow and not self.robots:
+            raise ConfigError(f"mapper.follow {self.follow!r}: only for a fleet map (mapper.robots)")
         if not (math.isfinite(self.relink_after_m) and self.relink_after_m >= 0):
             raise ConfigError(f"mapper.relink_after_m {self.relink_after_m}: want >= 0 (0: off)")
         if self.publish_every < 0:

@@ -13,6 +13,7 @@ from octolog.kit.errors import InputError, MapError
 from octolog.kit.viz import Viz
 from octolog.mapper.config import MapperConfig
 from octolog.mapper.core import Mapper, make_mapper
+from octolog.mapper.fleet.follow import run_follower
 from octolog.mapper.fleet.node import run_fleet
 from octolog.mapper.mapframe import MapFrame
 from octolog.mapper.prior import PriorSeed
@@ -35,7 +36,8 @@ def run(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: str = "o
         recording_id: str = "octolog") -> MapperResult:
     """The mapper process: consume keyframes until the tracker's stream ends, then write the map."""
     if cfg.robots:
-        return run_fleet(cfg, bus_cfg, out_dir=out_dir, rerun=rerun, recording_id=recording_id)
+        fleet = run_follower if cfg.follow else run_fleet
+        return fleet(cfg, bus_cfg, out_dir=out_dir, rerun=rerun, recording_id=recording_id)
     mapper = make_mapper(cfg)
     prior = PriorSeed(cfg.prior) if cfg.prior else None  # before the bus: a bad prior stops nothing running
     with Bus(bus_cfg, cfg.stage, inbox_size=INBOX_KEYFRAMES) as bus, Viz(rerun, "mapper", recording_id) as viz:

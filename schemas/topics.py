@@ -72,6 +72,9 @@ MAP_END = Topic("mapper/end", "octolog_msgs/msg/StreamEnd")
 # Several robots without start poses: a robot placed in the map (JSON in a String: which keyframes
 # matched, the evidence, world_from_robot), once per robot (mapper/fleet/placement.py)
 MAP_MERGE = Topic("mapper/merge", "std_msgs/msg/String")
+# A sharded map's placement authority: every call the placing shard makes on its map, in order (one
+# JSON object per sample; mapper/fleet/journal.py), for the shards that follow it (`mapper.follow`)
+MAP_PLACED = Topic("mapper/placed", "std_msgs/msg/String")
 
 # The frames (docs/formats.md "Frames"): the tracker's camera in `world` on every frame; the
 # mapper's `map` -> `world` once (REP 105's map frame: z up)
@@ -86,7 +89,7 @@ CONFIGS = {stage: Topic(f"{stage}/config", "std_msgs/msg/String") for stage in (
 
 ALL = (RGBD, RGBD_END, POSE, TRACKING_STATUS, KEYFRAME, KEYFRAME_END, KEYFRAME_POSES, MAP_UPDATE, OCTOMAP,
        OCCUPIED, GRID, MAP_END, RGBD_COMPRESSED, KEYFRAME_COMPRESSED, CAMERA_PROPERTIES, TF, TF_STATIC, TRAJECTORY,
-       MAP_MERGE, GRAVITY, BACKEND_DEFERRED, GYRO, ACCEL, TRACKER_GRAVITY,
+       MAP_MERGE, GRAVITY, BACKEND_DEFERRED, GYRO, ACCEL, TRACKER_GRAVITY, MAP_PLACED,
        *CONFIGS.values())
 # The camera frames: what stays on a robot when the log runs elsewhere (`octolog log --no-frames`)
 FRAMES = (RGBD, RGBD_COMPRESSED)

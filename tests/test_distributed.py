@@ -358,11 +358,12 @@ with Bus(cfg, "probe") as bus:
 
 
 def _sharded_run(names: dict, addr: dict, log: Path, out: Path, shards: tuple[str, ...], *, whole: bool,
-                 kill: str = "") -> dict[str, int]:
+                 kill: str = "", follow: str = "map/s1") -> dict[str, int]:
     """Router on host d; mapper shard K of 2 on host a (K=1) or b (K=2), each in namespace map/sK,
-    and with `whole` one unsharded mapper on d (namespace map/all); two robots' keyframe streams
-    replayed on host c from a session log, r2 from frame 4 on, no start poses. With `kill`, that
-    shard is SIGKILLed at its first map update. The processes' exit codes."""
+    shard 2 following shard 1's placement (`follow`: its namespace, or its journal file), and with
+    `whole` one unsharded mapper on d (namespace map/all); two robots' keyframe streams replayed on
+    host c from a session log, r2 from frame 4 on, no start poses. With `kill`, that shard is
+    SIGKILLed at its first map update. The processes' exit codes."""
     out.mkdir(parents=True, exist_ok=True)
     procs = {"router": _start(names["d"], "router", "--listen", "tcp/0.0.0.0:7447", log=out / "router.log")}
     codes = {}
@@ -383,7 +384,8 @@ def _sharded_run(names: dict, addr: dict, log: Path, out: Path, shards: tuple[st
             k = shard.split("/")[0]
             procs[f"mapper-{k}"] = _start(names["a" if k == "1" else "b"], "map", *bus("a" if k == "1" else "b"),
                                           "--namespace", f"map/s{k}", "--out", str(out / f"s{k}"), *fleet,
-                                          "--set", f"shard={shard}", log=out / f"mapper-{k}.log")
+                                          "--set", f"shard={shard}", *(["--set", f"follow={follow}"] if k == "2" else []),
+                                          log=out / f"mapper-{k}.log")
             waits.append(f"mapper-{k}")
         if whole:
             procs["mapper"] = _start(names["d"], "map", *bus("d"), "--namespace", "map/all", "--out",
@@ -408,11 +410,13 @@ def _sharded_run(names: dict, addr: dict, log: Path, out: Path, shards: tuple[st
 @pytest.mark.slow
 def test_map_shards_on_two_hosts_stitch_into_one_mappers_map(hosts, single_host, tmp_path):
     """docs/deployment.md's sharded layout: two robots (keyframe streams replayed on host c), the
-    map in 2 m tiles over two mapper shards on hosts a and b, and one whole mapper on d for
-    reference, all at once, no start poses. `octolog stitch` of the two shards gives the whole
-    mapper's map files byte for byte. Then shard 2 is killed at its first map update: the robots and
-    shard 1 finish, the stitch writes shard 1's tiles and names shard 2 in one line (exit 3); shard 2
-    run again on the same log alone fills the map."""
+    map in 2 m tiles over two mapper shards on hosts a and b, shard 1 placing the robots and shard 2
+    following its journal, and one whole mapper on d for reference, all at once, no start poses.
+    `octolog stitch` of the two shards gives the whole mapper's map files byte for byte. Then shard 2
+    is killed at its first map update: the robots and shard 1 finish, the stitch writes shard 1's
+    tiles and names shard 2 in one line (exit 3); shard 2 run again alone on the same log, following
+    shard 1's journal file, fills the map with the whole mapper's bytes. Last, the placing shard is
+    killed: the follower says in one line that it cannot go on, and writes no shard."""
     names, addr = hosts
     log = single_host / "session.mcap"
     first = tmp_path / "first"
@@ -435,11 +439,18 @@ def test_map_shards_on_two_hosts_stitch_into_one_mappers_map(hosts, single_host,
     assert partial.returncode == 3, partial.stdout + partial.stderr
     assert [line for line in partial.stdout.splitlines() if "shard 2/2 missing" in line], partial.stdout
     assert (second / "partial" / "map.bt").read_bytes() == (first / "s1" / "map.bt").read_bytes()
-    codes = _sharded_run(names, addr, log, second / "again", ("2/2",), whole=False)
+    codes = _sharded_run(names, addr, log, second / "again", ("2/2",), whole=False,
+                         follow=f"journal:{second / 's1'}")
     assert set(codes.values()) == {0}, codes
     filled = octolog("stitch", str(second / "s1"), str(second / "again" / "s2"), "--out", str(second / "filled"),
                      check=False)
     assert filled.returncode == 0, filled.stdout + filled.stderr
-    # the re-run shard's tiles are complete (both shards in the map); its bytes against the whole
-    # mapper's are not held yet: a re-run alone placed r2 differently once in CI (open, see docs)
-    assert json.loads((second / "filled" / "map_stats.json").read_text())["missing_shards"] == []
+    for name in ("map.bt", "map.ot", "cloud.ply", "map.pgm"):
+        assert (second / "filled" / name).read_bytes() == (first / "all" / name).read_bytes(), name
+
+    third = tmp_path / "third"
+    codes = _sharded_run(names, addr, log, third, ("1/2", "2/2"), whole=False, kill="1/2")
+    assert codes["mapper-1"] < 0 and codes["mapper-2"] > 0, codes
+    said = (third / "mapper-2.log").read_text()
+    assert [line for line in said.splitlines() if "the placing mapper in map/s1 is gone" in line], said
+    assert not (third / "s2" / "shard.npz").exists()

@@ -21,6 +21,7 @@ from octolog.kit.errors import InputError, MapError
 from octolog.kit.geometry import RgbdFrame, invert
 from octolog.mapper.core import Mapper
 from octolog.mapper.fleet.joint_graph import Link, joint_poses, needs_graph
+from octolog.mapper.fleet.journal import Journal
 from octolog.mapper.fleet.order import CorrectionItem, KeyframeItem
 from octolog.mapper.fleet.placement import Merge, Placement
 from octolog.schemas import posemsgs, rgbdmsgs
@@ -45,10 +46,13 @@ class FleetMap:
     """The mapper, the placement and what ties them: map-wide ids, trajectories, the robots' own poses."""
 
     def __init__(self, mapper: Mapper, robots: tuple[str, ...], placement: Placement,
-                 hooks: FleetHooks | None = None) -> None:
+                 hooks: FleetHooks | None = None, journal: Journal | None = None) -> None:
+        """`journal`: where every call on the map is written down for shards that follow this
+        mapper's placement (mapper/fleet/journal.py)."""
         n = len(robots)
         self.mapper, self.robots, self.placement = mapper, robots, placement
         self.hooks = hooks or FleetHooks()
+        self.journal = journal
         self.map_id: list[dict[int, int]] = [{} for _ in range(n)]  # robot keyframe id -> map-wide id
         self.trajectories: list[list[tuple[int, int]]] = [[] for _ in range(n)]  # (stamp, map-wide id)
         self.robot_pose: list[dict[int, np.ndarray]] = [{} for _ in range(n)]  # map-wide id -> robot_from_camera
@@ -76,7 +80,14 @@ class FleetMap:
             if mine and p.world_from_robot[r] is not None:
                 last = max(mine)
                 p.world_from_robot[r] = poses[last] @ invert(mine[last])
-        return self.mapper.correct(poses)
+        return self._move(poses)
+
+    def _move(self, poses: dict[int, np.ndarray]) -> int:
+        """`Mapper.correct`, written down once it is taken."""
+        moved = self.mapper.correct(poses)
+        if self.journal is not None:
+            self.journal.corrected(poses)
+        return moved
 
     def _correct(self, i: int, item: CorrectionItem) -> None:
         try:
@@ -86,12 +97,14 @@ class FleetMap:
                 self.placement.correct(i, poses)
                 return
             mine = self.map_id[i]
-            recorrected = self.mapper.recorrect_depth([mine[k] for k in poses if k in mine],
-                                                      float(item.poses.depth_inverse_offset))
+            ids, offset = [mine[k] for k in poses if k in mine], float(item.poses.depth_inverse_offset)
+            recorrected = self.mapper.recorrect_depth(ids, offset)
+            if self.journal is not None and recorrected:
+                self.journal.recorrected(ids, offset)
             self.robot_pose[i].update({mine[k]: T for k, T in poses.items() if k in mine})
             moved = self.settle()  # with links: the joint graph, from the robot's corrected poses
             if moved is None:
-                moved = self.mapper.correct({mine[k]: W @ T for k, T in poses.items() if k in mine})
+                moved = self._move({mine[k]: W @ T for k, T in poses.items() if k in mine})
             self.corrections += max(moved, len(recorrected))
         except InputError as exc:  # the whole correction is refused; the map is unchanged
             self.problems.append(f"{self.robots[i]}: {exc}")
@@ -117,14 +130,17 @@ class FleetMap:
         while todo:
             r, kid, stamp, pose, frame = todo.pop(0)
             gid = len(self.mapper.keyframes)
+            world_from_camera = p.world_from_robot[r] @ pose
             try:
-                pts = self.mapper.integrate(gid, p.world_from_robot[r] @ pose, frame)
+                pts = self.mapper.integrate(gid, world_from_camera, frame)
             except (InputError, MapError) as exc:  # one update per keyframe taken (mapper/end's count)
                 self.skipped += 1
                 self.problems.append(f"{self.robots[r]}: {exc}")
                 self.hooks.refused(stamp, kid, (time.perf_counter() - t0) * 1e3)
                 t0 = time.perf_counter()
                 continue
+            if self.journal is not None:
+                self.journal.integrated(r, kid, stamp, gid, world_from_camera)
             self.map_id[r][kid] = gid
             self.trajectories[r].append((stamp, gid))
             self.keyframes += 1

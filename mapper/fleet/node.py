@@ -22,6 +22,7 @@ from octolog.kit.viz import Viz
 from octolog.mapper.config import MapperConfig
 from octolog.mapper.core import Mapper, make_mapper
 from octolog.mapper.fleet.assembly import FleetHooks, FleetMap
+from octolog.mapper.fleet.journal import Journal
 from octolog.mapper.fleet.order import CorrectionItem, FleetMerge, KeyframeItem, Watermark
 from octolog.mapper.fleet.placement import Merge, Placement
 from octolog.mapper.mapframe import MapFrame
@@ -42,6 +43,7 @@ from octolog.schemas.topics import (
     KEYFRAME_END,
     KEYFRAME_POSES,
     MAP_MERGE,
+    MAP_PLACED,
     MAP_SAVE,
     MAP_UPDATE,
     TRACKING_STATUS,
@@ -60,7 +62,9 @@ def run_fleet(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: st
               recording_id: str = "octolog") -> MapperResult:
     """One mapper for several robots: one Zenoh session per robot namespace (each subscribes to that
     robot's keyframes and announces the mapper there), one for the map outputs in the mapper's own
-    namespace. Keyframes are merged in the order mapper/fleet/order.py defines."""
+    namespace. Keyframes are merged in the order mapper/fleet/order.py defines. A shard that places
+    (no `mapper.follow`) is its map's placement authority: one more session announces the stage
+    `placement` and publishes the journal of its calls on the map (mapper/fleet/journal.py)."""
     mapper = make_mapper(cfg)
     with contextlib.ExitStack() as stack:
         bus = stack.enter_context(Bus(bus_cfg, cfg.stage, inbox_size=INBOX_KEYFRAMES))
@@ -68,21 +72,44 @@ def run_fleet(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: st
                                                inbox_size=ROBOT_INBOX)) for r in cfg.robots]
         viz = stack.enter_context(Viz(rerun, "mapper", recording_id))
         frame = MapFrame(mapper, bus, viz, from_imu=False, ask=None if cfg.grid_up else robot_buses[0])
+        journal = _journal(stack, cfg, bus_cfg, mapper, frame)
         publisher = MapSnapshots(bus, mapper, cfg.publish_every)
-        result, trajectories = consume_fleet(mapper, cfg, bus, robot_buses, viz, publisher, out_dir, frame)
+        result, trajectories = consume_fleet(mapper, cfg, bus, robot_buses, viz, publisher, out_dir, frame, journal)
         per_robot = write_trajectories(mapper, cfg.robots, trajectories, out_dir)
         for robot in per_robot:  # placed by its start pose or by a shared place, or left out
             per_robot[robot]["merged"] = robot not in result.unmerged
             per_robot[robot]["lost"] = robot in result.lost
         frame.from_first_robot(None)  # no keyframe came: announce the level frame
         stats = {"robots": per_robot, "merges": result.merges, "links": result.links, **({"map_frame": frame.found} if frame.found else {})}
+        if journal is not None:
+            journal.end(summary(result))
+            journal.write(out_dir)
         finish(mapper, result, bus, viz, publisher, out_dir, stats)
     return result
 
 
+def _journal(stack: contextlib.ExitStack, cfg: MapperConfig, bus_cfg: BusConfig, mapper: Mapper,
+             frame: MapFrame) -> Journal | None:
+    """A placing shard's journal, published by the stage `placement` in the mapper's namespace."""
+    if not cfg.shard:
+        return None
+    placing = stack.enter_context(Bus(bus_cfg, "placement"))
+    placing.start([])
+    pub = placing.publisher(MAP_PLACED)
+    msg = codec.msgtype(MAP_PLACED.msgtype)
+    return Journal(mapper, cfg.robots, lambda line: pub.put(msg(data=line)), lambda: frame.found)
+
+
+def summary(result: MapperResult) -> dict:
+    """What the placing mapper reports at the end of its journal (and a follower repeats)."""
+    return {"keyframes": result.keyframes, "skipped": result.skipped, "corrections": result.corrections,
+            "merges": result.merges, "links": result.links, "unmerged": result.unmerged, "lost": result.lost,
+            "problems": result.problems}
+
+
 def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list[Bus], viz: Viz,
-                  publisher: MapSnapshots, out_dir: Path,
-                  frame_of_map: MapFrame | None = None) -> tuple[MapperResult, list[list[tuple[int, int]]]]:
+                  publisher: MapSnapshots, out_dir: Path, frame_of_map: MapFrame | None = None,
+                  journal: Journal | None = None) -> tuple[MapperResult, list[list[tuple[int, int]]]]:
     """Receive every robot's keyframes and corrections and integrate them in the merge's order;
     without start poses, place the robots from the places they share (mapper/fleet/placement.py). A robot
     silent for `mapper.robot_stall_s` is paused: the others go on, and if anything was taken out of
@@ -92,7 +119,7 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
     _start_buses(cfg, bus, robot_buses)
     streams = _RobotStreams(cfg, robot_buses, FleetMerge(cfg.robots), MapperResult(), n)
     merge = streams.merge
-    fm = _live_map(mapper, cfg, viz, publisher, pub_update, pub_merge, frame_of_map)
+    fm = _live_map(mapper, cfg, viz, publisher, pub_update, pub_merge, frame_of_map, journal)
     while not merge.done():
         while (q := bus.receive_nowait()) is not None:  # "save the map now", between keyframes
             answer_save(q, mapper, out_dir)
@@ -107,7 +134,7 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
             if k not in streams.lost and streams.expected[k] is not None and streams.received[k] >= streams.expected[k] \
                     and not merge.has_items(k):
                 merge.end(k)
-    return _settle(mapper, cfg, streams, fm, out_dir)
+    return _settle(mapper, cfg, streams, fm, out_dir, journal)
 
 
 def _start_buses(cfg: MapperConfig, bus: Bus, robot_buses: list[Bus]) -> None:
@@ -124,7 +151,7 @@ def _start_buses(cfg: MapperConfig, bus: Bus, robot_buses: list[Bus]) -> None:
 
 
 def _live_map(mapper: Mapper, cfg: MapperConfig, viz: Viz, publisher: MapSnapshots, pub_update: Any,
-              pub_merge: Any, frame_of_map: MapFrame | None) -> FleetMap:
+              pub_merge: Any, frame_of_map: MapFrame | None, journal: Journal | None) -> FleetMap:
     """The fleet map whose hooks publish as it grows: merge events, map updates, snapshots, Rerun."""
 
     def integrated(r: int, stamp: int, gid: int, pts: int, ms: float, frame: RgbdFrame) -> None:
@@ -141,7 +168,7 @@ def _live_map(mapper: Mapper, cfg: MapperConfig, viz: Viz, publisher: MapSnapsho
         first=lambda W: frame_of_map.from_first_robot(W) if frame_of_map is not None else None,
         integrated=integrated,
         refused=lambda stamp, kid, ms: publish_update(pub_update, publisher, stamp, kid, 0, ms))
-    fm = FleetMap(mapper, cfg.robots, _placement(cfg), hooks)
+    fm = FleetMap(mapper, cfg.robots, _placement(cfg), hooks, journal)
     return fm
 
 
@@ -250,7 +277,7 @@ class _RobotStreams:
 
 
 def _settle(mapper: Mapper, cfg: MapperConfig, streams: _RobotStreams, live: FleetMap,
-            out_dir: Path) -> tuple[MapperResult, list[list[tuple[int, int]]]]:
+            out_dir: Path, journal: Journal | None = None) -> tuple[MapperResult, list[list[tuple[int, int]]]]:
     """The result once every stream has ended: the map built again in the defined order if a pause let
     items through out of it, the robots lost, placed and never placed (each of those a map of its own)."""
     result, fm = streams.result, live
@@ -258,7 +285,9 @@ def _settle(mapper: Mapper, cfg: MapperConfig, streams: _RobotStreams, live: Fle
         # a pause let items through out of the defined order: the map, the placements and the joint
         # graph are built again from every item in that order, so the result does not depend on timing
         mapper.clear()
-        fm = FleetMap(mapper, cfg.robots, _placement(cfg))
+        if journal is not None:
+            journal.cleared()
+        fm = FleetMap(mapper, cfg.robots, _placement(cfg), journal=journal)
         for i, item in streams.merge.canonical():
             fm.apply(i, item)
         result.problems.append("the map was built again in the defined order (a silent robot's items came late)")
