@@ -17,18 +17,20 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
 from octolog.kit.errors import InputError, MapError
-from octolog.kit.geometry import RgbdFrame
+from octolog.kit.geometry import Intrinsics, RgbdFrame
 from octolog.mapper.cloud import DenseCloud, keyframe_cloud, rows_where, transform, write_pcd, write_ply
 from octolog.mapper.config import MapperConfig
 from octolog.mapper.grid import OccupancyGrid2D, map_from_world_for_up, project_octree, write_map_server
 from octolog.mapper.occupancy import OccupancyMap, make_occupancy_map
 from octolog.mapper.params import GridParams, MapperParams
+from octolog.mapper.tiles import Tiles
 
-__all__ = ["KeyframeCloud", "Mapper", "bt_payload", "make_mapper", "project_grid", "write_map_files"]
+__all__ = ["FrameRef", "KeyframeCloud", "Mapper", "reaches", "bt_payload", "make_mapper", "project_grid", "write_map_files"]
 
 
 @dataclass
@@ -44,8 +46,34 @@ class KeyframeCloud:
     inverse_offset: float = 0.0  # the depth correction its points took (Keyframe.depth_inverse_offset)
     # a shard keeps a keyframe that cannot reach its tiles as its frame, and makes its cloud only if a
     # correction brings it within reach: then as at arrival, with the depth re-corrections since
-    frame: RgbdFrame | None = None
+    frame: RgbdFrame | FrameRef | None = None
     recorrections: tuple[float, ...] = ()
+
+
+@dataclass
+class FrameRef:
+    """A keyframe's frame not at hand: what the map needs of it before its cloud (stamp, sequence
+    number, camera, depth correction), and `load()` to fetch it when its cloud is made. A shard
+    following a placement authority gets only the frames that reach its tiles (mapper/fleet/follow.py)."""
+
+    stamp_ns: int
+    seq: int
+    intrinsics: Intrinsics
+    depth_inverse_offset: float
+    load: Callable[[], RgbdFrame]
+
+
+def reaches(tiles: Tiles, map_from_camera: np.ndarray, intrinsics: Intrinsics, inverse_offset: float,
+            max_range_m: float, resolution_m: float) -> bool:
+    """Can a keyframe's points (and so its rays) reach `tiles`? Bounded by the camera position and
+    the longest ray of the frustum at `max_range_m` after the depth correction, with a margin."""
+    K = intrinsics
+    corner = max(np.hypot(np.hypot((u - K.cx) / K.fx, (v - K.cy) / K.fy), 1.0)
+                 for u in (0, K.width) for v in (0, K.height))
+    longest = max_range_m / max(1e-3, 1.0 - max(0.0, inverse_offset) * max_range_m)
+    reach = 1.1 * corner * longest + resolution_m
+    centre = map_from_camera[:3, 3]
+    return tiles.touches_box(centre[:2] - reach, centre[:2] + reach)
 
 
 class Mapper:
@@ -110,13 +138,13 @@ class Mapper:
             raise InputError(f"keyframe {kf_id}: camera at {np.round(T[:3, 3], 1).tolist()} m is outside the "
                              f"map bounds (±{max_extent_m:g} m)")
 
-    def integrate(self, kf_id: int, world_from_camera: np.ndarray, frame: RgbdFrame) -> int:
+    def integrate(self, kf_id: int, world_from_camera: np.ndarray, frame: RgbdFrame | FrameRef) -> int:
         """Add one keyframe; returns its number of filtered points. Bad keyframes raise InputError
         before anything is changed."""
         self._check_pose(kf_id, world_from_camera)
         if kf_id in self.keyframes:
             raise InputError(f"keyframe {kf_id}: already integrated")
-        if not np.any(frame.depth):
+        if not isinstance(frame, FrameRef) and not np.any(frame.depth):  # a FrameRef's was checked where it is
             raise InputError(f"keyframe {kf_id}: no valid depth")
         stride = self._stride(frame.stamp_ns)
         kf = KeyframeCloud(None, None, world_from_camera.copy(), frame.stamp_ns, frame.seq, stride,
@@ -131,6 +159,9 @@ class Mapper:
     def _make_cloud(self, kf: KeyframeCloud) -> int:
         """The keyframe's filtered camera-frame cloud from its frame (then dropped); its size."""
         c, frame = self.params.cloud, kf.frame
+        if isinstance(frame, FrameRef):
+            frame = frame.load()
+        assert frame is not None
         pts, cols = keyframe_cloud(
             frame.depth, frame.rgb, frame.intrinsics, frame.depth_scale_m, np.eye(4),
             max_range_m=c.max_range_m, stride=kf.stride, nb_neighbors=c.sor_neighbors,
@@ -148,13 +179,8 @@ class Mapper:
         tiles = self.params.tiles
         if tiles is None or kf.frame is None:
             return True
-        c, K = self.params.cloud, kf.frame.intrinsics
-        corner = max(np.hypot(np.hypot((u - K.cx) / K.fx, (v - K.cy) / K.fy), 1.0)
-                     for u in (0, K.width) for v in (0, K.height))
-        longest = c.max_range_m / max(1e-3, 1.0 - max(0.0, kf.inverse_offset) * c.max_range_m)
-        reach = 1.1 * corner * longest + self.resolution_m
-        centre = (self.map_from_world @ kf.world_from_camera)[:3, 3]
-        return tiles.touches_box(centre[:2] - reach, centre[:2] + reach)
+        return reaches(tiles, self.map_from_world @ kf.world_from_camera, kf.frame.intrinsics, kf.inverse_offset,
+                       self.params.cloud.max_range_m, self.resolution_m)
 
     def _stride(self, stamp_ns: int) -> int:
         """The pixel stride for a keyframe taken at `stamp_ns`: `cloud.pixel_stride`, or

@@ -76,6 +76,13 @@ MAP_MERGE = Topic("mapper/merge", "std_msgs/msg/String")
 # JSON object per sample; mapper/fleet/journal.py), for the shards that follow it (`mapper.follow`)
 MAP_PLACED = Topic("mapper/placed", "std_msgs/msg/String")
 
+
+def route_topic(shard: int, robot: int, compressed: bool) -> Topic:
+    """A robot's keyframes routed by the placing shard to shard `shard` (the ones that reach its tiles),
+    as the robot sent them: `mapper/route/<shard>/<robot index>`, `.../compressed` for compressed ones."""
+    name = f"mapper/route/{shard}/{robot}"
+    return Topic(f"{name}/compressed", KEYFRAME_COMPRESSED.msgtype) if compressed else Topic(name, KEYFRAME.msgtype)
+
 # The frames (docs/formats.md "Frames"): the tracker's camera in `world` on every frame; the
 # mapper's `map` -> `world` once (REP 105's map frame: z up)
 TF = Topic("tf", "tf2_msgs/msg/TFMessage")

@@ -34,10 +34,13 @@ def streams(octolog_run) -> list[list]:
     return [items, items[2:]]
 
 
-def _fleet(cfg: MapperConfig, streams: list[list], out: Path, journal: bool = False) -> Journal | None:
-    """The fleet map of `streams` in the merge's order, placing the robots itself; its files."""
+def _fleet(cfg: MapperConfig, streams: list[list], out: Path, journal: bool = False,
+           routed: set | None = None) -> Journal | None:
+    """The fleet map of `streams` in the merge's order, placing the robots itself; its files. With
+    `routed`, the (shard, robot, keyframe) its journal routes are added to it."""
     mapper = make_mapper(cfg)
-    j = Journal(mapper, ROBOTS, lambda line: None) if journal else None
+    route = None if routed is None else (lambda k, r, kf: routed.add((k, r, kf)))
+    j = Journal(mapper, ROBOTS, lambda line: None, route=route) if journal else None
     fm = FleetMap(mapper, ROBOTS, Placement.by_place(len(ROBOTS), cfg.relink_after_m), journal=j)
     for i, item in merged_order(streams):
         fm.apply(i, item)
@@ -52,14 +55,21 @@ def _fleet(cfg: MapperConfig, streams: list[list], out: Path, journal: bool = Fa
     return j
 
 
-def _follow(cfg: MapperConfig, streams: list[list], ops: list[dict], out: Path) -> None:
-    """A follower's map: the journal's ops, the robots' keyframes looked up by (robot, id)."""
+def _follow(cfg: MapperConfig, streams: list[list], ops: list[dict], out: Path, routed: set | None = None) -> None:
+    """A follower's map: the journal's ops, the robots' keyframes looked up by (robot, id); with
+    `routed`, only those routed to its shard."""
     kept = [{item.kf_id: item.payload for item in s if isinstance(item, KeyframeItem)} for s in streams]
+    shard = cfg.tiles().index if cfg.shard else 0
+
+    def frame_of(r: int, k: int):
+        assert routed is None or (shard, r, k) in routed, f"shard {shard} needs keyframe {k} of robot {r}: not routed"
+        return rgbdmsgs.keyframe_from_msg(kept[r][k])[2]
+
     mapper = make_mapper(cfg)
     for op in ops:
         if op["op"] == "up":
             mapper.set_up(tuple(op["up"]))
-        apply_op(mapper, op, lambda r, k: rgbdmsgs.keyframe_from_msg(kept[r][k])[2])
+        apply_op(mapper, op, frame_of)
     mapper.write(out)
     write_shard(mapper, out)
 
@@ -91,6 +101,26 @@ def test_the_placing_shard_and_a_follower_stitch_into_the_whole_fleet_map(maps, 
     assert stats["missing_shards"] == [] and stats["problems"] == []
     for name in MAP_FILES:
         assert (tmp_path / "stitched" / name).read_bytes() == (maps / "whole" / name).read_bytes(), name
+
+
+def test_keyframes_routed_to_the_shards_they_reach_build_the_whole_map(streams, maps, tmp_path):
+    """Four shards of 16 m tiles: shard 1 places and routes each keyframe to the shards whose tiles
+    it reaches; shards 2-4 make their maps from the journal and the routed keyframes alone (asking
+    for another one fails the test). The stitch is the whole fleet map, and the routing spared a
+    shard keyframes (the room reaches three of the four shards)."""
+    cfg = MapperConfig(robots=ROBOTS, tile_m=16.0)
+    routed: set = set()
+    _fleet(dataclasses.replace(cfg, shard="1/4"), streams, tmp_path / "s1", journal=True, routed=routed)
+    ops = read_journal(tmp_path / "s1")
+    for k in (2, 3, 4):
+        _follow(dataclasses.replace(cfg, shard=f"{k}/4"), streams, ops, tmp_path / f"s{k}", routed)
+    stats = stitch([tmp_path / f"s{k}" for k in (1, 2, 3, 4)], tmp_path / "stitched")
+    assert stats["missing_shards"] == [] and stats["problems"] == []
+    for name in MAP_FILES:
+        assert (tmp_path / "stitched" / name).read_bytes() == (maps / "whole" / name).read_bytes(), name
+    integrated = sum(op["op"] == "integrate" for op in ops)
+    per_shard = [sum(1 for k, _, _ in routed if k == shard) for shard in (2, 3, 4)]
+    assert min(per_shard) < integrated and max(per_shard) > 0, (per_shard, integrated)
 
 
 def test_a_journal_cut_short_or_damaged_is_refused(maps, tmp_path):

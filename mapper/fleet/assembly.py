@@ -140,7 +140,7 @@ class FleetMap:
                 t0 = time.perf_counter()
                 continue
             if self.journal is not None:
-                self.journal.integrated(r, kid, stamp, gid, world_from_camera)
+                self.journal.integrated(r, kid, gid, world_from_camera, frame)
             self.map_id[r][kid] = gid
             self.trajectories[r].append((stamp, gid))
             self.keyframes += 1

@@ -1,12 +1,18 @@
 """A fleet mapper that follows another's placement (`mapper.follow`): the shards of one map after
 their placement authority.
 
-It takes the robots' keyframes as any fleet mapper does, but places nothing and merges nothing: the
-placing mapper's journal (mapper/fleet/journal.py), live from the bus or from its `placed.jsonl`,
-says which keyframe goes into the map at which pose under which id, and which keyframes move. The
-robots' corrections and statuses are not even subscribed to: their effect on the map is in the
-journal. So a follower costs no place matching, and it builds the map the placing mapper would
-have built with its tiles, whatever the timing of either.
+It places nothing and merges nothing: the placing mapper's journal (mapper/fleet/journal.py), live
+from the bus or from its `placed.jsonl`, says which keyframe goes into the map at which pose under
+which id, and which keyframes move. The robots' corrections and statuses are not even subscribed
+to: their effect on the map is in the journal. So a follower costs no place matching, and it builds
+the map the placing mapper would have built with its tiles, whatever the timing of either.
+
+Live, a shard takes no keyframe from the robots: the placing mapper routes each keyframe to the
+shards whose tiles it reaches, on `mapper/route/<shard>/<robot>` in its namespace (Zenoh delivers
+a key only where it is subscribed), and sends it again when a correction brings it within reach of
+another shard. The follower's map asks for a keyframe's frame only when it makes its cloud (a
+`FrameRef` until then), so the keyframes that never reach its tiles never cross the network to it.
+Built again from a journal file, a follower takes the keyframes from the robots' logs instead.
 
 A follower cannot go on without its authority: if the placing mapper is gone before its journal
 ends, the follower says so in one line and writes no map (its tiles are missing, never wrong).
@@ -18,6 +24,7 @@ import contextlib
 import dataclasses
 import json
 import time
+from collections import deque
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -41,7 +48,16 @@ from octolog.mapper.process import (
     publish_update,
 )
 from octolog.schemas import rgbdmsgs, streammsgs
-from octolog.schemas.topics import CONFIGS, KEYFRAME, KEYFRAME_COMPRESSED, KEYFRAME_END, MAP_PLACED, MAP_SAVE, MAP_UPDATE
+from octolog.schemas.topics import (
+    CONFIGS,
+    KEYFRAME,
+    KEYFRAME_COMPRESSED,
+    KEYFRAME_END,
+    MAP_PLACED,
+    MAP_SAVE,
+    MAP_UPDATE,
+    route_topic,
+)
 
 JOURNAL_PREFIX = "journal:"
 PLACEMENT_STAGE = "placement"  # the stage the placing mapper announces in its namespace
@@ -50,16 +66,19 @@ PLACEMENT_STAGE = "placement"  # the stage the placing mapper announces in its n
 def run_follower(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: str = "off",
                  recording_id: str = "octolog") -> MapperResult:
     """Build the map of `cfg.robots` by the journal of the mapper `cfg.follow` names: a namespace
-    (live, its stage `placement`) or `journal:PATH` (its folder or its placed.jsonl)."""
+    (live, its stage `placement`; a shard gets from it the keyframes that reach its tiles) or
+    `journal:PATH` (its folder or its placed.jsonl; the keyframes from the robots)."""
     mapper = make_mapper(cfg)
     recorded = read_journal(Path(cfg.follow[len(JOURNAL_PREFIX):])) if cfg.follow.startswith(JOURNAL_PREFIX) else None
     if recorded is not None and recorded[0]["robots"] != list(cfg.robots):
         raise InputError(f"mapper.follow {cfg.follow}: its robots are {recorded[0]['robots']}, "
                          f"mapper.robots {list(cfg.robots)}")
+    shard = cfg.tiles().index if cfg.shard and recorded is None else None  # routed to: its keyframes come from the leader
     with contextlib.ExitStack() as stack:
         bus = stack.enter_context(Bus(bus_cfg, cfg.stage, inbox_size=INBOX_KEYFRAMES))
-        leader = None if recorded is not None else stack.enter_context(
-            Bus(dataclasses.replace(bus_cfg, namespace=cfg.follow), cfg.stage, inbox_size=ROBOT_INBOX))
+        leader = None if recorded is not None else LeaderStream(stack.enter_context(
+            Bus(dataclasses.replace(bus_cfg, namespace=cfg.follow), cfg.stage, inbox_size=ROBOT_INBOX)),
+            cfg.follow, len(cfg.robots), shard)
         robot_buses = [stack.enter_context(Bus(dataclasses.replace(bus_cfg, namespace=r), cfg.stage,
                                                inbox_size=ROBOT_INBOX)) for r in cfg.robots]
         viz = stack.enter_context(Viz(rerun, "mapper", recording_id))
@@ -68,13 +87,15 @@ def run_follower(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun:
         bus.accept(MAP_SAVE)
         bus.start([])
         bus.publisher(CONFIGS["mapper"]).put(streammsgs.config_msg("mapper", to_dict(cfg)))
-        if leader is not None:  # subscribed before the robots hear of this mapper: no op is missed
-            leader.start([MAP_PLACED], wait_for=[PLACEMENT_STAGE], timeout_s=cfg.wait_timeout_s)
-        for rb in robot_buses:
-            rb.start([KEYFRAME, KEYFRAME_COMPRESSED, KEYFRAME_END], wait_for=cfg.wait_for, timeout_s=cfg.wait_timeout_s)
-            rb.watch(["tracker"])
-        frames = RobotFrames(cfg.robots, robot_buses)
-        ops = iter(recorded) if recorded is not None else _live_ops(leader, cfg.follow, frames)  # type: ignore[arg-type]
+        if leader is not None:  # subscribed before the robots hear of this mapper: nothing is missed
+            leader.start(cfg.wait_timeout_s)
+        for rb in robot_buses:  # ready for the robot's keyframes, from the robot or routed by the leader
+            rb.start([] if shard else [KEYFRAME, KEYFRAME_COMPRESSED, KEYFRAME_END], wait_for=cfg.wait_for,
+                     timeout_s=cfg.wait_timeout_s)
+            if not shard:
+                rb.watch(["tracker"])
+        frames: LeaderStream | RobotFrames = leader if shard else RobotFrames(cfg.robots, robot_buses)  # type: ignore[assignment]
+        ops = iter(recorded) if leader is None else leader.journal()
         follow = Follower(mapper, cfg, frame, frames)
         follow.run(ops, bus, viz, publisher, out_dir)
         result = follow.result()
@@ -83,33 +104,70 @@ def run_follower(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun:
             per_robot[robot]["merged"] = robot not in result.unmerged
             per_robot[robot]["lost"] = robot in result.lost
         stats = {"robots": per_robot, "merges": result.merges, "links": result.links, "followed": cfg.follow,
-                 **({"map_frame": frame.found} if frame.found else {})}
+                 "keyframes_received": frames.count, **({"map_frame": frame.found} if frame.found else {})}
         finish(mapper, result, bus, viz, publisher, out_dir, stats)
     return result
 
 
-def _live_ops(leader: Bus, namespace: str, frames: RobotFrames) -> Iterator[dict[str, Any]]:
-    """The placing mapper's ops as they come; robots' keyframes are taken in while waiting."""
-    count = 0
-    while True:
+class LeaderStream:
+    """What the placing mapper sends a follower from its namespace: its journal's ops and, for a
+    shard, the robots' keyframes that reach the shard's tiles (`route_topic`)."""
+
+    def __init__(self, bus: Bus, namespace: str, robots: int, shard: int | None) -> None:
+        self.bus, self.namespace, self.robots, self.shard = bus, namespace, robots, shard
+        self.ops: deque[dict[str, Any]] = deque()
+        self.kept: list[dict[int, Any]] = [{} for _ in range(robots)]
+        self.ended = False
+        self.read = 0  # journal ops
+        self.count = 0  # keyframes routed here
+
+    def start(self, timeout_s: float) -> None:
+        routes = [route_topic(self.shard, r, c) for r in range(self.robots) for c in (False, True)] if self.shard else []
+        self.bus.start([MAP_PLACED, *routes], wait_for=[PLACEMENT_STAGE], timeout_s=timeout_s)
+
+    def _read(self) -> bool:
+        """One message in (an op, or a keyframe); False if none came within the bus's wait."""
         try:
-            r = leader.receive()
+            r = self.bus.receive()
         except StageError as exc:
-            raise StageError(f"mapper: the placing mapper in {namespace} is gone after {count} journal ops ({exc}): "
-                             f"this mapper cannot place the robots itself, so it writes no map (run the placing "
-                             f"mapper again, then this one with follow=journal:ITS_FOLDER)") from None
+            raise StageError(f"mapper: the placing mapper in {self.namespace} is gone after {self.read} journal ops "
+                             f"({exc}): this mapper cannot place the robots itself, so it writes no map (run the "
+                             f"placing mapper again, then this one with follow=journal:ITS_FOLDER)") from None
         if r is None:
-            frames.take_waiting()
-            continue
-        try:
-            op = json.loads(r.decode().data)
-        except (json.JSONDecodeError, AttributeError):
-            raise StageError(f"mapper: a malformed journal op from the placing mapper in {namespace}") from None
-        count += 1
-        yield op
-        if op.get("op") == "end":
-            leader.unwatch(PLACEMENT_STAGE)
-            return
+            return False
+        msg = r.decode()
+        if r.topic == MAP_PLACED:
+            try:
+                op = json.loads(msg.data)
+            except json.JSONDecodeError:
+                raise StageError(f"mapper: a malformed journal op from the placing mapper in {self.namespace}") from None
+            self.ops.append(op)
+            self.read += 1
+            if op.get("op") == "end":
+                self.ended = True
+                self.bus.unwatch(PLACEMENT_STAGE)
+        else:  # mapper/route/<shard>/<robot>[/compressed]
+            self.kept[int(r.topic.name.split("/")[3])][int(msg.id)] = msg
+            self.count += 1
+        return True
+
+    def journal(self) -> Iterator[dict[str, Any]]:
+        """The ops in order, as they come."""
+        while True:
+            while not self.ops:
+                self._read()
+            op = self.ops.popleft()
+            yield op
+            if op.get("op") == "end":
+                return
+
+    def frame(self, robot: int, kf_id: int) -> RgbdFrame:
+        """A keyframe routed here, waiting for it; StageError if it was not."""
+        while kf_id not in self.kept[robot]:
+            if not self._read() and self.ended:
+                raise StageError(f"mapper: keyframe {kf_id} of robot {robot + 1} reaches this shard's tiles but the "
+                                 f"placing mapper in {self.namespace} did not route it here")
+        return rgbdmsgs.keyframe_from_msg(self.kept[robot][kf_id])[2]
 
 
 class RobotFrames:
@@ -122,10 +180,10 @@ class RobotFrames:
         self.expected: list[int | None] = [None] * len(robots)
         self.received = [0] * len(robots)
 
-    def take_waiting(self) -> None:
-        for k, rb in enumerate(self.robot_buses):
-            while (r := rb.receive_nowait()) is not None:
-                self._push(k, r)
+    @property
+    def count(self) -> int:
+        """Keyframes received."""
+        return sum(self.received)
 
     def _push(self, k: int, r: Any) -> None:
         if r.topic == KEYFRAME_END:
@@ -160,7 +218,7 @@ class RobotFrames:
 class Follower:
     """The journal's ops applied to this mapper's map, with what the map's outputs need."""
 
-    def __init__(self, mapper: Mapper, cfg: MapperConfig, frame: MapFrame, frames: RobotFrames) -> None:
+    def __init__(self, mapper: Mapper, cfg: MapperConfig, frame: MapFrame, frames: RobotFrames | LeaderStream) -> None:
         self.mapper, self.cfg, self.map_frame, self.frames = mapper, cfg, frame, frames
         self.trajectories: list[list[tuple[int, int]]] = [[] for _ in cfg.robots]
         self.keyframes = self.refused = 0

@@ -19,16 +19,17 @@ bits the placing mapper applied.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterable
 
 import numpy as np
 
 from octolog.kit.errors import InputError
 from octolog.kit.files import write_bytes_atomic
-from octolog.kit.geometry import RgbdFrame
-from octolog.mapper.core import Mapper
+from octolog.kit.geometry import Intrinsics, RgbdFrame
+from octolog.mapper.core import FrameRef, Mapper, reaches
 
 __all__ = ["JOURNAL_FILE", "Journal", "apply_op", "read_journal"]
 
@@ -49,37 +50,68 @@ def _pose(values: list[float]) -> np.ndarray:
 
 
 class Journal:
-    """The placing mapper's calls on its map as they happen; `emit` gets each op's JSON line."""
+    """The placing mapper's calls on its map as they happen; `emit` gets each op's JSON line.
+
+    With `route` (a shard), each keyframe goes to the other shards whose tiles it can reach
+    (`route(shard, robot, kf)`, before the op that needs it), once per shard: at its integration,
+    and when a correction, a depth re-correction or a new map frame brings it within their reach."""
 
     def __init__(self, mapper: Mapper, robots: tuple[str, ...], emit: Callable[[str], None],
-                 found: Callable[[], dict | None] = lambda: None) -> None:
-        self.mapper, self.robots, self.emit, self.found = mapper, robots, emit, found
+                 found: Callable[[], dict | None] = lambda: None,
+                 route: Callable[[int, int, int], None] | None = None) -> None:
+        self.mapper, self.robots, self.emit, self.found, self.route = mapper, robots, emit, found, route
         self.lines: list[str] = []
         self._up: list[float] | None = None
+        own = mapper.params.tiles
+        self._others = [] if own is None or route is None else \
+            [dataclasses.replace(own, index=k) for k in range(1, own.count + 1) if k != own.index]
+        self._source: dict[int, tuple[int, int, Intrinsics]] = {}  # gid -> robot, keyframe id, camera
+        self.sent: set[tuple[int, int]] = set()  # (shard, gid) routed
 
-    def _put(self, op: dict[str, Any]) -> None:
+    def _put(self, op: dict[str, Any], gids: Iterable[int] = ()) -> None:
         if not self.lines:
             self._write({"op": "start", "format": FORMAT, "version": VERSION, "robots": list(self.robots)})
         up = [float(v) for v in self.mapper.params.grid.up]
         if up != self._up:  # the map frame first: a follower builds in it too
             self._up = up
+            self._route(list(self._source))
             self._write({"op": "up", "up": up, "found": self.found()})
+        self._route(gids)
         self._write(op)
+
+    def _route(self, gids: Iterable[int]) -> None:
+        """Send each keyframe to the shards it now reaches and has not been sent to."""
+        c = self.mapper.params.cloud
+        for gid in gids:
+            kf = self.mapper.keyframes.get(gid)
+            if kf is None or gid not in self._source:
+                continue
+            robot, kf_id, camera = self._source[gid]
+            map_from_camera = self.mapper.map_from_world @ kf.world_from_camera
+            for tiles in self._others:
+                if (tiles.index, gid) not in self.sent and reaches(tiles, map_from_camera, camera, kf.inverse_offset,
+                                                                   c.max_range_m, self.mapper.resolution_m):
+                    self.sent.add((tiles.index, gid))
+                    self.route(tiles.index, robot, kf_id)  # type: ignore[misc]
 
     def _write(self, op: dict[str, Any]) -> None:
         line = json.dumps(op, sort_keys=True)
         self.lines.append(line)
         self.emit(line)
 
-    def integrated(self, robot: int, kf_id: int, stamp_ns: int, gid: int, world_from_camera: np.ndarray) -> None:
-        self._put({"op": "integrate", "robot": robot, "kf": kf_id, "stamp": stamp_ns, "gid": gid,
-                   "pose": _matrix(world_from_camera)})
+    def integrated(self, robot: int, kf_id: int, gid: int, world_from_camera: np.ndarray, frame: RgbdFrame) -> None:
+        K = frame.intrinsics
+        self._source[gid] = (robot, kf_id, K)
+        self._put({"op": "integrate", "robot": robot, "kf": kf_id, "stamp": frame.stamp_ns, "gid": gid,
+                   "pose": _matrix(world_from_camera), "seq": frame.seq,
+                   "camera": [K.width, K.height, K.fx, K.fy, K.cx, K.cy],
+                   "inverse_offset": float(frame.depth_inverse_offset)}, [gid])
 
     def corrected(self, poses: dict[int, np.ndarray]) -> None:
-        self._put({"op": "correct", "poses": [[gid, _matrix(T)] for gid, T in poses.items()]})
+        self._put({"op": "correct", "poses": [[gid, _matrix(T)] for gid, T in poses.items()]}, list(poses))
 
     def recorrected(self, ids: list[int], inverse_offset: float) -> None:
-        self._put({"op": "recorrect", "ids": list(ids), "offset": float(inverse_offset)})
+        self._put({"op": "recorrect", "ids": list(ids), "offset": float(inverse_offset)}, ids)
 
     def cleared(self) -> None:
         self._put({"op": "clear"})
@@ -116,15 +148,19 @@ def read_journal(where: Path) -> list[dict[str, Any]]:
 
 
 def apply_op(mapper: Mapper, op: dict[str, Any], frame_of: Callable[[int, int], RgbdFrame]) -> int | None:
-    """One journal op on a follower's map; for an integrate, the map-wide id (None if the follower's
-    mapper refused the keyframe: InputError/MapError are the caller's to report). `frame_of(robot,
-    kf)` gives a robot's keyframe frame. Keyframes the follower does not hold are skipped by the
-    moving ops, as `Mapper.correct` skips unknown ids."""
+    """One journal op on a follower's map; for an integrate, the map-wide id (InputError/MapError if
+    the follower's mapper refuses the keyframe: the caller's to report). `frame_of(robot, kf)` gives
+    a robot's keyframe frame; it is asked only when the follower makes the keyframe's cloud (it
+    reaches the follower's tiles). Keyframes the follower does not hold are skipped by the moving
+    ops, as `Mapper.correct` skips unknown ids."""
     kind = op["op"]
     if kind == "integrate":
-        frame = frame_of(int(op["robot"]), int(op["kf"]))
-        gid = int(op["gid"])
-        mapper.integrate(gid, _pose(op["pose"]), frame)
+        robot, kf_id, gid = int(op["robot"]), int(op["kf"]), int(op["gid"])
+        w, h, fx, fy, cx, cy = op["camera"]
+        ref = FrameRef(int(op["stamp"]), int(op["seq"]), Intrinsics(int(w), int(h), float(fx), float(fy), float(cx),
+                                                                     float(cy)),
+                       float(op["inverse_offset"]), lambda: frame_of(robot, kf_id))
+        mapper.integrate(gid, _pose(op["pose"]), ref)  # the frame is fetched if its cloud is made
         return gid
     if kind == "correct":
         mapper.correct({int(gid): _pose(T) for gid, T in op["poses"]})

@@ -47,6 +47,7 @@ from octolog.schemas.topics import (
     MAP_SAVE,
     MAP_UPDATE,
     TRACKING_STATUS,
+    route_topic,
 )
 
 # Each robot's inbox is unbounded. The merge waits on one robot while others run ahead; a full
@@ -72,9 +73,11 @@ def run_fleet(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: st
                                                inbox_size=ROBOT_INBOX)) for r in cfg.robots]
         viz = stack.enter_context(Viz(rerun, "mapper", recording_id))
         frame = MapFrame(mapper, bus, viz, from_imu=False, ask=None if cfg.grid_up else robot_buses[0])
-        journal = _journal(stack, cfg, bus_cfg, mapper, frame)
+        payloads: dict[tuple[int, int], tuple[Any, Any]] = {}  # (robot, keyframe id) -> topic, message
+        journal = _journal(stack, cfg, bus_cfg, mapper, frame, payloads)
         publisher = MapSnapshots(bus, mapper, cfg.publish_every)
-        result, trajectories = consume_fleet(mapper, cfg, bus, robot_buses, viz, publisher, out_dir, frame, journal)
+        result, trajectories = consume_fleet(mapper, cfg, bus, robot_buses, viz, publisher, out_dir, frame, journal,
+                                             payloads if journal is not None else None)
         per_robot = write_trajectories(mapper, cfg.robots, trajectories, out_dir)
         for robot in per_robot:  # placed by its start pose or by a shared place, or left out
             per_robot[robot]["merged"] = robot not in result.unmerged
@@ -89,15 +92,25 @@ def run_fleet(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: st
 
 
 def _journal(stack: contextlib.ExitStack, cfg: MapperConfig, bus_cfg: BusConfig, mapper: Mapper,
-             frame: MapFrame) -> Journal | None:
-    """A placing shard's journal, published by the stage `placement` in the mapper's namespace."""
+             frame: MapFrame, payloads: dict[tuple[int, int], tuple[Any, Any]]) -> Journal | None:
+    """A placing shard's journal, published by the stage `placement` in the mapper's namespace, which
+    also routes each keyframe, as its robot sent it, to the shards it reaches (`route_topic`)."""
     if not cfg.shard:
         return None
     placing = stack.enter_context(Bus(bus_cfg, "placement"))
     placing.start([])
     pub = placing.publisher(MAP_PLACED)
     msg = codec.msgtype(MAP_PLACED.msgtype)
-    return Journal(mapper, cfg.robots, lambda line: pub.put(msg(data=line)), lambda: frame.found)
+    routes: dict[Any, Any] = {}
+
+    def route(shard: int, robot: int, kf_id: int) -> None:
+        topic, keyframe = payloads[(robot, kf_id)]
+        key = route_topic(shard, robot, topic == KEYFRAME_COMPRESSED)
+        if key not in routes:
+            routes[key] = placing.publisher(key)
+        routes[key].put(keyframe)
+
+    return Journal(mapper, cfg.robots, lambda line: pub.put(msg(data=line)), lambda: frame.found, route)
 
 
 def summary(result: MapperResult) -> dict:
@@ -109,7 +122,8 @@ def summary(result: MapperResult) -> dict:
 
 def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list[Bus], viz: Viz,
                   publisher: MapSnapshots, out_dir: Path, frame_of_map: MapFrame | None = None,
-                  journal: Journal | None = None) -> tuple[MapperResult, list[list[tuple[int, int]]]]:
+                  journal: Journal | None = None,
+                  payloads: dict | None = None) -> tuple[MapperResult, list[list[tuple[int, int]]]]:
     """Receive every robot's keyframes and corrections and integrate them in the merge's order;
     without start poses, place the robots from the places they share (mapper/fleet/placement.py). A robot
     silent for `mapper.robot_stall_s` is paused: the others go on, and if anything was taken out of
@@ -118,6 +132,7 @@ def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list
     pub_update, pub_merge = bus.publisher(MAP_UPDATE), bus.publisher(MAP_MERGE)
     _start_buses(cfg, bus, robot_buses)
     streams = _RobotStreams(cfg, robot_buses, FleetMerge(cfg.robots), MapperResult(), n)
+    streams.payloads = payloads
     merge = streams.merge
     fm = _live_map(mapper, cfg, viz, publisher, pub_update, pub_merge, frame_of_map, journal)
     while not merge.done():
@@ -184,6 +199,7 @@ class _RobotStreams:
         self.lost: set[int] = set()
         self.heard = [time.monotonic()] * n  # when each robot last sent something (or the wait began)
         self.turn = 0
+        self.payloads: dict | None = None  # (robot, keyframe id) -> (topic, message), for routing them
 
     def lose(self, k: int, exc: StageError) -> None:
         """Robot k is gone (its tracker died, or its data was lost for good): its stream ends with
@@ -274,6 +290,8 @@ class _RobotStreams:
             self.received[i] += 1
             msg = r.decode()
             merge.push(i, KeyframeItem(codec.stamp_ns(msg.header), int(msg.id), msg))
+            if self.payloads is not None:
+                self.payloads[(i, int(msg.id))] = (r.topic, msg)
 
 
 def _settle(mapper: Mapper, cfg: MapperConfig, streams: _RobotStreams, live: FleetMap,
