@@ -33,6 +33,7 @@ import numpy as np
 
 from octolog.kit.errors import MapError
 from octolog.kit.files import write_bytes_atomic
+from octolog.mapper.cloud import column_max, column_min, rows_where
 from octolog.schemas import codec
 
 __all__ = [
@@ -182,17 +183,25 @@ def project_grid(
     free = _centres(free_centres, "free centres")
     R, t = T[:3, :3], T[:3, 3]
 
+    identity = np.array_equal(T, np.eye(4))  # the product with I gives the same numbers: skipped
+
     def band_keys(p: np.ndarray) -> np.ndarray:
-        m = p @ R.T + t
-        m = m[(m[:, 2] >= z_min_m) & (m[:, 2] <= z_max_m)]
-        return np.floor(m[:, :2] / resolution_m).astype(np.int64)  # (N, 2) cell keys (x, y)
+        m = p if identity else p @ R.T + t
+        z = m[:, 2]
+        band = (z >= z_min_m) & (z <= z_max_m)
+        if not band.all():
+            m = rows_where(m, band)
+        keys = np.empty((m.shape[0], 2), dtype=np.int64)  # (N, 2) cell keys (x, y), a column at a time
+        for j in range(2):
+            keys[:, j] = np.floor(m[:, j] / resolution_m)
+        return keys
 
     k_occ, k_free = band_keys(occ), band_keys(free)
-    both = np.concatenate([k_occ, k_free])
-    if both.shape[0] == 0:
+    parts = [k for k in (k_occ, k_free) if k.shape[0]]
+    if not parts:
         raise MapError(f"no voxels between z = {z_min_m:g} and {z_max_m:g} m in the map frame")
-    lo = both.min(axis=0) - int(padding_cells)
-    hi = both.max(axis=0) + int(padding_cells)
+    lo = np.min([column_min(k) for k in parts], axis=0) - int(padding_cells)
+    hi = np.max([column_max(k) for k in parts], axis=0) + int(padding_cells)
     width, height = (hi - lo + 1).tolist()
     if width * height > 100_000_000:
         raise MapError(f"grid of {width}x{height} cells is too large (more than 1e8 cells)")
