@@ -30,7 +30,8 @@ from octolog.mapper.occupancy import OccupancyMap, make_occupancy_map
 from octolog.mapper.params import GridParams, MapperParams
 from octolog.mapper.tiles import Tiles
 
-__all__ = ["FrameRef", "KeyframeCloud", "Mapper", "reaches", "bt_payload", "make_mapper", "project_grid", "write_map_files"]
+__all__ = ["FrameRef", "KeyframeCloud", "Mapper", "bt_payload", "make_mapper", "project_grid", "reaches",
+           "write_map_files"]
 
 
 @dataclass

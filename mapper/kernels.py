@@ -19,6 +19,12 @@ keys. One walk through both, a few steps at a time and galloping over gaps: 2-5Ã
 binary search per key (`np.searchsorted`), whose every probe is a cache miss in a large table. The
 same positions, integers only.
 
+**Inserting and merging sorted keys** (mapper/voxelmap.py, mapper/voxelstore.py): a scan's free
+voxels read off its dense grid in the grid's order, which is already the packed keys' order; its
+free and occupied keys merged; its new keys inserted into a level's three arrays; each one pass
+instead of a sort, two integer divisions per key, or an `np.insert` per array. Integers and copies:
+the same arrays.
+
 **Sums per voxel** (mapper/cloud.py: `_merge_voxels`, the 1 cm grid): each row added to its
 voxel's sum in row order, as `np.bincount` adds its weights, so the same sums; one pass for all
 columns instead of one `bincount` per column.
@@ -32,7 +38,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["accumulate_rows", "find_sorted", "nearest_mean_distances", "walk_rays"]
+__all__ = ["accumulate_rows", "find_sorted", "insert_sorted", "marked_keys", "merge_sorted", "nearest_mean_distances",
+           "walk_rays"]
 
 
 @njit(cache=True, nogil=True)
@@ -181,3 +188,90 @@ def find_sorted(keys: np.ndarray, wanted: np.ndarray) -> tuple[np.ndarray, np.nd
     """For ascending `wanted` in ascending `keys` (int64): where each is or would go
     (`np.searchsorted(keys, wanted)`), and whether it is there."""
     return _find_sorted(np.ascontiguousarray(keys, dtype=np.int64), np.ascontiguousarray(wanted, dtype=np.int64))
+
+
+@njit(cache=True, nogil=True)
+def _marked(grid: np.ndarray, count: int, ny: int, nz: int, lo0: int, lo1: int, lo2: int) -> np.ndarray:
+    out = np.empty(count, np.int64)
+    nx = grid.shape[0] // (ny * nz)
+    lin, j = 0, 0
+    for x in range(nx):
+        for y in range(ny):
+            row = ((x + lo0) << 32) | ((y + lo1) << 16)
+            for z in range(nz):
+                if grid[lin]:
+                    out[j] = row | (z + lo2)
+                    j += 1
+                lin += 1
+    return out
+
+
+def marked_keys(grid: np.ndarray, shape: np.ndarray, lo: np.ndarray) -> np.ndarray:
+    """The packed OctoMap keys (x << 32 | y << 16 | z) of the marked cells of a dense scan grid
+    (uint8, x-major over the key box from `lo` of `shape`), ascending: one walk, in the grid's own
+    order, instead of their linear indices and two integer divisions each."""
+    return _marked(grid, int(np.count_nonzero(grid)), int(shape[1]), int(shape[2]), int(lo[0]), int(lo[1]),
+                   int(lo[2]))
+
+
+@njit(cache=True, nogil=True)
+def _merge(a: np.ndarray, va: np.ndarray, b: np.ndarray, vb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    n, m = a.shape[0], b.shape[0]
+    keys = np.empty(n + m, np.int64)
+    vals = np.empty(n + m, va.dtype)
+    i = j = k = 0
+    while i < n and j < m:
+        if b[j] < a[i]:
+            keys[k], vals[k] = b[j], vb[j]
+            j += 1
+        else:
+            keys[k], vals[k] = a[i], va[i]
+            i += 1
+        k += 1
+    while i < n:
+        keys[k], vals[k] = a[i], va[i]
+        i += 1
+        k += 1
+    while j < m:
+        keys[k], vals[k] = b[j], vb[j]
+        j += 1
+        k += 1
+    return keys, vals
+
+
+def merge_sorted(a: np.ndarray, va: np.ndarray, b: np.ndarray, vb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two ascending int64 key arrays with their values, merged into one ascending pair: what a
+    stable argsort of their concatenation gives (`a`'s first on equal keys), in one pass."""
+    return _merge(np.ascontiguousarray(a, dtype=np.int64), np.ascontiguousarray(va),
+                  np.ascontiguousarray(b, dtype=np.int64), np.ascontiguousarray(vb, dtype=va.dtype))
+
+
+@njit(cache=True, nogil=True)
+def _insert(keys: np.ndarray, logodds: np.ndarray, colours: np.ndarray, at: np.ndarray, new_keys: np.ndarray,
+            new_logodds: np.ndarray, new_colour: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    n, m = keys.shape[0], new_keys.shape[0]
+    ok = np.empty(n + m, np.int64)
+    ol = np.empty(n + m, np.float32)
+    oc = np.empty((n + m, 3), np.uint8)
+    i = k = 0
+    for j in range(m + 1):
+        stop = at[j] if j < m else n
+        while i < stop:
+            ok[k], ol[k] = keys[i], logodds[i]
+            oc[k, 0], oc[k, 1], oc[k, 2] = colours[i, 0], colours[i, 1], colours[i, 2]
+            i += 1
+            k += 1
+        if j < m:
+            ok[k], ol[k] = new_keys[j], new_logodds[j]
+            oc[k, 0], oc[k, 1], oc[k, 2] = new_colour[0], new_colour[1], new_colour[2]
+            k += 1
+    return ok, ol, oc
+
+
+def insert_sorted(keys: np.ndarray, logodds: np.ndarray, colours: np.ndarray, at: np.ndarray, new_keys: np.ndarray,
+                  new_logodds: np.ndarray, new_colour: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`np.insert` of `new_keys`, `new_logodds` and one colour (a value or 3) for all of them before
+    positions `at` (non-decreasing) of the three arrays of a level, in one pass."""
+    return _insert(keys, logodds, np.ascontiguousarray(colours), np.ascontiguousarray(at, dtype=np.int64),
+                   np.ascontiguousarray(new_keys, dtype=np.int64), np.ascontiguousarray(new_logodds, dtype=np.float32),
+                   np.broadcast_to(np.asarray(new_colour, dtype=np.uint8), (3,)).copy())

@@ -39,7 +39,7 @@ from octolog.kit.errors import MapError
 from octolog.kit.files import write_bytes_atomic
 from octolog.mapper.octokeys import TREE_MAX_VAL, key_to_coord, norm32, pack, to_key, unpack
 from octolog.mapper.cloud import column_max, column_min, rows_where
-from octolog.mapper.kernels import accumulate_rows, walk_rays
+from octolog.mapper.kernels import accumulate_rows, marked_keys, merge_sorted, walk_rays
 from octolog.mapper.sensor_model import SensorModel
 from octolog.mapper.voxelstore import VoxelStore
 from octolog.mapper.treebuild import build_tree
@@ -92,12 +92,11 @@ class _ScanGrid:
     def result(self, occ_lin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(free, occupied) packed keys, each sorted and unique, disjoint (occupied wins)."""
         occ_lin = np.unique(occ_lin)
-        if self.dense:
+        if self.dense:  # the marked cells in the grid's order are sorted packed keys already
             self.grid[occ_lin] = 0
-            free_lin = np.flatnonzero(self.grid)
-        else:
-            free_lin = np.unique(np.concatenate(self._free)) if self._free else np.zeros(0, np.int64)
-            free_lin = free_lin[~np.isin(free_lin, occ_lin, assume_unique=True)]
+            return marked_keys(self.grid, self.shape, self.lo), self._to_packed(occ_lin)
+        free_lin = np.unique(np.concatenate(self._free)) if self._free else np.zeros(0, np.int64)
+        free_lin = free_lin[~np.isin(free_lin, occ_lin, assume_unique=True)]
         return self._to_packed(free_lin), self._to_packed(occ_lin)
 
     def _to_packed(self, lin: np.ndarray) -> np.ndarray:
@@ -346,11 +345,9 @@ class VoxelOccupancyMap:
 
     def _apply_updates(self, free: np.ndarray, occ: np.ndarray) -> None:
         """Free cells get the miss update, occupied cells the hit update (once per scan), clamped."""
-        upd_keys = np.concatenate([free, occ])
-        upd = np.concatenate([np.full(free.shape[0], self._miss, np.float32),
-                              np.full(occ.shape[0], self._hit, np.float32)])
-        order = np.argsort(upd_keys, kind="stable")
-        self._store.update(upd_keys[order], upd[order], self._lmin, self._lmax)
+        keys, upd = merge_sorted(free, np.full(free.shape[0], self._miss, np.float32),
+                                 occ, np.full(occ.shape[0], self._hit, np.float32))
+        self._store.update(keys, upd, self._lmin, self._lmax)
 
     def _integrate_colour(self, colours: np.ndarray, inverse: np.ndarray, ulin: np.ndarray,
                           in_range: np.ndarray, box: _ScanGrid, keys: np.ndarray, discretize: bool) -> None:

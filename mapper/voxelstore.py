@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from octolog.mapper.kernels import find_sorted
+from octolog.mapper.kernels import find_sorted, insert_sorted
 from octolog.mapper.treebuild import WHITE  # OctoMap's "no colour"
 # the new level is merged into the main one once it holds this fraction of it, or MERGE_MIN keys
 MERGE_FRACTION = 8
@@ -136,8 +136,7 @@ class _Slab:
         if not found.all():
             ins, at = ~found, pos[~found]
             fresh = np.clip(np.zeros(int(ins.sum()), np.float32) + delta[ins], lmin, lmax).astype(np.float32)
-            self._new = (np.insert(nk, at, keys[ins]), np.insert(nl, at, fresh),
-                         np.insert(nc, at, np.broadcast_to(WHITE, (fresh.shape[0], 3)), axis=0))
+            self._new = insert_sorted(nk, nl, nc, at, keys[ins], fresh, WHITE)
         if self._new[0].shape[0] > max(MERGE_MIN, self._main[0].shape[0] // MERGE_FRACTION):
             self._merge()
 

@@ -73,7 +73,8 @@ def run_follower(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun:
     if recorded is not None and recorded[0]["robots"] != list(cfg.robots):
         raise InputError(f"mapper.follow {cfg.follow}: its robots are {recorded[0]['robots']}, "
                          f"mapper.robots {list(cfg.robots)}")
-    shard = cfg.tiles().index if cfg.shard and recorded is None else None  # routed to: its keyframes come from the leader
+    # a live shard is routed to: its keyframes come from the placing mapper
+    shard = cfg.tiles().index if cfg.shard and recorded is None else None
     with contextlib.ExitStack() as stack:
         bus = stack.enter_context(Bus(bus_cfg, cfg.stage, inbox_size=INBOX_KEYFRAMES))
         leader = None if recorded is not None else LeaderStream(stack.enter_context(
@@ -94,7 +95,8 @@ def run_follower(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun:
                      timeout_s=cfg.wait_timeout_s)
             if not shard:
                 rb.watch(["tracker"])
-        frames: LeaderStream | RobotFrames = leader if shard else RobotFrames(cfg.robots, robot_buses)  # type: ignore[assignment]
+        frames: LeaderStream | RobotFrames = \
+            leader if shard else RobotFrames(cfg.robots, robot_buses)  # type: ignore[assignment]
         ops = iter(recorded) if leader is None else leader.journal()
         follow = Follower(mapper, cfg, frame, frames)
         follow.run(ops, bus, viz, publisher, out_dir)
@@ -122,7 +124,8 @@ class LeaderStream:
         self.count = 0  # keyframes routed here
 
     def start(self, timeout_s: float) -> None:
-        routes = [route_topic(self.shard, r, c) for r in range(self.robots) for c in (False, True)] if self.shard else []
+        routes = [route_topic(self.shard, r, c) for r in range(self.robots) for c in (False, True)] \
+            if self.shard else []
         self.bus.start([MAP_PLACED, *routes], wait_for=[PLACEMENT_STAGE], timeout_s=timeout_s)
 
     def _read(self) -> bool:
@@ -140,7 +143,8 @@ class LeaderStream:
             try:
                 op = json.loads(msg.data)
             except json.JSONDecodeError:
-                raise StageError(f"mapper: a malformed journal op from the placing mapper in {self.namespace}") from None
+                raise StageError(f"mapper: a malformed journal op from the placing mapper in "
+                                 f"{self.namespace}") from None
             self.ops.append(op)
             self.read += 1
             if op.get("op") == "end":
