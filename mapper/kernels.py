@@ -25,6 +25,9 @@ free and occupied keys merged; its new keys inserted into a level's three arrays
 instead of a sort, two integer divisions per key, or an `np.insert` per array. Integers and copies:
 the same arrays.
 
+**Unique keys** (mapper/cloud.py: `_merge_voxels`, the 1 cm grid): `np.unique` with inverse and
+counts by a stable radix sort, 11 bits a pass: a few linear passes instead of a comparison sort.
+
 **Sums per voxel** (mapper/cloud.py: `_merge_voxels`, the 1 cm grid): each row added to its
 voxel's sum in row order, as `np.bincount` adds its weights, so the same sums; one pass for all
 columns instead of one `bincount` per column.
@@ -39,7 +42,7 @@ import numpy as np
 from numba import njit
 
 __all__ = ["accumulate_rows", "find_sorted", "insert_sorted", "marked_keys", "merge_sorted", "nearest_mean_distances",
-           "walk_rays"]
+           "unique_keys", "walk_rays"]
 
 
 @njit(cache=True, nogil=True)
@@ -275,3 +278,53 @@ def insert_sorted(keys: np.ndarray, logodds: np.ndarray, colours: np.ndarray, at
     return _insert(keys, logodds, np.ascontiguousarray(colours), np.ascontiguousarray(at, dtype=np.int64),
                    np.ascontiguousarray(new_keys, dtype=np.int64), np.ascontiguousarray(new_logodds, dtype=np.float32),
                    np.broadcast_to(np.asarray(new_colour, dtype=np.uint8), (3,)).copy())
+
+
+RADIX_BITS = 11  # unique_keys: a pass sorts this many bits of the keys (2048 buckets: in L1)
+
+
+@njit(cache=True, nogil=True)
+def _unique_keys(keys: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    n = keys.shape[0]
+    k, idx = keys.copy(), np.arange(n)
+    k2, idx2 = np.empty(n, np.int64), np.empty(n, np.int64)
+    size = 1 << RADIX_BITS
+    mask = size - 1
+    count = np.empty(size, np.int64)
+    shift = 0
+    while shift < bits:  # least significant digit first, each pass stable: a stable sort of the keys
+        count[:] = 0
+        for i in range(n):
+            count[(k[i] >> shift) & mask] += 1
+        at = 0
+        for d in range(size):
+            c = count[d]
+            count[d] = at
+            at += c
+        for i in range(n):
+            d = (k[i] >> shift) & mask
+            k2[count[d]], idx2[count[d]] = k[i], idx[i]
+            count[d] += 1
+        k, k2, idx, idx2 = k2, k, idx2, idx
+        shift += RADIX_BITS
+    groups = 0
+    for i in range(n):
+        if i == 0 or k[i] != k[i - 1]:
+            groups += 1
+    unique = np.empty(groups, np.int64)
+    counts = np.zeros(groups, np.int64)
+    inverse = np.empty(n, np.int64)
+    g = -1
+    for i in range(n):
+        if i == 0 or k[i] != k[i - 1]:
+            g += 1
+            unique[g] = k[i]
+        counts[g] += 1
+        inverse[idx[i]] = g
+    return unique, inverse, counts
+
+
+def unique_keys(keys: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`np.unique(keys, return_inverse=True, return_counts=True)` of non-negative int64 keys below
+    2**bits, by a stable radix sort: integers only, the same arrays, in a few linear passes."""
+    return _unique_keys(np.ascontiguousarray(keys, dtype=np.int64), int(bits))

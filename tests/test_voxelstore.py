@@ -53,3 +53,32 @@ def test_the_compiled_lookup_is_a_binary_search():
         pos, found = find_sorted(keys, wanted)
         assert np.array_equal(pos, np.searchsorted(keys, wanted))
         assert np.array_equal(found, np.isin(wanted, keys))
+
+
+def test_the_compiled_sorting_kernels_give_numpys_arrays():
+    """mapper/kernels.py: unique_keys is np.unique with inverse and counts (keys of 1 to 40 bits,
+    many repeats and none); merge_sorted is a stable argsort of the concatenation; insert_sorted is
+    np.insert into the three arrays of a level; marked_keys packs the marked cells of a grid."""
+    from octolog.mapper.kernels import insert_sorted, marked_keys, merge_sorted, unique_keys
+
+    rng = np.random.default_rng(5)
+    for n, bits in ((0, 8), (1, 1), (5000, 6), (20000, 23), (20000, 40)):
+        keys = rng.integers(0, 2**bits, n)
+        for got, want in zip(unique_keys(keys, bits), np.unique(keys, return_inverse=True, return_counts=True)):
+            assert np.array_equal(got, want)
+    a, b = np.unique(rng.integers(0, 10**6, 3000)), np.unique(rng.integers(0, 10**6, 2000))
+    b = np.setdiff1d(b, a)
+    va, vb = rng.random(len(a)).astype(np.float32), rng.random(len(b)).astype(np.float32)
+    order = np.argsort(np.concatenate([a, b]), kind="stable")
+    keys, vals = merge_sorted(a, va, b, vb)
+    assert np.array_equal(keys, np.concatenate([a, b])[order]) and np.array_equal(vals, np.concatenate([va, vb])[order])
+    colours = rng.integers(0, 255, (len(a), 3)).astype(np.uint8)
+    at = np.searchsorted(a, b)
+    got = insert_sorted(a, va, colours, at, b, vb, 255)
+    white = np.full((len(b), 3), 255, np.uint8)
+    want = (np.insert(a, at, b), np.insert(va, at, vb), np.insert(colours, at, white, axis=0))
+    assert all(np.array_equal(g, w) for g, w in zip(got, want))
+    shape, lo = np.array([7, 5, 9]), np.array([100, 200, 300])
+    grid = (rng.random(int(np.prod(shape))) < 0.3).astype(np.uint8)
+    x, y, z = np.unravel_index(np.flatnonzero(grid), tuple(shape))
+    assert np.array_equal(marked_keys(grid, shape, lo), ((x + lo[0]) << 32) | ((y + lo[1]) << 16) | (z + lo[2]))
