@@ -2,7 +2,7 @@
 
     python bench/map_accuracy.py
 
-Same construction as tests/test_map_accuracy.py; definitions in mapper/evaluate.py. Prints, for the
+Same construction as tests/mapper/test_map_accuracy.py; definitions in mapper/evaluate.py. Prints, for the
 default config and variants of the outlier filter: dense cloud to true surface distance, observed
 surface voxels occupied, observed free voxels occupied.
 """

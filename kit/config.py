@@ -112,7 +112,7 @@ def load(cls: type[T], path: str | Path | None = None, overrides: list[str] | No
             raise ConfigError(f"{p}: config file not found") from None
         except tomllib.TOMLDecodeError as exc:
             raise ConfigError(f"{p}: invalid TOML: {exc}") from None
-        except UnicodeDecodeError as exc:  # found by tests/test_fuzz.py
+        except UnicodeDecodeError as exc:  # found by tests/kit/test_fuzz.py
             raise ConfigError(f"{p}: not a TOML text file (byte {exc.start} is not UTF-8)") from None
         except OSError as exc:
             raise ConfigError(f"{p}: cannot read the config file: {exc.strerror}") from None

@@ -27,7 +27,7 @@ from octolog.kit.recordfile import RecordFile
 from octolog.schemas import codec, logview
 from octolog.schemas.topics import BY_NAME
 
-# What the mcap reader and its decompressors raise on damaged bytes (found by tests/test_fuzz.py:
+# What the mcap reader and its decompressors raise on damaged bytes (found by tests/kit/test_fuzz.py:
 # lz4 raises RuntimeError for a cut frame, a header shorter than the magic struct.error, zstandard
 # its own ZstdError): each one means "this file is damaged here", never a crash.
 _DAMAGE: tuple[type[BaseException], ...] = (RawMcapError, EOFError, ValueError, KeyError, IndexError, struct.error,
@@ -176,7 +176,7 @@ class McapWriter:
 class _Clamped:
     """A file whose reads never ask for more than what is left: the mcap reader reads a record's
     declared length at once, and Python allocates a read's whole size first, so a forged length
-    (2 GB in a 5 kB file) would allocate that much before finding the file short (tests/test_fuzz.py)."""
+    (2 GB in a 5 kB file) would allocate that much before finding the file short (tests/kit/test_fuzz.py)."""
 
     def __init__(self, f: BinaryIO) -> None:
         self._f = f

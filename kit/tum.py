@@ -59,7 +59,7 @@ def read_rows(path: Path, parse: Callable[[list[str]], T], want: str) -> list[T]
     rows = []
     try:
         text = path.read_text()
-    except UnicodeDecodeError as exc:  # found by tests/test_fuzz.py
+    except UnicodeDecodeError as exc:  # found by tests/kit/test_fuzz.py
         raise InputError(f"{path}: not a text file (byte {exc.start} is not UTF-8)") from None
     for lineno, line in enumerate(text.splitlines(), 1):
         line = line.strip()

@@ -22,7 +22,7 @@ if _CORE != "auto" and _X86:
 # arccos, arctan (and float32 log2, ...) to AVX-512 implementations whose last bits differ from the
 # AVX2 ones, which reached the tracker (sigma = 1.2 ** octave) and the synthetic renderer (log2 of the
 # texture footprint). An octolog process turns numpy's AVX-512 dispatch off, so an AVX-512 machine
-# computes what an AVX2 machine does (tests/test_determinism.py). Elementwise arithmetic, sums and
+# computes what an AVX2 machine does (tests/shell/test_determinism.py). Elementwise arithmetic, sums and
 # sqrt are exact at every level and keep their speed. OCTOLOG_NUMPY_DISABLE names other features
 # ("auto": numpy's own choice); features a CPU lacks are ignored.
 _NPY = os.environ.get("OCTOLOG_NUMPY_DISABLE", "X86_V4 AVX512_ICL AVX512_SPR")

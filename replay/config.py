@@ -37,7 +37,7 @@ class ReplayConfig:
     start_s: float = -1.0
     end_s: float = -1.0
     # added to every frame's sensor stamp: e.g. the two halves of one sequence replayed as two robots
-    # working at the same time (tests/test_fleet.py); 0 keeps the source's time
+    # working at the same time (tests/mapper/test_fleet.py); 0 keeps the source's time
     time_shift_s: float = 0.0
     # publish under other topic names: "camera/rgbd=cam2/rgbd" (namespaces: the --namespace flag)
     remap: tuple[str, ...] = ()

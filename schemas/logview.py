@@ -17,7 +17,7 @@ stores each such message as standard-typed parts, written one after the other:
   diagnostics panel, with a level (OK, WARN for INIT/SKIPPED, ERROR for LOST).
 
 `join` rebuilds the wire message from its parts, byte for byte (the logger checks the first message
-of every topic, tests/test_logview.py all of them), so a replay from the log publishes exactly what
+of every topic, tests/schemas/test_logview.py all of them), so a replay from the log publishes exactly what
 the live run published. Messages of standard types are stored as they are.
 """
 

@@ -3,7 +3,7 @@
 Stock ROS 2 types are rosbags' own generated dataclasses of the Jazzy store, the very classes
 `codec.typestore()` builds and decodes with. octolog's own types (`msg/*.msg`) are registered at run
 time, so rosbags generates their classes then; the Protocols here spell out the same fields, in the
-same order and with the same types (tests/test_schemas.py checks them against the type store).
+same order and with the same types (tests/schemas/test_schemas.py checks them against the type store).
 """
 
 from __future__ import annotations

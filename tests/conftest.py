@@ -14,6 +14,10 @@ from pathlib import Path
 import octolog  # noqa: F401
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+# test modules import fixtures and scene makers from one another across the package folders
+for _folder in sorted(Path(__file__).resolve().parent.iterdir()):
+    if _folder.is_dir() and not _folder.name.startswith((".", "_")):
+        sys.path.insert(1, str(_folder))
 
 import pytest  # noqa: E402
 from helpers import free_port, tum_first300

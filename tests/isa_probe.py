@@ -1,6 +1,6 @@
 """Prints hashes of what the CPU's instruction set could change: rendered frames, ORB features, poses.
 
-Run as a script by tests/test_determinism.py under restricted instruction sets (OPENCV_CPU_DISABLE,
+Run as a script by tests/shell/test_determinism.py under restricted instruction sets (OPENCV_CPU_DISABLE,
 NPY_DISABLE_CPU_FEATURES, OPENBLAS_CORETYPE) and compared with an unrestricted run. Not collected by
 pytest (no test_ prefix).
 

@@ -23,7 +23,7 @@ from typing import Any
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 CLI_MD = ROOT / "docs" / "cli.md"
 # TOML section -> the stage config dataclass it loads into (shell/cli.py, shell/record.py, shell/run.py)
 SECTIONS = {

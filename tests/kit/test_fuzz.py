@@ -8,7 +8,7 @@ raises an OctologError (the family `octolog` prints as one line); anything else 
 
 Budget: `OCTOLOG_FUZZ_EXAMPLES` inputs per target (default 60, derandomized: CI tries the same
 inputs every run). The long run (docs/results.md, "Fuzzing") is
-`OCTOLOG_FUZZ_EXAMPLES=5000 OCTOLOG_FUZZ_SEED=random pytest tests/test_fuzz.py`. A crash found
+`OCTOLOG_FUZZ_EXAMPLES=5000 OCTOLOG_FUZZ_SEED=random pytest tests/kit/test_fuzz.py`. A crash found
 becomes an `@example` of its target, so it is tried on every run from then on.
 """
 
@@ -267,7 +267,7 @@ def test_config_files(data):
         shutil.rmtree(d)
 
 
-ZENOH = (Path(__file__).resolve().parents[1] / "docs" / "examples" / "zenoh-tls-client.json5").read_bytes()
+ZENOH = (Path(__file__).resolve().parents[2] / "docs" / "examples" / "zenoh-tls-client.json5").read_bytes()
 
 
 @given(st.one_of(mutated(ZENOH), st.text(max_size=300).map(str.encode)))

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 RESULTS_MD = ROOT / "docs" / "results.md"
 CAPABILITIES = (
     "Tracker accuracy", "Tracker cost", "Fast motion", "Pipeline and live", "Mapper", "Recorder", "Transport",

@@ -1,6 +1,6 @@
 """Robots that meet again are linked again (inter-robot loop closure, mapper/fleet/placement.py:
 relinking): in process on rendered views of the synthetic room, and through the real processes
-(tests/test_fleet.py's `run_fleet`: a router, a mapper for r1+r2, and per robot a replay and a tracker)."""
+(tests/mapper/test_fleet.py's `run_fleet`: a router, a mapper for r1+r2, and per robot a replay and a tracker)."""
 
 from __future__ import annotations
 

@@ -18,7 +18,7 @@ from octolog.kit.geometry import pose_to_matrix
 from octolog.replay.synthetic import EPOCH_NS, SyntheticScene
 from octolog.replay.synthetic_room import OBJECTS, ROOM
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")

@@ -177,7 +177,7 @@ def test_deterministic_across_processes(scene) -> None:
     here = _digest(_track_all(frames))
     code = (
         "import importlib.util, sys\n"
-        f"sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
+        f"sys.path.insert(0, {str(Path(__file__).resolve().parents[1])!r})\n"
         f"spec = importlib.util.spec_from_file_location('t', {str(Path(__file__))!r})\n"
         "m = importlib.util.module_from_spec(spec); spec.loader.exec_module(m)\n"
         "tex = [m._texture(s) for s in (1, 2, 3)]\n"
@@ -188,7 +188,7 @@ def test_deterministic_across_processes(scene) -> None:
         "print(m._digest(m._track_all(fr)))\n"
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
-                          env={**os.environ, "PYTHONHASHSEED": "12345"}, cwd=Path(__file__).resolve().parents[1])
+                          env={**os.environ, "PYTHONHASHSEED": "12345"}, cwd=Path(__file__).resolve().parents[2])
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == here
 

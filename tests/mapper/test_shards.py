@@ -1,6 +1,6 @@
 """A map split into tiles across mapper shards (mapper/tiles.py) and stitched (mapper/shards.py):
 the same bytes as one mapper, and a missing shard named, in-process. The shards as processes on
-network-namespace hosts are in tests/test_distributed.py."""
+network-namespace hosts are in tests/shell/test_distributed.py."""
 
 from __future__ import annotations
 

@@ -31,7 +31,7 @@ from octolog.recorder.software_d455 import SoftwareDeviceBackend, SyntheticPatte
 from octolog.schemas import codec, imagecodec, rgbdmsgs, sensormsgs, wirecompression
 from octolog.schemas import topics as T
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 BASE = RecorderConfig(backend="software")
 
 

@@ -1,7 +1,7 @@
 """One placement authority for a sharded fleet map (mapper/fleet/journal.py), in-process: a shard
 that follows the placing shard's journal builds the same bytes as one that places the robots itself,
 the two stitch into the whole fleet map, and a journal that is damaged or cut short is refused. The
-shards as processes on network-namespace hosts are in tests/test_distributed.py."""
+shards as processes on network-namespace hosts are in tests/shell/test_distributed.py."""
 
 from __future__ import annotations
 

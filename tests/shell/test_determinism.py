@@ -166,4 +166,4 @@ def test_run_outputs_match_golden_hashes(key, level, tmp_path, octolog_run):
         f"golden hashes.\ngot {got}\nwant {want}\n"
         "If the restricted-instruction-set tests fail too, this CPU gives other bytes (a platform "
         "difference: find the kernel); if not, the outputs changed on purpose: update GOLDEN in "
-        "tests/test_determinism.py with the hashes above, in the same commit, and say why.")
+        "tests/shell/test_determinism.py with the hashes above, in the same commit, and say why.")

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 _SETUPTOOLS = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
 PACKAGE_DIR: dict[str, str] = _SETUPTOOLS["package-dir"]
 PACKAGES: list[str] = _SETUPTOOLS["packages"]
@@ -201,10 +201,10 @@ def test_files_map_to_packages_setuptools_ships():
     for package in PACKAGES:
         if package != "octolog" and floor_unit(package) == "octolog":
             problems.append(f"pyproject.toml: [floors] package {package} is on no floor: add it to KIT, STAGES "
-                            f"or SHELL in tests/test_architecture.py (and to docs/architecture.md)")
+                            f"or SHELL in tests/project/test_architecture.py (and to docs/architecture.md)")
     for unit in (*KIT, *STAGES, *SHELL):
         if unit not in listed:
-            problems.append(f"tests/test_architecture.py: [floors] {unit} is not a package in pyproject.toml: "
+            problems.append(f"tests/project/test_architecture.py: [floors] {unit} is not a package in pyproject.toml: "
                             f"update the floor tables")
     _fail(problems, "packaging problems")
 
@@ -301,7 +301,7 @@ def test_floors():
                                 f"octolog.shell")
             elif floor(unit) == "unknown" or floor(tunit) == "unknown":
                 problems.append(f"{where}: a module on no floor; add its package to KIT, STAGES or SHELL in "
-                                f"tests/test_architecture.py")
+                                f"tests/project/test_architecture.py")
     _fail(problems, "floor violations")
 
 
@@ -409,14 +409,14 @@ def test_module_size():
         if lines > MAX_LINES and module not in LONG_MODULES:
             problems.append(f"{src.rel}:{MAX_LINES + 1}: [size] {module} has {lines} lines (> {MAX_LINES}): split it "
                             f"along a seam (a pure core apart from its loop, one concern per module); only if it must "
-                            f"stay whole, add it to LONG_MODULES in tests/test_architecture.py with the reason")
+                            f"stay whole, add it to LONG_MODULES in tests/project/test_architecture.py with the reason")
     for module, reason in LONG_MODULES.items():
         if not reason.strip():
-            problems.append(f"tests/test_architecture.py: [size] LONG_MODULES[{module!r}] gives no reason")
+            problems.append(f"tests/project/test_architecture.py: [size] LONG_MODULES[{module!r}] gives no reason")
         if module not in modules:
-            problems.append(f"tests/test_architecture.py: [size] LONG_MODULES lists {module}, which does not exist")
+            problems.append(f"tests/project/test_architecture.py: [size] LONG_MODULES lists {module}, which does not exist")
         elif len(modules[module].path.read_text().splitlines()) <= MAX_LINES:
-            problems.append(f"tests/test_architecture.py: [size] LONG_MODULES lists {module}, which is "
+            problems.append(f"tests/project/test_architecture.py: [size] LONG_MODULES lists {module}, which is "
                             f"{MAX_LINES} lines or fewer now: remove the entry")
     _fail(problems, "modules too long")
 

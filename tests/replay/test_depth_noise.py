@@ -16,7 +16,7 @@ import pytest
 from octolog.replay import depth_noise
 from octolog.replay.synthetic import SyntheticScene
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))
 from depth_scale import track_scene  # noqa: E402  (bench/depth_scale.py: the same runs as the table)
 
 
