@@ -1,10 +1,13 @@
-"""Flags shared by the commands: transport, Rerun, config (as zenoh-python's and rerun's helpers)."""
+"""Flags shared by the commands: transport, Rerun, config, log level (as zenoh-python's and rerun's helpers)."""
 
 from __future__ import annotations
 
 import argparse
 import uuid
+from contextlib import AbstractContextManager
+from logging import Handler
 
+from octolog.kit import logs
 from octolog.kit.busconfig import BusConfig
 
 
@@ -45,3 +48,23 @@ def add_config_arguments(p: argparse.ArgumentParser) -> None:
 
 def recording_id(args: argparse.Namespace) -> str:
     return args.recording_id or str(uuid.uuid4())
+
+
+# a stage's command -> the stage it runs, as its log lines and `octolog run`'s logs/STAGE.log name it
+STAGE_OF_COMMAND = {"track": "tracker", "map": "mapper", "record": "recorder"}
+
+
+def add_log_arguments(parser: argparse.ArgumentParser) -> None:
+    """`--log-level` on every command of `parser` (each subcommand that takes no further subcommand)."""
+    subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    for sub in (p for a in subs for p in a.choices.values()):
+        add_log_arguments(sub)
+    if not subs:
+        parser.add_argument("--log-level", choices=logs.LEVELS, default=logs.DEFAULT_LEVEL,
+                            help="the least severe log lines shown, on stderr (default %(default)s)")
+
+
+def command_logging(args: argparse.Namespace) -> AbstractContextManager[Handler]:
+    """The process's logging for the command in `args`: its stage's name, at `--log-level`."""
+    return logs.configured(STAGE_OF_COMMAND.get(args.command, args.command),
+                           getattr(args, "log_level", logs.DEFAULT_LEVEL))

@@ -16,6 +16,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from octolog.kit import logs
 from octolog.kit.bus import Bus, BusConfig, wait_interruptibly
 from octolog.kit.errors import StageExited, StageKilled
 from octolog.shell import errorfile
@@ -64,7 +65,8 @@ class StageProcesses:
         self.line_open = False  # a relayed stderr (the replay's progress line) ended without a newline
 
     def start(self, name: str, argv: list[str], *, show_stderr: bool = False, append: bool = False) -> None:
-        """Start stage `name` as `python -m octolog ARGV`, its output in logs/NAME.log."""
+        """Start stage `name` as `python -m octolog ARGV`, its output in logs/NAME.log, logging at this
+        process's level (`--log-level`)."""
         log = open(self.logs / f"{name}.log", "ab" if append else "wb")  # noqa: SIM115 - owned by the child
         errorfile.reserve(self.error_file(name))
         env = {**os.environ, "PYTHONHASHSEED": "0", "PYTHONUNBUFFERED": "1", errorfile.ENV: str(self.error_file(name)),
@@ -74,7 +76,7 @@ class StageProcesses:
         profile = name in os.environ.get("OCTOLOG_PROFILE", "").split(",")
         prof = ["-m", "cProfile", "-o", str(self.logs / f"{name}.prof")] if profile else []
         self.procs[name] = proc = subprocess.Popen(
-            [*_niced(name), sys.executable, *prof, "-m", "octolog", *argv], stdout=log,
+            [*_niced(name), sys.executable, *prof, "-m", "octolog", *argv, "--log-level", logs.level()], stdout=log,
             stderr=subprocess.PIPE if show_stderr else log, env=env, start_new_session=True)
         _nice_session(name, proc.pid)
         if show_stderr:

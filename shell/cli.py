@@ -21,6 +21,7 @@ from octolog.kit.config import load
 from octolog.kit.errors import ConfigError, DiskFull, OctologError
 from octolog.shell import errorfile, record
 from octolog.shell.args import add_bus_arguments, add_config_arguments, add_viz_arguments, bus_config, recording_id
+from octolog.shell.args import add_log_arguments, command_logging
 
 if TYPE_CHECKING:
     from octolog.replay.node import ReplayStatus
@@ -439,6 +440,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_file_commands(sub)
     _add_vocab_command(sub)
     _add_router_command(sub)
+    add_log_arguments(parser)
     return parser
 
 
@@ -453,7 +455,8 @@ def main(argv: list[str] | None = None) -> int:
         args.rerun = "save" if getattr(args, "session", None) else "off"
     signal.signal(signal.SIGTERM, _terminate)
     try:
-        return _run_command(args)
+        with command_logging(args):
+            return _run_command(args)
     finally:
         if "octolog.kit.bus.screening" in sys.modules:  # a command that took samples off a bus
             from octolog.kit import cpuclock

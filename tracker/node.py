@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import functools
 import json
+import logging
 import queue
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -49,6 +49,8 @@ from octolog.tracker.factory import make_odometry, set_depth_model, set_readout
 from octolog.tracker.imu_intake import IMU_TOPICS
 from octolog.tracker.intake import FRAME_PRODUCERS, Intake
 from octolog.tracker.interface import Tracker, TrackingState, TrackResult
+
+log = logging.getLogger(__name__)
 
 
 def status_code(state: TrackingState) -> int:
@@ -332,9 +334,8 @@ def use_camera(odometry: Tracker, cfg: TrackerConfig, props: Any) -> None:
     if cfg.rolling_shutter_ms is None:
         set_readout(odometry, props.readout_s)
     elif abs(cfg.rolling_shutter_ms - props.readout_s * 1e3) > 1e-6:
-        print(f"tracker: warning: tracker.rolling_shutter_ms = {cfg.rolling_shutter_ms:g} but the camera "
-              f"({props.camera}) reads out in {props.readout_s * 1e3:g} ms; using {cfg.rolling_shutter_ms:g} "
-              f"(the local setting)", file=sys.stderr, flush=True)
+        log.warning("tracker.rolling_shutter_ms = %g but the camera (%s) reads out in %g ms; using %g (the local "
+                    "setting)", cfg.rolling_shutter_ms, props.camera, props.readout_s * 1e3, cfg.rolling_shutter_ms)
 
 
 class KeyframeOut:

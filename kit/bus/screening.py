@@ -5,7 +5,7 @@ counts that agree with headers, image headers within any camera's size, rigid po
 sees it;
 the decoded message rides along, so the stage does not decode twice. A buggy or hostile publisher
 cannot crash a stage this way, nor make it allocate what a forged header asks for: its samples are
-counted per topic, the first one per publisher is named on stderr, and the rest go silently.
+counted per topic, the first one per publisher is named in the stage's log (a warning), and the rest go silently.
 
 The counts of every bus of this process add up in `totals()`, which the command line hands to
 `octolog run` for summary.json. Locking: one lock over the counts (stages screen on their own
@@ -15,7 +15,7 @@ thread; a process may hold several buses).
 from __future__ import annotations
 
 import dataclasses
-import sys
+import logging
 import threading
 
 from octolog.kit.bus import wire
@@ -23,6 +23,7 @@ from octolog.kit.bus.inbox import Received
 from octolog.kit.errors import InputError
 from octolog.schemas import checks
 
+log = logging.getLogger(__name__)
 _lock = threading.Lock()
 _totals: dict[str, int] = {}  # topic name -> malformed samples dropped, over this process's buses
 
@@ -60,6 +61,6 @@ class Screening:
         if item.source in self._shown:
             return
         self._shown.add(item.source)
-        print(f"{self._stage}: dropped a malformed sample on {item.topic.key(self._namespace)} from "
-              f"{wire.describe_publisher(item.source)} ({len(item.payload)} bytes): {why}; its further "
-              f"malformed samples are counted, not shown", file=sys.stderr, flush=True)
+        log.warning("dropped a malformed sample on %s from %s (%d bytes): %s; its further malformed samples "
+                    "are counted, not shown", item.topic.key(self._namespace), wire.describe_publisher(item.source),
+                    len(item.payload), why, extra={"stage": self._stage})

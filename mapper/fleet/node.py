@@ -6,7 +6,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
-import sys
+import logging
 import time
 from pathlib import Path
 from typing import Any
@@ -49,6 +49,8 @@ from octolog.schemas.topics import (
     TRACKING_STATUS,
     route_topic,
 )
+
+log = logging.getLogger(__name__)
 
 # Each robot's inbox is unbounded. The merge waits on one robot while others run ahead; a full
 # inbox would block a thread of Zenoh's receive pool (shared by every session of the process, two
@@ -265,8 +267,8 @@ class _RobotStreams:
             note = (f"{cfg.robots[i]}: silent for {silent:.0f} s (mapper.robot_stall_s {cfg.robot_stall_s:g}): "
                     f"the others went on without it")
             self.result.problems.append(note)
-            # now, not at the end: an operator is waiting (stderr, as the tracker's warnings; Rerun)
-            print(f"mapper: warning: {note}", file=sys.stderr, flush=True)
+            # now, not at the end: an operator is waiting (the stage's log, as the tracker's warnings; Rerun)
+            log.warning("%s", note)
             viz.text("mapper/events", note)
 
     def _push(self, i: int, r: Any) -> None:
