@@ -23,8 +23,7 @@ from __future__ import annotations
 import time
 from functools import cache
 
-import zenoh.ext
-
+from octolog.kit.bus.session import Session, ext_deserialize, ext_serialize
 from octolog.schemas import codec
 
 ADMIN_SPACE = "@ros2_lv"
@@ -79,16 +78,14 @@ def publisher_token(domain: int, zid: str, node_id: int, entity_id: int, node_na
 def attachment(seq: int, stamp_ns: int, gid: bytes) -> bytes:
     """rmw_zenoh's sample attachment: key, value pairs in zenoh-ext's serialisation."""
     assert len(gid) == GID_SIZE
-    return zenoh.ext.z_serialize(("sequence_number", zenoh.ext.Int64(seq), "source_timestamp",
-                                  zenoh.ext.Int64(stamp_ns), "source_gid", gid)).to_bytes()
+    return ext_serialize(("sequence_number", seq, "source_timestamp", stamp_ns, "source_gid", gid))
 
 
 def parse_attachment(data: bytes) -> tuple[int, int, bytes]:
     """(sequence number, source timestamp ns, GID) of an rmw_zenoh attachment; ValueError if it is not one."""
     try:
-        k1, seq, k2, stamp, k3, gid = zenoh.ext.z_deserialize(
-            tuple[str, zenoh.ext.Int64, str, zenoh.ext.Int64, str, bytes], zenoh.ZBytes(data))
-    except zenoh.ext.ZDeserializeError as exc:
+        k1, seq, k2, stamp, k3, gid = ext_deserialize(data, (str, int, str, int, str, bytes))
+    except ValueError as exc:
         raise ValueError(f"not an rmw_zenoh attachment: {exc}") from None
     if (k1, k2, k3) != ("sequence_number", "source_timestamp", "source_gid") or len(gid) != GID_SIZE:
         raise ValueError("not an rmw_zenoh attachment: unexpected keys or GID size")
@@ -98,10 +95,10 @@ def parse_attachment(data: bytes) -> tuple[int, int, bytes]:
 class Ros2Node:
     """A stage as a node in the ROS graph of one domain: its token, and one mirror per publisher."""
 
-    def __init__(self, session: object, domain: int, stage: str) -> None:
+    def __init__(self, session: Session, domain: int, stage: str) -> None:
         self._session, self.domain = session, domain
         self.name = f"octolog_{stage or 'node'}"
-        self._zid = str(session.zenoh.info.zid())
+        self._zid = session.zid()
         self._entities = 0
         session.declare_token(node_token(domain, self._zid, 0, self.name))
 

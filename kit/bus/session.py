@@ -61,6 +61,21 @@ def zenoh_config(cfg: BusConfig) -> zenoh.Config:
     return zc
 
 
+def ext_serialize(items: tuple[str | int | bytes, ...]) -> bytes:
+    """`items` in zenoh-ext's serialisation, ints as int64 (rmw_zenoh's attachment, kit/bus/ros2.py)."""
+    return zenoh.ext.z_serialize(tuple(zenoh.ext.Int64(v) if isinstance(v, int) else v for v in items)).to_bytes()
+
+
+def ext_deserialize(data: bytes, kinds: tuple[type, ...]) -> tuple[Any, ...]:
+    """What `ext_serialize` made of items of `kinds` (str, int, bytes); ValueError if `data` is not that."""
+    spec = tuple[tuple(zenoh.ext.Int64 if kind is int else kind for kind in kinds)]  # type: ignore[misc]
+    try:
+        values = zenoh.ext.z_deserialize(spec, zenoh.ZBytes(data))
+    except zenoh.ext.ZDeserializeError as exc:
+        raise ValueError(str(exc)) from None
+    return tuple(int(v) if kind is int else v for kind, v in zip(kinds, values, strict=True))
+
+
 def one_line(exc: BaseException) -> str:
     """Zenoh's multi-line parser messages as one line: position and reason, no source paths."""
     lines = [ln.strip(" |=") for ln in str(exc).splitlines()]
@@ -98,6 +113,10 @@ class Session:
         if self._zenoh is None:
             raise BusError("bus is not open")
         return self._zenoh
+
+    def zid(self) -> str:
+        """The session's Zenoh id (hex), as the ROS graph's tokens name it."""
+        return str(self.zenoh.info.zid())
 
     def close(self) -> None:
         """Undeclare everything and close the session (no-op if it is not open)."""
