@@ -17,6 +17,7 @@ import numpy as np
 from octolog.kit.cpuclock import charge, note_threads
 from octolog.kit.errors import ConfigError, DiskFull, VizError
 from octolog.kit.geometry import Intrinsics, matrix_to_pose
+from octolog.schemas.imagecodec import depth_png
 
 APPLICATION_ID = "octolog"
 
@@ -210,8 +211,6 @@ class Viz:
         if self.rec is None:
             return
         if png is None:
-            from octolog.schemas.imagecodec import depth_png  # cv2 only once an image is logged
-
             png = depth_png(depth)
         self.rec.log(path, self._rr.EncodedDepthImage(blob=_blob(png), media_type="image/png",
                                                       meter=1.0 / depth_scale_m))

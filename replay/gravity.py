@@ -33,6 +33,9 @@ import numpy as np
 from octolog.kit.errors import InputError
 from octolog.kit.geometry import RgbdFrame
 from octolog.kit.gravity import WINDOW_S, G, level_on_plane, rotation_between, up_from_samples
+from octolog.kit.mcaplog import read_messages
+from octolog.schemas import codec, posemsgs
+from octolog.schemas.topics import ACCEL, TF_STATIC
 
 # TUM's Kinect accelerometer axes in the colour camera's optical frame (see the module docstring;
 # `octolog import` writes it into the MCAP as a /tf_static)
@@ -117,10 +120,6 @@ def recorded_up(path: Path, first_stamp_ns: int, color_frame: str) -> np.ndarray
     the file's `/tf_static` (None without accelerometer samples near that frame). Without a
     transform from the accelerometer's frame to the colour frame, the two are taken as aligned:
     RealSense IMU optical frames share the cameras' axes."""
-    from octolog.kit.mcaplog import read_messages
-    from octolog.schemas import codec, posemsgs
-    from octolog.schemas.topics import ACCEL, TF_STATIC
-
     samples, accel_frame, parent_from_child = [], "", {}
     for m in read_messages(path, [ACCEL.name, TF_STATIC.name]):
         msg = codec.decode(m.data, TF_STATIC.msgtype if m.topic == TF_STATIC.name else ACCEL.msgtype)

@@ -22,6 +22,7 @@ from octolog.kit.errors import InputError
 from octolog.kit.geometry import Intrinsics, RgbdFrame
 from octolog.kit.mcaplog import read_messages, summarize
 from octolog.kit.tum import associate
+from octolog.replay.gravity import recorded_up
 from octolog.schemas import codec, imagecodec, sensormsgs
 from octolog.schemas.topics import (
     ALIGNED_DEPTH,
@@ -67,8 +68,6 @@ class StandardSequence:
 
     def gravity_up(self) -> np.ndarray | None:
         """Up at the first frame from the recording's accelerometer (octolog.replay.gravity)."""
-        from octolog.replay.gravity import recorded_up
-
         if not self.pairs:
             return None
         frame = next(iter(self.frames(0, 1)))

@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from octolog.kit import cpuclock
 from octolog.kit.config import load
 from octolog.kit.errors import ConfigError, DiskFull, OctologError
 from octolog.shell import errorfile, record
@@ -54,14 +55,16 @@ def _error_line(text: str) -> None:
 # --- commands ----------------------------------------------------------------------------------
 # Each command imports its stage (and shell.run, shell.info, kit.metrics) inside itself: together they
 # load Zenoh, numpy, scipy, OpenCV, pyoctomap, gtsam and mcap (seconds), which `octolog --help` and
-# every other command should not pay for: with them at the top, `octolog --help` would take seconds
-# (importing them all: 6 s on a loaded 2-core machine; Zenoh alone ~1.7 s), not ~0.3 s.
+# every other command should not pay for: with them at the top, `octolog --help` takes 1.1 s instead
+# of 0.09 s (2 cores, warm cache; up to 3 s on a loaded machine). The one exception to "first-party
+# imports at module top" (docs/architecture.md, "Floors"): each such import says why with `# lazy:`.
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
     """`octolog replay`: publish a source's frames, or re-run stages of a session (SESSION)."""
     if args.session:
         return cmd_replay_session(args)
+    # lazy: the replay stage loads Zenoh, mcap, numpy, scipy and OpenCV
     from octolog.replay import node
     from octolog.replay.config import ReplayConfig
 
@@ -77,7 +80,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 def cmd_replay_session(args: argparse.Namespace) -> int:
     """`octolog replay SESSION`: re-run stages of a recorded session from its log."""
-    from octolog.shell import run
+    from octolog.shell import run  # lazy: the orchestrator loads every stage's config, Zenoh and mcap
 
     stages = ("mapper",) if args.from_stage == "tracker" else tuple(args.stages.split(","))
     if args.from_stage not in (None, "tracker"):
@@ -92,7 +95,7 @@ def cmd_replay_session(args: argparse.Namespace) -> int:
 
 def cmd_view(args: argparse.Namespace) -> int:
     """`octolog view`: merge a session's .rrd files and open them in Rerun."""
-    from octolog.shell import run
+    from octolog.shell import run  # lazy: the orchestrator loads every stage's config, Zenoh and mcap
 
     merged = run.merge_rrd(Path(args.session))
     if args.headless or not os.environ.get("DISPLAY"):
@@ -103,7 +106,8 @@ def cmd_view(args: argparse.Namespace) -> int:
 
 def cmd_track(args: argparse.Namespace) -> int:
     """`octolog track`: the tracker process."""
-    from octolog.shell.info import imu_line
+    # lazy: the tracker stage loads Zenoh, numpy, scipy, OpenCV and gtsam
+    from octolog.shell.info import imu_line, prior_line
     from octolog.tracker import node
     from octolog.tracker.config import TrackerConfig
 
@@ -125,8 +129,6 @@ def cmd_track(args: argparse.Namespace) -> int:
         print(f"tracker: {res.depth_bias.summary()}")
         errorfile.FINDINGS["depth_bias"] = res.depth_bias.as_dict()
     if res.prior is not None:
-        from octolog.shell.info import prior_line
-
         print(f"tracker: {prior_line(res.prior)}")
         errorfile.FINDINGS["prior_map"] = res.prior
     return 0
@@ -134,6 +136,7 @@ def cmd_track(args: argparse.Namespace) -> int:
 
 def cmd_map(args: argparse.Namespace) -> int:
     """`octolog map`: the mapper process."""
+    # lazy: the mapper stage loads Zenoh, mcap, numpy, scipy, numba and pyoctomap
     from octolog.mapper import node
     from octolog.mapper.config import MapperConfig
 
@@ -151,7 +154,7 @@ def cmd_map(args: argparse.Namespace) -> int:
 
 def cmd_log(args: argparse.Namespace) -> int:
     """`octolog log`: the session logger (every pipeline topic into MCAP)."""
-    from octolog.recorder import buslog
+    from octolog.recorder import buslog  # lazy: the session logger loads Zenoh and mcap
 
     metadata = json.loads(Path(args.metadata).read_text()) if args.metadata else None
     res = buslog.run(bus_config(args), Path(args.out), compression=args.compression, metadata=metadata,
@@ -163,7 +166,7 @@ def cmd_log(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     """`octolog run`: the whole pipeline as processes on this machine."""
-    from octolog.shell import run
+    from octolog.shell import run  # lazy: the orchestrator loads every stage's config, Zenoh and mcap
 
     summary = run.run_session(
         source=args.source, out=Path(args.out), config=args.config, overrides=args.set, rerun=args.rerun,
@@ -183,6 +186,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_merge(args: argparse.Namespace) -> int:
     """`octolog merge`: sessions recorded apart into one map."""
+    # lazy: the merge loads the mapper (numpy, numba, pyoctomap), Zenoh and mcap
     from octolog.mapper.config import MapperConfig
     from octolog.shell.merge import merge_sessions
 
@@ -200,14 +204,14 @@ def cmd_merge(args: argparse.Namespace) -> int:
 
 def cmd_stitch(args: argparse.Namespace) -> int:
     """`octolog stitch`: a map's shards into the whole map (shell/merge.py)."""
-    from octolog.shell.merge import cmd_stitch as stitch
+    from octolog.shell.merge import cmd_stitch as stitch  # lazy: loads the mapper (numpy, numba, pyoctomap)
 
     return stitch(args)
 
 
 def cmd_import(args: argparse.Namespace) -> int:
     """`octolog import`: a TUM folder or a ROS/RealSense bag into octolog's MCAP layout."""
-    from octolog.recorder.importers import import_source, parse_topic_map
+    from octolog.recorder.importers import import_source, parse_topic_map  # lazy: rosbags, numpy, OpenCV, mcap
 
     res = import_source(args.source, Path(args.output), overwrite=args.overwrite,
                         topic_map=parse_topic_map(args.map), compression=args.compression,
@@ -224,7 +228,7 @@ def cmd_import(args: argparse.Namespace) -> int:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     """`octolog eval`: ATE and RPE of a trajectory against ground truth."""
-    from octolog.kit import metrics
+    from octolog.kit import metrics  # lazy: numpy
 
     est, gt = metrics.read_tum(args.trajectory), metrics.read_tum(args.groundtruth)
     a = metrics.ate(est, gt, max_dt_ns=int(args.max_dt * 1e9))
@@ -235,7 +239,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 def cmd_info(args: argparse.Namespace) -> int:
     """`octolog info`: what an MCAP or OctoMap file holds."""
-    from octolog.shell.info import describe
+    from octolog.shell.info import describe  # lazy: numpy, mcap and rosbags
 
     print(describe(Path(args.file)))
     return 0
@@ -243,7 +247,7 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 def cmd_vocab(args: argparse.Namespace) -> int:
     """`octolog vocab build`: train an ORB vocabulary."""
-    from octolog.tracker import vocab
+    from octolog.tracker import vocab  # lazy: numpy and OpenCV
 
     out = Path(args.out)
     if out.exists() and not args.overwrite:
@@ -263,7 +267,7 @@ def cmd_vocab(args: argparse.Namespace) -> int:
 
 def cmd_router(args: argparse.Namespace) -> int:
     """`octolog router`: host a Zenoh router until Ctrl-C."""
-    from octolog.kit.bus import serve_router
+    from octolog.kit.bus import serve_router  # lazy: Zenoh
 
     listen = tuple(args.listen) or ("tcp/0.0.0.0:7447",)
     serve_router(listen, connect=tuple(args.connect), zenoh_config=args.zenoh_config,
@@ -459,8 +463,7 @@ def main(argv: list[str] | None = None) -> int:
             return _run_command(args)
     finally:
         if "octolog.kit.bus.screening" in sys.modules:  # a command that took samples off a bus
-            from octolog.kit import cpuclock
-            from octolog.kit.bus import screening
+            from octolog.kit.bus import screening  # lazy: only a command that used a bus has it (Zenoh) loaded
 
             errorfile.write_report(screening.totals(), cpuclock.report())
 

@@ -29,6 +29,7 @@ from octolog.mapper.fleet.assembly import FleetMap
 from octolog.mapper.fleet.node import merge_event, write_separate_map, write_trajectories
 from octolog.mapper.fleet.order import CorrectionItem, KeyframeItem, merged_order
 from octolog.mapper.fleet.placement import Placement
+from octolog.mapper.shards import stitch
 from octolog.schemas import codec
 from octolog.schemas.topics import KEYFRAME, KEYFRAME_COMPRESSED, KEYFRAME_POSES
 
@@ -106,8 +107,6 @@ def merge_sessions(folders: list[Path], out: Path, cfg: MapperConfig | None = No
 
 def cmd_stitch(args: argparse.Namespace) -> int:
     """`octolog stitch`: the shards' tiles into one map; exit status 3 when a shard is missing."""
-    from octolog.mapper.shards import stitch
-
     out = Path(args.out)
     _prepare(out, args.overwrite)
     stats = stitch([Path(f) for f in args.shards], out)

@@ -19,8 +19,9 @@ from octolog.kit.errors import ConfigError
 from octolog.shell.args import add_bus_arguments, add_config_arguments, add_viz_arguments, bus_config
 from octolog.shell.versions import versions
 
-# The recorder's modules are imported inside the commands below, never here: they load pyrealsense2,
-# OpenCV and mcap, and cli.py imports this module for every command (`octolog --help` stays ~0.3 s).
+# The recorder's modules are imported inside the commands below (`# lazy:`), never here: they load
+# pyrealsense2, OpenCV, mcap and Zenoh (0.3 s), and cli.py imports this module for every command's
+# parser. With shell/cli.py, the documented exception to "first-party imports at module top".
 
 _PROFILE = re.compile(r"^(\d+)x(\d+)@(\d+)$")
 
@@ -106,7 +107,7 @@ def overrides(args: argparse.Namespace) -> list[str]:
 
 
 def _status_printer() -> Callable[[Any], None]:
-    from octolog.recorder.recording import format_status
+    from octolog.recorder.recording import format_status  # lazy: numpy, rosbags
 
     tty = sys.stderr.isatty()
 
@@ -118,6 +119,7 @@ def _status_printer() -> Callable[[Any], None]:
 
 def cmd_record(args: argparse.Namespace) -> int:
     """`octolog record`: capture from the camera into an MCAP file or a session folder."""
+    # lazy: the recorder stage loads pyrealsense2, Zenoh, mcap, numpy and OpenCV
     from octolog.recorder import node
     from octolog.recorder.config import RecorderConfig
 
@@ -163,7 +165,7 @@ def _write_session_files(folder: Path, cfg: Any, res: Any) -> None:
 
 def cmd_recover(args: argparse.Namespace) -> int:
     """`octolog recover`: rebuild a complete MCAP file from one a killed recorder left."""
-    from octolog.recorder.recover import recover
+    from octolog.recorder.recover import recover  # lazy: mcap, numpy, rosbags
 
     r = recover(Path(args.input), Path(args.output), overwrite=args.overwrite, compression=args.compression)
     state = "was complete" if r.source_complete else f"was cut short ({r.problem}); {r.bytes_lost} bytes lost"

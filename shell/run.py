@@ -27,6 +27,7 @@ from octolog.kit.errors import ConfigError, InputError, OctologError, StageError
 from octolog.kit.mcaplog import message_counts, read_wire, summarize
 from octolog.kit.viz import parse_spec
 from octolog.mapper.config import MapperConfig
+from octolog.recorder.config import RecorderConfig
 from octolog.replay import gravity
 from octolog.replay.config import ReplayConfig
 from octolog.replay.imu import has_imu
@@ -130,8 +131,6 @@ def _resolve_configs(source: str, config: str | None, per: dict[str, list[str]])
         "mapper": load(MapperConfig, config, per["mapper"], section="mapper"),
     }
     if source in LIVE_SOURCES:
-        from octolog.recorder.config import RecorderConfig
-
         rec = _live_resolution(load(RecorderConfig, config, per["recorder"], section="recorder"), config,
                                per["recorder"])
         backend = LIVE_SOURCES[source]

@@ -1,5 +1,6 @@
-"""The architecture, checked from the source: one `octolog` namespace, three floors, no import
-circles, modules and functions a reader can take in.
+"""The architecture, checked from the source: one `octolog` namespace, three floors, the kit's
+layers one way, no import circles, first-party imports at module top, each transport, log and viewer
+library in one module, and a stated reason for every long module and function.
 
 Every .py file is read with `ast` (never imported): all imports count, at module level, inside
 functions and under `if TYPE_CHECKING:`, plus `importlib.import_module("...")`/`__import__("...")`
@@ -11,6 +12,7 @@ Floors (docs/architecture.md):
 - stages: `octolog.recorder`, `octolog.replay`, `octolog.tracker`, `octolog.mapper`; each imports
   only the kit and its own package;
 - shell: `octolog.shell` (and `octolog.__main__`, the `python -m octolog` entry point); imports anything.
+Inside the kit floor: the kit's basics (KIT_BELOW_SCHEMAS) <- octolog.schemas <- the rest of octolog.kit.
 """
 
 from __future__ import annotations
@@ -36,10 +38,6 @@ STAGES = ("octolog.recorder", "octolog.replay", "octolog.tracker", "octolog.mapp
 SHELL = ("octolog.shell",)
 # `python -m octolog` runs the shell; it sits on the shell floor and nothing may import it.
 ENTRY_POINTS = ("octolog.__main__",)
-
-MAX_LINES = 500
-# module -> why it may be longer than MAX_LINES. Keep it short: a long module is a missing seam.
-LONG_MODULES: dict[str, str] = {}
 
 # Folders that held top-level packages before the one namespace (`import tracker`): never again.
 OLD_TOP_LEVEL = sorted({Path(folder).parts[0] for folder in PACKAGE_DIR.values()} - {"octolog"})
@@ -400,76 +398,235 @@ def test_no_import_circles():
     _fail(problems, "import circles")
 
 
-def test_module_size():
-    """(d) No module over MAX_LINES lines unless LONG_MODULES says why (and entries stay true)."""
+# --- the kit's layers ---------------------------------------------------------------------------
+
+# The kit floor runs one way too (docs/architecture.md, "Floors"): the kit's basics, errors and value
+# types that import nothing else of octolog, then octolog.schemas (message types, codec, topic names)
+# on them, then the rest of octolog.kit (the bus, the MCAP log, the viewer, ...), which carries and
+# shows schemas' messages. A lower layer never imports a higher one.
+KIT_BELOW_SCHEMAS = ("octolog.kit.errors", "octolog.kit.geometry", "octolog.kit.imu", "octolog.kit.depthmodel")
+KIT_LAYERS = ("the root package octolog", "the kit's basics (KIT_BELOW_SCHEMAS)", "octolog.schemas",
+              "the rest of octolog.kit")
+
+
+def kit_layer(module: str) -> int | None:
+    """The index in KIT_LAYERS of a kit-floor module; None for a module on another floor."""
+    if module == "octolog":
+        return 0
+    if module in KIT_BELOW_SCHEMAS:
+        return 1
+    unit = floor_unit(module)
+    return 2 if unit == "octolog.schemas" else 3 if unit == "octolog.kit" else None
+
+
+def runs_up_the_kit(module: str, target: str) -> bool:
+    """`module` importing `target` goes from a lower layer of the kit to a higher one."""
+    low, high = kit_layer(module), kit_layer(target)
+    return low is not None and high is not None and high > low
+
+
+def test_kit_layers_checker():
+    """The layer check catches the circle it exists for (a check that cannot fail is none)."""
+    assert runs_up_the_kit("octolog.kit.errors", "octolog.schemas.codec")  # a basic on schemas
+    assert runs_up_the_kit("octolog.schemas.codec", "octolog.kit.mcaplog")  # schemas on the kit's carriers
+    assert runs_up_the_kit("octolog.kit.geometry", "octolog.kit.tum")
+    assert not runs_up_the_kit("octolog.kit.mcaplog", "octolog.schemas.codec")
+    assert not runs_up_the_kit("octolog.schemas.codec", "octolog.kit.errors")
+    assert not runs_up_the_kit("octolog.tracker.node", "octolog.kit.bus")  # another floor: test_floors
+
+
+def test_kit_layers_run_one_way():
+    """The kit's basics import no schemas and no other kit module; schemas imports only the basics."""
+    problems = []
+    modules = package_sources()
+    for module in KIT_BELOW_SCHEMAS:
+        if module not in modules:
+            problems.append(f"tests/project/test_architecture.py: [kit layers] KIT_BELOW_SCHEMAS lists {module}, "
+                            f"which does not exist: update it and docs/architecture.md")
+    for module, src in sorted(modules.items()):
+        for ref in refs_of(src):
+            target = imported_module(ref) if ref.kind != "-m" else None
+            if target is not None and runs_up_the_kit(module, target):
+                low, high = KIT_LAYERS[kit_layer(module)], KIT_LAYERS[kit_layer(target)]
+                problems.append(f"{ref.where}: [kit layers] {module} ({low}) imports {target} ({high}): the "
+                                f"kit runs basics <- schemas <- the rest of the kit; move what {module} needs "
+                                f"down, or the code that needs it up")
+    _fail(problems, "imports up the kit's layers")
+
+
+# --- where first-party imports sit ---------------------------------------------------------------
+
+# The documented exception to "first-party imports sit at module top" (docs/architecture.md,
+# "Floors"): the CLI's command functions import the stage they run when they run, so `octolog --help`
+# does not load every stage. shell/record.py holds `octolog record`'s and `recover`'s commands next
+# to the parsers cli.py imports. Each such import says what it loads in a `# lazy:` comment (on its
+# line, or on a comment line above its block of imports).
+LAZY_IMPORTERS = ("octolog.shell.cli", "octolog.shell.record")
+LAZY = "# lazy:"
+
+
+def _says_why_lazy(lines: list[str], line: int) -> bool:
+    own = lines[line - 1]
+    if LAZY in own and own.split(LAZY, 1)[1].strip():
+        return True
+    for text in (t.strip() for t in reversed(lines[:line - 1])):
+        if text.startswith(LAZY):
+            return bool(text[len(LAZY):].strip())
+        if not text.startswith(("from ", "import ")):
+            return False
+    return False
+
+
+def function_imports(path: Path) -> list[tuple[int, str, bool]]:
+    """(line, module, says why) for each first-party import inside a function of `path`."""
+    found: dict[int, str] = {}
+    for fn in ast.walk(parse(path)):
+        if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            continue
+        for node in ast.walk(fn):
+            if isinstance(node, ast.ImportFrom) and (node.level or (node.module or "").split(".")[0] == "octolog"):
+                found[node.lineno] = "." * node.level + (node.module or "")
+            elif isinstance(node, ast.Import):
+                found.update({node.lineno: a.name for a in node.names if a.name.split(".")[0] == "octolog"})
+    lines = path.read_text().splitlines()
+    return [(line, target, _says_why_lazy(lines, line)) for line, target in sorted(found.items())]
+
+
+def test_function_imports_are_found_and_excused_only_by_a_reason(tmp_path):
+    path = tmp_path / "cmds.py"
+    path.write_text("import json\nfrom octolog.kit import errors\n\n"
+                    "def a():\n    from octolog.tracker import node\n    import numpy\n\n"
+                    "def b():\n    # lazy: the tracker stage\n    from octolog.tracker import node\n"
+                    "    from octolog.tracker.config import TrackerConfig\n\n"
+                    "def c():\n    import octolog.mapper.node  # lazy: the mapper stage\n"
+                    "    x = 1\n    from octolog.kit import metrics\n\n"
+                    "def d():\n    from octolog.kit import metrics  # lazy:\n")
+    assert function_imports(path) == [(5, "octolog.tracker", False), (10, "octolog.tracker", True),
+                                      (11, "octolog.tracker.config", True), (14, "octolog.mapper.node", True),
+                                      (16, "octolog.kit", False), (19, "octolog.kit", False)]
+
+
+def test_first_party_imports_at_module_top():
+    """A first-party import inside a function hides a dependency and, often, a circle: only the
+    CLI's command functions (LAZY_IMPORTERS) import that way, each saying why."""
     problems = []
     modules = package_sources()
     for module, src in sorted(modules.items()):
-        lines = len(src.path.read_text().splitlines())
-        if lines > MAX_LINES and module not in LONG_MODULES:
-            problems.append(f"{src.rel}:{MAX_LINES + 1}: [size] {module} has {lines} lines (> {MAX_LINES}): split it "
-                            f"along a seam (a pure core apart from its loop, one concern per module); only if it must "
-                            f"stay whole, add it to LONG_MODULES in tests/project/test_architecture.py with the reason")
-    for module, reason in LONG_MODULES.items():
-        if not reason.strip():
-            problems.append(f"tests/project/test_architecture.py: [size] LONG_MODULES[{module!r}] gives no reason")
-        if module not in modules:
-            problems.append(f"tests/project/test_architecture.py: [size] LONG_MODULES lists {module}, which does not exist")
-        elif len(modules[module].path.read_text().splitlines()) <= MAX_LINES:
-            problems.append(f"tests/project/test_architecture.py: [size] LONG_MODULES lists {module}, which is "
-                            f"{MAX_LINES} lines or fewer now: remove the entry")
-    _fail(problems, "modules too long")
+        for line, target, why in function_imports(src.path):
+            if module not in LAZY_IMPORTERS:
+                problems.append(f"{src.rel}:{line}: [lazy import] {module} imports {target} inside a function: "
+                                f"move it to the top of the module (only the CLI's commands, "
+                                f"{', '.join(LAZY_IMPORTERS)}, import their stage lazily)")
+            elif not why:
+                problems.append(f"{src.rel}:{line}: [lazy import] {target} inside a function without a reason: "
+                                f"say what it would load at the top in a comment starting with {LAZY!r}, or "
+                                f"move it to the top")
+    problems += [f"tests/project/test_architecture.py: [lazy import] LAZY_IMPORTERS lists {m}, which does not exist"
+                 for m in LAZY_IMPORTERS if m not in modules]
+    _fail(problems, "first-party imports inside functions")
 
 
-# A function a reader takes in as one page; up to MAX_FUNCTION_LINES when a comment says why it stays
-# whole (a line starting with "# whole:" just above its `def` or among the first lines of its body).
-PAGE_LINES = 60
-MAX_FUNCTION_LINES = 80
-WHOLE = "# whole:"
+# --- third-party libraries with one importer -----------------------------------------------------
+
+# Each third-party transport, log or viewer library and the one module that imports it.
+ONE_IMPORTER = {"zenoh": "octolog.kit.bus.session", "mcap": "octolog.kit.mcaplog", "rerun": "octolog.kit.viz"}
 
 
-def _says_why_whole(lines: list[str], node: ast.FunctionDef | ast.AsyncFunctionDef) -> bool:
-    first = min([node.lineno, *(d.lineno for d in node.decorator_list)])
-    above = lines[max(0, first - 4):first - 1]
-    body = lines[node.lineno:node.lineno + 12]
-    return any(line.strip().startswith(WHOLE) and line.strip()[len(WHOLE):].strip() for line in above + body)
+def test_transport_log_and_viewer_libraries_have_one_importer():
+    """zenoh only in kit/bus/session.py, mcap only in kit/mcaplog.py, rerun only in kit/viz.py."""
+    problems = []
+    importers: dict[str, set[str]] = {lib: set() for lib in ONE_IMPORTER}
+    for module, src in sorted(package_sources().items()):
+        for ref in refs_of(src):
+            lib = ref.target.split(".")[0]
+            if lib not in ONE_IMPORTER or ref.kind == "-m":
+                continue
+            importers[lib].add(module)
+            if module != ONE_IMPORTER[lib]:
+                problems.append(f"{ref.where}: [one importer] {module} imports {ref.target}: only "
+                                f"{ONE_IMPORTER[lib]} imports {lib}; route what {module} needs through it")
+    for lib, module in ONE_IMPORTER.items():
+        if module not in importers[lib]:
+            problems.append(f"tests/project/test_architecture.py: [one importer] {module} does not import {lib} "
+                            f"(any more): update ONE_IMPORTER and docs/architecture.md")
+    _fail(problems, "transport, log or viewer libraries imported outside their one module")
 
 
-def long_functions(path: Path) -> list[tuple[int, str, int, bool]]:
-    """(line, name, length, says why) for each function of `path` longer than PAGE_LINES."""
-    lines = path.read_text().splitlines()
-    found = []
-    for node in ast.walk(parse(path)):
+# --- one responsibility, and a reason where it is long ------------------------------------------
+
+# One responsibility per module and per function (docs/architecture.md, "Floors"). Length does not
+# measure that, but a long module or function is where a second one hides: over these lengths it says
+# why it is one thing in a one-line `# long:` comment (a module among its lines before its first `def`
+# or `class`; a function just above its `def` or among the first lines of its body).
+LONG_MODULE_LINES = 800
+LONG_FUNCTION_LINES = 120
+LONG = "# long:"
+
+
+def _reason_lines(lines: list[str], first: int, last: int) -> list[int]:
+    """1-based numbers of the `# long:` comments (with a reason) among lines first..last."""
+    out = []
+    for n in range(max(1, first), min(len(lines), last) + 1):
+        text = lines[n - 1].strip()
+        if text.startswith(LONG) and text[len(LONG):].strip():
+            out.append(n)
+    return out
+
+
+def long_parts(path: Path) -> tuple[list[tuple[int, str, int, bool]], list[int]]:
+    """(line, name, length, says why) for the module (name "module") and each function of `path`
+    over its length, and the lines of `# long:` comments that excuse nothing long (stale)."""
+    tree, lines = parse(path), path.read_text().splitlines()
+    found, claimed = [], set()
+    defs = [n for n in tree.body if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef))]
+    header_end = min([d.lineno for n in defs for d in (n, *n.decorator_list)], default=len(lines) + 1) - 1
+    if len(lines) > LONG_MODULE_LINES:
+        why = _reason_lines(lines, 1, header_end)
+        claimed.update(why)
+        found.append((1, "module", len(lines), bool(why)))
+    for node in ast.walk(tree):
         if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
             length = node.end_lineno - node.lineno + 1
-            if length > PAGE_LINES:
-                found.append((node.lineno, node.name, length, _says_why_whole(lines, node)))
-    return found
+            if length > LONG_FUNCTION_LINES:
+                first = min([node.lineno, *(d.lineno for d in node.decorator_list)])
+                why = _reason_lines(lines, first - 3, first - 1) + _reason_lines(lines, node.lineno, node.lineno + 12)
+                claimed.update(why)
+                found.append((node.lineno, node.name, length, bool(why)))
+    return found, [n for n in _reason_lines(lines, 1, len(lines)) if n not in claimed]
 
 
-def test_long_functions_are_found_and_excused_only_by_a_reason(tmp_path):
-    body = "\n".join(f"    x{i} = {i}" for i in range(PAGE_LINES + 5))
+def test_long_parts_are_found_and_excused_only_by_a_reason(tmp_path):
+    body = "\n".join(f"    x{i} = {i}" for i in range(LONG_FUNCTION_LINES + 5))
     plain = tmp_path / "plain.py"
     plain.write_text(f"def f():\n{body}\n")
     excused = tmp_path / "excused.py"
-    excused.write_text(f"def f():\n    {WHOLE} one state machine, its cases read together\n{body}\n")
+    excused.write_text(f"{LONG} one state machine, its cases read together\ndef f():\n{body}\n")
     empty = tmp_path / "empty.py"
-    empty.write_text(f"def f():\n    {WHOLE}\n{body}\n")
-    assert [(n, why) for _, n, _, why in long_functions(plain)] == [("f", False)]
-    assert [why for *_, why in long_functions(excused)] == [True]
-    assert [why for *_, why in long_functions(empty)] == [False]
+    empty.write_text(f"def f():\n    {LONG}\n{body}\n")
+    stale = tmp_path / "stale.py"
+    stale.write_text(f"def f():\n    {LONG} it was long once\n    return 1\n")
+    module = tmp_path / "module.py"
+    module.write_text(f'"""A module."""\n\n{LONG} one format, read and written in one place\n\n'
+                      + "\n".join(f"X{i} = {i}" for i in range(LONG_MODULE_LINES)) + "\n")
+    assert [(n, why) for _, n, _, why in long_parts(plain)[0]] == [("f", False)]
+    assert long_parts(excused) == ([(2, "f", LONG_FUNCTION_LINES + 6, True)], [])
+    assert [why for *_, why in long_parts(empty)[0]] == [False]
+    assert long_parts(stale) == ([], [2])
+    assert long_parts(module) == ([(1, "module", LONG_MODULE_LINES + 4, True)], [])
 
 
-def test_function_size():
-    """(e) Every function of the package is a page (<= PAGE_LINES lines), or says why it stays whole
-    and is still at most MAX_FUNCTION_LINES."""
+def test_long_modules_and_functions_say_why():
+    """(d) A module over LONG_MODULE_LINES lines or a function over LONG_FUNCTION_LINES says in a
+    `# long:` comment why it is one responsibility; a `# long:` comment on nothing long goes."""
     problems = []
     for module, src in sorted(package_sources().items()):
-        for line, name, length, why in long_functions(src.path):
-            if length > MAX_FUNCTION_LINES:
-                problems.append(f"{src.rel}:{line}: [function] {name} has {length} lines (> {MAX_FUNCTION_LINES}): "
-                                f"split it into steps a reader can name")
-            elif not why:
-                problems.append(f"{src.rel}:{line}: [function] {name} has {length} lines (> {PAGE_LINES}): split it, "
-                                f"or say why it stays whole in a comment starting with {WHOLE!r}")
-    _fail(problems, "functions too long")
+        found, stale = long_parts(src.path)
+        for line, name, length, why in found:
+            limit = LONG_MODULE_LINES if name == "module" else LONG_FUNCTION_LINES
+            what = f"{module} has" if name == "module" else f"{name} has"
+            if not why:
+                problems.append(f"{src.rel}:{line}: [long] {what} {length} lines (> {limit}): if it does one "
+                                f"thing, say why it is that long in a comment starting with {LONG!r}; if it "
+                                f"does two, split it where they part")
+        problems += [f"{src.rel}:{n}: [long] a {LONG!r} comment on nothing that long: remove it" for n in stale]
+    _fail(problems, "long modules or functions without a reason")
