@@ -27,7 +27,7 @@ from octolog.kit import metrics
 from octolog.replay.depth_noise import SENSORS
 from octolog.replay.synthetic import SyntheticScene
 from octolog.tracker.config import TrackerConfig
-from octolog.tracker.odometry import RgbdSlam
+from octolog.tracker.slam import RgbdSlam
 
 
 def track_scene(noise: str, frames: int, every: int, *, seed: int = 0, bias_px: float = 0.0,

@@ -25,7 +25,7 @@ import numpy as np
 from octolog.kit import metrics
 from octolog.replay.synthetic import SyntheticScene
 from octolog.tracker.config import TrackerConfig
-from octolog.tracker.odometry import RgbdSlam
+from octolog.tracker.slam import RgbdSlam
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -21,7 +21,7 @@ from octolog.kit import metrics
 from octolog.replay.imu import source_imu
 from octolog.replay.sources import open_source
 from octolog.tracker.interface import TrackingState
-from octolog.tracker.odometry import RgbdSlam
+from octolog.tracker.slam import RgbdSlam
 from octolog.tracker.pose import so3_exp
 
 
@@ -46,9 +46,9 @@ def run(source: str, off_deg: float | None) -> dict:
         path = Path(tmp) / "trajectory.txt"
         metrics.write_tum(path, *slam.trajectory())
         ate = metrics.ate(metrics.read_tum(path), metrics.parse_tum(src.groundtruth_tum(), "gt"))
-    gyro = slam._imu.gyro_trusted if off_deg is not None else None
-    factors = sum(kf.gyro is not None for kf in slam._keyframes)
-    return {"lost": lost, "ate_cm": ate.rmse * 100, "gyro": gyro, "factors": f"{factors}/{len(slam._keyframes)}"}
+    gyro = slam.imu.inertial.gyro_trusted if off_deg is not None else None
+    factors = sum(kf.gyro is not None for kf in slam.map.keyframes)
+    return {"lost": lost, "ate_cm": ate.rmse * 100, "gyro": gyro, "factors": f"{factors}/{len(slam.map.keyframes)}"}
 
 
 def main() -> None:

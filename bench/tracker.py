@@ -39,7 +39,7 @@ from octolog.kit import metrics
 from octolog.tracker.config import TrackerConfig, for_source
 from octolog.tracker.factory import make_odometry
 from octolog.tracker.interface import TrackingState
-from octolog.tracker.odometry import RgbdSlam
+from octolog.tracker.slam import RgbdSlam
 from octolog.tracker.orbslam3 import OrbSlam3Odometry
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -27,9 +27,9 @@ class CloudParams:
     sor_neighbors: int  # statistical outlier removal: k nearest neighbours
     sor_std_ratio: float  # ... and the threshold in standard deviations above the mean distance
     sor_first: bool  # the outlier filter before the voxel grid (the paper's order) instead of after
-    outliers: str = "image"  # the first layer on the image grid ("image") or over 3D k nearest ("knn")
-    full_per_s: float = 0.0  # keyframes a second at pixel_stride; more in that second: burst_stride (0: no limit)
-    burst_stride: int = 4
+    outliers: str  # the first layer on the image grid ("image") or over 3D k nearest ("knn")
+    full_per_s: float  # keyframes a second at pixel_stride; more in that second: burst_stride (0: no limit)
+    burst_stride: int
 
 
 @dataclass(frozen=True)
@@ -61,4 +61,4 @@ class MapperParams:
     occupancy: OccupancyParams
     grid: GridParams
     max_extent_m: float  # cameras farther than this from the origin are refused
-    tiles: Tiles | None = None  # a shard of the map: only these tiles' voxels (mapper.tiles)
+    tiles: Tiles | None  # a shard of the map: only these tiles' voxels (mapper.tiles)

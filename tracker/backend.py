@@ -2,7 +2,7 @@
 
 `build_job` takes a self-contained snapshot of the map around the newest keyframe; `run_backend`
 turns it into a `BackendResult` (moved keyframes and points, a closed loop) that the front end
-(tracker.odometry) applies at its next keyframe. A job touches nothing of the front end, so it runs
+(tracker/backend_handoff.py) applies at its next keyframe. A job touches nothing of the front end, so it runs
 the same inline or in the worker process (tracker.worker), which is what keeps outputs byte-identical
 with `background` on or off.
 """

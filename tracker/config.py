@@ -137,8 +137,9 @@ class LoopParams:
 @dataclass(frozen=True)
 class OdometryParams:
     """Everything `RgbdSlam` needs, grouped by the part of the core that uses it, and nothing of
-    the process around it. Built by `TrackerConfig.odometry_params()`, where it is validated; the
-    defaults live in `TrackerConfig` and its sections (shared with this), so there is one source of them."""
+    the process around it. Built by `TrackerConfig.odometry_params()`, where it is validated. It has
+    no defaults of its own: they live in `TrackerConfig` and its sections (shared with this), the one
+    source of them."""
 
     n_features: int
     features: FeatureParams
@@ -155,10 +156,10 @@ class OdometryParams:
     relocalise: bool
     bow_candidates: int
     readout_s: float  # rolling-shutter readout, first row to last (0: global shutter)
-    localize: bool = False  # tracker.mode = "localize": no keyframes, the map is not changed
-    map_find_frames: int = 150  # frames a saved map may take to find the camera in (tracker/prior.py)
-    imu: bool = True  # use the camera's IMU when the stream has one (tracker/inertial.py)
-    max_inertial_s: float = 1.5  # the longest a pose may come from the IMU alone (INERTIAL)
+    localize: bool  # tracker.mode = "localize": no keyframes, the map is not changed
+    map_find_frames: int  # frames a saved map may take to find the camera in (tracker/slam.py: SavedMapSearch)
+    imu: bool  # use the camera's IMU when the stream has one (tracker/imu_fusion.py)
+    max_inertial_s: float  # the longest a pose may come from the IMU alone (INERTIAL)
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,8 @@ A camera with no bias gives fits that are not confident: nothing changes. Off by
 TUM freiburg1 Kinect the fit is confident and wrong (docs/results.md), as a depth error that is not
 one disparity offset can be.
 
-A mixin of `RgbdSlam` (tracker.odometry), which owns the map, the keyframes and the motion state.
+`DepthCorrection` owns the correction every reading takes and how often it changed; it moves the map's
+keyframes and points itself, and tells the SLAM core the scale by which the other parts' poses move.
 """
 
 from __future__ import annotations
@@ -21,9 +22,11 @@ from __future__ import annotations
 import numpy as np
 
 from octolog.kit.depthmodel import DepthModel
+from octolog.tracker.config import OdometryParams
 from octolog.tracker.depth_bias import DepthBias, bias_from_map
 from octolog.tracker.features import FrameFeatures
 from octolog.tracker.keyframe_map import depth_weight
+from octolog.tracker.local_map import LocalMap
 
 # the bias is fitted at every this many keyframes, from the newest WINDOW (bounded front-end time:
 # about 20 ms for 40 keyframes here), once the map has MIN_KEYFRAMES
@@ -41,45 +44,43 @@ def recorrected(feats: FrameFeatures, delta: float) -> FrameFeatures:
 
 
 class DepthCorrection:
-    """The online depth-bias correction of `RgbdSlam`."""
+    """The depth camera's bias: the correction readings take, found and applied online (see the module)."""
 
-    depth_offset: float  # the correction every reading takes now (1/m): the configured one plus what was found
-    depth_corrections: int  # how many times the map was corrected
-    depth_model: DepthModel | None = None  # the camera's depth error model, when the stream says it (factory.set_depth_model)
+    def __init__(self, params: OdometryParams) -> None:
+        self.params = params
+        # the correction every reading takes now (1/m): the configured one plus what was found
+        self.offset = params.depth.inverse_offset
+        self.corrections = 0  # how many times the map was corrected
+        self.model: DepthModel | None = None  # the camera's depth error model, when the stream says it
 
-    def depth_bias(self) -> DepthBias | None:
+    def bias(self, local_map: LocalMap) -> DepthBias | None:
         """The depth camera's systematic error as the map has it (tracker/depth_bias.py), or None:
         what is left in the readings after the correction they took (`corrected`), and the camera's."""
-        estimate = bias_from_map(self._keyframes, self._map.xyz)
+        estimate = bias_from_map(local_map.keyframes, local_map.points.xyz)
         if estimate is None:
             return None
-        return estimate.after(self.depth_offset, self.depth_corrections,
-                              self.depth_model.fb if self.depth_model is not None else 0.0)
+        return estimate.after(self.offset, self.corrections, self.model.fb if self.model is not None else 0.0)
 
-    def _bias_found(self) -> DepthBias | None:
+    def found(self, local_map: LocalMap) -> DepthBias | None:
         """A confident bias in the newest keyframes' readings, when a check is due; else None."""
-        n = len(self._keyframes)
+        n = len(local_map.keyframes)
         if not self.params.depth.correct_bias or n < MIN_KEYFRAMES or n % CHECK_EVERY:
             return None
-        estimate = bias_from_map(self._keyframes[-WINDOW:], self._map.xyz)
+        estimate = bias_from_map(local_map.keyframes[-WINDOW:], local_map.points.xyz)
         if estimate is None or not estimate.confident:
             return None
         # a correction that would take more than half of a reading at the range limit is not a bias
-        return estimate if abs(self.depth_offset + estimate.inverse_offset) * self.params.depth.max_m < 0.5 else None
+        return estimate if abs(self.offset + estimate.inverse_offset) * self.params.depth.max_m < 0.5 else None
 
-    def _correct_depth(self, pose: np.ndarray, feats: FrameFeatures
-                       ) -> tuple[dict[int, np.ndarray], np.ndarray, FrameFeatures] | None:
-        """Correct the map by a confident bias found in it (see the module); returns every
-        keyframe's new pose, the frame's pose and its readings corrected the same way. None when no
-        check is due or the bias is not confident. Only with no back-end job in flight."""
-        found = self._bias_found()
-        if found is None:
-            return None
+    def correct(self, local_map: LocalMap, found: DepthBias) -> float:
+        """Correct the map by a confident bias `found` in it (see the module): every keyframe's
+        readings and translation, every point, and the offset later readings take. Returns the
+        scale by which every other translation in the map's world must move."""
         delta, s = found.inverse_offset, found.scale
-        mp, n = self._map, self._map.size
+        mp, n = local_map.points, local_map.points.size
         shift = np.zeros((n, 3))
         wsum = np.zeros(n)
-        for kf in self._keyframes:
+        for kf in local_map.keyframes:
             old = kf.feats
             kf.feats = recorrected(old, delta)
             kf.world_from_camera[:3, 3] *= s
@@ -90,21 +91,11 @@ class DepthCorrection:
             np.add.at(shift, kf.obs_pid[d], moved * w[:, None])
             np.add.at(wsum, kf.obs_pid[d], w)
         mp.xyz[:n] = mp.xyz[:n] * s + shift / np.maximum(wsum, 1e-300)[:, None]
-        self._kf_pos *= s
-        self._frames = [(stamp, k, _scaled(T, s)) for stamp, k, T in self._frames]
-        self._loop_edges = [(a, b, _scaled(T, s)) for a, b, T in self._loop_edges]
-        self._loop_candidate = (-1, None)
-        if self._last_pose is not None:
-            self._last_pose = _scaled(self._last_pose, s)
-        if self._velocity is not None:
-            rotvec, trans, dt = self._velocity
-            self._velocity = (rotvec, trans * s, dt)
-        self.depth_offset += delta
-        self.depth_corrections += 1
-        return self.keyframe_poses(), _scaled(pose, s), recorrected(feats, delta)
+        local_map.scale_positions(s)
+        self.offset += delta
+        self.corrections += 1
+        return s
 
-
-def _scaled(T: np.ndarray, s: float) -> np.ndarray:
-    out = T.copy()
-    out[:3, 3] *= s
-    return out
+    def take(self, other: DepthCorrection) -> None:
+        """Another map's correction (a map of its own becomes the map)."""
+        self.offset, self.corrections = other.offset, other.corrections

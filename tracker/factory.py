@@ -11,7 +11,7 @@ from octolog.kit.depthmodel import DepthModel
 from octolog.tracker.config import TrackerConfig, with_depth_model
 from octolog.tracker.interface import Tracker
 from octolog.tracker.mapfile import load_map
-from octolog.tracker.odometry import RgbdSlam
+from octolog.tracker.slam import RgbdSlam
 from octolog.tracker.orbslam3 import OrbSlam3Odometry
 from octolog.tracker.vocab import load as load_vocabulary
 from octolog.tracker.worker import Worker
@@ -29,7 +29,7 @@ def make_odometry(cfg: TrackerConfig) -> Tracker:
     slam = RgbdSlam(params, vocabulary=vocabulary, background=background,
                     defer_backend=cfg.live_backend_defer if cfg.live else 0,
                     backend_deferred_at=frozenset(int(s) for s in cfg.backend_deferred))
-    if cfg.map:  # a saved map to track in (tracker/prior.py); InputError when it cannot be read
+    if cfg.map:  # a saved map to track in (tracker/slam.py: SavedMapSearch); InputError when it cannot be read
         slam.adopt_map(load_map(cfg.map))
     return slam
 

@@ -1,6 +1,6 @@
 """ORB features for the RGB-D tracker: extraction spread over the image, depth lookup and matching.
 
-Pure numpy/OpenCV, no state between frames: `RgbdSlam` (tracker.odometry) owns the map and calls
+Pure numpy/OpenCV, no state between frames: `RgbdSlam` (tracker/slam.py) and its parts own the map and call
 these helpers.
 Every step is deterministic (stable sorts with explicit tie-breaks, no hashing, no randomness).
 """

@@ -1,7 +1,7 @@
 """What a tracker is to the tracker process: `Tracker` (the protocol both backends implement), the
 per-frame `TrackResult` and its `TrackingState`.
 
-The native `RgbdSlam` (tracker.odometry) and `OrbSlam3Odometry` (tracker.orbslam3) both satisfy
+The native `RgbdSlam` (tracker/slam.py) and `OrbSlam3Odometry` (tracker.orbslam3) both satisfy
 `Tracker`; tracker.node works against the protocol only.
 """
 
@@ -65,7 +65,7 @@ class TrackResult:
     # the depth camera's bias correction this frame's readings took (1/m: 1/z <- 1/z - offset), the
     # one its keyframe and `corrected` carry to the mapper (tracker.depth)
     depth_inverse_offset: float = 0.0
-    # in a saved map not found yet (tracker/prior.py): this frame made a keyframe of a map not yet
+    # in a saved map not found yet (tracker/slam.py: SavedMapSearch): this frame made a keyframe of a map not yet
     # placed, keep the frame (`hold`); keyframes placed at this frame, id -> (the frame seq they were
     # made from, world_from_camera): send them now, from the frames kept
     hold: bool = False

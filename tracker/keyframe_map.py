@@ -1,6 +1,6 @@
 """The tracker's map: map points and the keyframes that observe them.
 
-The front end (tracker.odometry) grows and edits it; the back end (tracker.backend) reads snapshots
+The SLAM core (tracker/slam.py: its `LocalMap`) grows and edits it; the back end (tracker.backend) reads snapshots
 of it and returns corrections that the front end applies.
 """
 

@@ -138,7 +138,7 @@ class _Outputs:
             self.poses.put(posemsgs.keyframe_poses_msg(res.corrected, frame.stamp_ns, res.depth_inverse_offset))
         result.loops += res.loop is not None
         result.relocalisations += res.relocalised
-        if res.hold:  # a keyframe of a map not placed yet (tracker/prior.py): sent once it is
+        if res.hold:  # a keyframe of a map not placed yet (tracker/slam.py: SavedMapSearch): sent once it is
             self.held[frame.seq] = frame
         for kf_id, (seq, pose) in sorted(res.placed.items()):
             kept = self.held[seq]

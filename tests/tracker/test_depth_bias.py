@@ -13,7 +13,7 @@ from octolog.kit import depthmodel
 from octolog.replay.synthetic import SyntheticScene
 from octolog.tracker.config import TrackerConfig, with_depth_model
 from octolog.tracker.factory import set_depth_model
-from octolog.tracker.odometry import RgbdSlam
+from octolog.tracker.slam import RgbdSlam
 from octolog.tracker.depth_bias import MIN_POINTS, estimate_depth_bias
 
 
@@ -87,7 +87,7 @@ def test_a_cameras_depth_model_makes_far_readings_bearings_and_leaves_the_known_
         odo = RgbdSlam(params)
         set_depth_model(odo, model)
         odo.track(frame)
-        far.append(float(odo._keyframes[0].feats.z.max()))
+        far.append(float(odo.map.keyframes[0].feats.z.max()))
     assert far[0] > weak.metric_range_m >= far[1] > 0, far
 
 

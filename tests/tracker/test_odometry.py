@@ -22,7 +22,7 @@ from octolog.kit.geometry import Intrinsics, RgbdFrame, invert
 from octolog.tracker.config import DepthParams, TrackerConfig
 from octolog.tracker.features import OrbExtractor, Undistorter, bucket_select, hamming, match_by_projection
 from octolog.tracker.interface import Tracker, TrackingState, TrackResult
-from octolog.tracker.odometry import RgbdSlam
+from octolog.tracker.slam import RgbdSlam
 from octolog.tracker.pose import rotation_angle
 
 W, H = 640, 480

@@ -1,4 +1,4 @@
-"""Coming back to a map (tracker/mapfile.py, tracker/prior.py, mapper/prior.py): a session's SLAM map
+"""Coming back to a map (tracker/mapfile.py, tracker/slam.py, mapper/prior.py): a session's SLAM map
 saved, loaded by the next session, the camera found in it, tracked in its world, extended or only
 localized in; a damaged, foreign or other-version map is one line naming it."""
 
@@ -19,7 +19,7 @@ from octolog.replay.synthetic import SyntheticScene
 from octolog.tracker.config import TrackerConfig
 from octolog.tracker.interface import TrackingState
 from octolog.tracker.mapfile import load_map
-from octolog.tracker.odometry import RgbdSlam
+from octolog.tracker.slam import RgbdSlam
 
 FRAMES = 90
 SPLIT = 45
@@ -42,7 +42,7 @@ def test_a_saved_map_loads_as_it_was_and_saves_to_the_same_bytes(saved, tmp_path
     path, _, slam = saved
     loaded = load_map(path)
     assert len(loaded.keyframes) == slam.n_keyframes and loaded.points.size == slam.n_map_points
-    for a, b in zip(loaded.keyframes, slam._keyframes, strict=True):
+    for a, b in zip(loaded.keyframes, slam.map.keyframes, strict=True):
         assert np.array_equal(a.world_from_camera, b.world_from_camera) and np.array_equal(a.obs_pid, b.obs_pid)
         assert np.array_equal(a.feats.desc, b.feats.desc) and np.array_equal(a.feats.xyz, b.feats.xyz)
     again = RgbdSlam(background=False)
@@ -72,12 +72,12 @@ def test_localize_mode_changes_nothing_of_the_map(saved):
     cfg = TrackerConfig(map=str(path), mode="localize")
     slam = RgbdSlam(cfg.odometry_params(), background=False)
     slam.adopt_map(load_map(path))
-    before = slam._map.xyz[: slam.n_map_points].copy(), [kf.world_from_camera.copy() for kf in slam._keyframes]
+    before = slam.map.points.xyz[: slam.n_map_points].copy(), [kf.world_from_camera.copy() for kf in slam.map.keyframes]
     results = [slam.track(scene.render(i)) for i in range(SPLIT, FRAMES)]
     assert slam.finish() == {} and not any(r.is_keyframe for r in results)
     assert all(r.state == TrackingState.OK for r in results)
-    assert np.array_equal(slam._map.xyz[: slam.n_map_points], before[0])
-    assert all(np.array_equal(kf.world_from_camera, T) for kf, T in zip(slam._keyframes, before[1], strict=True))
+    assert np.array_equal(slam.map.points.xyz[: slam.n_map_points], before[0])
+    assert all(np.array_equal(kf.world_from_camera, T) for kf, T in zip(slam.map.keyframes, before[1], strict=True))
 
 
 def test_a_camera_never_found_in_the_map_goes_on_in_a_map_of_its_own(saved):
@@ -216,10 +216,10 @@ def test_a_second_session_lands_in_the_first_sessions_world(split_sessions, mode
     if mode == "localize":
         assert (s[mode] / "map.bt").read_bytes() == (s["first"] / "map.bt").read_bytes()
         return
-    from test_fleet import _cells, occupied_disagreement
+    from helpers.maps import cells, occupied_disagreement
 
     assert stats["prior_keyframes"] == first_stats["keyframes"] < stats["keyframes"]
-    share, n_voxels = occupied_disagreement(_cells(s[mode] / "map.bt"), _cells(s["whole"] / "map.bt"), tolerance=1)
+    share, n_voxels = occupied_disagreement(cells(s[mode] / "map.bt"), cells(s["whole"] / "map.bt"), tolerance=1)
     assert share <= 0.05 and n_voxels > 1000, (share, n_voxels)
 
 
@@ -228,7 +228,7 @@ def test_sessions_recorded_apart_merge_into_the_single_runs_map(split_sessions, 
     """`octolog merge` of the two parts recorded with no map in common: the second placed by a place
     both saw, the map agreeing with the single run's as a second session tracked in the first's map
     does; the same bytes from a second merge; the evidence in map_stats.json."""
-    from test_fleet import _cells, occupied_disagreement
+    from helpers.maps import cells, occupied_disagreement
 
     s = split_sessions
     for out in ("m1", "m2"):
@@ -238,7 +238,7 @@ def test_sessions_recorded_apart_merge_into_the_single_runs_map(split_sessions, 
     stats = json.loads((tmp_path / "m1" / "map_stats.json").read_text())
     assert [m["robot"] for m in stats["merges"]] == ["session1"] and stats["unmerged"] == []
     assert stats["merges"][0]["inliers"] >= 50
-    share, n_voxels = occupied_disagreement(_cells(tmp_path / "m1" / "map.bt"), _cells(s["whole"] / "map.bt"), tolerance=1)
+    share, n_voxels = occupied_disagreement(cells(tmp_path / "m1" / "map.bt"), cells(s["whole"] / "map.bt"), tolerance=1)
     assert share <= 0.05 and n_voxels > 1000, (share, n_voxels)
 
 

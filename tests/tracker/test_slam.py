@@ -21,9 +21,10 @@ from octolog.replay.synthetic_trajectory import LOOP_S, camera_trajectory
 from octolog.tracker.backend import BackendResult, apply_result
 from octolog.tracker.bundle import BundleProblem, bundle_adjust
 from octolog.tracker.config import KeyframeParams, TrackerConfig, TrackingParams
+from octolog.tracker.front_end import FrontEnd
 from octolog.tracker.interface import TrackingState
 from octolog.tracker.keyframe_map import Keyframe, MapPoints
-from octolog.tracker.odometry import RgbdSlam
+from octolog.tracker.slam import RgbdSlam
 from octolog.tracker.places import BowIndex, rigid_ransac, verify, vote
 from octolog.tracker.pose import optimize_pose, so3_exp
 from octolog.tracker.vocab import train
@@ -146,9 +147,8 @@ def loop_frames(room) -> list:
 
 
 def _features(frame):
-    odo = RgbdSlam()
-    gray = odo._check_frame(frame)
-    return odo._features(frame, odo._extractor.extract(gray)), odo._undistort.K
+    front = FrontEnd(TrackerConfig().odometry_params())
+    return front.features(frame, front.extract(frame, None, map_made=False), 0.0), front.K
 
 
 @pytest.mark.slow
@@ -250,7 +250,7 @@ def test_loop_closing_halves_the_error_of_a_loop(room, loop_frames, vocabulary, 
     odo, results = _run(loop_frames, local_ba=False, background=True, keyframes=dense,
                         vocabulary=vocabulary if with_bow else None)
     # the start is found again: the old end of a loop is a keyframe of the loop's first 2 s (of 20)
-    assert odo.loops and any(odo._keyframes[old].seq < 20 for _, old in odo.loops), odo.loops
+    assert odo.loops and any(odo.map.keyframes[old].seq < 20 for _, old in odo.loops), odo.loops
     assert all(r.state in (TrackingState.INIT, TrackingState.OK) for r in results)
     closed = [r for r in results if r.loop is not None]
     assert closed and all(len(r.corrected) == r.loop[0] + 1 for r in closed)
@@ -420,7 +420,7 @@ def test_a_pose_found_again_after_a_lost_stretch_is_announced(loop_frames, min_i
     """The lens covered for a second: its frames are LOST and report the last tracked pose carried at
     most MAX_PREDICTION_STEPS frames on (not a turn spinning on); the first frame seen again comes back
     with `relocalised` set, but only on `tracking.relocalise_min_inliers` inliers."""
-    from octolog.tracker.odometry import MAX_PREDICTION_STEPS
+    from octolog.tracker.motion import MAX_PREDICTION_STEPS
 
     odo = _odometry(loop_closing=False, tracking=TrackingParams(relocalise_min_inliers=min_inliers))
     for f in loop_frames[:40]:
