@@ -1,7 +1,7 @@
 """The `map` frame (z up) the mapper builds in: given in the config, or found on the bus.
 
 `octolog run` on a file finds up before the stages start (the file's accelerometer,
-octolog.replay.gravity) and gives it as `mapper.grid_up`: the mapper announces `map` -> `world` at
+octolog.replay.source_gravity) and gives it as `mapper.grid_up`: the mapper announces `map` -> `world` at
 once. A mapper not told `grid_up` (one started on its own, `octolog map`) finds it on the bus:
 - a replay of a file serves the same up on `camera/gravity` (and publishes it before its first
   frame); the mapper asks for it when the first keyframe arrives, before integrating it, so a
@@ -10,7 +10,7 @@ once. A mapper not told `grid_up` (one started on its own, `octolog map`) finds 
   mapper listens to `camera/accel/sample` and the camera's `/tf_static` (outside its inbox) and
   decides at its first snapshot: the accelerometer's mean within 0.1 s of the first keyframe,
   rotated into that keyframe's optical frame and levelled on its dominant near-horizontal plane
-  as a file's first frame is (octolog.kit.gravity); the keyframes integrated so far move into the
+  as a file's first frame is (octolog.kit.up_vector); the keyframes integrated so far move into the
   new frame.
 A tracker with a trusted IMU then sends its own estimate (`tracker/gravity`, in `world`): gravity
 from its alignments, the accelerometer's bias estimated with it, which a single mean at the first
@@ -29,7 +29,7 @@ import numpy as np
 from octolog.kit.bus import Bus
 from octolog.kit.errors import InputError
 from octolog.kit.geometry import RgbdFrame
-from octolog.kit.gravity import LiveUp, level_on_plane
+from octolog.kit.up_vector import LiveUp, level_on_plane
 from octolog.kit.viz import Viz
 from octolog.mapper.core import Mapper
 from octolog.mapper.grid import DEFAULT_UP

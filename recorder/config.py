@@ -12,8 +12,8 @@ from octolog.kit.mcaplog import COMPRESSIONS
 from octolog.recorder.capture import Backend, CaptureProfile, DeviceDescription, DeviceOptions
 from octolog.recorder.livesink import LiveSink
 from octolog.recorder.realsense_camera import RealSenseBackend
-from octolog.recorder.record import Recorder
-from octolog.recorder.recording import Encoding, WriterParams
+from octolog.recorder.writer import Recorder
+from octolog.recorder.recording_types import Encoding, WriterParams
 from octolog.recorder.software_d455 import D455_IMU, SoftwareDeviceBackend
 
 BACKENDS = ("realsense", "software")
@@ -178,6 +178,6 @@ def make_backend(cfg: RecorderConfig) -> Backend:
 
 def make_recorder(cfg: RecorderConfig, part: Callable[[int], Path], device: DeviceDescription, *,
                   sinks: Sequence[LiveSink] = (), block_when_full: bool = False) -> Recorder:
-    """The writer side (recorder.record.Recorder) for a resolved device."""
+    """The writer side (recorder.writer.Recorder) for a resolved device."""
     return Recorder(part, device, cfg.writer_params(block_when_full=block_when_full), config_json=to_json(cfg),
                     sinks=sinks)

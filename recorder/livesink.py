@@ -7,7 +7,7 @@ import threading
 from collections.abc import Callable
 
 from octolog.recorder.capture import Capture
-from octolog.recorder.recording import Encoded, Sink
+from octolog.recorder.recording_types import Encoded, Sink
 
 
 class LiveSink:

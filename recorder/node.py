@@ -24,8 +24,8 @@ from octolog.recorder.capture import Backend, Capture, DeviceDescription
 from octolog.recorder.config import RecorderConfig, capture_profile, make_backend, make_recorder
 from octolog.recorder.frame_converter import FrameConverter
 from octolog.recorder.livesink import LiveSink
-from octolog.recorder.record import Recorder
-from octolog.recorder.recording import (
+from octolog.recorder.writer import Recorder
+from octolog.recorder.recording_types import (
     Encoded,
     RecorderStatus,
     RecordResult,

@@ -23,7 +23,7 @@ from octolog.schemas import posemsgs, sensormsgs
 from octolog.schemas.topics import ACCEL, ALIGNED_DEPTH, ALIGNED_DEPTH_INFO, COLOR, COLOR_INFO, TF_STATIC
 
 # The Kinect's accelerometer axes in the colour camera's optical frame (x left, y up, z forward:
-# measured against fr1/xyz's ground truth, octolog.replay.gravity): colour_from_accel, a half turn
+# measured against fr1/xyz's ground truth, octolog.replay.source_gravity): colour_from_accel, a half turn
 # about the optical axis
 COLOR_FROM_KINECT_ACCEL = np.diag([-1.0, -1.0, 1.0, 1.0])
 

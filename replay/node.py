@@ -16,7 +16,7 @@ from octolog.kit.geometry import EncodedRgbd, RgbdFrame
 from octolog.kit.mcaplog import read_wire, summarize
 from octolog.kit.tftree import LINK_FROM_OPTICAL
 from octolog.kit.viz import Viz
-from octolog.replay import gravity
+from octolog.replay import source_gravity
 from octolog.replay.imu import ImuFeed, source_imu, source_imu_noise
 from octolog.replay.config import ReplayConfig, remapped
 from octolog.replay.sources import McapSource, Source, TumSource, open_source
@@ -189,7 +189,7 @@ def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Pro
     first_stamp = last_stamp = None
     # up at frame 0, for a mapper not told `grid_up` (one that runs elsewhere); a window starting
     # later has no accelerometer reading at its first frame here
-    up = gravity.source_up(source) if cfg.start == 0 else None
+    up = source_gravity.source_up(source) if cfg.start == 0 else None
     up_bytes: list[bytes] = []  # what a mapper's `get` on camera/gravity receives (nothing: no up)
     bus.serve(GRAVITY, lambda: up_bytes[0] if up_bytes else None)
     viz.text("replay/events", f"replaying {source.name}: {total} frames")  # the images: the tracker logs them

@@ -23,7 +23,7 @@ from octolog.kit.geometry import EncodedRgbd, RgbdFrame
 from octolog.kit import metrics
 from octolog.kit.mcaplog import read_wire, summarize
 from octolog.kit.tum import open_tum, readout_for
-from octolog.replay import depth_noise, gravity
+from octolog.replay import depth_noise, source_gravity
 from octolog.replay.standard import has_standard_frames, open_standard
 from octolog.replay.synthetic import SyntheticScene
 from octolog.schemas import codec, posemsgs, rgbdmsgs
@@ -60,7 +60,7 @@ class Source(Protocol):
 
     def gravity_up(self) -> np.ndarray | None:
         """Up (unit vector) in the first frame's optical frame from the source's accelerometer;
-        None without one (octolog.replay.gravity)."""
+        None without one (octolog.replay.source_gravity)."""
         ...
 
 
@@ -109,7 +109,7 @@ class TumSource:
         return self.seq.groundtruth.read_text() if self.seq.groundtruth else None
 
     def gravity_up(self) -> np.ndarray | None:
-        return gravity.tum_up(self.path, self.seq.pairs[0][0])
+        return source_gravity.tum_up(self.path, self.seq.pairs[0][0])
 
 
 @dataclass
@@ -256,7 +256,7 @@ class McapSource:
         session log found (its metadata), if any."""
         if self._standard is not None:
             return self._standard.gravity_up()
-        return gravity.up_from_metadata(self._metadata, str(self.path))
+        return source_gravity.up_from_metadata(self._metadata, str(self.path))
 
 
 def consumed_frames(path: Path) -> set[int]:

@@ -22,7 +22,7 @@ from octolog.kit.errors import InputError
 from octolog.kit.geometry import Intrinsics, RgbdFrame
 from octolog.kit.mcaplog import read_messages, summarize
 from octolog.kit.tum import associate
-from octolog.replay.gravity import recorded_up
+from octolog.replay.source_gravity import recorded_up
 from octolog.schemas import codec, imagecodec, sensormsgs
 from octolog.schemas.topics import (
     ALIGNED_DEPTH,
@@ -67,7 +67,7 @@ class StandardSequence:
         return self.metadata.get("groundtruth", {}).get("tum")
 
     def gravity_up(self) -> np.ndarray | None:
-        """Up at the first frame from the recording's accelerometer (octolog.replay.gravity)."""
+        """Up at the first frame from the recording's accelerometer (octolog.replay.source_gravity)."""
         if not self.pairs:
             return None
         frame = next(iter(self.frames(0, 1)))

@@ -23,10 +23,10 @@ import numpy as np
 
 from octolog.kit import imu
 from octolog.kit.geometry import Intrinsics, RgbdFrame, matrix_to_pose
-from octolog.kit.gravity import WINDOW_S, up_from_samples
+from octolog.kit.up_vector import WINDOW_S, up_from_samples
 from octolog.kit.opencv import baseline_simd
 from octolog.replay import depth_noise, synthetic_imu
-from octolog.replay.gravity import simulated_up
+from octolog.replay.source_gravity import simulated_up
 from octolog.replay.synthetic_room import OBJECTS, ROOM, scene_faces, scene_triangles
 from octolog.replay.synthetic_textures import Textures, scene_textures
 from octolog.replay.synthetic_imu import SimulatedImu

@@ -48,7 +48,7 @@ RGBD_END = Topic("camera/rgbd/end", "octolog_msgs/msg/StreamEnd")
 # The camera's properties a tracker needs beyond CameraInfo (the rolling-shutter readout), once per stream
 CAMERA_PROPERTIES = Topic("camera/rgbd/properties", "octolog_msgs/msg/CameraProperties")
 # Up (unit vector, against gravity) in the first frame's optical frame, from a file source's
-# accelerometer (octolog.replay.gravity), once before the first frame: a mapper that is not told
+# accelerometer (octolog.replay.source_gravity), once before the first frame: a mapper that is not told
 # `grid_up` builds its `map` frame on it (mapper/mapframe.py)
 GRAVITY = Topic("camera/gravity", "geometry_msgs/msg/Vector3Stamped")
 # Up (unit vector, against gravity) in `world` as the tracker's IMU estimates it (tracker/inertial.py:

@@ -107,7 +107,7 @@ def overrides(args: argparse.Namespace) -> list[str]:
 
 
 def _status_printer() -> Callable[[Any], None]:
-    from octolog.recorder.recording import format_status  # lazy: numpy, rosbags
+    from octolog.recorder.recording_types import format_status  # lazy: numpy, rosbags
 
     tty = sys.stderr.isatty()
 

@@ -28,7 +28,7 @@ from octolog.kit.mcaplog import message_counts, read_wire, summarize
 from octolog.kit.viz import parse_spec
 from octolog.mapper.config import MapperConfig
 from octolog.recorder.config import RecorderConfig
-from octolog.replay import gravity
+from octolog.replay import source_gravity
 from octolog.replay.config import ReplayConfig
 from octolog.replay.imu import has_imu
 from octolog.replay.sources import Source, backend_deferred, open_source
@@ -95,14 +95,14 @@ class LiveSource:
 
 def _map_frame(cfg: MapperConfig, src: Source | LiveSource, *, imu: bool) -> tuple[MapperConfig, dict[str, str] | None]:
     """The mapper's config with `grid_up` from the source's accelerometer when the user left it
-    unset (octolog.replay.gravity), and what to record of it in the session's metadata; `imu`: the
+    unset (octolog.replay.source_gravity), and what to record of it in the session's metadata; `imu`: the
     tracker fuses an IMU, whose estimate the mapper takes later (the file's up is served on
     camera/gravity meanwhile, mapper/mapframe.py)."""
     if cfg.grid_up:
         return cfg, {"note": "up given by mapper.grid_up"}
     if isinstance(src, LiveSource) or imu:  # the mapper reads the live camera's accelerometer (mapper/mapframe.py)
         return cfg, None
-    found = gravity.source_up(src)
+    found = source_gravity.source_up(src)
     if found is None:
         return cfg, None
     up_t, note = tuple(float(v) for v in found[0]), found[1]

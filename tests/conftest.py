@@ -13,14 +13,12 @@ from pathlib import Path
 # process, so in-process results equal the CLI's bytes (docs/architecture.md, "Determinism").
 import octolog  # noqa: F401
 
+# the shared helpers (tests/helpers/) import as `helpers` in every test module; test modules import
+# nothing from one another
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-# test modules import fixtures and scene makers from one another across the package folders
-for _folder in sorted(Path(__file__).resolve().parent.iterdir()):
-    if _folder.is_dir() and not _folder.name.startswith((".", "_")):
-        sys.path.insert(1, str(_folder))
 
 import pytest  # noqa: E402
-from helpers import free_port, tum_first300
+from helpers import free_port, tum_first300  # noqa: E402
 from helpers import octolog as octolog_cli  # noqa: E402
 
 

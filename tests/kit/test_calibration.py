@@ -11,8 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_importers import SMALL, _layout_mcap
-from test_tum import make_tum
+from helpers.recordings import SMALL, layout_mcap, make_tum
 
 from octolog.kit import depthmodel
 from octolog.kit.calibration import load_calibration
@@ -54,7 +53,7 @@ def test_a_tum_folder_without_a_camera_name_runs_with_a_calibration_file(tmp_pat
 
 def test_an_mcap_recording_without_camera_info_runs_with_a_calibration_file(tmp_path):
     rec = tmp_path / "r.mcap"
-    _layout_mcap(rec, info=False)
+    layout_mcap(rec, info=False)
     with pytest.raises(InputError, match="missing calibration.*replay.camera=CAMERA.toml"):
         open_source(f"mcap:{rec}")
     cal = _cal(tmp_path, CAL.replace("width = 64", f"width = {SMALL.width}").replace("height = 48",

@@ -180,11 +180,11 @@ def test_mcap_readers_and_recover(data):
 
 @cache
 def _bags() -> dict[str, bytes]:
-    from test_importers import _write_ros1_bag, _write_ros2_bag
+    from helpers.recordings import write_ros1_bag, write_ros2_bag
 
     with tempfile.TemporaryDirectory() as d:
-        _write_ros1_bag(Path(d) / "a.bag")
-        _write_ros2_bag(Path(d) / "b", names={"color": "/camera/color/image_raw",
+        write_ros1_bag(Path(d) / "a.bag")
+        write_ros2_bag(Path(d) / "b", names={"color": "/camera/color/image_raw",
                                               "depth": "/camera/aligned_depth_to_color/image_raw",
                                               "info": "/camera/color/camera_info", "imu": "/camera/imu"}, n=2)
         db3 = next((Path(d) / "b").glob("*.db3"))

@@ -1,4 +1,4 @@
-"""Gravity from the accelerometer (octolog.replay.gravity): a gravity-aligned map frame on TUM's
+"""Gravity from the accelerometer (octolog.replay.source_gravity): a gravity-aligned map frame on TUM's
 Kinect accelerometer and on the synthetic room's simulated IMU, and a 2D grid that does not depend
 on how the camera was held at the start."""
 
@@ -11,19 +11,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 from helpers import octolog
+from helpers.maps import angle_deg, z_tilt
 from scipy.spatial.transform import Rotation
 
-from octolog.kit import metrics
 from octolog.kit.errors import ConfigError, InputError
-from octolog.kit.gravity import level_on_plane
+from octolog.kit.up_vector import level_on_plane
 from octolog.mapper.grid import grid_from_msg, map_from_world_for_up
-from octolog.replay import gravity
+from octolog.replay import source_gravity
 from octolog.replay.sources import open_source
 from octolog.replay.synthetic_trajectory import camera_trajectory
-
-
-def _deg(a: np.ndarray, b: np.ndarray) -> float:
-    return math.degrees(math.acos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1.0, 1.0)))
 
 
 def _true_up(world_from_camera: np.ndarray) -> np.ndarray:
@@ -31,48 +27,38 @@ def _true_up(world_from_camera: np.ndarray) -> np.ndarray:
     return world_from_camera[:3, :3].T @ np.array([0.0, 0.0, 1.0])
 
 
-def _z_tilt(session: Path, map_from_world: np.ndarray) -> float:
-    """Degrees between the ground truth's z (up) and the session's map-frame z, through the SE(3)
-    alignment (Umeyama on positions, as ATE uses) of the map-frame trajectory onto the ground truth."""
-    est, gt = metrics.read_tum(session / "trajectory.txt"), metrics.read_tum(session / "groundtruth.txt")
-    R, t = map_from_world[:3, :3], map_from_world[:3, 3]
-    rot = R @ Rotation.from_quat(est.quats_xyzw).as_matrix()
-    in_map = metrics.Trajectory(est.stamps_ns, est.positions @ R.T + t, Rotation.from_matrix(rot).as_quat())
-    return math.degrees(math.acos(np.clip(metrics.ate(in_map, gt).alignment[2, 2], -1.0, 1.0)))
-
-
 def test_tum_accelerometer_axes_map_to_the_optical_frame(tmp_path: Path) -> None:
     """A Kinect lying still, camera looking 30 degrees down: the file's (ax, ay, az) in m/s² become
     up in the optical frame as (-ax, -ay, az); samples beyond 0.1 s of the frame are not used."""
     up = np.array([0.0, -math.cos(math.radians(30)), -math.sin(math.radians(30))])  # optical: y down, z forward
-    a = gravity.KINECT_TO_OPTICAL.T @ up * gravity.G
+    a = source_gravity.KINECT_TO_OPTICAL.T @ up * source_gravity.G
     lines = ["# accelerometer data", "# timestamp ax ay az"]
     lines += [f"{100.0 + t:.4f} {a[0]:.6f} {a[1]:.6f} {a[2]:.6f}" for t in np.arange(-0.1, 0.1, 0.002)]
     lines += ["100.5000 9.8 0.0 0.0"]  # far from the frame: ignored
     (tmp_path / "accelerometer.txt").write_text("\n".join(lines) + "\n")
-    got = gravity.tum_up(tmp_path, 100_000_000_000)
-    assert _deg(got, up) < 0.01
-    assert gravity.tum_up(tmp_path, 200_000_000_000) is None  # no sample near that frame
-    assert gravity.tum_up(tmp_path / "nowhere", 100_000_000_000) is None
+    got = source_gravity.tum_up(tmp_path, 100_000_000_000)
+    assert angle_deg(got, up) < 0.01
+    assert source_gravity.tum_up(tmp_path, 200_000_000_000) is None  # no sample near that frame
+    assert source_gravity.tum_up(tmp_path / "nowhere", 100_000_000_000) is None
 
 
 def test_accelerometer_in_g_not_m_s2_is_an_error(tmp_path: Path) -> None:
     (tmp_path / "accelerometer.txt").write_text("100.0 0.0 1.0 0.0\n100.01 0.0 1.0 0.0\n")
     with pytest.raises(InputError, match=r"accelerometer.txt: the accelerometer's mean near the first frame is 1.00"):
-        gravity.tum_up(tmp_path, 100_000_000_000)
+        source_gravity.tum_up(tmp_path, 100_000_000_000)
     (tmp_path / "accelerometer.txt").write_text("100.0 0.0 x 0.0\n")
     with pytest.raises(InputError, match=r"accelerometer.txt:1: want 'timestamp ax ay az'"):
-        gravity.tum_up(tmp_path, 100_000_000_000)
+        source_gravity.tum_up(tmp_path, 100_000_000_000)
 
 
 @pytest.mark.parametrize("tilt", [0.0, 30.0, -20.0])
 def test_the_simulated_imu_finds_up_within_half_a_degree(tilt: float) -> None:
     src = open_source(f"synthetic:10:tilt={tilt:g}" if tilt else "synthetic:10")
     truth = _true_up(src.scene.pose(0))
-    assert _deg(src.gravity_up(), truth) < 0.5
+    assert angle_deg(src.gravity_up(), truth) < 0.5
     if tilt:  # the tilt is in the path: frame 0 looks that much further down than the level start
         level = _true_up(open_source("synthetic:10").scene.pose(0))
-        assert abs(_deg(truth, level) - abs(tilt)) < 0.01
+        assert abs(angle_deg(truth, level) - abs(tilt)) < 0.01
 
 
 def test_levelling_on_a_plane_takes_the_floor_not_a_wall() -> None:
@@ -84,7 +70,7 @@ def test_levelling_on_a_plane_takes_the_floor_not_a_wall() -> None:
     truth = _true_up(tilted.scene.pose(0))
     frame = next(iter(tilted.frames(0, 1)))
     up, levelled = level_on_plane(tilted.gravity_up(), frame)
-    assert levelled and _deg(up, truth) < 0.05
+    assert levelled and angle_deg(up, truth) < 0.05
     assert level_on_plane(tilted.gravity_up(), frame)[0].tobytes() == up.tobytes()  # same bytes
     level = open_source("synthetic:2")
     accel = level.gravity_up()
@@ -102,14 +88,14 @@ def test_a_recordings_accelerometer_gives_up(tmp_path: Path) -> None:
     out = tmp_path / "r.mcap"
     octolog("record", str(out), "--backend", "software", "--duration", "1", "--quiet")
     up = open_source(f"mcap:{out}").gravity_up()
-    assert _deg(up, np.array([0.0, -1.0, 0.0])) < 2.0
+    assert angle_deg(up, np.array([0.0, -1.0, 0.0])) < 2.0
 
 
 def test_a_tilted_start_levels_out_after_one_second() -> None:
     t = np.array([0.0, 0.5, 1.0, 2.0])
     _, level = camera_trajectory(t)
     _, tilted = camera_trajectory(t, start_tilt_deg=30.0)
-    assert _deg(level[0][:, 2], tilted[0][:, 2]) == pytest.approx(30.0, abs=1e-6)
+    assert angle_deg(level[0][:, 2], tilted[0][:, 2]) == pytest.approx(30.0, abs=1e-6)
     np.testing.assert_array_equal(level[2:], tilted[2:])
 
 
@@ -167,7 +153,7 @@ def test_the_grid_does_not_depend_on_how_the_camera_was_held_at_the_start(tmp_pa
     assert agreement(ref, _grid_cells(assumed)) < 0.8
     # and the tilted session's map frame is upright: 0.6 degrees from the room's z (measured)
     up = np.array(tomllib.loads((tilted / "config.toml").read_text())["mapper"]["grid_up"])
-    assert _z_tilt(tilted, map_from_world_for_up(up)) <= 2.0
+    assert z_tilt(tilted, map_from_world_for_up(up)) <= 2.0
 
 
 def test_a_live_cameras_up_is_levelled_on_the_first_keyframes_floor(tmp_path: Path) -> None:
@@ -205,7 +191,7 @@ def test_a_live_cameras_up_is_levelled_on_the_first_keyframes_floor(tmp_path: Pa
     found, truth = live_up("synthetic:2:tilt=30")  # looks down at the floor
     assert found["note"] == ("gravity-aligned (the live camera's accelerometer, levelled on a horizontal plane "
                              "of the first keyframe)")
-    assert _deg(np.array(found["up"]), truth) < 0.05
+    assert angle_deg(np.array(found["up"]), truth) < 0.05
     found, truth = live_up("synthetic:2")  # sees the walls
     assert found["note"] == "gravity-aligned (the live camera's accelerometer)"
-    assert 1.9 < _deg(np.array(found["up"]), truth) < 2.1
+    assert 1.9 < angle_deg(np.array(found["up"]), truth) < 2.1

@@ -10,7 +10,6 @@ import json
 import struct
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -137,22 +136,6 @@ def test_a_gap_that_never_fills_ends_the_stage_naming_the_publisher_within_the_b
     message = str(err.value)
     assert "\n" not in message and "publisher evil/00010203" in message and "t/camera/rgbd/end" in message
     assert f"max_held_mb = {bound_mb}" in message
-
-
-@pytest.fixture
-def router():
-    """A Zenoh router in this process for `octolog run --router`, so a test peer can join the run."""
-    from octolog.kit.bus import serve_router
-
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    stop, ready = threading.Event(), threading.Event()
-    thread = threading.Thread(target=serve_router, args=((endpoint,),), kwargs={"stop": stop, "ready": ready.set},
-                              daemon=True)
-    thread.start()
-    assert ready.wait(30)
-    yield endpoint
-    stop.set()
-    thread.join(timeout=30)
 
 
 def _run_on(endpoint: str, source: str, out: Path) -> subprocess.Popen:

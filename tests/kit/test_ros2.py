@@ -13,7 +13,6 @@ import pytest
 import zenoh
 from helpers import ROOT
 from rosbags.typesys import Stores, get_typestore
-from test_hostile import router  # noqa: F401  (fixture: a Zenoh router in this process)
 
 from octolog.kit.bus import ros2
 from octolog.kit.busconfig import BusConfig
@@ -68,7 +67,7 @@ def test_a_domain_out_of_range_is_refused() -> None:
         BusConfig(ros2_domain=233).validate()
 
 
-def test_a_ros2_subscriber_sees_a_runs_pose_and_grid(router, tmp_path) -> None:  # noqa: F811
+def test_a_ros2_subscriber_sees_a_runs_pose_and_grid(router, tmp_path) -> None:
     """`octolog run --ros2-domain 0` on the synthetic room: a plain Zenoh subscriber on the keys a
     ROS 2 node with rmw_zenoh would use for /tracker/pose, /tf and /mapper/grid gets every pose and the
     grids, readable with rosbags' stock Jazzy types and numbered as rmw_zenoh numbers; the ROS graph
@@ -124,7 +123,7 @@ def test_a_ros2_subscriber_sees_a_runs_pose_and_grid(router, tmp_path) -> None: 
                for t in tokens), sorted(tokens)
 
 
-def test_tf_static_is_latched_for_a_ros2_node_that_joins_late(router) -> None:  # noqa: F811
+def test_tf_static_is_latched_for_a_ros2_node_that_joins_late(router) -> None:
     """/tf_static as ROS 2 expects it (TRANSIENT_LOCAL, depth 1): a subscription that joins after the
     mapper announced `map` -> `world` still gets it, asking as an rmw_zenoh subscription does
     (zenoh-ext's AdvancedSubscriber with history, detecting late publishers), and the graph token

@@ -1,33 +1,14 @@
 from __future__ import annotations
 
 import shutil
-from pathlib import Path
 
-import cv2
-import numpy as np
 import pytest
 from helpers import octolog, tum_first300
+from helpers.recordings import make_tum
 
 from octolog.kit.errors import InputError
 from octolog.kit.tum import TUM_DEPTH_SCALE_M, TUM_INTRINSICS, associate, open_tum, seconds_to_ns
 from octolog.replay.sources import open_source
-
-
-def make_tum(folder: Path, n: int = 4) -> Path:
-    """A tiny TUM-layout folder: random colour, planar depth, depth stamps 5 ms after colour."""
-    (folder / "rgb").mkdir(parents=True)
-    (folder / "depth").mkdir()
-    rng = np.random.default_rng(0)
-    rgb_lines, depth_lines = ["# color images"], ["# depth maps"]
-    for i in range(n):
-        t = 100.0 + i / 30
-        cv2.imwrite(str(folder / f"rgb/{t:.6f}.png"), rng.integers(0, 255, (48, 64, 3), dtype=np.uint8))
-        cv2.imwrite(str(folder / f"depth/{t + 0.005:.6f}.png"), np.full((48, 64), 5000 + i, np.uint16))
-        rgb_lines.append(f"{t:.6f} rgb/{t:.6f}.png")
-        depth_lines.append(f"{t + 0.005:.6f} depth/{t + 0.005:.6f}.png")
-    (folder / "rgb.txt").write_text("\n".join(rgb_lines) + "\n")
-    (folder / "depth.txt").write_text("\n".join(depth_lines) + "\n")
-    return folder
 
 
 def test_reads_pairs_with_units_and_exact_stamps(tmp_path):

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from helpers import octolog, tum_first300
-from test_tum import make_tum
+from helpers.recordings import make_tum
 
 from octolog.kit.errors import ConfigError, InputError
 from octolog.kit.mcaplog import read_messages, read_wire

@@ -12,24 +12,19 @@ sorted by (stamp, robot index) with `sorted`, integrated one after the other.
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import json
 import os
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import ROOT, free_port, kill_then_finish, octolog, read_until, stop_all, tum_first300
+from helpers import free_port, kill_then_finish, octolog, read_until, stop_all, tum_first300
+from helpers.fleet import FRAMES, HALF, ROBOTS, SHIFT_S, run_fleet, spawn, start_router
+from helpers.maps import cells, occupied_disagreement
 
 from octolog.kit.errors import ConfigError
 from octolog.mapper.config import MapperConfig
-
-FRAMES = 40
-HALF = FRAMES // 2
-SHIFT_S = (0.0, -0.65)  # replay.time_shift_s per robot: r2's half starts 17 ms after r1's
-ROBOTS = ("r1", "r2")
 
 
 def _pose(x: float, y: float, yaw: float) -> np.ndarray:
@@ -142,14 +137,14 @@ def test_fleets_of_three_and_five_robots_complete(tmp_path, octolog_run, n_robot
     robots = [f"r{k + 1}" for k in range(n_robots)]
     starts = [4 * k for k in range(n_robots)]
     out = tmp_path / "fleet"
-    procs, bus = _router(out)
+    procs, bus = start_router(out)
     try:
-        procs["mapper"] = _start(out / "mapper.log", "map", *bus, "--out", str(out), "--rerun", "off",
-                                 "--set", f"robots={json.dumps(robots)}")
+        procs["mapper"] = spawn(out / "mapper.log", "map", *bus, "--out", str(out), "--rerun", "off",
+                                "--set", f"robots={json.dumps(robots)}")
         for robot, start in zip(robots, starts):
-            procs[robot] = _start(out / f"{robot}.log", "replay", *bus, "--namespace", robot, "--quiet",
-                                  "--source", f"mcap:{log}", "--set", "play=tracker", "--set", f"start={start}",
-                                  "--set", 'wait_for=["mapper"]')
+            procs[robot] = spawn(out / f"{robot}.log", "replay", *bus, "--namespace", robot, "--quiet",
+                                 "--source", f"mcap:{log}", "--set", "play=tracker", "--set", f"start={start}",
+                                 "--set", 'wait_for=["mapper"]')
         for name in ("mapper", *robots):
             assert procs[name].wait(timeout=600) == 0, (name, (out / f"{name}.log").read_text())
     finally:
@@ -208,7 +203,7 @@ def _reference(out: Path, start_poses: list[list[float]], *, source: str = f"syn
     from octolog.kit.geometry import pose_to_matrix
     from octolog.kit.metrics import write_tum
     from octolog.mapper.core import make_mapper
-    from octolog.replay import gravity
+    from octolog.replay import source_gravity
     from octolog.replay.sources import open_source
     from octolog.schemas import posemsgs
     from octolog.tracker.config import TrackerConfig, for_source
@@ -236,7 +231,7 @@ def _reference(out: Path, start_poses: list[list[float]], *, source: str = f"syn
         latest.append(poses)
     # the map's up: the first robot's replay serves it (camera/gravity) when its window starts at frame 0
     cfg = MapperConfig()
-    found = gravity.source_up(src) if windows[0][0] == 0 else None
+    found = source_gravity.source_up(src) if windows[0][0] == 0 else None
     if found is not None:
         q = np.array(start_poses[0][3:])
         R0 = pose_to_matrix(np.array(start_poses[0][:3]), q / np.linalg.norm(q))[:3, :3]
@@ -254,49 +249,6 @@ def _reference(out: Path, start_poses: list[list[float]], *, source: str = f"syn
         write_tum(out / f"keyframes_{ROBOTS[r]}.txt", np.array([s for s, _ in rows]), np.array([T for _, T in rows]))
     assert len(per_robot[0]) >= 2 and len(per_robot[1]) >= 2, per_robot
 
-
-
-def _start(log: Path | None, *args: str) -> subprocess.Popen:
-    env = {**os.environ, "RERUN_DISABLE_ANALYTICS": "1", "PYTHONUNBUFFERED": "1", "PYTHONHASHSEED": "0"}
-    return subprocess.Popen([sys.executable, "-m", "octolog", *args], cwd=ROOT, env=env, text=True,
-                            stdout=open(log, "w") if log else subprocess.PIPE, stderr=subprocess.STDOUT)
-
-
-def _router(out: Path) -> tuple[dict[str, subprocess.Popen], list[str]]:
-    """`out` made, a router started on a free loopback port: the processes so far and the bus flags
-    that reach it."""
-    out.mkdir(parents=True)
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    return {"router": _start(out / "router.log", "router", "--listen", endpoint)}, \
-        ["--mode", "client", "--connect", endpoint, "--no-multicast"]
-
-
-def run_fleet(out: Path, start_poses: list[list[float]], *, rerun: str = "off", source: str = f"synthetic:{FRAMES}",
-              windows: tuple[tuple[int, int], ...] = ((0, HALF), (HALF, FRAMES)),
-              shifts: tuple[float, ...] = SHIFT_S, sources: tuple[str, ...] = (),
-              mapper_sets: tuple[str, ...] = (), replay_sets: tuple[str, ...] = ()) -> dict[str, str]:
-    """Router, mapper for r1+r2, and per robot a tracker and a replay: six processes over Zenoh
-    (`sources`: one per robot, else `source` for both)."""
-    procs, bus = _router(out)
-    try:
-        poses = "[" + ", ".join("[" + ", ".join(repr(x) for x in p) + "]" for p in start_poses) + "]"
-        procs["mapper"] = _start(out / "mapper.log", "map", *bus, "--out", str(out), "--rerun", rerun,
-                                 "--recording-id", "fleet", "--set", 'robots=["r1", "r2"]',
-                                 "--set", f"start_poses={poses}", *(a for s in mapper_sets for a in ("--set", s)))
-        for robot, (start, end), shift, src in zip(ROBOTS, windows, shifts, sources or (source, source)):
-            ns = ["--namespace", robot]
-            procs[f"tracker-{robot}"] = _start(out / f"tracker-{robot}.log", "track", *bus, *ns)
-            procs[f"replay-{robot}"] = _start(out / f"replay-{robot}.log", "replay", *bus, *ns, "--quiet",
-                                              "--source", src, "--set", f"start={start}", "--set", f"end={end}",
-                                              "--set", f"time_shift_s={shift!r}",
-                                              "--set", 'wait_for=["tracker", "mapper"]',
-                                              *(a for s in replay_sets for a in ("--set", s)))
-        for name in ("replay-r1", "replay-r2", "tracker-r1", "tracker-r2", "mapper"):
-            code = procs[name].wait(timeout=600)
-            assert code == 0, (name, (out / f"{name}.log").read_text())
-    finally:
-        stop_all(procs)
-    return {name: (out / f"{name}.log").read_text() for name in procs}
 
 
 @pytest.fixture(scope="module")
@@ -336,20 +288,20 @@ def test_a_silent_robot_no_longer_stalls_the_others_and_the_map_is_the_same(flee
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     bus = ["--mode", "client", "--connect", endpoint, "--no-multicast"]
     poses = "[" + ", ".join("[" + ", ".join(repr(x) for x in p) + "]" for p in _start_poses()) + "]"
-    procs = {"router": _start(out / "router.log", "router", "--listen", endpoint)}
+    procs = {"router": spawn(out / "router.log", "router", "--listen", endpoint)}
     replay = {robot: ("replay", *bus, "--namespace", robot, "--quiet", "--source", f"synthetic:{FRAMES}",
                       "--set", f"start={start}", "--set", f"end={end}", "--set", f"time_shift_s={shift!r}",
                       "--set", 'wait_for=["tracker", "mapper"]')
               for robot, (start, end), shift in zip(ROBOTS, ((0, HALF), (HALF, FRAMES)), SHIFT_S)}
     try:
-        procs["mapper"] = _start(None, "map", *bus, "--out", str(out), "--rerun", "off", "--set", 'robots=["r1", "r2"]',
-                                 "--set", f"start_poses={poses}", "--set", "robot_stall_s=2.0")
+        procs["mapper"] = spawn(None, "map", *bus, "--out", str(out), "--rerun", "off", "--set", 'robots=["r1", "r2"]',
+                                "--set", f"start_poses={poses}", "--set", "robot_stall_s=2.0")
         for robot in ROBOTS:
-            procs[f"tracker-{robot}"] = _start(out / f"tracker-{robot}.log", "track", *bus, "--namespace", robot)
-        procs["replay-r1"] = _start(out / "replay-r1.log", *replay["r1"])
+            procs[f"tracker-{robot}"] = spawn(out / f"tracker-{robot}.log", "track", *bus, "--namespace", robot)
+        procs["replay-r1"] = spawn(out / "replay-r1.log", *replay["r1"])
         said = read_until(procs["mapper"], "the others went on without it")  # the event: r2 is paused
         assert "r2: silent for" in said, said
-        procs["replay-r2"] = _start(out / "replay-r2.log", *replay["r2"])
+        procs["replay-r2"] = spawn(out / "replay-r2.log", *replay["r2"])
         rest, _ = procs["mapper"].communicate(timeout=600)
         assert procs["mapper"].returncode == 0, said + rest
         for name in ("replay-r1", "replay-r2", "tracker-r1", "tracker-r2"):
@@ -465,41 +417,6 @@ def test_two_halves_of_a_tum_sequence_fuse_like_on_one_host(tmp_path):
             assert np.linalg.norm(p - truth) < 0.05, (stamp, p, truth)
 
 
-def _cells(path: Path) -> dict[tuple[int, int, int], bool]:
-    """Every known 5 cm voxel of a .bt file (merged leaves expanded): occupied or not."""
-    import octomap
-
-    tree = octomap.OcTree(0.05)
-    assert tree.readBinary(str(path).encode())
-    cells = {}
-    for it in tree.begin_leafs():
-        occupied = bool(tree.isNodeOccupied(it))
-        k = round(it.getSize() / 0.05)
-        low = np.floor((np.array(it.getCoordinate()) - it.getSize() / 2) / 0.05 + 0.5).astype(int)
-        for i in range(k):
-            for j in range(k):
-                for m in range(k):
-                    cells[(low[0] + i, low[1] + j, low[2] + m)] = occupied
-    return cells
-
-
-def occupied_disagreement(a: Path | dict, b: Path | dict, tolerance: int = 0) -> tuple[float, int]:
-    """Of the voxels both maps know and at least one calls occupied, the share they disagree on
-    (occupied in one, free in the other); and how many such voxels there are. With `tolerance` t, a
-    voxel occupied in one map is not counted when the other has an occupied voxel within t voxels
-    (the 3D neighbourhood): a surface one voxel over agrees."""
-    ca, cb = (_cells(m) if isinstance(m, Path) else m for m in (a, b))
-    both = [c for c in ca.keys() & cb.keys() if ca[c] or cb[c]]
-    occupied = ({c for c, v in ca.items() if v}, {c for c, v in cb.items() if v})
-    near = list(itertools.product(range(-tolerance, tolerance + 1), repeat=3))
-
-    def missing(c: tuple[int, int, int], occ: set) -> bool:
-        return not any((c[0] + i, c[1] + j, c[2] + k) in occ for i, j, k in near)
-
-    wrong = sum((ca[c] and missing(c, occupied[1])) or (cb[c] and missing(c, occupied[0])) for c in both)
-    return wrong / max(len(both), 1), len(both)
-
-
 @pytest.mark.slow
 def test_two_halves_merge_without_start_poses(tmp_path, first300_run):
     """Robot r1 the first half of first300, r2 the second, no start poses. The mapper
@@ -532,7 +449,7 @@ def test_two_halves_merge_without_start_poses(tmp_path, first300_run):
     single = first300_run[0]
     disagree, n_cells = occupied_disagreement(out / "map.bt", tmp_path / "known" / "map.bt")
     floor, _ = occupied_disagreement(tmp_path / "known" / "map.bt", single / "map.bt")
-    merged = _cells(out / "map.bt")
+    merged = cells(out / "map.bt")
     vs_single, _ = occupied_disagreement(merged, single / "map.bt")
     # the target is <= 2 %; at 5 cm voxels two trackers' maps differ by a voxel along most surfaces
     # (13.5 % even with ground-truth start poses): printed, not asserted (docs/results.md)
@@ -604,16 +521,16 @@ def test_a_robot_killed_mid_run_leaves_the_others_to_finish(tmp_path):
     takes r2 for gone after the peer timeout, keeps what arrived, and finishes r1's map (no start
     poses: r2 is placed from the room both see)."""
     out = tmp_path / "fleet"
-    procs, bus = _router(out)
+    procs, bus = start_router(out)
     try:
-        procs["mapper"] = _start(out / "mapper.log", "map", *bus, "--out", str(out), "--set", 'robots=["r1", "r2"]')
+        procs["mapper"] = spawn(out / "mapper.log", "map", *bus, "--out", str(out), "--set", 'robots=["r1", "r2"]')
         for robot, (start, end), shift in zip(ROBOTS, ((0, HALF), (HALF, FRAMES)), SHIFT_S):
             ns = ["--namespace", robot]
-            procs[f"tracker-{robot}"] = _start(out / f"tracker-{robot}.log", "track", *bus, *ns)
-            procs[f"replay-{robot}"] = _start(None if robot == "r2" else out / f"replay-{robot}.log", "replay", *bus,
-                                              *ns, "--source", f"synthetic:{FRAMES}", "--set", f"start={start}",
-                                              "--set", f"end={end}", "--set", f"time_shift_s={shift!r}",
-                                              "--set", 'wait_for=["tracker", "mapper"]')
+            procs[f"tracker-{robot}"] = spawn(out / f"tracker-{robot}.log", "track", *bus, *ns)
+            procs[f"replay-{robot}"] = spawn(None if robot == "r2" else out / f"replay-{robot}.log", "replay", *bus,
+                                             *ns, "--source", f"synthetic:{FRAMES}", "--set", f"start={start}",
+                                             "--set", f"end={end}", "--set", f"time_shift_s={shift!r}",
+                                             "--set", 'wait_for=["tracker", "mapper"]')
         read_until(procs["replay-r2"], f"10/{FRAMES - HALF} frames")  # its progress line: its frames are flowing
     except BaseException:
         kill_then_finish(procs, (), (), out)

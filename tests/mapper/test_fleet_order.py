@@ -9,7 +9,7 @@ import random
 
 import pytest
 from helpers import free_port, stop_all
-from test_fleet import ROBOTS, _start
+from helpers.fleet import ROBOTS, spawn
 
 from octolog.mapper.fleet.order import CorrectionItem, FleetMerge, KeyframeItem, Watermark, merged_order
 
@@ -136,21 +136,21 @@ def test_a_robot_that_tracks_without_keyframes_holds_the_others_back_no_longer(t
     out.mkdir()
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     bus = ["--mode", "client", "--connect", endpoint, "--no-multicast"]
-    procs = {"router": _start(out / "router.log", "router", "--listen", endpoint)}
+    procs = {"router": spawn(out / "router.log", "router", "--listen", endpoint)}
     frames = 40
     still = 600
     try:
-        procs["mapper"] = _start(None, "map", *bus, "--out", str(out), "--rerun", "off",
-                                 "--set", 'robots=["r1", "r2"]', "--set", "robot_stall_s=10.0",
-                                 "--set", "start_poses=[[0, 0, 0, 0, 0, 0, 1], [0, 0, 0, 0, 0, 0, 1]]")
+        procs["mapper"] = spawn(None, "map", *bus, "--out", str(out), "--rerun", "off",
+                                "--set", 'robots=["r1", "r2"]', "--set", "robot_stall_s=10.0",
+                                "--set", "start_poses=[[0, 0, 0, 0, 0, 0, 1], [0, 0, 0, 0, 0, 0, 1]]")
         for robot in ROBOTS:
-            procs[f"tracker-{robot}"] = _start(out / f"tracker-{robot}.log", "track", *bus, "--namespace", robot)
+            procs[f"tracker-{robot}"] = spawn(out / f"tracker-{robot}.log", "track", *bus, "--namespace", robot)
         window = {"r1": ("--set", "start=0", "--set", f"end={frames}"),
                   "r2": ("--set", "start=0", "--set", "end=1", "--set", f"loop={still}", "--set", "rate=1.0")}
         for robot in ROBOTS:
-            procs[f"replay-{robot}"] = _start(out / f"replay-{robot}.log", "replay", *bus, "--namespace", robot,
-                                              "--quiet", "--source", f"synthetic:{frames}", *window[robot],
-                                              "--set", 'wait_for=["tracker", "mapper"]')
+            procs[f"replay-{robot}"] = spawn(out / f"replay-{robot}.log", "replay", *bus, "--namespace", robot,
+                                             "--quiet", "--source", f"synthetic:{frames}", *window[robot],
+                                             "--set", 'wait_for=["tracker", "mapper"]')
         said, _ = procs["mapper"].communicate(timeout=600)
         assert procs["mapper"].returncode == 0, said
         for name in ("replay-r1", "replay-r2", "tracker-r1", "tracker-r2"):

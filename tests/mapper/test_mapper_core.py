@@ -419,7 +419,7 @@ def build_map(out_dir: str) -> None:
 
 
 def test_outputs_are_byte_identical_across_processes(tmp_path):
-    script = _BUILD_SCRIPT.format(tests_dir=str(Path(__file__).resolve().parents[1]))
+    script = _BUILD_SCRIPT.format(tests_dir=str(Path(__file__).resolve().parent))
     outs = []
     for run, seed in enumerate(("0", "12345")):
         d = tmp_path / f"run{run}"

@@ -1,6 +1,6 @@
 """Robots that meet again are linked again (inter-robot loop closure, mapper/fleet/placement.py:
 relinking): in process on rendered views of the synthetic room, and through the real processes
-(tests/mapper/test_fleet.py's `run_fleet`: a router, a mapper for r1+r2, and per robot a replay and a tracker)."""
+(tests/helpers/fleet.py's `run_fleet`: a router, a mapper for r1+r2, and per robot a replay and a tracker)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import json
 
 import numpy as np
 import pytest
-from test_fleet import ROBOTS, run_fleet
+from helpers.fleet import ROBOTS, run_fleet
 
 from octolog.mapper.config import MapperConfig
 

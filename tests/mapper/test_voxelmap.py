@@ -267,7 +267,7 @@ def build_files(out_dir: str) -> None:
 
 
 def test_files_are_byte_identical_across_processes(tmp_path):
-    script = _SCRIPT.format(tests=str(Path(__file__).resolve().parents[1]))
+    script = _SCRIPT.format(tests=str(Path(__file__).resolve().parent))
     dirs = []
     for i, seed in enumerate(("0", "4242")):
         d = tmp_path / f"run{i}"

@@ -7,18 +7,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 from helpers import rerun_cli, tum_first300
-from test_tum import make_tum
+from helpers.recordings import SMALL, layout_mcap, make_tum, write_ros1_bag, write_ros2_bag
 
 from octolog.kit.errors import InputError
 from octolog.kit.geometry import Intrinsics, invert, pose_to_matrix
-from octolog.kit.mcaplog import McapWriter, read_messages, summarize
+from octolog.kit.mcaplog import read_messages, summarize
 from octolog.kit.tum import TUM_DEPTH_SCALE_M, open_tum
 from octolog.recorder.importers import import_source, parse_topic_map
 from octolog.recorder.tum_import import import_tum
 from octolog.replay.standard import count_standard_frames, open_standard, read_standard_frames
 from octolog.schemas import codec, sensormsgs, topics
 
-SMALL = Intrinsics(64, 48, 50.0, 51.0, 31.5, 23.5, (0.1, -0.2, 0.001, 0.002, 0.05))
 REALSENSE_BAGS = ("d435_single_depth_color_640x480.bag", "d435_1280x720_color1920x1080.bag")
 
 
@@ -240,57 +239,9 @@ def test_librealsense_259_db3(tmp_path):
 # --- other bags ---------------------------------------------------------------------------------
 
 
-def _write_ros2_bag(path: Path, *, names: dict[str, str], n: int = 4) -> list[tuple[int, np.ndarray, np.ndarray]]:
-    """A rosbag2 (.db3) with Image (bgr8 colour, mono16 depth), CameraInfo and Imu, via rosbags' Writer."""
-    from rosbags.rosbag2 import Writer
-    from rosbags.typesys import Stores, get_typestore
-
-    store = get_typestore(Stores.ROS2_HUMBLE)
-    T = store.types
-    rng = np.random.default_rng(2)
-    out = []
-
-    def hdr(ns: int, frame: str):
-        return T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9),
-                                        frame_id=frame)
-
-    with Writer(path, version=9) as w:
-        conns = {k: w.add_connection(v, {"color": "sensor_msgs/msg/Image", "depth": "sensor_msgs/msg/Image",
-                                         "info": "sensor_msgs/msg/CameraInfo", "imu": "sensor_msgs/msg/Imu"}[k],
-                                     typestore=store) for k, v in names.items()}
-        for i in range(n):
-            t = 5_000_000_000 + i * 33_333_333
-            rgb = rng.integers(0, 255, (48, 64, 3), dtype=np.uint8)
-            depth = rng.integers(0, 9000, (48, 64), dtype=np.uint16)
-            out.append((t, rgb, depth))
-            Image = T["sensor_msgs/msg/Image"]
-            msgs = {
-                "color": Image(header=hdr(t, "cam"), height=48, width=64, encoding="bgr8", is_bigendian=0, step=192,
-                               data=np.ascontiguousarray(rgb[..., ::-1]).reshape(-1)),
-                "depth": Image(header=hdr(t + 4_000_000, "cam"), height=48, width=64, encoding="mono16",
-                               is_bigendian=0, step=128, data=depth.reshape(-1).view(np.uint8)),
-                "info": T["sensor_msgs/msg/CameraInfo"](
-                    header=hdr(t, "cam"), height=48, width=64, distortion_model="plumb_bob",
-                    d=np.array(SMALL.distortion), k=SMALL.matrix.reshape(-1), r=np.eye(3).reshape(-1),
-                    p=np.zeros(12), binning_x=0, binning_y=0,
-                    roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
-                                                              do_rectify=False)),
-                "imu": T["sensor_msgs/msg/Imu"](
-                    header=hdr(t + 1000, "imu"), orientation=T["geometry_msgs/msg/Quaternion"](x=0, y=0, z=0, w=1),
-                    orientation_covariance=np.full(9, -1.0), angular_velocity=T["geometry_msgs/msg/Vector3"](
-                        x=0.1, y=0.2, z=0.3), angular_velocity_covariance=np.zeros(9),
-                    linear_acceleration=T["geometry_msgs/msg/Vector3"](x=0, y=9.8, z=0),
-                    linear_acceleration_covariance=np.zeros(9)),
-            }
-            for k, conn in conns.items():
-                typ = conn.msgtype
-                w.write(conn, t + 10_000_000, store.serialize_cdr(msgs[k], typ))
-    return out
-
-
 def test_ros2_db3_with_topic_map(tmp_path):
     bag = tmp_path / "bag"
-    want = _write_ros2_bag(bag, names={"color": "/cam/rgb", "depth": "/cam/depth_registered", "info": "/cam/info",
+    want = write_ros2_bag(bag, names={"color": "/cam/rgb", "depth": "/cam/depth_registered", "info": "/cam/info",
                                        "imu": "/imu/data"})
     db3 = next(bag.glob("*.db3"))
     tmap = parse_topic_map([f"/cam/rgb={topics.COLOR.name}", f"/cam/depth_registered={topics.ALIGNED_DEPTH.name}",
@@ -314,7 +265,7 @@ def test_ros2_db3_with_topic_map(tmp_path):
 
 def test_bag_topics_map_by_name_under_a_namespace(tmp_path):
     bag = tmp_path / "bag"
-    _write_ros2_bag(bag, names={"color": "/robot1/camera/color/image_raw",
+    write_ros2_bag(bag, names={"color": "/robot1/camera/color/image_raw",
                                 "depth": "/robot1/camera/aligned_depth_to_color/image_raw",
                                 "info": "/robot1/camera/color/camera_info", "imu": "/robot1/imu"})
     result = import_source(bag, tmp_path / "o.mcap", depth_scale_m=0.00025)
@@ -326,7 +277,7 @@ def test_bag_topics_map_by_name_under_a_namespace(tmp_path):
 
 def test_unmapped_bag_lists_its_topics(tmp_path):
     bag = tmp_path / "bag"
-    _write_ros2_bag(bag, names={"color": "/cam/rgb", "info": "/cam/info"}, n=1)
+    write_ros2_bag(bag, names={"color": "/cam/rgb", "info": "/cam/info"}, n=1)
     with pytest.raises(InputError, match=r"no topic maps to the camera layout.*--map.*/cam/info, /cam/rgb"):
         import_source(bag, tmp_path / "o.mcap")
     with pytest.raises(InputError, match=r"--map /nope: no such topic"):
@@ -336,40 +287,9 @@ def test_unmapped_bag_lists_its_topics(tmp_path):
     assert not (tmp_path / "o.mcap").exists()
 
 
-def _write_ros1_bag(path: Path) -> None:
-    """A small ROS 1 bag (rosbags' rosbag1 Writer): rgb8 colour, 16UC1 depth, CameraInfo (upper-case K, D)."""
-    from rosbags.rosbag1 import Writer
-    from rosbags.typesys import Stores, get_typestore
-
-    store = get_typestore(Stores.ROS1_NOETIC)
-    T = store.types
-    with Writer(path) as w:
-        cc = w.add_connection("/camera/color/image_raw", "sensor_msgs/msg/Image", typestore=store)
-        dc = w.add_connection("/camera/aligned_depth_to_color/image_raw", "sensor_msgs/msg/Image", typestore=store)
-        ic = w.add_connection("/camera/color/camera_info", "sensor_msgs/msg/CameraInfo", typestore=store)
-        for i in range(3):
-            t = 7_000_000_000 + i * 50_000_000
-            hdr = T["std_msgs/msg/Header"](seq=i, stamp=T["builtin_interfaces/msg/Time"](sec=t // 10**9,
-                                                                                         nanosec=t % 10**9),
-                                           frame_id="c")
-            Image = T["sensor_msgs/msg/Image"]
-            w.write(cc, t, store.serialize_ros1(Image(header=hdr, height=48, width=64, encoding="rgb8", is_bigendian=0,
-                                                      step=192, data=np.full(48 * 64 * 3, i, np.uint8)),
-                                                "sensor_msgs/msg/Image"))
-            w.write(dc, t, store.serialize_ros1(Image(header=hdr, height=48, width=64, encoding="16UC1",
-                                                      is_bigendian=0, step=128,
-                                                      data=np.full(48 * 64, 1000 + i, np.uint16).view(np.uint8)),
-                                                "sensor_msgs/msg/Image"))
-            w.write(ic, t, store.serialize_ros1(T["sensor_msgs/msg/CameraInfo"](
-                header=hdr, height=48, width=64, distortion_model="plumb_bob", D=np.zeros(5),
-                K=SMALL.matrix.reshape(-1), R=np.eye(3).reshape(-1), P=np.zeros(12), binning_x=0, binning_y=0,
-                roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
-                                                          do_rectify=False)), "sensor_msgs/msg/CameraInfo"))
-
-
 def test_ros1_bag(tmp_path):
     bag = tmp_path / "x.bag"
-    _write_ros1_bag(bag)
+    write_ros1_bag(bag)
     out = tmp_path / "x.mcap"
     result = import_source(bag, out)
     assert result.kind == "rosbag1" and result.counts[topics.COLOR.name] == 3
@@ -419,44 +339,9 @@ def test_imported_tum_opens_in_rosbags_and_rerun(tmp_path):
 # --- compressed variants and missing parts ------------------------------------------------------
 
 
-def _png(img: np.ndarray) -> bytes:
-    import cv2
-
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img))
-    assert ok
-    return buf.tobytes()
-
-
-def _layout_mcap(path: Path, *, color: topics.Topic = topics.COLOR, depth: topics.Topic | None = topics.ALIGNED_DEPTH,
-                 info: bool = True, calibration: dict | None = None) -> list[tuple[int, np.ndarray, np.ndarray]]:
-    rng = np.random.default_rng(3)
-    frames = []
-    with McapWriter(path) as w:
-        if calibration is not None:
-            w.add_metadata("calibration", calibration)
-        for i in range(3):
-            t = 1_000_000_000 + i * 33_000_000
-            rgb = rng.integers(0, 255, (48, 64, 3), dtype=np.uint8)
-            d = rng.integers(0, 65535, (48, 64), dtype=np.uint16)
-            frames.append((t, rgb, d))
-            cm = (sensormsgs.compressed_image_msg(_png(rgb[..., ::-1]), "rgb8; png compressed bgr8", t, "c")
-                  if color.msgtype.endswith("CompressedImage") else sensormsgs.image_msg(rgb, t, "c"))
-            w.write(color.name, color.msgtype, codec.encode(cm, color.msgtype), log_time_ns=t, publish_time_ns=t)
-            if info:
-                w.write(topics.COLOR_INFO.name, topics.COLOR_INFO.msgtype,
-                        codec.encode(sensormsgs.camera_info_msg(SMALL, t, "c"), topics.COLOR_INFO.msgtype),
-                        log_time_ns=t, publish_time_ns=t)
-            if depth is not None:
-                dm = (sensormsgs.compressed_image_msg(_png(d), "16UC1; png compressed", t + 1, "c")
-                      if depth.msgtype.endswith("CompressedImage") else sensormsgs.image_msg(d, t + 1, "c"))
-                w.write(depth.name, depth.msgtype, codec.encode(dm, depth.msgtype), log_time_ns=t + 1,
-                        publish_time_ns=t + 1)
-    return frames
-
-
 def test_compressed_variants_read_losslessly(tmp_path):
     out = tmp_path / "c.mcap"
-    want = _layout_mcap(out, color=topics.COLOR_JPEG, depth=topics.ALIGNED_DEPTH_PNG,
+    want = layout_mcap(out, color=topics.COLOR_JPEG, depth=topics.ALIGNED_DEPTH_PNG,
                         calibration={"depth_scale_m": "0.001"})
     frames = list(read_standard_frames(out))
     assert [f.stamp_ns for f in frames] == [t for t, _, _ in want]
@@ -465,17 +350,17 @@ def test_compressed_variants_read_losslessly(tmp_path):
 
 def test_missing_depth_scale_defaults_and_says_so(tmp_path):
     out = tmp_path / "c.mcap"
-    _layout_mcap(out)
+    layout_mcap(out)
     seq = open_standard(out)
     assert seq.depth_scale_m == 0.001 and "ROS 16UC1 convention" in seq.depth_scale_source
 
 
 def test_missing_aligned_depth_or_calibration(tmp_path):
-    _layout_mcap(tmp_path / "a.mcap", depth=None)
+    layout_mcap(tmp_path / "a.mcap", depth=None)
     with pytest.raises(InputError, match=r"camera/aligned_depth_to_color/image_raw missing: the tracker needs depth "
                                          r"registered to colour"):
         count_standard_frames(tmp_path / "a.mcap")
-    _layout_mcap(tmp_path / "b.mcap", info=False)
+    layout_mcap(tmp_path / "b.mcap", info=False)
     with pytest.raises(InputError, match="missing calibration"):
         read_standard_frames(tmp_path / "b.mcap")
 
@@ -485,7 +370,7 @@ def test_missing_aligned_depth_or_calibration(tmp_path):
 
 def test_truncated_ros1_bag(tmp_path):
     bag = tmp_path / "x.bag"
-    _write_ros1_bag(bag)
+    write_ros1_bag(bag)
     bad = tmp_path / "cut.bag"
     bad.write_bytes(bag.read_bytes()[: bag.stat().st_size // 2])
     with pytest.raises(InputError, match=r"cut\.bag: unreadable bag") as err:
@@ -504,7 +389,7 @@ def test_truncated_realsense_bag(tmp_path):
 
 def test_corrupt_db3(tmp_path):
     bag = tmp_path / "bag"
-    _write_ros2_bag(bag, names={"color": "/camera/color/image_raw"}, n=2)
+    write_ros2_bag(bag, names={"color": "/camera/color/image_raw"}, n=2)
     db3 = next(bag.glob("*.db3"))
     bad = tmp_path / "bad.db3"
     bad.write_bytes(b"SQLite format 3\x00" + bytes(range(256)) * 8)

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from helpers import free_port
+from helpers.recordings import SOFTWARE, record_software
 
 from octolog.kit import mcaplog, recordfile
 from octolog.kit.config import to_json
@@ -25,22 +26,13 @@ from octolog.recorder import node
 from octolog.recorder.capture import Capture, CaptureProfile
 from octolog.recorder.config import RecorderConfig, SoftwareConfig, make_recorder
 from octolog.recorder.realsense_camera import RealSenseBackend
-from octolog.recorder.recording import JPEG_FORMAT, PNG_FORMAT, output_paths
+from octolog.recorder.recording_types import JPEG_FORMAT, PNG_FORMAT, output_paths
 from octolog.recorder.recover import recover
 from octolog.recorder.software_d455 import SoftwareDeviceBackend, SyntheticPattern
 from octolog.schemas import codec, imagecodec, rgbdmsgs, sensormsgs, wirecompression
 from octolog.schemas import topics as T
 
 ROOT = Path(__file__).resolve().parents[2]
-BASE = RecorderConfig(backend="software")
-
-
-def _run(tmp_path: Path, cfg: RecorderConfig = BASE, *, frames: int = 30, name: str = "rec.mcap", **kw):
-    backend = SoftwareDeviceBackend(frames=frames, unplug_after=cfg.software.unplug_after)
-    res = node.run(cfg, tmp_path / name, backend=backend, **kw)
-    return backend, res
-
-
 def _by_topic(path: Path) -> dict[str, list[mcaplog.LoggedMessage]]:
     out: dict[str, list[mcaplog.LoggedMessage]] = {}
     for m in read_messages(path):
@@ -135,14 +127,14 @@ def test_every_pushed_sample_is_recorded(tmp_path, color_codec, depth_codec, com
     """Every combination at the D455 default profile; the default one for 10 s of sensor time (300
     frame pairs, 2000 gyro, 1000 accel samples), the others, which also record raw depth, for 1 s
     (what a codec does to a frame it does to the 30th as to the 300th)."""
-    default = (color_codec, depth_codec, compression) == (BASE.color_codec, BASE.depth_codec, BASE.compression)
+    default = (color_codec, depth_codec, compression) == (SOFTWARE.color_codec, SOFTWARE.depth_codec, SOFTWARE.compression)
     frames = 300 if default else 30
-    cfg = dataclasses.replace(BASE, color_codec=color_codec, depth_codec=depth_codec, compression=compression,
+    cfg = dataclasses.replace(SOFTWARE, color_codec=color_codec, depth_codec=depth_codec, compression=compression,
                               raw_depth=not default)
-    backend, res = _run(tmp_path, cfg, frames=frames)
+    backend, res = record_software(tmp_path, cfg, frames=frames)
     assert res.stop_reason == "end of stream" and res.dropped == 0
     assert res.streams["color"].frames == frames == len([p for p in backend.pushed if p.stream == "color"])
-    seconds = frames / BASE.color.fps
+    seconds = frames / SOFTWARE.color.fps
     assert (res.last_stamp_ns - res.first_stamp_ns) >= (seconds - 0.1) * 1e9
     gyro_hz, accel_hz = 200, 100
     assert res.streams["gyro"].frames >= (seconds - 0.05) * gyro_hz
@@ -151,23 +143,23 @@ def test_every_pushed_sample_is_recorded(tmp_path, color_codec, depth_codec, com
 
 
 def test_same_input_same_payloads(tmp_path):
-    cfg = dataclasses.replace(BASE, raw_depth=True)
+    cfg = dataclasses.replace(SOFTWARE, raw_depth=True)
     runs = []
     for name in ("a.mcap", "b.mcap"):
-        _, res = _run(tmp_path, cfg, frames=12, name=name)
+        _, res = record_software(tmp_path, cfg, frames=12, name=name)
         runs.append([(m.topic, m.log_time_ns, m.data) for m in read_messages(res.paths[0])])
     assert runs[0] == runs[1]
 
 
 def test_duration_is_sensor_time(tmp_path):
-    _, res = _run(tmp_path, frames=0, duration_s=0.5)
+    _, res = record_software(tmp_path, frames=0, duration_s=0.5)
     assert res.stop_reason == "duration reached"
     assert res.streams["color"].frames == 15 and res.streams["gyro"].frames == 100
 
 
 def test_split_by_duration_and_size(tmp_path):
-    cfg = dataclasses.replace(BASE, split_duration_s=0.5)
-    _, res = _run(tmp_path, cfg, frames=40)
+    cfg = dataclasses.replace(SOFTWARE, split_duration_s=0.5)
+    _, res = record_software(tmp_path, cfg, frames=40)
     assert [p.name for p in res.paths] == ["rec_0000.mcap", "rec_0001.mcap", "rec_0002.mcap"]
     stamps = []
     for p in res.paths:
@@ -176,15 +168,15 @@ def test_split_by_duration_and_size(tmp_path):
         assert s.topics[T.TF_STATIC.name].count == 1
         stamps += [m.log_time_ns for m in read_messages(p, [T.COLOR_JPEG.name])]
     assert len(stamps) == 40 and stamps == sorted(stamps)
-    cfg = dataclasses.replace(BASE, split_size_mb=4.0, chunk_size_mb=1.0)
-    _, res = _run(tmp_path, cfg, frames=30, name="s.mcap")
+    cfg = dataclasses.replace(SOFTWARE, split_size_mb=4.0, chunk_size_mb=1.0)
+    _, res = record_software(tmp_path, cfg, frames=30, name="s.mcap")
     assert len(res.paths) >= 3
     assert sum(summarize(p).topics[T.COLOR_JPEG.name].count for p in res.paths) == 30
 
 
 def test_writer_behind_drops_are_counted_not_silent(tmp_path, monkeypatch):
     """A real-time source and a stalled writer: what the queue cannot hold is counted per stream."""
-    from octolog.recorder.record import Recorder
+    from octolog.recorder.writer import Recorder
 
     gate = threading.Event()
     real_encode = Recorder._encode
@@ -206,7 +198,7 @@ def test_writer_behind_drops_are_counted_not_silent(tmp_path, monkeypatch):
         return out
 
     backend.wait = wait  # type: ignore[method-assign]
-    cfg = dataclasses.replace(BASE, queue_frames=3, encode_threads=1)
+    cfg = dataclasses.replace(SOFTWARE, queue_frames=3, encode_threads=1)
     res = node.run(cfg, tmp_path / "d.mcap", backend=backend)
     st = res.streams["color"]
     assert st.queue_drops > 0 and st.frames + st.queue_drops == 40
@@ -221,7 +213,7 @@ def test_device_frame_gaps_are_counted(tmp_path):
     b = SoftwareDeviceBackend(frames=1)
     device = b.open(CaptureProfile())
     b.close()
-    rec = make_recorder(BASE, output_paths(tmp_path / "g.mcap", split=False, overwrite=False), device)
+    rec = make_recorder(SOFTWARE, output_paths(tmp_path / "g.mcap", split=False, overwrite=False), device)
     for fn in (0, 1, 4, 5, 9):
         rec.submit(Capture(seen=[("color", fn), ("depth", fn)]))
     rec.close("test")
@@ -330,10 +322,10 @@ class _FullDisk:
 def test_disk_full_stops_cleanly(tmp_path, monkeypatch, stays_full):
     full = _FullDisk(12_000_000, stays_full=stays_full)
     monkeypatch.setattr(recordfile, "write_all", full)
-    cfg = dataclasses.replace(BASE, chunk_size_mb=1.0)
+    cfg = dataclasses.replace(SOFTWARE, chunk_size_mb=1.0)
     out = tmp_path / "full.mcap"
     with pytest.raises(RecorderError) as info:
-        _run(tmp_path, cfg, frames=0, name=out.name)
+        record_software(tmp_path, cfg, frames=0, name=out.name)
     msg = str(info.value)
     assert "\n" not in msg and msg.startswith("disk full")
     monkeypatch.undo()
@@ -366,13 +358,13 @@ def tiny_disk(tmp_path):
 def test_real_full_disk(tiny_disk):
     """A 24 MB tmpfs: with the free-space reserve off, ENOSPC itself; with it, a stop before."""
     with pytest.raises(RecorderError, match="^disk full") as info:
-        _run(tiny_disk, dataclasses.replace(BASE, min_free_mb=0.0, chunk_size_mb=1.0), frames=0, name="a.mcap")
+        record_software(tiny_disk, dataclasses.replace(SOFTWARE, min_free_mb=0.0, chunk_size_mb=1.0), frames=0, name="a.mcap")
     assert "is finished" in str(info.value)
     s = summarize(tiny_disk / "a.mcap")
     assert s.complete and s.topics[T.COLOR_JPEG.name].count > 3
     (tiny_disk / "a.mcap").unlink()
     with pytest.raises(RecorderError, match="^disk nearly full"):
-        _run(tiny_disk, dataclasses.replace(BASE, min_free_mb=12.0, chunk_size_mb=1.0), frames=0, name="b.mcap")
+        record_software(tiny_disk, dataclasses.replace(SOFTWARE, min_free_mb=12.0, chunk_size_mb=1.0), frames=0, name="b.mcap")
     s = summarize(tiny_disk / "b.mcap")
     assert s.complete and s.metadata["recording"]["stop_reason"].startswith("disk nearly full")
 
@@ -404,10 +396,10 @@ def test_no_camera_cli(tmp_path):
 
 
 def test_unplugged_mid_recording(tmp_path):
-    cfg = dataclasses.replace(BASE, software=SoftwareConfig(unplug_after=20))
+    cfg = dataclasses.replace(SOFTWARE, software=SoftwareConfig(unplug_after=20))
     out = tmp_path / "rec.mcap"
     with pytest.raises(RecorderError, match="disconnected") as info:
-        _run(tmp_path, cfg, frames=0)
+        record_software(tmp_path, cfg, frames=0)
     assert "\n" not in str(info.value) and "after 20 frames" in str(info.value)
     s = summarize(out)
     assert s.complete and s.topics[T.COLOR_JPEG.name].count == 20
@@ -415,16 +407,16 @@ def test_unplugged_mid_recording(tmp_path):
 
 
 @pytest.mark.parametrize("change,expect", [
-    ({"color": dataclasses.replace(BASE.color, width=1920, height=1080)},
+    ({"color": dataclasses.replace(SOFTWARE.color, width=1920, height=1080)},
      r"colour 1920x1080@30 is not supported .*supported \(rgb8\): 1280x800@5/15/30, 1280x720@5/15/30"),
-    ({"depth": dataclasses.replace(BASE.depth, fps=45)}, r"depth 848x480@45 is not supported .*848x480@5/15/30/60/90"),
+    ({"depth": dataclasses.replace(SOFTWARE.depth, fps=45)}, r"depth 848x480@45 is not supported .*848x480@5/15/30/60/90"),
     ({"gyro_fps": 300}, r"gyro at 300 Hz is not supported .*200/400 Hz"),
     ({"accel_fps": 63}, r"accel at 63 Hz is not supported .*100/200 Hz"),
     ({"depth_units_m": 0.5}, r"depth_units_m=0.5: outside the device's range"),
 ])
 def test_unsupported_profile_lists_what_is(tmp_path, change, expect):
     with pytest.raises(RecorderError, match=expect) as info:
-        _run(tmp_path, dataclasses.replace(BASE, **change), frames=3)
+        record_software(tmp_path, dataclasses.replace(SOFTWARE, **change), frames=3)
     assert "\n" not in str(info.value)
     assert not (tmp_path / "rec.mcap").exists()
 
@@ -432,22 +424,22 @@ def test_unsupported_profile_lists_what_is(tmp_path, change, expect):
 def test_existing_output_needs_overwrite(tmp_path):
     (tmp_path / "rec.mcap").write_bytes(b"precious")
     with pytest.raises(RecorderError, match="exists; pass --overwrite"):
-        _run(tmp_path, frames=3)
+        record_software(tmp_path, frames=3)
     assert (tmp_path / "rec.mcap").read_bytes() == b"precious"
-    _, res = _run(tmp_path, frames=3, overwrite=True)
+    _, res = record_software(tmp_path, frames=3, overwrite=True)
     assert summarize(res.paths[0]).complete
 
 
 def test_options_and_config_errors(tmp_path):
-    cfg = dataclasses.replace(BASE, depth_units_m=0.0001, visual_preset="high_accuracy", emitter="off",
+    cfg = dataclasses.replace(SOFTWARE, depth_units_m=0.0001, visual_preset="high_accuracy", emitter="off",
                               color_auto_exposure="off", color_exposure=300.0)
-    _, res = _run(tmp_path, cfg, frames=3)
+    _, res = record_software(tmp_path, cfg, frames=3)
     s = summarize(res.paths[0])
     assert s.metadata["calibration"]["depth_scale_m"] == "0.0001"
     opts = json.loads(s.metadata["device"]["options"])
     assert opts["emitter"] == 0.0 and opts["visual_preset"] == 3.0 and opts["color_exposure"] == 300.0
     with pytest.raises(ConfigError, match="recorder.visual_preset 'shiny'"):
-        dataclasses.replace(BASE, visual_preset="shiny").validate()
+        dataclasses.replace(SOFTWARE, visual_preset="shiny").validate()
     import argparse
 
     from octolog.shell.record import add_parsers, overrides
@@ -479,9 +471,9 @@ def test_publishes_live_while_recording(tmp_path, wire_depth):
     rgbd = T.RGBD_COMPRESSED
     with Bus(sub_cfg, "tracker", inbox_size=64) as sub:
         sub.start([T.RGBD, rgbd, T.RGBD_END, T.COLOR_JPEG, T.GYRO])
-        cfg = dataclasses.replace(BASE, wait_for=("tracker",), wait_timeout_s=30.0, wire_depth=wire_depth)
+        cfg = dataclasses.replace(SOFTWARE, wait_for=("tracker",), wait_timeout_s=30.0, wire_depth=wire_depth)
         result: dict = {}
-        t = threading.Thread(target=lambda: result.update(res=_run(tmp_path, cfg, frames=20, bus_cfg=pub_cfg)[1]))
+        t = threading.Thread(target=lambda: result.update(res=record_software(tmp_path, cfg, frames=20, bus_cfg=pub_cfg)[1]))
         t.start()
         while T.RGBD_END.name not in got:
             r = sub.receive(30.0)
@@ -509,7 +501,7 @@ def test_publishes_live_while_recording(tmp_path, wire_depth):
 
 
 def test_rerun_logs_what_is_recorded(tmp_path):
-    _, res = _run(tmp_path, frames=5, rerun=f"save:{tmp_path / 'rr'}", recording_id="test")
+    _, res = record_software(tmp_path, frames=5, rerun=f"save:{tmp_path / 'rr'}", recording_id="test")
     rrd = tmp_path / "rr" / "recorder.rrd"
     assert rrd.exists() and rrd.stat().st_size > 100_000
     assert summarize(res.paths[0]).complete
@@ -525,8 +517,8 @@ def test_recordings_open_in_rosbags_and_rerun(tmp_path, depth_codec):
 
     from rosbags.highlevel import AnyReader
 
-    cfg = dataclasses.replace(BASE, depth_codec=depth_codec)
-    _run(tmp_path, cfg, frames=5)
+    cfg = dataclasses.replace(SOFTWARE, depth_codec=depth_codec)
+    record_software(tmp_path, cfg, frames=5)
     path = tmp_path / "rec.mcap"
     with AnyReader([path]) as reader:
         counts = {c.topic: c.msgcount for c in reader.connections}

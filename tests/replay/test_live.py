@@ -12,12 +12,12 @@ import tomllib
 import numpy as np
 import pytest
 from helpers import free_port, octolog
-from test_recorder import BASE, _run
+from helpers.recordings import SOFTWARE, record_software
 
 from octolog.kit import metrics
-from octolog.kit.gravity import level_on_plane
+from octolog.kit.up_vector import level_on_plane
 from octolog.kit.mcaplog import summarize
-from octolog.replay.gravity import recorded_up
+from octolog.replay.source_gravity import recorded_up
 from octolog.replay.sources import open_source
 from octolog.schemas import codec
 from octolog.schemas import topics as T
@@ -93,10 +93,10 @@ def test_publish_window_holds_back_what_the_tracker_has_no_hand_for(tmp_path, la
     end = None
     with Bus(sub_cfg, "tracker", inbox_size=64) as sub:
         sub.start([T.RGBD_COMPRESSED, T.RGBD_END])
-        cfg = dataclasses.replace(BASE, wait_for=("tracker",), wait_timeout_s=30.0, publish_window=1,
+        cfg = dataclasses.replace(SOFTWARE, wait_for=("tracker",), wait_timeout_s=30.0, publish_window=1,
                                   publish_lag_ms=lag_ms)
         result: dict = {}
-        t = threading.Thread(target=lambda: result.update(res=_run(tmp_path, cfg, frames=20, bus_cfg=pub_cfg)[1]))
+        t = threading.Thread(target=lambda: result.update(res=record_software(tmp_path, cfg, frames=20, bus_cfg=pub_cfg)[1]))
         t.start()
         while end is None:
             r = sub.receive(30.0)

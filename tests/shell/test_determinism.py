@@ -63,8 +63,16 @@ GOLDEN: dict[str, dict[str, str]] = {
 # machine's restricted runs gave its own unrestricted bytes and first300's outputs agreed on both: a
 # vendor difference in the synthetic room's path, kernel not found yet (docs/architecture.md). Each
 # vendor's bytes are held here once stored on that vendor's machine; a vendor not listed is held to
-# GOLDEN. (The Intel bytes of the current tracker and mapper are not stored yet: no Intel machine.)
-BY_VENDOR: dict[str, dict[str, dict[str, str]]] = {}
+# GOLDEN. The Intel bytes were stored on an Intel Xeon (2 cores) from the same tracker and mapper.
+BY_VENDOR: dict[str, dict[str, dict[str, str]]] = {  # source -> vendor -> file -> sha256
+    "synthetic:40": {
+        "GenuineIntel": {
+            "trajectory.txt": "746c9ecb374d82d24ebb46293b4f489917b1942401c284189b3fb30a219966da",
+            "map.bt": "6b6c865bd02be8cc8839437fd0cc346930adc50c7b81297fdc3f85023b1e917d",
+            "cloud.ply": "c4d399a03adef47b35fc661eed086c578269c950cb2b3954db6aa743c0eee297",
+        },
+    },
+}
 
 
 def _vendor() -> str:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 from helpers import octolog
-from test_tum import make_tum
+from helpers.recordings import make_tum
 
 
 def _last_line(err: str) -> str:

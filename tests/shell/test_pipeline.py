@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from helpers import ROOT, octolog, rerun_cli, tum_first300
-from test_tum import make_tum
+from helpers.recordings import make_tum
 
 from octolog.schemas import codec, posemsgs
 
@@ -282,7 +282,7 @@ def test_tum_first300_map_frame_is_gravity_aligned(tum_run) -> None:
     import tomllib
 
     from scipy.spatial.transform import Rotation
-    from test_gravity import _deg, _z_tilt
+    from helpers.maps import angle_deg, z_tilt
 
     from octolog.kit import metrics
     from octolog.mapper.grid import map_from_world_for_up
@@ -295,10 +295,10 @@ def test_tum_first300_map_frame_is_gravity_aligned(tum_run) -> None:
     est = metrics.read_tum(out / "trajectory.txt")
     first = int(np.argmin(np.abs(gt.stamps_ns - est.stamps_ns[0])))
     R0 = Rotation.from_quat(gt.quats_xyzw[first]).as_matrix()
-    assert _deg(up, R0.T @ np.array([0.0, 0.0, 1.0])) < 5.0
+    assert angle_deg(up, R0.T @ np.array([0.0, 0.0, 1.0])) < 5.0
 
-    assert _z_tilt(out, map_from_world_for_up(up)) <= 2.0
-    assert _z_tilt(out, np.eye(4)) > 90.0  # the optical frame: y down, not up
+    assert z_tilt(out, map_from_world_for_up(up)) <= 2.0
+    assert z_tilt(out, np.eye(4)) > 90.0  # the optical frame: y down, not up
 
 
 @pytest.mark.slow

@@ -222,7 +222,7 @@ def test_a_tum_folders_imu_is_placed_and_clocked_by_its_calibration(tmp_path):
     offset and noise: the replay publishes the samples on the camera's clock in the IMU's frame,
     the transform in the camera's tree and the noise in the camera's properties; the tracker's
     side finds the same transform in that tree."""
-    from test_tum import make_tum
+    from helpers.recordings import make_tum
 
     from octolog.kit.tftree import StaticTree
     from octolog.replay.imu import IMU_FRAME, source_imu, source_imu_noise

@@ -1,5 +1,5 @@
 """Up from an accelerometer: the arithmetic shared by the replay's sources (files) and the mapper
-(a live camera's IMU on the bus). See octolog.replay.gravity for where the samples come from.
+(a live camera's IMU on the bus). See octolog.replay.source_gravity for where the samples come from.
 
 At rest an accelerometer measures the reaction to gravity, +9.81 m/s² pointing up. The samples
 within WINDOW_S of the first frame are averaged and rotated into the colour camera's optical frame.

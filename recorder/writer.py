@@ -1,6 +1,6 @@
 """The recording core: a bounded queue from the capture thread to a writer thread, encoding,
 MCAP files (split by size or sensor time), drop accounting, handing frames to the live sinks
-(recorder/livesink.py) and the status (recorder/recording.py).
+(recorder/livesink.py) and the status (recorder/recording_types.py).
 
 Nothing is dropped silently. Per stream it counts frame-number gaps at the device, frames the
 writer could not keep up with (the queue was full), aligned depth that had no colour partner,
@@ -31,7 +31,7 @@ from octolog.kit.geometry import Intrinsics
 from octolog.kit.mcaplog import McapWriter
 from octolog.recorder.capture import Capture, DeviceDescription, blank_capture
 from octolog.recorder.livesink import LiveSink
-from octolog.recorder.recording import (
+from octolog.recorder.recording_types import (
     JPEG_FORMAT,
     PNG_FORMAT,
     STREAMS,

@@ -15,7 +15,7 @@ first frame are averaged and rotated into the colour camera's optical frame.
 
 A consumer accelerometer's bias is worth degrees (TUM's Kinect: 0.7 m/s², about 4 degrees, over
 the whole of fr1/xyz against the ground truth). So when frame 0 shows a large plane within 5 degrees
-of the accelerometer's up (a floor, a table), its normal is taken instead (`octolog.kit.gravity.level_on_plane`).
+of the accelerometer's up (a floor, a table), its normal is taken instead (`octolog.kit.up_vector.level_on_plane`).
 
 A source without an accelerometer gives None. The run then keeps the old assumption (a camera held
 level at the start, up = -y) and says so in `summary.json` and the status output.
@@ -32,7 +32,7 @@ import numpy as np
 
 from octolog.kit.errors import InputError
 from octolog.kit.geometry import RgbdFrame
-from octolog.kit.gravity import WINDOW_S, G, level_on_plane, rotation_between, up_from_samples
+from octolog.kit.up_vector import WINDOW_S, G, level_on_plane, rotation_between, up_from_samples
 from octolog.kit.mcaplog import read_messages
 from octolog.schemas import codec, posemsgs
 from octolog.schemas.topics import ACCEL, TF_STATIC
