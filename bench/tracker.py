@@ -65,7 +65,7 @@ def worker(backend: str, source: str, sets: list[str], vocabulary: str, result_p
     src = open_case(source, sets)
     frames = src.frames()
     first = next(frames)
-    cfg = for_source(TrackerConfig(backend=backend, vocabulary=vocabulary), src)
+    cfg = for_source(TrackerConfig(engine=backend, vocabulary=vocabulary), src)
     odom = make_odometry(cfg)
     rss_before = _vm("VmRSS")
     t0 = time.perf_counter()

@@ -67,6 +67,10 @@ def from_dict(cls: type[T], data: dict[str, Any], *, prefix: str = "") -> T:
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     unknown = sorted(set(data) - set(fields))
+    renamed = getattr(cls, "RENAMED", {})  # old key -> its name now: say so instead of "unknown"
+    for key in unknown:
+        if key in renamed:
+            raise ConfigError(f"config key {prefix}{key!r} is now {prefix}{renamed[key]!r}")
     if unknown:
         raise ConfigError(f"unknown config key {prefix}{unknown[0]!r} (known: {', '.join(sorted(fields))})")
     kwargs = {name: _coerce(value, hints[name], prefix + name) for name, value in data.items()}

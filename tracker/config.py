@@ -12,13 +12,14 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field, replace
+from typing import ClassVar
 
 from octolog.kit.depthmodel import DepthModel
 from octolog.kit.errors import ConfigError
 from octolog.schemas.wirecompression import parse_wire_compression
 
 MODES = ("map", "localize")
-BACKENDS = ("native", "orbslam3")
+ENGINES = ("native", "orbslam3")
 
 
 @dataclass(frozen=True)
@@ -164,6 +165,8 @@ class OdometryParams:
 
 @dataclass(frozen=True)
 class TrackerConfig:
+    RENAMED: ClassVar[dict[str, str]] = {"backend": "engine"}  # keys of older configs, and their names now
+
     n_features: int = 1000
     # live: when frames queue up, track the newest and skip the older ones (each skip is published
     # as a SKIPPED status, so the session log says exactly which frames were consumed)
@@ -193,8 +196,9 @@ class TrackerConfig:
     # COLOUR[,DEPTH] with COLOUR jpeg[:QUALITY] or png[:LEVEL], DEPTH png or zstd: re-encoded (see
     # replay.wire_compression)
     wire_compression: str = "source"
-    # "native" (ours, deterministic) or "orbslam3" (pyorbslam3, an extra: for comparison)
-    backend: str = "native"
+    # the SLAM engine: "native" (ours, deterministic) or "orbslam3" (pyorbslam3, an extra: for
+    # comparison). "Back end" in the other keys is the native engine's bundle adjustment and loop closing
+    engine: str = "native"
     # native back end: local bundle adjustment over the newest `ba_window` keyframes, loop closing
     # (place recognition + pose graph), relocalisation after tracking loss. `background` runs the
     # back end in a worker process; results are applied at the next keyframe either way, so the
@@ -248,7 +252,7 @@ class TrackerConfig:
 
     def validate(self) -> None:
         """The one check of every tracker setting; ConfigError names the key."""
-        _want(self.backend in BACKENDS, "backend", self.backend, f"want one of {', '.join(BACKENDS)}")
+        _want(self.engine in ENGINES, "engine", self.engine, f"want one of {', '.join(ENGINES)}")
         _want(self.throttle_ms >= 0, "throttle_ms", self.throttle_ms, "want >= 0")
         _want(self.backend_throttle_ms >= 0, "backend_throttle_ms", self.backend_throttle_ms, "want >= 0")
         _want(self.live_backend_defer >= 0, "live_backend_defer", self.live_backend_defer, "want >= 0 (0: wait)")
@@ -261,7 +265,7 @@ class TrackerConfig:
         _want(self.bow_candidates >= 1, "bow_candidates", self.bow_candidates, "want >= 1")
         _want(self.mode in MODES, "mode", self.mode, f"want one of {', '.join(MODES)}")
         _want(self.mode == "map" or bool(self.map), "mode", self.mode, "localize needs a saved map (tracker.map, --map)")
-        _want(not self.map or self.backend == "native", "map", self.map, "a saved map needs backend = native")
+        _want(not self.map or self.engine == "native", "map", self.map, "a saved map needs engine = native")
         _want(self.map_find_frames >= 1, "map_find_frames", self.map_find_frames, "want >= 1")
         _want(0.0 <= self.max_inertial_s <= 10.0, "max_inertial_s", self.max_inertial_s, "want 0 to 10 s")
         if self.rolling_shutter_ms is not None:

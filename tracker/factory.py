@@ -18,8 +18,8 @@ from octolog.tracker.worker import Worker
 
 
 def make_odometry(cfg: TrackerConfig) -> Tracker:
-    """The tracker `cfg.backend` names, set up from `cfg` (ConfigError when `cfg` is invalid)."""
-    if cfg.backend == "orbslam3":
+    """The tracker `cfg.engine` names, set up from `cfg` (ConfigError when `cfg` is invalid)."""
+    if cfg.engine == "orbslam3":
         cfg.validate()
         return OrbSlam3Odometry(cfg.vocabulary, n_features=cfg.n_features)
     # native: with a vocabulary, loop and relocalisation candidates come from a bag-of-words index

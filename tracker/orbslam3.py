@@ -57,7 +57,7 @@ def import_pyorbslam3():
     try:
         import pyorbslam3  # optional (the `orbslam3` extra, GPL-3.0): imported only when this backend is chosen
     except ImportError as exc:
-        raise ConfigError(f"tracker.backend orbslam3 needs the pyorbslam3 package (pip install 'octolog[orbslam3]'; "
+        raise ConfigError(f"tracker.engine orbslam3 needs the pyorbslam3 package (pip install 'octolog[orbslam3]'; "
                           f"import failed: {exc})") from None
     return pyorbslam3
 
@@ -72,7 +72,7 @@ def resolve_vocabulary(path: str = "") -> Path:
         try:
             path, source = import_pyorbslam3().vocabulary_path(download=False), "the pyorbslam3 cache"
         except FileNotFoundError:
-            raise ConfigError(f"tracker.backend orbslam3 needs an ORB vocabulary: set tracker.vocabulary or "
+            raise ConfigError(f"tracker.engine orbslam3 needs an ORB vocabulary: set tracker.vocabulary or "
                               f"${VOCABULARY_ENV} (build one with `octolog vocab build IMAGE_DIR --out FILE`)"
                               ) from None
     p = Path(path).expanduser()

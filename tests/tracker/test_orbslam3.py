@@ -58,7 +58,7 @@ def trajectory(results) -> metrics.Trajectory:
 @needs_orbslam3
 def test_tracks_the_synthetic_room(scene, synthetic_vocabulary):
     sc, frames = scene
-    odom = make_odometry(TrackerConfig(backend="orbslam3", vocabulary=str(synthetic_vocabulary)))
+    odom = make_odometry(TrackerConfig(engine="orbslam3", vocabulary=str(synthetic_vocabulary)))
     assert isinstance(odom, OrbSlam3Odometry) and isinstance(odom, Tracker)
     with odom:
         results = [odom.track(f) for f in frames]
@@ -96,7 +96,7 @@ def test_tracks_tum_first100_with_a_vocabulary_built_from_its_images(tmp_path):
                   "--levels", "4", "--quiet").stdout
     assert "30 images" in out
     src = open_source(f"tum:{folder}")
-    with make_odometry(TrackerConfig(backend="orbslam3", vocabulary=str(voc))) as odom:
+    with make_odometry(TrackerConfig(engine="orbslam3", vocabulary=str(voc))) as odom:
         results = [odom.track(f) for f in src.frames(0, 100)]
     ok = [r for r in results if r.state == TrackingState.OK]
     assert len(ok) >= 90
@@ -108,7 +108,7 @@ def test_tracks_tum_first100_with_a_vocabulary_built_from_its_images(tmp_path):
 @needs_orbslam3
 def test_inconsistent_frames_are_tracking_errors(scene, synthetic_vocabulary):
     _, frames = scene
-    with make_odometry(TrackerConfig(backend="orbslam3", vocabulary=str(synthetic_vocabulary))) as odom:
+    with make_odometry(TrackerConfig(engine="orbslam3", vocabulary=str(synthetic_vocabulary))) as odom:
         with pytest.raises(TrackingError, match="640x480"):
             odom.track(dataclasses.replace(frames[0], depth=frames[0].depth[:100]))
         assert odom.track(frames[0]).state == TrackingState.OK
@@ -122,7 +122,7 @@ def test_inconsistent_frames_are_tracking_errors(scene, synthetic_vocabulary):
 def test_the_pipeline_runs_the_orbslam3_backend(synthetic_vocabulary, tmp_path):
     out = tmp_path / "session"
     octolog("run", "--source", f"synthetic:{N_FRAMES}", "--out", str(out), "--quiet", "--rerun", "off",
-            "--set", "tracker.backend=orbslam3", "--set", f"tracker.vocabulary={synthetic_vocabulary}")
+            "--set", "tracker.engine=orbslam3", "--set", f"tracker.vocabulary={synthetic_vocabulary}")
     summary = json.loads((out / "summary.json").read_text())
     assert summary["tracked_frames"] >= 0.9 * N_FRAMES
     assert summary["ate"]["rmse_m"] < 0.02
@@ -137,17 +137,17 @@ def test_missing_or_bad_vocabulary_is_a_config_error(tmp_path, monkeypatch):
     monkeypatch.delenv("PYORBSLAM3_VOCAB", raising=False)
     monkeypatch.setenv("PYORBSLAM3_CACHE", str(tmp_path / "empty-cache"))  # no cached ORBvoc.txt either
     with pytest.raises(ConfigError, match="OCTOLOG_ORB_VOCABULARY"):
-        make_odometry(TrackerConfig(backend="orbslam3"))
+        make_odometry(TrackerConfig(engine="orbslam3"))
     with pytest.raises(ConfigError, match="nope.txt.*no such file"):
-        make_odometry(TrackerConfig(backend="orbslam3", vocabulary=str(tmp_path / "nope.txt")))
+        make_odometry(TrackerConfig(engine="orbslam3", vocabulary=str(tmp_path / "nope.txt")))
     monkeypatch.setenv("OCTOLOG_ORB_VOCABULARY", str(tmp_path / "env.txt"))
     with pytest.raises(ConfigError, match=r"env.txt \(from \$OCTOLOG_ORB_VOCABULARY\)"):
-        make_odometry(TrackerConfig(backend="orbslam3"))
+        make_odometry(TrackerConfig(engine="orbslam3"))
     # ORB-SLAM3 exits the whole process on a file it cannot parse: we refuse it first
     (tmp_path / "env.txt").write_text("<html>not a vocabulary</html>\n")
     with pytest.raises(ConfigError, match="not a DBoW2 text vocabulary"):
-        make_odometry(TrackerConfig(backend="orbslam3"))
-    proc = octolog("track", "--set", "backend=orbslam3", "--set", f"vocabulary={tmp_path / 'nope.txt'}",
+        make_odometry(TrackerConfig(engine="orbslam3"))
+    proc = octolog("track", "--set", "engine=orbslam3", "--set", f"vocabulary={tmp_path / 'nope.txt'}",
                    "--no-multicast", check=False, timeout=60)
     assert proc.returncode == 1
     assert proc.stderr.strip().splitlines() == [
@@ -158,13 +158,15 @@ def test_missing_or_bad_vocabulary_is_a_config_error(tmp_path, monkeypatch):
 def test_missing_pyorbslam3_is_a_config_error(monkeypatch, tmp_path):
     monkeypatch.setitem(sys.modules, "pyorbslam3", None)  # what an absent package looks like to import
     with pytest.raises(ConfigError, match="pyorbslam3"):
-        make_odometry(TrackerConfig(backend="orbslam3", vocabulary=str(tmp_path / "v.txt")))
+        make_odometry(TrackerConfig(engine="orbslam3", vocabulary=str(tmp_path / "v.txt")))
 
 
-def test_backend_is_validated():
-    with pytest.raises(ConfigError, match="tracker.backend 'orb'"):
-        load(TrackerConfig, None, ["backend=orb"], section="tracker")
-    assert load(TrackerConfig, None, ["backend=orbslam3", "vocabulary=/x"], section="tracker").backend == "orbslam3"
+def test_engine_is_validated_and_its_old_name_is_pointed_to():
+    with pytest.raises(ConfigError, match="tracker.engine 'orb'"):
+        load(TrackerConfig, None, ["engine=orb"], section="tracker")
+    with pytest.raises(ConfigError, match="'backend' is now tracker.'engine'|backend.*is now.*engine"):
+        load(TrackerConfig, None, ["backend=orbslam3"], section="tracker")
+    assert load(TrackerConfig, None, ["engine=orbslam3", "vocabulary=/x"], section="tracker").engine == "orbslam3"
 
 
 def test_settings_come_from_the_intrinsics():
