@@ -59,6 +59,14 @@ def _first_keyframe(params: OdometryParams, frame: RgbdFrame) -> tuple[FrontEnd,
     return front, local, feats
 
 
+def _tracker_over_first_keyframe(params: OdometryParams, frame: RgbdFrame) -> tuple[FrontEnd, LocalMap, MapTracker]:
+    """A pose fit over a map of `frame` alone, the camera last seen at the origin."""
+    front, local, _ = _first_keyframe(params, frame)
+    motion = MotionModel()
+    motion.remember(frame.stamp_ns, np.eye(4))
+    return front, local, MapTracker(params, front, local, motion)
+
+
 # -- the motion model ----------------------------------------------------------------------------
 
 
@@ -151,10 +159,7 @@ def test_local_map_inserts_points_and_asks_for_keyframes_by_motion(params, frame
 
 
 def test_map_tracker_finds_a_pose_from_a_wrong_prediction(params, frames) -> None:
-    front, local, _ = _first_keyframe(params, frames[0])
-    motion = MotionModel()
-    motion.remember(frames[0].stamp_ns, np.eye(4))
-    tracker = MapTracker(params, front, local, motion)
+    front, local, tracker = _tracker_over_first_keyframe(params, frames[0])
     feats = front.features(frames[0], front.extract(frames[0], None, map_made=True), 0.0)
     tracked = tracker.track(feats, _moved(x=0.03, yaw_deg=1.0), frames[0].stamp_ns)  # 3 cm, 1 deg off
     assert tracked is not None and tracked.n_inliers > 300
@@ -169,10 +174,7 @@ def test_map_tracker_finds_a_pose_from_a_wrong_prediction(params, frames) -> Non
 
 
 def test_backend_handoff_runs_a_job_and_applies_it_once(params, frames) -> None:
-    front, local, _ = _first_keyframe(params, frames[0])
-    motion = MotionModel()
-    motion.remember(frames[0].stamp_ns, np.eye(4))
-    tracker = MapTracker(params, front, local, motion)
+    front, local, tracker = _tracker_over_first_keyframe(params, frames[0])
     feats = front.features(frames[4], front.extract(frames[4], None, map_made=True), 0.0)
     tracked = tracker.track(feats, np.eye(4), frames[4].stamp_ns)
     assert tracked is not None
