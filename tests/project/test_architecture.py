@@ -630,3 +630,32 @@ def test_long_modules_and_functions_say_why():
                                 f"does two, split it where they part")
         problems += [f"{src.rel}:{n}: [long] a {LONG!r} comment on nothing that long: remove it" for n in stale]
     _fail(problems, "long modules or functions without a reason")
+
+
+# -- composition, not mixins -------------------------------------------------------------------------
+
+
+def mixin_classes(module: ast.Module, first_party_classes: set[str]) -> list[tuple[int, str]]:
+    """(line, name) of each class built from two or more first-party classes: state shared through
+    `self` across classes; compose parts that own their state instead (docs/architecture.md)."""
+    out = []
+    for node in ast.walk(module):
+        if isinstance(node, ast.ClassDef):
+            bases = [b.id if isinstance(b, ast.Name) else b.attr if isinstance(b, ast.Attribute) else None
+                     for b in node.bases]
+            if sum(b in first_party_classes for b in bases) >= 2:
+                out.append((node.lineno, node.name))
+    return out
+
+
+def test_mixin_finder():
+    module = ast.parse("class A: pass\nclass B: pass\nclass C(A, B): pass\nclass D(A, Exception): pass\n")
+    assert mixin_classes(module, {"A", "B", "C", "D"}) == [(3, "C")]
+
+
+def test_no_class_is_built_from_first_party_mixins():
+    sources = package_sources()
+    classes = {n.name for s in sources.values() for n in ast.walk(parse(s.path)) if isinstance(n, ast.ClassDef)}
+    problems = [f"{s.rel}:{line}: class {name} is built from two or more first-party classes: compose parts instead"
+                for s in sources.values() for line, name in mixin_classes(parse(s.path), classes)]
+    _fail(problems, "mixins")
