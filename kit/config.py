@@ -11,9 +11,12 @@ import tomllib
 import types
 import typing
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from octolog.kit.errors import ConfigError
+
+if TYPE_CHECKING:  # typeshed's protocol of a dataclass instance: no run-time name
+    from _typeshed import DataclassInstance
 
 T = TypeVar("T")
 
@@ -125,16 +128,16 @@ def load(cls: type[T], path: str | Path | None = None, overrides: list[str] | No
     return from_dict(cls, apply_overrides(data, overrides or []))
 
 
-def to_dict(obj: Any) -> dict[str, Any]:
+def to_dict(obj: DataclassInstance) -> dict[str, Any]:
     return dataclasses.asdict(obj)
 
 
-def to_json(obj: Any) -> str:
+def to_json(obj: DataclassInstance) -> str:
     """Canonical JSON of a resolved config (sorted keys), as stored in MCAP metadata."""
     return json.dumps(to_dict(obj), sort_keys=True)
 
 
-def _toml_value(v: Any, key: str) -> str:
+def _toml_value(v: object, key: str) -> str:
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, (int, float)):
@@ -146,12 +149,12 @@ def _toml_value(v: Any, key: str) -> str:
     raise ConfigError(f"config key {key!r}: cannot write {v!r} to TOML")
 
 
-def to_toml(tables: dict[str, dict[str, Any]]) -> str:
+def to_toml(tables: dict[str, dict[str, object]]) -> str:
     """TOML text of resolved configs ({section: to_dict(cfg)}), nested dataclasses as sub-tables;
     `load(cls, path, section=...)` reads it back. None values are left out (they are defaults)."""
     out: list[str] = []
 
-    def table(name: str, items: dict[str, Any]) -> None:
+    def table(name: str, items: dict[str, object]) -> None:
         out.append(f"[{name}]")
         out.extend(f"{k} = {_toml_value(v, f'{name}.{k}')}" for k, v in items.items()
                    if v is not None and not isinstance(v, dict))

@@ -32,7 +32,7 @@ def write_bytes_atomic(path: str | os.PathLike[str], data: bytes) -> None:
         raise MapError(f"cannot write {path}: {e.strerror or e}") from None
 
 
-def write_npz(path: Path, header: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
+def write_npz(path: Path, header: dict[str, object], arrays: dict[str, np.ndarray]) -> None:
     """A NumPy `.npz` with a JSON `header.json` first, entries stored (not deflated) in the given
     order with fixed zip times, so the same content gives the same bytes; written via a temporary
     file and renamed, so a reader never sees half of it."""

@@ -17,7 +17,7 @@ from typing import Any, BinaryIO
 from mcap.data_stream import RecordBuilder
 from mcap.exceptions import McapError as RawMcapError
 from mcap.reader import NonSeekingReader
-from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Message, Metadata, Schema
+from mcap.records import Channel, Chunk, DataEnd, Footer, Header, McapRecord, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 from zstandard import ZstdError
@@ -162,7 +162,7 @@ class McapWriter:
             raise McapError(f"{self.path}: cannot finish after a failed write ({exc.strerror}); "
                             f"`octolog recover {self.path} OUT.mcap` gets back what was written") from None
 
-    def _guard(self, fn: Any) -> None:
+    def _guard(self, fn: Callable[[], object]) -> None:
         try:
             fn()
         except OSError as exc:
@@ -416,7 +416,7 @@ class _SalvageCopy:
             res.complete = False
             res.problem = "no footer (recording did not finish)"
 
-    def take(self, rec: Any) -> None:
+    def take(self, rec: McapRecord) -> None:
         if isinstance(rec, Schema):
             self.schemas[rec.id] = rec
         elif isinstance(rec, Channel):

@@ -10,11 +10,10 @@ part, `world` -> the camera tree's root, composed from its pose of the optical f
 from __future__ import annotations
 
 import threading
-from typing import Any
-
 import numpy as np
 
 from octolog.schemas import posemsgs
+from octolog.schemas.msgtypes import TFMessage
 
 # camera_link (x forward, y left, z up) from an optical frame (x right, y down, z forward): REP 103
 LINK_FROM_OPTICAL = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0, 0, 0, 1.0]])
@@ -29,7 +28,7 @@ class StaticTree:
         self._lock = threading.Lock()
         self._parent: dict[str, tuple[str, np.ndarray]] = {}
 
-    def add(self, msg: Any) -> None:
+    def add(self, msg: TFMessage) -> None:
         for parent, child, T in posemsgs.tf_transforms(msg):
             with self._lock:
                 self._parent[child] = (parent, T)

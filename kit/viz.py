@@ -9,7 +9,9 @@ Entity paths mirror topic names.
 from __future__ import annotations
 
 import shutil
+from collections.abc import Sequence
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -23,9 +25,11 @@ APPLICATION_ID = "octolog"
 
 
 JPEG_QUALITY = 75  # colour in the recordings: for looking at, not for measuring
+Colours = np.ndarray | Sequence[int]  # one RGB(A) for all, or one per item
+Encoded = np.ndarray | bytes | bytearray | memoryview  # an image file's bytes
 
 
-def cv2() -> Any:
+def cv2() -> ModuleType:
     import cv2 as module  # here: only a stage that logs images needs OpenCV's codecs
 
     return module
@@ -45,7 +49,7 @@ def encode_jpeg(rgb: np.ndarray) -> np.ndarray:
         return _encode(cv.cvtColor(rgb, cv.COLOR_RGB2BGR), ".jpg", [cv.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
 
 
-def _blob(data: Any) -> np.ndarray:
+def _blob(data: Encoded) -> np.ndarray:
     return np.frombuffer(data, dtype=np.uint8) if isinstance(data, bytes | bytearray | memoryview) else \
         np.asarray(data, dtype=np.uint8).reshape(-1)
 
@@ -53,7 +57,7 @@ def _blob(data: Any) -> np.ndarray:
 PIPELINE_STAGES = ("replay", "tracker", "mapper")
 
 
-def pipeline_blueprint() -> Any:
+def pipeline_blueprint() -> Any:  # Any: rerun is imported only when used (1.5 s)
     """The viewer's layout for a session: the map in 3D, the camera and the keyframe depth, the grid,
     the tracker's and mapper's timings and the events; fixed, so every launch looks the same."""
     import rerun.blueprint as rrb
@@ -101,7 +105,7 @@ class Viz:
     def __init__(self, spec: str, stage: str, recording_id: str) -> None:
         self.kind, target = parse_spec(spec)
         self.stage = stage
-        self.rec: Any = None
+        self.rec: Any = None  # rerun's RecordingStream when on (Any: rerun is imported only then)
         self.path: Path | None = None
         if self.kind == "off":
             return
@@ -196,7 +200,7 @@ class Viz:
         t, q = matrix_to_pose(world_from_camera)
         self.rec.log(path, self._rr.Transform3D(translation=t, quaternion=q))
 
-    def rgb(self, path: str, image: np.ndarray, jpeg: Any = None) -> None:
+    def rgb(self, path: str, image: np.ndarray, jpeg: Encoded | None = None) -> None:
         """A colour image, logged as JPEG (`jpeg`: the bytes the frame came with, else encoded here):
         a tenth of the raw size in the .rrd, and the viewer decodes it."""
         if self.rec is None:
@@ -206,7 +210,7 @@ class Viz:
         # as a uint8 array: rerun converts `bytes` byte by byte (7 ms a frame), an array in 0.1 ms
         self.rec.log(path, self._rr.EncodedImage(contents=_blob(jpeg), media_type="image/jpeg"))
 
-    def depth(self, path: str, depth: np.ndarray, depth_scale_m: float, png: Any = None) -> None:
+    def depth(self, path: str, depth: np.ndarray, depth_scale_m: float, png: Encoded | None = None) -> None:
         """A 16-bit depth image, logged as lossless PNG (`png`: the bytes it came with, else encoded here)."""
         if self.rec is None:
             return
@@ -220,23 +224,23 @@ class Viz:
             self.rec.log(path, self._rr.Image(image))
 
 
-    def points2d(self, path: str, xy: np.ndarray, colors: Any = None) -> None:
+    def points2d(self, path: str, xy: np.ndarray, colors: Colours | None = None) -> None:
         if self.rec is not None:
             self.rec.log(path, self._rr.Points2D(xy, colors=colors, radii=2.0))
 
-    def points3d(self, path: str, xyz: np.ndarray, colors: Any = None, *, radius: float = 0.005,
+    def points3d(self, path: str, xyz: np.ndarray, colors: Colours | None = None, *, radius: float = 0.005,
                  static: bool = False) -> None:
         if self.rec is not None:
             self.rec.log(path, self._rr.Points3D(xyz, colors=colors, radii=radius), static=static)
 
-    def boxes(self, path: str, centers: np.ndarray, size_m: float, colors: Any = None, *,
+    def boxes(self, path: str, centers: np.ndarray, size_m: float, colors: Colours | None = None, *,
               static: bool = False) -> None:
         if self.rec is not None:
             half = np.full((len(centers), 3), size_m / 2, dtype=np.float32)
             self.rec.log(path, self._rr.Boxes3D(centers=centers, half_sizes=half, colors=colors,
                                                 fill_mode="solid"), static=static)
 
-    def path3d(self, path: str, xyz: np.ndarray, color: Any = None) -> None:
+    def path3d(self, path: str, xyz: np.ndarray, color: Colours | None = None) -> None:
         if self.rec is not None and len(xyz) > 1:
             self.rec.log(path, self._rr.LineStrips3D([xyz], colors=color))
 
@@ -249,7 +253,7 @@ class Viz:
             self.rec.log(path, self._rr.TextLog(text))
 
 
-def _warm_up(rr: Any) -> None:
+def _warm_up(rr: ModuleType) -> None:
     """One of each archetype the stages log, built and dropped: Rerun sets up a type's Arrow
     conversion on its first use (120 ms for these here, holding the GIL), which then happens before
     the stream, not on a live tracker's first frames."""

@@ -14,26 +14,32 @@ from __future__ import annotations
 import json
 import socket
 import ssl
-from typing import Any
+from typing import Any, Protocol
 
 PROBE_S = 3.0
 
 
-def _tls_setting(zc: Any, name: str) -> Any:
+class ZenohConfig(Protocol):
+    """What the probes read of a `zenoh.Config` (only session.py imports zenoh, and it imports this module)."""
+
+    def get_json(self, key: str) -> str: ...
+
+
+def _tls_setting(zc: ZenohConfig, name: str) -> Any:  # Any: a JSON value
     try:
         return json.loads(zc.get_json(f"transport/link/tls/{name}"))
     except Exception:  # a key the config does not have; zenoh raises its own error type
         return None
 
 
-def endpoints(zc: Any) -> list[str]:
+def endpoints(zc: ZenohConfig) -> list[str]:
     try:
         return [str(e) for e in json.loads(zc.get_json("connect/endpoints")) or []]
     except Exception:
         return []
 
 
-def probe(endpoint: str, zc: Any, timeout_s: float = PROBE_S) -> str:
+def probe(endpoint: str, zc: ZenohConfig, timeout_s: float = PROBE_S) -> str:
     """What connecting to `endpoint` runs into, in a few words (empty when nothing is wrong that
     this probe can see)."""
     proto, _, addr = endpoint.partition("/")
@@ -59,7 +65,7 @@ def probe(endpoint: str, zc: Any, timeout_s: float = PROBE_S) -> str:
         return _tls_probe(endpoint, sock, host, zc, timeout_s)
 
 
-def _tls_probe(endpoint: str, sock: socket.socket, host: str, zc: Any, timeout_s: float) -> str:
+def _tls_probe(endpoint: str, sock: socket.socket, host: str, zc: ZenohConfig, timeout_s: float) -> str:
     ca, cert, key = (_tls_setting(zc, k) for k in ("root_ca_certificate", "connect_certificate", "connect_private_key"))
     ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
     ctx.check_hostname = bool(_tls_setting(zc, "verify_name_on_connect") in (None, True))
@@ -92,7 +98,7 @@ def _tls_probe(endpoint: str, sock: socket.socket, host: str, zc: Any, timeout_s
     return ""
 
 
-def diagnosis(zc: Any) -> str:
+def diagnosis(zc: ZenohConfig) -> str:
     """'; '-joined findings for every connect endpoint of a Zenoh config (empty if none found)."""
     found = [p for p in (probe(e, zc) for e in endpoints(zc)) if p]
     return "; ".join(found)

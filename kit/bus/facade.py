@@ -18,7 +18,7 @@ from octolog.kit.bus.inbox import Inbox, Received
 from octolog.kit.bus.membership import Membership
 from octolog.kit.bus.publishing import Publisher, Publishing
 from octolog.kit.bus.screening import Screening
-from octolog.kit.bus.session import Session
+from octolog.kit.bus.session import Query, Session, ZenohSession
 from octolog.kit.busconfig import BusConfig
 from octolog.kit.errors import InputError
 from octolog.schemas import codec
@@ -67,7 +67,7 @@ class Bus:
         self._session.close()
 
     @property
-    def session(self) -> Any:
+    def session(self) -> ZenohSession:
         """The Zenoh session (BusError if the bus is not open)."""
         return self._session.zenoh
 
@@ -141,7 +141,7 @@ class Bus:
         """Answer `get` on this topic's key with `latest()` (CDR bytes), e.g. the current map."""
         key = topic.key(self.namespace)
 
-        def on_query(query: Any) -> None:
+        def on_query(query: Query) -> None:
             data = latest()
             if data is not None:
                 query.reply(key, data)
@@ -152,7 +152,7 @@ class Bus:
         """Take queries on this topic's key into the inbox, in order with the data, to be answered
         by the stage's own loop (e.g. "save the map now")."""
 
-        def on_query(query: Any) -> None:
+        def on_query(query: Query) -> None:
             self._inbox.put_request(Received(topic, b"", query))
 
         self._session.declare_queryable(topic.key(self.namespace), on_query, indirect=False)

@@ -16,6 +16,7 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
+from octolog.kit.bus.session import Query
 from octolog.schemas import codec
 from octolog.schemas.topics import Topic
 
@@ -26,15 +27,16 @@ class Received:
 
     topic: Topic
     payload: bytes
-    query: Any = None  # set for requests taken by `accept`: answer with `reply`
+    query: Query | None = None  # set for requests taken by `accept`: answer with `reply`
     source: bytes = b""  # the publisher's id if it numbers its samples (wire.describe_publisher)
-    msg: Any = None  # the decoded message, once the bus has screened the sample
+    msg: Any = None  # the decoded message, once the bus has screened the sample (its class is the topic's)
 
-    def reply(self, msg: Any, topic: Topic) -> None:
+    def reply(self, msg: object, topic: Topic) -> None:
         """Answer the request this is with `msg`, encoded as `topic`'s type."""
+        assert self.query is not None, "only a request taken by `accept` has someone to answer"
         self.query.reply(self.query.key_expr, codec.encode(msg, topic.msgtype))
 
-    def decode(self) -> Any:
+    def decode(self) -> Any:  # Any: the class of `topic.msgtype`, known at run time
         return self.msg if self.msg is not None else codec.decode(self.payload, self.topic.msgtype)
 
 

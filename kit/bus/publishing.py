@@ -17,11 +17,10 @@ from __future__ import annotations
 import threading
 import uuid
 from collections import deque
-from typing import Any
 
 from octolog.kit.bus import wire
 from octolog.kit.bus.ros2 import LATCHED, Ros2Mirror, Ros2Node, is_ros_type
-from octolog.kit.bus.session import Session
+from octolog.kit.bus.session import Query, Session, ZenohPublisher
 from octolog.kit.busconfig import BusConfig
 from octolog.schemas import codec
 from octolog.schemas.topics import Topic
@@ -76,7 +75,7 @@ class Publisher:
     """A reliable, blocking publisher of one topic; with a history, numbers what it sends and
     keeps it."""
 
-    def __init__(self, pub: Any, topic: Topic, history: History | None = None, source: bytes = b"",
+    def __init__(self, pub: ZenohPublisher, topic: Topic, history: History | None = None, source: bytes = b"",
                  key_crc: int = 0, numbering: Numbering | None = None, ros2: Ros2Mirror | None = None) -> None:
         self._pub = pub
         self._ros2 = ros2  # the same samples on rmw_zenoh's key (`BusConfig.ros2_domain`)
@@ -84,7 +83,7 @@ class Publisher:
         self.count = 0  # samples sent (with history: the seq of the next one)
         self._history, self._source, self._crc, self._numbering = history, source, key_crc, numbering
 
-    def put(self, msg: Any) -> bytes:
+    def put(self, msg: object) -> bytes:
         """Encode `msg` as the topic's type and send it; the CDR bytes sent."""
         data = codec.encode(msg, self.topic.msgtype)
         self.put_raw(data)
@@ -146,7 +145,7 @@ class Publishing:
         hkey = wire.history_key(key, source)
         publisher = Publisher(pub, topic, history, source, wire.key_crc(key), self._numbering, ros2)
 
-        def on_query(query: Any) -> None:
+        def on_query(query: Query) -> None:
             # samples F.. (before U) of this publisher, or F.. if the query names no publisher
             wanted = wire.requested_range(query.parameters, source)
             if wanted is None:

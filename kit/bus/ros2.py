@@ -23,7 +23,7 @@ from __future__ import annotations
 import time
 from functools import cache
 
-from octolog.kit.bus.session import Session, ext_deserialize, ext_serialize
+from octolog.kit.bus.session import LatchedPublisher, Session, ZenohPublisher, ext_deserialize, ext_serialize
 from octolog.schemas import codec
 
 ADMIN_SPACE = "@ros2_lv"
@@ -117,7 +117,7 @@ class Ros2Node:
 class Ros2Mirror:
     """Puts what an octolog publisher sends on the rmw_zenoh key too, numbered as rmw_zenoh numbers."""
 
-    def __init__(self, pub: object, gid: bytes) -> None:
+    def __init__(self, pub: ZenohPublisher | LatchedPublisher, gid: bytes) -> None:
         self._pub, self._gid, self._seq = pub, gid, 0
 
     def put(self, data: bytes) -> None:

@@ -17,7 +17,7 @@ import re
 import threading
 import time
 from collections.abc import Callable, Iterator
-from typing import Any
+from typing import Any, TypeVar
 
 import zenoh
 import zenoh.ext
@@ -31,8 +31,18 @@ _ZENOH_DEFAULT_BLOCK_CLOSE_US = 5_000_000
 CONNECT_TIMEOUT_MS = 30_000
 BLOCK_CLOSE_US = 600_000_000  # a consumer stalled for 10 minutes is dead, not slow
 
+# zenoh's types under names the rest of the bus may use (only this module imports zenoh); also
+# what `Session`'s annotations use, where `zenoh` names its property
+ZenohConfig = zenoh.Config
+ZenohSession = zenoh.Session
+ZenohPublisher = zenoh.Publisher
+LatchedPublisher = zenoh.ext.AdvancedPublisher
+Query = zenoh.Query
+ZenohSample = zenoh.Sample
+_Kept = TypeVar("_Kept")
 
-def zenoh_config(cfg: BusConfig) -> zenoh.Config:
+
+def zenoh_config(cfg: BusConfig) -> ZenohConfig:
     """The Zenoh configuration for `cfg`: its JSON5 file if any, with our flags on top; BusError if
     the file or a value is invalid."""
     try:
@@ -89,8 +99,8 @@ class Session:
 
     def __init__(self, cfg: BusConfig) -> None:
         self.cfg = cfg
-        self._zenoh: zenoh.Session | None = None
-        self._declared: list[Any] = []  # publishers, subscribers, queryables, tokens: kept alive
+        self._zenoh: ZenohSession | None = None
+        self._declared: list[object] = []  # publishers, subscribers, queryables, tokens: kept alive
 
     def open(self) -> None:
         if os.environ.get("RUST_LOG"):  # Zenoh's own log (link open/close, lease expiry) on demand
@@ -108,7 +118,7 @@ class Session:
         return self._zenoh is not None
 
     @property
-    def zenoh(self) -> zenoh.Session:
+    def zenoh(self) -> ZenohSession:
         """The Zenoh session itself."""
         if self._zenoh is None:
             raise BusError("bus is not open")
@@ -127,18 +137,18 @@ class Session:
             finally:
                 self._zenoh = None
 
-    def _keep(self, entity: Any) -> Any:
+    def _keep(self, entity: _Kept) -> _Kept:
         self._declared.append(entity)
         return entity
 
     # --- data -------------------------------------------------------------------------------
 
-    def declare_publisher(self, key: str) -> zenoh.Publisher:
+    def declare_publisher(self, key: str) -> ZenohPublisher:
         """A reliable publisher that blocks when the link is congested (never drops)."""
         return self._keep(self.zenoh.declare_publisher(
             key, congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE))
 
-    def declare_latched_publisher(self, key: str, depth: int = 1) -> Any:
+    def declare_latched_publisher(self, key: str, depth: int = 1) -> LatchedPublisher:
         """A reliable, blocking publisher that keeps its last `depth` samples for subscribers that
         join later and ask for history (zenoh-ext's AdvancedPublisher, as rmw_zenoh declares a
         TRANSIENT_LOCAL publisher), and can be detected by them (liveliness)."""
@@ -150,7 +160,7 @@ class Session:
         """Call `on_sample(payload, attachment)` on Zenoh's receive thread for each sample on `key`,
         so that a blocking callback pushes back on the link."""
 
-        def on_zenoh_sample(sample: zenoh.Sample) -> None:
+        def on_zenoh_sample(sample: ZenohSample) -> None:
             att = sample.attachment
             on_sample(sample.payload.to_bytes(), None if att is None else att.to_bytes())
 
@@ -167,7 +177,7 @@ class Session:
 
     # --- queries ----------------------------------------------------------------------------
 
-    def declare_queryable(self, key: str, on_query: Callable[[zenoh.Query], None], *, indirect: bool) -> None:
+    def declare_queryable(self, key: str, on_query: Callable[[Query], None], *, indirect: bool) -> None:
         """Answer queries on `key` with `on_query`: on Zenoh's receive thread, or with `indirect`
         on a thread of its own (for answers that may be large or block)."""
         self._keep(self.zenoh.declare_queryable(key, zenoh.handlers.Callback(on_query, indirect=indirect)))
@@ -216,7 +226,7 @@ class Session:
         """Call `on_change(token key, alive)` for the tokens matching `key`: first those alive now,
         then each appearance and disappearance."""
 
-        def on_token(sample: zenoh.Sample) -> None:
+        def on_token(sample: ZenohSample) -> None:
             on_change(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
 
         self._keep(self.zenoh.liveliness().declare_subscriber(
