@@ -11,6 +11,7 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
+from rosbags.interfaces.typing import Typesdict
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
@@ -27,7 +28,7 @@ VENDORED = {"Octomap": "octomap_msgs"}
 def typestore() -> Typestore:
     """ROS 2 (Jazzy) type store with octolog's own message types registered."""
     store = get_typestore(Stores.ROS2_JAZZY)
-    types: dict[str, Any] = {}
+    types: Typesdict = {}
     for path in sorted(MSG_DIR.glob("*.msg")):
         pkg = VENDORED.get(path.stem, OWN_PACKAGE)
         types.update(get_types_from_msg(path.read_text(), f"{pkg}/msg/{path.stem}"))
@@ -35,7 +36,7 @@ def typestore() -> Typestore:
     return store
 
 
-def msgtype(name: str) -> Any:
+def msgtype(name: str) -> Any:  # Any: a class made at run time (own types: a Protocol in msgtypes)
     """The class of `name` in the type store (a run-time lookup: msgtypes has the typed classes)."""
     return typestore().types[name]
 

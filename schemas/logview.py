@@ -26,13 +26,12 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from functools import cache
-from typing import Any
-
 import numpy as np
 
 from octolog.kit.errors import InputError
 from octolog.kit.imu import IMU_NOISE_FIELDS
 from octolog.schemas import codec
+from octolog.schemas.msgtypes import DiagnosticArray
 
 DIAGNOSTICS = "diagnostic_msgs/msg/DiagnosticArray"
 IMAGE, COMPRESSED = "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"
@@ -112,7 +111,7 @@ def _residual_fields(msgtype: str) -> tuple[tuple[str, str, bool], ...]:
     return tuple(out)
 
 
-def _plain(value: Any) -> Any:
+def _plain(value: object) -> object:
     if isinstance(value, np.ndarray):
         return value.tolist()
     return value.item() if isinstance(value, np.generic) else value
@@ -142,7 +141,7 @@ def split(topic: str, msgtype: str, payload: bytes) -> list[tuple[str, str, byte
     return out
 
 
-def wire_type(diagnostics: Any) -> str | None:
+def wire_type(diagnostics: DiagnosticArray) -> str | None:
     """The wire type a logged DiagnosticArray stands for, or None (a DiagnosticArray of its own)."""
     if len(diagnostics.status) != 1:
         return None
@@ -155,7 +154,7 @@ _DTYPES = {"bool": np.bool_, "int8": np.int8, "uint8": np.uint8, "int16": np.int
            "float32": np.float32, "float64": np.float64}
 
 
-def _value(raw: str, base: str, sequence: bool) -> Any:
+def _value(raw: str, base: str, sequence: bool) -> object:
     value = json.loads(raw)
     if sequence:
         return list(map(str, value)) if base == "string" else np.asarray(value, dtype=_DTYPES[base])
@@ -169,7 +168,7 @@ def _value(raw: str, base: str, sequence: bool) -> Any:
 def join(msgtype: str, diagnostics: bytes, parts: dict[str, bytes]) -> bytes:
     """The wire message's CDR bytes from its DiagnosticArray and its parts (log topic -> bytes)."""
     diag = codec.decode(diagnostics, DIAGNOSTICS)
-    fields: dict[str, Any] = {"header": diag.header}
+    fields: dict[str, object] = {"header": diag.header}
     for p in PARTS.get(msgtype, ()):
         if p.topic not in parts:
             raise InputError(f"a logged {msgtype} without its /{p.topic} part")

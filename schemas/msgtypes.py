@@ -12,6 +12,7 @@ from typing import ClassVar, Protocol
 
 import numpy as np
 from rosbags.typesys.stores.ros2_jazzy import builtin_interfaces__msg__Time as Time
+from rosbags.typesys.stores.ros2_jazzy import diagnostic_msgs__msg__DiagnosticArray as DiagnosticArray
 from rosbags.typesys.stores.ros2_jazzy import geometry_msgs__msg__Point as Point
 from rosbags.typesys.stores.ros2_jazzy import geometry_msgs__msg__Pose as Pose
 from rosbags.typesys.stores.ros2_jazzy import geometry_msgs__msg__PoseStamped as PoseStamped
@@ -20,6 +21,8 @@ from rosbags.typesys.stores.ros2_jazzy import geometry_msgs__msg__Transform as T
 from rosbags.typesys.stores.ros2_jazzy import geometry_msgs__msg__TransformStamped as TransformStamped
 from rosbags.typesys.stores.ros2_jazzy import geometry_msgs__msg__Vector3 as Vector3
 from rosbags.typesys.stores.ros2_jazzy import geometry_msgs__msg__Vector3Stamped as Vector3Stamped
+from rosbags.typesys.stores.ros2_jazzy import nav_msgs__msg__MapMetaData as MapMetaData
+from rosbags.typesys.stores.ros2_jazzy import nav_msgs__msg__OccupancyGrid as OccupancyGrid
 from rosbags.typesys.stores.ros2_jazzy import nav_msgs__msg__Path as Path
 from rosbags.typesys.stores.ros2_jazzy import sensor_msgs__msg__CameraInfo as CameraInfo
 from rosbags.typesys.stores.ros2_jazzy import sensor_msgs__msg__CompressedImage as CompressedImage
@@ -34,7 +37,7 @@ from rosbags.typesys.stores.ros2_jazzy import tf2_msgs__msg__TFMessage as TFMess
 
 STOCK = (Time, Header, String, Point, Quaternion, Pose, PoseStamped, Vector3, Vector3Stamped, Transform,
          TransformStamped, TFMessage, Path, Image, CompressedImage, CameraInfo, RegionOfInterest, Imu,
-         PointField, PointCloud2)
+         PointField, PointCloud2, MapMetaData, OccupancyGrid, DiagnosticArray)
 
 U8Array = np.ndarray[tuple[int, ...], np.dtype[np.uint8]]
 I8Array = np.ndarray[tuple[int, ...], np.dtype[np.int8]]

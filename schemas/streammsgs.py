@@ -5,7 +5,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-from typing import Any
 
 from octolog.kit import depthmodel
 from octolog.kit.depthmodel import DepthModel
@@ -14,7 +13,7 @@ from octolog.schemas.codec import header, msgtype
 from octolog.schemas.msgtypes import CAMERA_PROPERTIES, STREAM_END, CameraPropertiesMsg, StreamEndMsg, String
 
 
-def config_msg(stage: str, config: dict[str, Any]) -> String:
+def config_msg(stage: str, config: dict[str, object]) -> String:
     return String(data=json.dumps({"stage": stage, "config": config}, sort_keys=True))
 
 
