@@ -10,10 +10,9 @@ is the colour image's. Intrinsics come from the colour camera_info; the depth sc
 from __future__ import annotations
 
 import struct
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -24,6 +23,7 @@ from octolog.kit.mcaplog import read_messages, summarize
 from octolog.kit.tum import associate
 from octolog.replay.source_gravity import recorded_up
 from octolog.schemas import codec, imagecodec, sensormsgs
+from octolog.schemas.msgtypes import CompressedImage, Image
 from octolog.schemas.topics import (
     ALIGNED_DEPTH,
     ALIGNED_DEPTH_INFO,
@@ -80,8 +80,8 @@ class StandardSequence:
             return
         want_c = {ci: seq for seq, (ci, _) in todo}
         want_d = {di: seq for seq, (_, di) in todo}
-        got_c: dict[int, Any] = {}
-        got_d: dict[int, Any] = {}
+        got_c: dict[int, bytes] = {}
+        got_d: dict[int, bytes] = {}
         n_c = n_d = 0
         nxt = 0
         for m in read_messages(self.path, [self.color.name, self.depth.name]):
@@ -105,8 +105,8 @@ class StandardSequence:
         try:
             cmsg = codec.decode(color_data, self.color.msgtype)
             dmsg = codec.decode(depth_data, self.depth.msgtype)
-            rgb = _pixels(cmsg, self.color)
-            depth = _pixels(dmsg, self.depth)
+            rgb = _pixels(cmsg)
+            depth = _pixels(dmsg)
         except InputError as exc:
             raise InputError(f"{self.path}: frame {seq}: {exc}") from None
         if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
@@ -122,8 +122,8 @@ class StandardSequence:
                          frame_id=cmsg.header.frame_id or RgbdFrame.__dataclass_fields__["frame_id"].default)
 
 
-def _pixels(msg: Any, topic: Topic) -> np.ndarray:
-    if topic.msgtype == "sensor_msgs/msg/CompressedImage":
+def _pixels(msg: Image | CompressedImage) -> np.ndarray:
+    if isinstance(msg, CompressedImage):
         return imagecodec.decode_compressed_image(msg)
     return sensormsgs.image_array(msg)
 
@@ -223,6 +223,6 @@ def count_standard_frames(path: str | Path) -> int:
     return len(open_standard(path))
 
 
-def has_standard_frames(topics: dict[str, Any] | set[str]) -> bool:
+def has_standard_frames(topics: Collection[str]) -> bool:
     """Whether a file with these topics (McapSummary.topics) holds colour and aligned depth."""
     return any(t.name in topics for t in COLOR_TOPICS) and any(t.name in topics for t in DEPTH_TOPICS)

@@ -204,7 +204,7 @@ class SyntheticScene:
         return m
 
     @cached_property
-    def _raycaster(self) -> Any:
+    def _raycaster(self) -> Any:  # open3d's RaycastingScene (Any: open3d is imported lazily)
         import open3d as o3d  # lazy: ~1.4 s to import, only rendering and geometry need it
 
         verts, tris, _ = scene_triangles()
