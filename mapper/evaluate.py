@@ -38,12 +38,14 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Any
+from typing import Protocol
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from octolog.kit.errors import MapError
+from octolog.kit.geometry import RgbdFrame
+from octolog.mapper.grid import VoxelCentres
 
 __all__ = [
     "ObservedVoxels",
@@ -53,6 +55,17 @@ __all__ = [
     "voxel_accuracy",
     "voxel_keys",
 ]
+
+
+class Scene(Protocol):
+    """A scene with known geometry, as `observed_from_scene` reads it (replay's SyntheticScene)."""
+
+    def pose(self, i: int) -> np.ndarray: ...
+
+    def render(self, i: int) -> RgbdFrame: ...
+
+    def surface_samples(self, spacing_m: float = 0.01) -> np.ndarray: ...
+
 
 _KEY_BITS = 21
 _KEY_OFFSET = 1 << (_KEY_BITS - 1)
@@ -148,7 +161,7 @@ class ObservedVoxels:
 
 
 def observed_voxels(
-    views: Iterable[tuple[np.ndarray, Any]],
+    views: Iterable[tuple[np.ndarray, RgbdFrame]],
     *,
     resolution_m: float,
     max_range_m: float,
@@ -202,7 +215,7 @@ def observed_voxels(
     return ObservedVoxels(resolution_m=res, surface_keys=_unpack(surface), free_keys=_unpack(free))
 
 
-def _view_voxels(T: Any, frame: Any, res: float, max_range_m: float, core_radius: float, ray_stride: int,
+def _view_voxels(T: np.ndarray, frame: RgbdFrame, res: float, max_range_m: float, core_radius: float, ray_stride: int,
                  step: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One view's packed keys: its surface-core voxels, every voxel a point falls in, the voxels its rays cross."""
     T = np.asarray(T, dtype=np.float64)
@@ -249,7 +262,7 @@ def _ray_voxels(origin: np.ndarray, ends: np.ndarray, res: float, step: float) -
 
 
 def observed_from_scene(
-    scene: Any,
+    scene: Scene,
     frame_ids: Iterable[int],
     *,
     resolution_m: float,
@@ -280,7 +293,7 @@ def observed_from_scene(
 # ---- voxel accuracy -----------------------------------------------------------------------------
 
 
-def _occupied_packed(occupied: Any, res: float) -> np.ndarray:
+def _occupied_packed(occupied: VoxelCentres | np.ndarray, res: float) -> np.ndarray:
     if hasattr(occupied, "occupied_centres"):
         map_res = float(getattr(occupied, "resolution", res))
         if not np.isclose(map_res, res, rtol=0, atol=1e-12):
@@ -292,7 +305,7 @@ def _occupied_packed(occupied: Any, res: float) -> np.ndarray:
     return np.unique(_pack(np.floor(c / res).astype(np.int64)))
 
 
-def voxel_accuracy(occupied: Any, observed: ObservedVoxels) -> dict[str, float]:
+def voxel_accuracy(occupied: VoxelCentres | np.ndarray, observed: ObservedVoxels) -> dict[str, float]:
     """Agreement of a map's occupied voxels with the observed ground truth.
 
     `occupied` is an `OccupancyOctree`-like object (`occupied_centres()`, `resolution`) or the

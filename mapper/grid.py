@@ -27,7 +27,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -35,6 +35,7 @@ from octolog.kit.errors import MapError
 from octolog.kit.files import write_bytes_atomic
 from octolog.mapper.cloud import column_max, column_min, rows_where
 from octolog.schemas import codec
+from octolog.schemas.msgtypes import OccupancyGrid
 
 __all__ = [
     "FREE",
@@ -56,6 +57,18 @@ PGM_OCCUPIED, PGM_FREE, PGM_UNKNOWN = 0, 254, 205
 OCCUPIED_THRESH, FREE_THRESH = 0.65, 0.196
 DEFAULT_UP = (0.0, -1.0, 0.0)  # a level optical-frame camera: image "up" is -y
 _MIN_HORIZONTAL = 1e-3  # below this, world +z is treated as vertical and world +x gives the heading
+
+
+class VoxelCentres(Protocol):
+    """An occupancy map as far as its voxel centres go: what the grid projection and mapper.evaluate read
+    (mapper.occupancy.OccupancyMap has it; not imported here: it loads both backends, and mapper.config
+    imports this module)."""
+
+    resolution: float
+
+    def occupied_centres(self, max_voxels: int | None = None) -> np.ndarray: ...
+
+    def free_centres(self, max_voxels: int | None = None) -> np.ndarray: ...
 
 
 @dataclass(frozen=True, eq=False)
@@ -215,7 +228,7 @@ def project_grid(
                            map_from_world=T.copy())
 
 
-def project_octree(octree: Any, **kwargs: Any) -> OccupancyGrid2D:
+def project_octree(octree: VoxelCentres, **kwargs: Any) -> OccupancyGrid2D:
     """`project_grid` of an `OccupancyOctree`'s occupied and free voxel centres.
 
     `resolution_m` defaults to the octree's; other keyword arguments are those of `project_grid`.
@@ -286,7 +299,7 @@ def write_map_server(grid: OccupancyGrid2D, stem_path: str | os.PathLike[str]) -
 # ---- nav_msgs/OccupancyGrid ---------------------------------------------------------------------
 
 
-def occupancy_grid_msg(grid: OccupancyGrid2D, stamp_ns: int, frame_id: str = "map") -> Any:
+def occupancy_grid_msg(grid: OccupancyGrid2D, stamp_ns: int, frame_id: str = "map") -> OccupancyGrid:
     """A nav_msgs/msg/OccupancyGrid of the grid (rosbags type store).
 
     `info.origin` is the pose of cell (0, 0)'s lower-left corner in the map frame `frame_id`:
@@ -314,7 +327,7 @@ def occupancy_grid_msg(grid: OccupancyGrid2D, stamp_ns: int, frame_id: str = "ma
     )
 
 
-def grid_from_msg(msg: Any, map_from_world: np.ndarray | None = None) -> OccupancyGrid2D:
+def grid_from_msg(msg: OccupancyGrid, map_from_world: np.ndarray | None = None) -> OccupancyGrid2D:
     """The grid in a nav_msgs/msg/OccupancyGrid (as `occupancy_grid_msg` writes them).
 
     The message's float32 resolution is read back as the shortest decimal that gives the same

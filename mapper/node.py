@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any
 
-from octolog.kit.bus import Bus, BusConfig
+from octolog.kit.bus import Bus, BusConfig, Publisher, Received
 from octolog.kit.config import to_dict
 from octolog.kit.cpuclock import charge
 from octolog.kit.errors import InputError, MapError
@@ -19,6 +18,7 @@ from octolog.mapper.mapframe import MapFrame
 from octolog.mapper.prior import PriorSeed
 from octolog.mapper.process import INBOX_KEYFRAMES, MapperResult, MapSnapshots, answer_save, finish, log_map
 from octolog.schemas import codec, posemsgs, rgbdmsgs, streammsgs
+from octolog.schemas.msgtypes import OctomapMsg
 from octolog.schemas.topics import (
     CONFIGS,
     KEYFRAME,
@@ -115,8 +115,8 @@ def _decide(prior: PriorSeed, mapper: Mapper, publisher: MapSnapshots, first_key
         publisher.frame.given = True
 
 
-def _integrate_keyframe(r: Any, mapper: Mapper, result: MapperResult, viz: Viz, publisher: MapSnapshots,
-                        pub_update: Any) -> None:
+def _integrate_keyframe(r: Received, mapper: Mapper, result: MapperResult, viz: Viz, publisher: MapSnapshots,
+                        pub_update: Publisher) -> None:
     """One keyframe into the map (a bad one counted and skipped), its map update out, a snapshot when due."""
     t0 = time.perf_counter()
     msg = r.decode()
@@ -150,6 +150,6 @@ def _integrate_keyframe(r: Any, mapper: Mapper, result: MapperResult, viz: Viz, 
                 log_map(viz, mapper, stamp, publisher.grid)
 
 
-def fetch_map(bus: Bus, timeout_s: float = 10.0) -> Any | None:
+def fetch_map(bus: Bus, timeout_s: float = 10.0) -> OctomapMsg | None:
     """What a late joiner does: ask the mapper's queryable for the current map."""
     return bus.fetch(MAP_QUERY, timeout_s)

@@ -5,11 +5,10 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
-from octolog.kit.bus import Bus
+from octolog.kit.bus import Bus, Publisher, Received
 from octolog.kit.cpuclock import charge
 from octolog.kit.errors import MapError
 from octolog.kit.viz import Viz
@@ -97,14 +96,14 @@ def finish(mapper: Mapper, result: MapperResult, bus: Bus, viz: Viz, publisher: 
     bus.publisher(MAP_END).put(streammsgs.stream_end_msg(MAP_UPDATE.name, result.keyframes + result.skipped))
 
 
-def publish_update(pub: Any, publisher: MapSnapshots, stamp: int, kf_id: int, pts: int, ms: float) -> None:
+def publish_update(pub: Publisher, publisher: MapSnapshots, stamp: int, kf_id: int, pts: int, ms: float) -> None:
     pub.put(codec.msgtype(MAP_UPDATE.msgtype)(
         header=codec.header(stamp, "world"), keyframe_id=kf_id, n_points=pts,
         n_occupied=publisher.stats.get("occupied_voxels", 0), n_free=publisher.stats.get("free_voxels", 0),
         processing_ms=ms))
 
 
-def answer_save(r: Any, mapper: Mapper, out_dir: Path) -> None:
+def answer_save(r: Received, mapper: Mapper, out_dir: Path) -> None:
     try:
         files = mapper.write(out_dir)
     except MapError as exc:
@@ -122,12 +121,12 @@ CLOUD_STRIDE = 8
 PREVIEW_POINTS = 100_000
 
 
-def log_map(viz: Viz, mapper: Mapper, stamp: int, grid: Any = None, *, final: bool = False) -> None:
+def log_map(viz: Viz, mapper: Mapper, stamp: int, grid: OccupancyGrid2D | None = None, *, final: bool = False) -> None:
     with charge("rerun"):
         _log_map(viz, mapper, stamp, grid, final)
 
 
-def _log_map(viz: Viz, mapper: Mapper, stamp: int, grid: Any, final: bool) -> None:
+def _log_map(viz: Viz, mapper: Mapper, stamp: int, grid: OccupancyGrid2D | None, final: bool) -> None:
     viz.set_time(stamp)
     pts, cols = mapper.cloud.cloud() if final else mapper.cloud.preview(CLOUD_STRIDE, PREVIEW_POINTS)
     viz.points3d("map/cloud", pts, cols, radius=0.004 if final else 0.008)

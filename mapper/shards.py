@@ -37,7 +37,7 @@ VERSION = 1
 AGREE = ("count", "tile_m", "rule", "resolution_m", "voxel_m", "colour", "sensor", "grid", "map_from_world")
 
 
-def write_shard(mapper: Mapper, out_dir: Path, extra: dict[str, Any] | None = None) -> Path:
+def write_shard(mapper: Mapper, out_dir: Path, extra: dict[str, object] | None = None) -> Path:
     """`out_dir/shard.npz` of a shard's mapper (after its map files)."""
     tiles = mapper.params.tiles
     if tiles is None:

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Callable
 
 import numpy as np
 
@@ -27,7 +27,7 @@ from octolog.mapper.fleet.placement import Merge, Placement
 from octolog.schemas import posemsgs, rgbdmsgs
 
 
-def _nothing(*_: Any) -> None:
+def _nothing(*_: object) -> None:
     return None
 
 

@@ -28,7 +28,7 @@ from collections import deque
 from pathlib import Path
 from typing import Any, Iterator
 
-from octolog.kit.bus import Bus, BusConfig
+from octolog.kit.bus import Bus, BusConfig, Publisher, Received
 from octolog.kit.config import to_dict
 from octolog.kit.errors import InputError, MapError, StageError
 from octolog.kit.geometry import RgbdFrame
@@ -48,6 +48,7 @@ from octolog.mapper.process import (
     publish_update,
 )
 from octolog.schemas import rgbdmsgs, streammsgs
+from octolog.schemas.msgtypes import CompressedKeyframeMsg, KeyframeMsg
 from octolog.schemas.topics import (
     CONFIGS,
     KEYFRAME,
@@ -118,7 +119,7 @@ class LeaderStream:
     def __init__(self, bus: Bus, namespace: str, robots: int, shard: int | None) -> None:
         self.bus, self.namespace, self.robots, self.shard = bus, namespace, robots, shard
         self.ops: deque[dict[str, Any]] = deque()
-        self.kept: list[dict[int, Any]] = [{} for _ in range(robots)]
+        self.kept: list[dict[int, KeyframeMsg | CompressedKeyframeMsg]] = [{} for _ in range(robots)]
         self.ended = False
         self.read = 0  # journal ops
         self.count = 0  # keyframes routed here
@@ -180,7 +181,7 @@ class RobotFrames:
 
     def __init__(self, robots: tuple[str, ...], robot_buses: list[Bus]) -> None:
         self.robots, self.robot_buses = robots, robot_buses
-        self.kept: list[dict[int, Any]] = [{} for _ in robots]
+        self.kept: list[dict[int, KeyframeMsg | CompressedKeyframeMsg]] = [{} for _ in robots]
         self.expected: list[int | None] = [None] * len(robots)
         self.received = [0] * len(robots)
 
@@ -189,7 +190,7 @@ class RobotFrames:
         """Keyframes received."""
         return sum(self.received)
 
-    def _push(self, k: int, r: Any) -> None:
+    def _push(self, k: int, r: Received) -> None:
         if r.topic == KEYFRAME_END:
             end = r.decode()
             if end.topic in (KEYFRAME.name, KEYFRAME_COMPRESSED.name):
@@ -251,7 +252,7 @@ class Follower:
         if not self.end:
             raise InputError(f"mapper.follow {self.cfg.follow}: the journal ended without its end op")
 
-    def _apply(self, op: dict[str, Any], pub_update: Any, viz: Viz, publisher: MapSnapshots) -> None:
+    def _apply(self, op: dict[str, Any], pub_update: Publisher, viz: Viz, publisher: MapSnapshots) -> None:
         t0 = time.perf_counter()
         try:
             gid = apply_op(self.mapper, op, self.frames.frame)

@@ -68,7 +68,7 @@ class Journal:
         self._source: dict[int, tuple[int, int, Intrinsics]] = {}  # gid -> robot, keyframe id, camera
         self.sent: set[tuple[int, int]] = set()  # (shard, gid) routed
 
-    def _put(self, op: dict[str, Any], gids: Iterable[int] = ()) -> None:
+    def _put(self, op: dict[str, object], gids: Iterable[int] = ()) -> None:
         if not self.lines:
             self._write({"op": "start", "format": FORMAT, "version": VERSION, "robots": list(self.robots)})
         up = [float(v) for v in self.mapper.params.grid.up]
@@ -94,7 +94,7 @@ class Journal:
                     self.sent.add((tiles.index, gid))
                     self.route(tiles.index, robot, kf_id)  # type: ignore[misc]
 
-    def _write(self, op: dict[str, Any]) -> None:
+    def _write(self, op: dict[str, object]) -> None:
         line = json.dumps(op, sort_keys=True)
         self.lines.append(line)
         self.emit(line)
@@ -116,7 +116,7 @@ class Journal:
     def cleared(self) -> None:
         self._put({"op": "clear"})
 
-    def end(self, summary: dict[str, Any]) -> None:
+    def end(self, summary: dict[str, object]) -> None:
         """The last op: what the placing mapper reports (merges, links, robots lost and unplaced)."""
         self._put({"op": "end", **summary})
 

@@ -9,11 +9,10 @@ import json
 import logging
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
-from octolog.kit.bus import Bus, BusConfig
+from octolog.kit.bus import Bus, BusConfig, Publisher, Received
 from octolog.kit.config import to_dict
 from octolog.kit.errors import InputError, MapError, StageError
 from octolog.kit.geometry import RgbdFrame, matrix_to_pose
@@ -36,6 +35,7 @@ from octolog.mapper.process import (
     publish_update,
 )
 from octolog.schemas import codec, streammsgs
+from octolog.schemas.msgtypes import CompressedKeyframeMsg, KeyframeMsg
 from octolog.schemas.topics import (
     CONFIGS,
     KEYFRAME,
@@ -47,6 +47,7 @@ from octolog.schemas.topics import (
     MAP_SAVE,
     MAP_UPDATE,
     TRACKING_STATUS,
+    Topic,
     route_topic,
 )
 
@@ -57,6 +58,9 @@ log = logging.getLogger(__name__)
 # threads on two cores), and with as many robots ahead as threads the awaited robot's samples
 # could never arrive. Nothing is saved by bounding it: the merge keeps every item (FleetMerge.history).
 ROBOT_INBOX = 0
+
+# (robot, keyframe id) -> the topic and message it came as, for routing it to the shards it reaches
+Payloads = dict[tuple[int, int], tuple[Topic, KeyframeMsg | CompressedKeyframeMsg]]
 
 ROBOT_COLOURS = ((255, 160, 0), (0, 200, 255), (120, 220, 60), (230, 60, 160), (160, 120, 255), (250, 230, 40))
 
@@ -75,7 +79,7 @@ def run_fleet(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: st
                                                inbox_size=ROBOT_INBOX)) for r in cfg.robots]
         viz = stack.enter_context(Viz(rerun, "mapper", recording_id))
         frame = MapFrame(mapper, bus, viz, from_imu=False, ask=None if cfg.grid_up else robot_buses[0])
-        payloads: dict[tuple[int, int], tuple[Any, Any]] = {}  # (robot, keyframe id) -> topic, message
+        payloads: Payloads = {}
         journal = _journal(stack, cfg, bus_cfg, mapper, frame, payloads)
         publisher = MapSnapshots(bus, mapper, cfg.publish_every)
         result, trajectories = consume_fleet(mapper, cfg, bus, robot_buses, viz, publisher, out_dir, frame, journal,
@@ -94,7 +98,7 @@ def run_fleet(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: st
 
 
 def _journal(stack: contextlib.ExitStack, cfg: MapperConfig, bus_cfg: BusConfig, mapper: Mapper,
-             frame: MapFrame, payloads: dict[tuple[int, int], tuple[Any, Any]]) -> Journal | None:
+             frame: MapFrame, payloads: Payloads) -> Journal | None:
     """A placing shard's journal, published by the stage `placement` in the mapper's namespace, which
     also routes each keyframe, as its robot sent it, to the shards it reaches (`route_topic`)."""
     if not cfg.shard:
@@ -103,7 +107,7 @@ def _journal(stack: contextlib.ExitStack, cfg: MapperConfig, bus_cfg: BusConfig,
     placing.start([])
     pub = placing.publisher(MAP_PLACED)
     msg = codec.msgtype(MAP_PLACED.msgtype)
-    routes: dict[Any, Any] = {}
+    routes: dict[Topic, Publisher] = {}
 
     def route(shard: int, robot: int, kf_id: int) -> None:
         topic, keyframe = payloads[(robot, kf_id)]
@@ -125,7 +129,7 @@ def summary(result: MapperResult) -> dict:
 def consume_fleet(mapper: Mapper, cfg: MapperConfig, bus: Bus, robot_buses: list[Bus], viz: Viz,
                   publisher: MapSnapshots, out_dir: Path, frame_of_map: MapFrame | None = None,
                   journal: Journal | None = None,
-                  payloads: dict | None = None) -> tuple[MapperResult, list[list[tuple[int, int]]]]:
+                  payloads: Payloads | None = None) -> tuple[MapperResult, list[list[tuple[int, int]]]]:
     """Receive every robot's keyframes and corrections and integrate them in the merge's order;
     without start poses, place the robots from the places they share (mapper/fleet/placement.py). A robot
     silent for `mapper.robot_stall_s` is paused: the others go on, and if anything was taken out of
@@ -167,8 +171,8 @@ def _start_buses(cfg: MapperConfig, bus: Bus, robot_buses: list[Bus]) -> None:
         rb.watch(["tracker"])
 
 
-def _live_map(mapper: Mapper, cfg: MapperConfig, viz: Viz, publisher: MapSnapshots, pub_update: Any,
-              pub_merge: Any, frame_of_map: MapFrame | None, journal: Journal | None) -> FleetMap:
+def _live_map(mapper: Mapper, cfg: MapperConfig, viz: Viz, publisher: MapSnapshots, pub_update: Publisher,
+              pub_merge: Publisher, frame_of_map: MapFrame | None, journal: Journal | None) -> FleetMap:
     """The fleet map whose hooks publish as it grows: merge events, map updates, snapshots, Rerun."""
 
     def integrated(r: int, stamp: int, gid: int, pts: int, ms: float, frame: RgbdFrame) -> None:
@@ -201,7 +205,7 @@ class _RobotStreams:
         self.lost: set[int] = set()
         self.heard = [time.monotonic()] * n  # when each robot last sent something (or the wait began)
         self.turn = 0
-        self.payloads: dict | None = None  # (robot, keyframe id) -> (topic, message), for routing them
+        self.payloads: Payloads | None = None  # for routing the keyframes (a placing shard)
 
     def lose(self, k: int, exc: StageError) -> None:
         """Robot k is gone (its tracker died, or its data was lost for good): its stream ends with
@@ -243,7 +247,7 @@ class _RobotStreams:
                 took = True
         return took
 
-    def _take(self, i: int, r: Any) -> None:
+    def _take(self, i: int, r: Received) -> None:
         """Robot i's message into its stream; the stream ends with its last announced item."""
         self.heard[i] = time.monotonic()
         self._push(i, r)
@@ -271,7 +275,7 @@ class _RobotStreams:
             log.warning("%s", note)
             viz.text("mapper/events", note)
 
-    def _push(self, i: int, r: Any) -> None:
+    def _push(self, i: int, r: Received) -> None:
         """Robot i's message into its stream: a stream end, a watermark, a correction or a keyframe."""
         merge = self.merge
         if r.topic == KEYFRAME_END:
@@ -353,7 +357,7 @@ def merge_event(m: Merge, robots: tuple[str, ...]) -> dict:
             "world_from_robot": [float(x) for x in (*t, *q)]}
 
 
-def _announce(m: Merge, cfg: MapperConfig, pub: Any, viz: Viz) -> None:
+def _announce(m: Merge, cfg: MapperConfig, pub: Publisher, viz: Viz) -> None:
     """A robot just placed: the merge event on the bus (so in the session log) and in Rerun."""
     event = merge_event(m, cfg.robots)
     pub.put(codec.msgtype(MAP_MERGE.msgtype)(data=json.dumps(event, sort_keys=True)))
