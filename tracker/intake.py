@@ -18,7 +18,6 @@ import queue
 import threading
 from collections import deque
 from concurrent.futures import CancelledError, Future, ThreadPoolExecutor
-from typing import Any
 
 from octolog.kit.bus import Bus, Received
 from octolog.kit.cpuclock import charge
@@ -27,11 +26,13 @@ from octolog.kit.geometry import RgbdFrame
 from octolog.kit.imu import ImuSamples
 from octolog.kit.viz import encode_jpeg
 from octolog.schemas import codec, rgbdmsgs
+from octolog.schemas.msgtypes import CompressedRgbdFrameMsg, RgbdFrameMsg
 from octolog.schemas.topics import RGBD, RGBD_COMPRESSED, RGBD_END
 from octolog.tracker.imu_intake import ImuIntake
 from octolog.tracker.interface import Tracker
 
-Decoded = tuple[Any, RgbdFrame | InputError, Any]
+# a frame's message, its frame (or why it is none) and what `Tracker.prepare` made of it
+Decoded = tuple[RgbdFrameMsg | CompressedRgbdFrameMsg, RgbdFrame | InputError, object]
 FRAME_PRODUCERS = ("replay", "recorder")  # whichever sends the frames: a replay, or a recorder publishing live
 
 

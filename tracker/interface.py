@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, field
-from typing import Any, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -79,12 +79,13 @@ class Tracker(Protocol):
     @property
     def n_keyframes(self) -> int: ...
 
-    def prepare(self, frame: RgbdFrame) -> Any:
+    def prepare(self, frame: RgbdFrame) -> object:
         """The work on `frame` that needs nothing but its pixels (feature extraction), safe to run on
-        one other thread ahead of `track`; None when there is none. Results do not depend on it."""
+        one other thread ahead of `track`; None when there is none. Results do not depend on it. Opaque
+        to the caller: only this tracker's `track` reads it."""
         ...
 
-    def track(self, frame: RgbdFrame, prepared: Any = None) -> TrackResult:
+    def track(self, frame: RgbdFrame, prepared: object = None) -> TrackResult:
         """Estimate world_from_camera of `frame` (with what `prepare(frame)` returned, if called);
         raises TrackingError for a frame that contradicts its camera, never for bad image content."""
         ...

@@ -9,6 +9,7 @@ import queue
 import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import Future
 import dataclasses
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -16,7 +17,7 @@ from typing import Any, Self
 
 import numpy as np
 
-from octolog.kit.bus import Bus, BusConfig
+from octolog.kit.bus import Bus, BusConfig, Publisher, Received
 from octolog.kit.config import to_dict
 from octolog.kit.cpuclock import charge
 from octolog.kit.errors import InputError, TrackingError
@@ -25,6 +26,7 @@ from octolog.kit.metrics import write_tum
 from octolog.kit.tftree import StaticTree
 from octolog.kit.viz import Viz
 from octolog.schemas import codec, posemsgs, rgbdmsgs, streammsgs, wirecompression
+from octolog.schemas.msgtypes import CameraPropertiesMsg, CompressedRgbdFrameMsg, RgbdFrameMsg, TrackingStatusMsg
 from octolog.schemas.topics import (
     BACKEND_DEFERRED,
     CAMERA_PROPERTIES,
@@ -47,7 +49,7 @@ from octolog.tracker.config import TrackerConfig
 from octolog.tracker.depth_bias import DepthBias
 from octolog.tracker.factory import make_odometry, set_depth_model, set_readout
 from octolog.tracker.imu_intake import IMU_TOPICS
-from octolog.tracker.intake import FRAME_PRODUCERS, Intake
+from octolog.tracker.intake import FRAME_PRODUCERS, Decoded, Intake
 from octolog.tracker.interface import Tracker, TrackingState, TrackResult
 
 log = logging.getLogger(__name__)
@@ -123,7 +125,8 @@ class _Outputs:
         if up is not None:
             self.gravity.put(posemsgs.vector3_stamped_msg(up, stamp_ns, "world"))
 
-    def untracked(self, msg: Any, state: TrackingState, imu_mark: tuple[int, int] = (0, 0)) -> None:
+    def untracked(self, msg: RgbdFrameMsg | CompressedRgbdFrameMsg, state: TrackingState,
+                  imu_mark: tuple[int, int] = (0, 0)) -> None:
         """A frame skipped or rejected: its status only."""
         self.status.put(_status(msg.seq, codec.stamp_ns(msg.header), state, False, -1, 0, 0, 0.0, imu_mark=imu_mark))
 
@@ -229,8 +232,8 @@ FAR_BEHIND = 4.0
 YOUNG_MAP_KEYFRAMES = 5
 
 
-def _skip_behind(intake: Intake, r: Any, prep: Any, out: _Outputs, result: TrackerRunSummary, *,
-                 far: bool) -> tuple[Any, Any]:
+def _skip_behind(intake: Intake, r: Received, prep: Future[Decoded] | None, out: _Outputs, result: TrackerRunSummary,
+                 *, far: bool) -> tuple[Received, Future[Decoded] | None]:
     """Stay real-time, on record: behind, this frame is skipped for the next one, never two in a row
     (a tracked frame is at most two camera frames after the last: a fast turn stays trackable,
     where jumping to the newest made gaps of several frames and lost track); `far` behind, the
@@ -247,7 +250,7 @@ def _skip_behind(intake: Intake, r: Any, prep: Any, out: _Outputs, result: Track
     return r, prep
 
 
-def _track_frame(odometry: Tracker, cfg: TrackerConfig, prepare: Callable[[], tuple[Any, Any, Any]], out: _Outputs,
+def _track_frame(odometry: Tracker, cfg: TrackerConfig, prepare: Callable[[], Decoded], out: _Outputs,
                  tree: StaticTree, result: TrackerRunSummary, shown: VizLog, imu_mark: tuple[int, int] = (0, 0)) -> None:
     """One frame through the tracker and out to the bus and the viewer; a frame that cannot be
     tracked at all is consumed and reported LOST (`prepare`: the frame's decoding and features, timed with it)."""
@@ -280,7 +283,8 @@ def _track_frame(odometry: Tracker, cfg: TrackerConfig, prepare: Callable[[], tu
     shown.put(frame, res, result, odometry)
 
 
-def _feed_imu(odometry: Any, intake: Intake, r: Any, tree: StaticTree) -> tuple[int, int]:
+# odometry: Any, a Tracker with an IMU (`add_imu`, `imu_state`), which the caller checks with hasattr
+def _feed_imu(odometry: Any, intake: Intake, r: Received, tree: StaticTree) -> tuple[int, int]:
     """The IMU samples that came before frame `r` (and skipped frames before it), to the tracker;
     with the first, where the IMU sits on the camera (the camera's /tf_static; none: the IMU's axes
     are the colour camera's). Returns the samples taken so far per stream, for the record."""
@@ -324,7 +328,7 @@ def warm_up() -> None:
         codec.encode(msg, topic.msgtype)
 
 
-def use_camera(odometry: Tracker, cfg: TrackerConfig, props: Any) -> None:
+def use_camera(odometry: Tracker, cfg: TrackerConfig, props: CameraPropertiesMsg) -> None:
     """The stream's camera properties: its depth error model (kit/depthmodel.py), its IMU's noise, its readout unless
     the config sets one (then a warning if they disagree), so a tracker on another machine tracks as
     `octolog run` does."""
@@ -347,7 +351,7 @@ class KeyframeOut:
         self.bus = bus
         self.forward = wire_compression == wirecompression.SOURCE
         self.wire = wirecompression.parse_wire_compression(wire_compression)
-        self.pub: Any = None
+        self.pub: Publisher | None = None
 
     @property
     def count(self) -> int:
@@ -371,7 +375,8 @@ class KeyframeOut:
 
 
 def _status(seq: int, stamp: int, state: TrackingState, is_kf: bool, kf_id: int, n_matches: int, n_inliers: int,
-            ms: float, map_moved_m: float = 0.0, relocalised: bool = False, imu_mark: tuple[int, int] = (0, 0)):
+            ms: float, map_moved_m: float = 0.0, relocalised: bool = False, imu_mark: tuple[int, int] = (0, 0)
+            ) -> TrackingStatusMsg:
     return codec.msgtype(TRACKING_STATUS.msgtype)(
         header=codec.header(stamp, "world"), seq=seq, state=status_code(state), is_keyframe=is_kf,
         keyframe_id=kf_id, n_matches=n_matches, n_inliers=n_inliers, processing_ms=ms, map_moved_m=map_moved_m,

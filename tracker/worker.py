@@ -22,19 +22,19 @@ import weakref
 from typing import Any, BinaryIO
 
 from octolog.kit.errors import TrackingError
-from octolog.tracker.backend import run_backend
+from octolog.tracker.backend import BackendJob, BackendResult, run_backend
 
 _LEN = struct.Struct("<Q")
 
 
-def _write(stream: BinaryIO, obj: Any) -> None:
+def _write(stream: BinaryIO, obj: object) -> None:
     data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
     stream.write(_LEN.pack(len(data)))
     stream.write(data)
     stream.flush()
 
 
-def _read(stream: BinaryIO) -> Any:
+def _read(stream: BinaryIO) -> Any:  # Any: whatever was pickled (a job, or a (kind, value) answer)
     head = stream.read(_LEN.size)
     if len(head) < _LEN.size:
         raise EOFError("back-end worker stream closed")
@@ -61,7 +61,8 @@ class Worker:
         # dropped without close(): end the child's input, so it exits
         weakref.finalize(self, self._proc.stdin.close)
 
-    def submit(self, job: Any) -> Worker:
+    def submit(self, job: BackendJob | None) -> Worker:
+        """Send `job` (None: a ping, see `ready`) without waiting."""
         assert not self._busy, "one job at a time"
         self._busy = True
         # a large job could fill the pipe: write it from a thread so the tracker never waits here
@@ -77,7 +78,8 @@ class Worker:
         readable, _, _ = select.select([self._proc.stdout], [], [], 0)
         return bool(readable)
 
-    def result(self) -> Any:
+    def result(self) -> BackendResult:
+        """The job's result, waiting for it (a ping's is None); a job's exception is raised here."""
         assert self._writer is not None
         self._writer.join()
         try:
