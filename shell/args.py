@@ -6,9 +6,14 @@ import argparse
 import uuid
 from contextlib import AbstractContextManager
 from logging import Handler
+from typing import TypeAlias
 
 from octolog.kit import logs
 from octolog.kit.busconfig import BusConfig
+
+# what `ArgumentParser.add_subparsers` returns, which the commands are added to (argparse's own name for it
+# is private, and generic only in typeshed: hence the string)
+Subcommands: TypeAlias = "argparse._SubParsersAction[argparse.ArgumentParser]"
 
 
 def add_bus_arguments(p: argparse.ArgumentParser) -> None:

@@ -4,6 +4,7 @@ logs/STAGE.log, watched until all end; the first failure stops the others, a kil
 from __future__ import annotations
 
 import contextlib
+import io
 import os
 import socket
 import shutil
@@ -14,7 +15,6 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 from octolog.kit import logs
 from octolog.kit.bus import Bus, BusConfig, wait_interruptibly
@@ -84,7 +84,7 @@ class StageProcesses:
             relay.start()
             self.relays.append(relay)
 
-    def _relay(self, pipe: Any) -> None:
+    def _relay(self, pipe: io.BufferedReader) -> None:
         """Copy a stage's stderr to ours, remembering whether its last line is still open."""
         out = sys.stderr.buffer
         while chunk := pipe.read1(65536):

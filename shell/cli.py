@@ -15,14 +15,14 @@ import os
 import signal
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from octolog.kit import cpuclock
 from octolog.kit.config import load
 from octolog.kit.errors import ConfigError, DiskFull, OctologError
 from octolog.shell import errorfile, record
 from octolog.shell.args import add_bus_arguments, add_config_arguments, add_viz_arguments, bus_config, recording_id
-from octolog.shell.args import add_log_arguments, command_logging
+from octolog.shell.args import Subcommands, add_log_arguments, command_logging
 
 if TYPE_CHECKING:
     from octolog.replay.node import ReplayStatus
@@ -278,7 +278,7 @@ def cmd_router(args: argparse.Namespace) -> int:
 # --- parser ------------------------------------------------------------------------------------
 
 
-def _stage_parser(sub: Any, name: str, help_: str) -> argparse.ArgumentParser:
+def _stage_parser(sub: Subcommands, name: str, help_: str) -> argparse.ArgumentParser:
     """A pipeline stage's subcommand: config, transport and viewer flags."""
     p = sub.add_parser(name, help=help_, description=help_)
     add_config_arguments(p)
@@ -300,7 +300,7 @@ def _session_arguments(p: argparse.ArgumentParser) -> None:
                    help="the stages also publish standard-typed topics as ROS 2's rmw_zenoh does (default off)")
 
 
-def _add_session_commands(sub: Any) -> None:
+def _add_session_commands(sub: Subcommands) -> None:
     """`run` and `demo`: the whole pipeline on one machine."""
     p = sub.add_parser("run", help="whole pipeline as separate processes on one machine")
     p.add_argument("--source", required=True,
@@ -324,7 +324,7 @@ def _add_session_commands(sub: Any) -> None:
     p.set_defaults(func=cmd_demo)
 
 
-def _add_stage_commands(sub: Any) -> None:
+def _add_stage_commands(sub: Subcommands) -> None:
     """`replay`, `track`, `map`, `log`: one stage each, on any machine of a bus."""
     p = _stage_parser(sub, "replay", "publish a source's frames on the bus, or re-run stages of a recorded SESSION")
     p.add_argument("session", nargs="?", help="a session folder (made by octolog run): re-run stages from its log")
@@ -362,7 +362,7 @@ def _add_stage_commands(sub: Any) -> None:
     p.set_defaults(func=cmd_log)
 
 
-def _add_file_commands(sub: Any) -> None:
+def _add_file_commands(sub: Subcommands) -> None:
     """`import`, `eval`, `view`, `info`: work on files."""
     p = sub.add_parser("import", help="a TUM folder, RealSense .bag/.db3 or ROS bag → octolog MCAP")
     p.add_argument("source", help="TUM folder, .bag (ROS 1), .db3 or rosbag2 folder (ROS 2), .mcap")
@@ -404,7 +404,7 @@ def _add_file_commands(sub: Any) -> None:
     p.set_defaults(func=cmd_stitch)
 
 
-def _add_vocab_command(sub: Any) -> None:
+def _add_vocab_command(sub: Subcommands) -> None:
     """`vocab build`: ORB vocabularies for the ORB-SLAM3 backend."""
     p = sub.add_parser("vocab", help="ORB vocabularies for the ORB-SLAM3 tracker backend")
     vsub = p.add_subparsers(dest="vocab_command", required=True)
@@ -424,7 +424,7 @@ def _add_vocab_command(sub: Any) -> None:
     v.set_defaults(func=cmd_vocab)
 
 
-def _add_router_command(sub: Any) -> None:
+def _add_router_command(sub: Subcommands) -> None:
     """`router`: a Zenoh router hosted in Python."""
     p = sub.add_parser("router", help="host a Zenoh router (no zenohd needed)")
     p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT")

@@ -69,7 +69,7 @@ def read(path: Path) -> ErrorRecord | None:
 
 
 # what the stage found that its report carries besides drops and CPU (the tracker's `depth_bias`)
-FINDINGS: dict[str, Any] = {}
+FINDINGS: dict[str, object] = {}
 
 
 def write_report(malformed: dict[str, int], cpu: dict | None = None) -> None:

@@ -12,12 +12,16 @@ import sys
 import uuid
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from octolog.kit.config import load, to_dict, to_toml
 from octolog.kit.errors import ConfigError
-from octolog.shell.args import add_bus_arguments, add_config_arguments, add_viz_arguments, bus_config
+from octolog.shell.args import Subcommands, add_bus_arguments, add_config_arguments, add_viz_arguments, bus_config
 from octolog.shell.versions import versions
+
+if TYPE_CHECKING:  # for annotations only: the commands import the recorder themselves (see below)
+    from octolog.recorder.config import RecorderConfig
+    from octolog.recorder.recording_types import RecorderStatus, RecordResult
 
 # The recorder's modules are imported inside the commands below (`# lazy:`), never here: they load
 # pyrealsense2, OpenCV, mcap and Zenoh (0.3 s), and cli.py imports this module for every command's
@@ -26,7 +30,7 @@ from octolog.shell.versions import versions
 _PROFILE = re.compile(r"^(\d+)x(\d+)@(\d+)$")
 
 
-def add_parsers(sub: Any) -> None:
+def add_parsers(sub: Subcommands) -> None:
     """Register `record` and `recover` on an argparse subparsers object."""
     p = sub.add_parser("record", help="record a RealSense camera (colour, depth, IMU) to MCAP",
                        description="Record colour, depth and IMU to MCAP (ROS 2 profile) with calibration, "
@@ -106,12 +110,12 @@ def overrides(args: argparse.Namespace) -> list[str]:
     return out
 
 
-def _status_printer() -> Callable[[Any], None]:
+def _status_printer() -> Callable[[RecorderStatus], None]:
     from octolog.recorder.recording_types import format_status  # lazy: numpy, rosbags
 
     tty = sys.stderr.isatty()
 
-    def show(status: Any) -> None:
+    def show(status: RecorderStatus) -> None:
         print(("\r" if tty else "") + format_status(status), end="" if tty else "\n", file=sys.stderr, flush=True)
 
     return show
@@ -152,7 +156,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     return 0
 
 
-def _write_session_files(folder: Path, cfg: Any, res: Any) -> None:
+def _write_session_files(folder: Path, cfg: RecorderConfig, res: RecordResult) -> None:
     """config.toml and summary.json beside a recording, as in a session folder from `octolog run`."""
     (folder / "config.toml").write_text(to_toml({"recorder": to_dict(cfg)}))
     streams = {name: {"frames": st.frames, "dropped": st.dropped} for name, st in res.streams.items()}

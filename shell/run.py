@@ -147,7 +147,7 @@ def _resolve_configs(source: str, config: str | None, per: dict[str, list[str]])
 LIVE_COLOUR = LIVE_DEPTH = (640, 480)
 
 
-def _live_resolution(rec: Any, config: str | None, sets: list[str]) -> Any:
+def _live_resolution(rec: RecorderConfig, config: str | None, sets: list[str]) -> RecorderConfig:
     """The recorder config with LIVE_COLOUR / LIVE_DEPTH for a stream whose size nobody set."""
     given = {s.split("=", 1)[0].split(".")[0] for s in sets}
     if config:
@@ -227,7 +227,7 @@ class SessionPlan:
     source: str
     out: Path
     src: Source | LiveSource
-    cfgs: dict[str, Any]  # stage -> its validated config
+    cfgs: dict[str, Any]  # stage -> its validated config (Any: one config class per stage, each read by name)
     feed_tracker: bool  # a log player stands in for the tracker
     rerun: str
     recording_id: str
