@@ -14,12 +14,13 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 from octolog.kit import logs
 from octolog.kit.bus import Bus, BusConfig, wait_interruptibly
 from octolog.kit.errors import StageExited, StageKilled
-from octolog.shell import errorfile
+from octolog.shell import errorfile, statusline
 
 # A killed mapper is started again: it rebuilds its map from the tracker's keyframe history (the
 # tracker keeps every keyframe until the mapper is done; see octolog/bus.py). The other stages'
@@ -28,29 +29,47 @@ RESTARTABLE = ("mapper",)
 MAX_RESTARTS = 3
 
 
-# Stages that yield the CPU to the others (`nice` levels): the mapper works on keyframes from a deep
-# queue, so when the cores are short it is the one to wait, not the tracker (whose frames are live)
-# nor the camera or the session log. Its outputs do not depend on when it runs.
+# Stages that yield the CPU to the others of the run (`nice` levels): the mapper works on keyframes
+# from a deep queue, so when the cores are short it is the one to wait, not the tracker (whose frames
+# are live) nor the camera or the session log. Its outputs do not depend on when it runs.
 NICENESS = {"mapper": 10}
 
+AUTOGROUP = Path("/proc/sys/kernel/sched_autogroup_enabled")
 
-def _niced(name: str) -> list[str]:
-    """The command prefix that starts stage `name` at its NICENESS (`nice -n N`), race-free: every
-    thread the stage starts inherits it."""
-    n = NICENESS.get(name, 0)
+
+def grouped_by_session() -> bool:
+    """Whether Linux schedules by session (autogroup, the default of most distributions): each session
+    then gets one share of the CPUs, and a nice level ranks a process only within its session."""
+    try:
+        return AUTOGROUP.read_text().strip() == "1"
+    except OSError:
+        return False  # not Linux, or a kernel without autogroup: nice ranks against every process
+
+
+@dataclass(frozen=True)
+class Launch:
+    """How a stage process starts (the Popen options of the same names)."""
+
+    nice: int  # its nice level
+    start_new_session: bool  # a session, and so under autogroup a scheduling group, of its own
+    process_group: int  # 0: a process group of its own, led by the stage
+
+
+def launch(name: str, *, grouped: bool) -> Launch:
+    """How to start stage `name`. Every stage stays in this process's session, so under autogroup
+    (`grouped`) the run competes with the rest of the machine as one group, as any shell job does, and
+    a stage's nice level only ranks it against the run's other stages: the mapper yields to the
+    tracker, never to unrelated jobs. Without that grouping a nice level would rank the mapper below
+    every other process on the machine, so it stays at 0. Each stage leads a process group of its
+    own, which `stop_all` signals whole; stdin is closed (a process group that is not the terminal's
+    foreground one would be stopped for reading it)."""
+    return Launch(NICENESS.get(name, 0) if grouped else 0, start_new_session=False, process_group=0)
+
+
+def _niced(n: int) -> list[str]:
+    """The command prefix that starts a stage at nice level `n` (`nice -n N`), race-free: every thread
+    the stage starts inherits it."""
     return ["nice", "-n", str(n)] if n and shutil.which("nice") else []
-
-
-def _nice_session(name: str, pid: int) -> None:
-    """The same level for the stage's session: each stage leads a session of its own, and where Linux
-    groups the scheduling by session (autogroup, the desktop default) a process's nice level only
-    weighs inside its group, so the group's level is what yields the cores to the other stages."""
-    n = NICENESS.get(name, 0)
-    if n:
-        try:
-            Path(f"/proc/{pid}/autogroup").write_text(str(n))
-        except OSError:
-            pass  # no autogroup (kernel without it, or not Linux): nice alone does it
 
 
 class StageProcesses:
@@ -70,15 +89,18 @@ class StageProcesses:
         log = open(self.logs / f"{name}.log", "ab" if append else "wb")  # noqa: SIM115 - owned by the child
         errorfile.reserve(self.error_file(name))
         env = {**os.environ, "PYTHONHASHSEED": "0", "PYTHONUNBUFFERED": "1", errorfile.ENV: str(self.error_file(name)),
-               errorfile.REPORT_ENV: str(self.logs / f"{name}.report.json")}
+               errorfile.REPORT_ENV: str(self.logs / f"{name}.report.json"),
+               # its status line ends up on our stderr: redrawn only if that is a terminal
+               statusline.ENV: "1" if show_stderr and statusline.is_terminal(sys.stderr) else "0"}
         self.argv[name] = (argv, show_stderr)
         # OCTOLOG_PROFILE=STAGE[,STAGE]: run those stages under cProfile, into logs/STAGE.prof
         profile = name in os.environ.get("OCTOLOG_PROFILE", "").split(",")
         prof = ["-m", "cProfile", "-o", str(self.logs / f"{name}.prof")] if profile else []
+        how = launch(name, grouped=grouped_by_session())
         self.procs[name] = proc = subprocess.Popen(
-            [*_niced(name), sys.executable, *prof, "-m", "octolog", *argv, "--log-level", logs.level()], stdout=log,
-            stderr=subprocess.PIPE if show_stderr else log, env=env, start_new_session=True)
-        _nice_session(name, proc.pid)
+            [*_niced(how.nice), sys.executable, *prof, "-m", "octolog", *argv, "--log-level", logs.level()], stdout=log,
+            stderr=subprocess.PIPE if show_stderr else log, stdin=subprocess.DEVNULL, env=env,
+            start_new_session=how.start_new_session, process_group=how.process_group)
         if show_stderr:
             relay = threading.Thread(target=self._relay, args=(proc.stderr,), daemon=True)
             relay.start()
@@ -157,7 +179,9 @@ class StageProcesses:
         return (lines or ["(no output)"])[-1].strip()
 
     def stop_all(self) -> None:
-        """Stop every stage still running: SIGTERM to its process group, SIGKILL after 5 s."""
+        """Stop every stage still running: SIGTERM to its process group, SIGKILL after 5 s. Once all
+        have ended, the error files of the stages that recorded no error are removed (their space was
+        only reserved, errorfile.reserve)."""
         for proc in self.procs.values():
             if proc.poll() is None:
                 os.killpg(proc.pid, signal.SIGTERM)
@@ -168,6 +192,8 @@ class StageProcesses:
             except subprocess.TimeoutExpired:
                 os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait()
+        for name in self.procs:
+            errorfile.release(self.error_file(name))
 
 
 def free_port() -> int:

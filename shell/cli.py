@@ -23,33 +23,34 @@ from octolog.kit.errors import ConfigError, DiskFull, OctologError
 from octolog.shell import errorfile, record
 from octolog.shell.args import add_bus_arguments, add_config_arguments, add_viz_arguments, bus_config, recording_id
 from octolog.shell.args import Subcommands, add_log_arguments, command_logging
+from octolog.shell.statusline import StatusLine, end_latest
 
 if TYPE_CHECKING:
     from octolog.replay.node import ReplayStatus
 
-_line_open = False  # a progress line is on stderr without its newline yet
+_status: StatusLine | None = None  # the replay's status line, once it has shown something
 
 
 def _progress(status: ReplayStatus) -> None:
-    """The replay's status line (replay.node.ReplayStatus), redrawn every 10 frames on stderr."""
-    global _line_open
+    """The replay's status line (replay.node.ReplayStatus) on stderr, every 10 frames: redrawn on a
+    terminal, else a plain line every few seconds (shell/statusline.py)."""
+    global _status
     done, total = status.published, status.total
     if done % 10 and done != total:
         return
-    print(f"\r  {status.line():<118}", end="", file=sys.stderr, flush=True)  # padded: a shorter line overwrites
-    _line_open = done != total
+    _status = _status or StatusLine()
+    _status.show(f"  {status.line()}")
     if done == total:
-        print(file=sys.stderr)
+        _status.end()
 
 
 def _error_line(text: str) -> None:
     """`text` on a line of its own on stderr: an open progress line is ended first."""
-    global _line_open
     try:
-        print(("\n" if _line_open else "") + text, file=sys.stderr, flush=True)
+        end_latest()
+        print(text, file=sys.stderr, flush=True)
     except OSError:
         pass  # stderr is a log on a full disk: the error record (errorfile) carries the message
-    _line_open = False
 
 
 # --- commands ----------------------------------------------------------------------------------
@@ -80,12 +81,13 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 def cmd_replay_session(args: argparse.Namespace) -> int:
     """`octolog replay SESSION`: re-run stages of a recorded session from its log."""
-    from octolog.shell import run  # lazy: the orchestrator loads every stage's config, Zenoh and mcap
-
     stages = ("mapper",) if args.from_stage == "tracker" else tuple(args.stages.split(","))
     if args.from_stage not in (None, "tracker"):
         raise ConfigError(f"--from {args.from_stage}: only --from tracker (the mapper rebuilt from the tracker's log)")
     out = Path(args.out or (Path(args.session) / "replay"))
+    _starting(f"replay: {','.join(stages)} of {args.session}", out)
+    from octolog.shell import run  # lazy: the orchestrator loads every stage's config, Zenoh and mcap
+
     summary = run.replay_session(Path(args.session), out=out, stages=stages, overrides=args.set,
                                  rerun=args.rerun,
                                  recording_id=recording_id(args), quiet=args.quiet, overwrite=args.overwrite)
@@ -166,6 +168,7 @@ def cmd_log(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     """`octolog run`: the whole pipeline as processes on this machine."""
+    _starting(f"{args.command}: {args.source}", Path(args.out))
     from octolog.shell import run  # lazy: the orchestrator loads every stage's config, Zenoh and mcap
 
     summary = run.run_session(
@@ -176,6 +179,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     )
     print(run.format_summary(summary))
     return 0
+
+
+def _starting(what: str, out: Path) -> None:
+    """A session's first line, on stdout at once: its imports and stages take seconds to start (more on
+    a loaded machine), and a log or terminal should not stay empty meanwhile."""
+    print(f"octolog {what} → {out} (stage logs: {out / 'logs'}); starting the stages", flush=True)
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -253,10 +262,13 @@ def cmd_vocab(args: argparse.Namespace) -> int:
     if out.exists() and not args.overwrite:
         raise ConfigError(f"--out {out}: exists; pass --overwrite to replace it")
 
+    line = StatusLine()
+
     def progress(done: int, total: int) -> None:
         if not args.quiet and (done % 10 == 0 or done == total):
-            print(f"\r  ORB features: {done}/{total} images", end="\n" if done == total else "", file=sys.stderr,
-                  flush=True)
+            line.show(f"  ORB features: {done}/{total} images")
+            if done == total:
+                line.end()
 
     res = vocab.build(args.image_dirs, out, k=args.k, levels=args.levels, max_images=args.max_images,
                       n_features=args.features, seed=args.seed, progress=progress)

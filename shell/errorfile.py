@@ -5,6 +5,8 @@ command fails with an `OctologError`, `cli.main` writes the error's type and mes
 the orchestrator learns what went wrong without searching the child's log for the word "error".
 The orchestrator reserves the file's space before the stage starts (`reserve`), so the record can
 be written on a disk the stage has just filled: the stage overwrites bytes that are already there.
+Once the stage has ended, a reservation it did not use is removed (`release`): a finished session
+holds `logs/STAGE.error.json` only for a stage that reported an error.
 """
 
 from __future__ import annotations
@@ -55,6 +57,16 @@ def write(exc: OctologError) -> None:
 def reserve(path: Path) -> None:
     """Make `path` an empty record (no error yet) holding RESERVED_BYTES of disk space for one."""
     path.write_bytes(b" " * RESERVED_BYTES)
+
+
+def release(path: Path) -> None:
+    """Once the stage has ended: remove `path` unless it holds a record, so only a stage that reported
+    an error leaves a file."""
+    if read(path) is None:
+        try:
+            path.unlink(missing_ok=True)
+        except OSError:
+            pass  # left as it is: blanks, which `read` takes for no record
 
 
 def read(path: Path) -> ErrorRecord | None:

@@ -8,7 +8,6 @@ from __future__ import annotations
 import argparse
 import json
 import re
-import sys
 import uuid
 from collections.abc import Callable
 from pathlib import Path
@@ -17,6 +16,7 @@ from typing import TYPE_CHECKING
 from octolog.kit.config import load, to_dict, to_toml
 from octolog.kit.errors import ConfigError
 from octolog.shell.args import Subcommands, add_bus_arguments, add_config_arguments, add_viz_arguments, bus_config
+from octolog.shell.statusline import StatusLine
 from octolog.shell.versions import versions
 
 if TYPE_CHECKING:  # for annotations only: the commands import the recorder themselves (see below)
@@ -110,13 +110,12 @@ def overrides(args: argparse.Namespace) -> list[str]:
     return out
 
 
-def _status_printer() -> Callable[[RecorderStatus], None]:
+def _status_printer(line: StatusLine) -> Callable[[RecorderStatus], None]:
+    """The recorder's status on `line`: redrawn on a terminal, else a plain line every few seconds."""
     from octolog.recorder.recording_types import format_status  # lazy: numpy, rosbags
 
-    tty = sys.stderr.isatty()
-
     def show(status: RecorderStatus) -> None:
-        print(("\r" if tty else "") + format_status(status), end="" if tty else "\n", file=sys.stderr, flush=True)
+        line.show(format_status(status))
 
     return show
 
@@ -135,13 +134,13 @@ def cmd_record(args: argparse.Namespace) -> int:
     if folder:  # a session folder, like `octolog run` makes
         out.mkdir(parents=True, exist_ok=True)
         out = out / "session.mcap"
+    line = StatusLine()
     res = node.run(cfg, out, bus_cfg=bus_config(args) if args.publish else None,
                    rerun=getattr(args, "rerun", None) or "off",
                    recording_id=getattr(args, "recording_id", None) or str(uuid.uuid4()),
                    duration_s=args.duration, overwrite=args.overwrite,
-                   status=None if args.quiet else _status_printer())
-    if not args.quiet and sys.stderr.isatty():
-        print(file=sys.stderr)
+                   status=None if args.quiet else _status_printer(line))
+    line.end()
     frames = ", ".join(f"{s} {st.frames}" for s, st in res.streams.items() if st.frames)
     drops = ", ".join(f"{s} {st.dropped}" for s, st in res.streams.items() if st.dropped) or "none"
     live = sum(st.live_drops for st in res.streams.values())

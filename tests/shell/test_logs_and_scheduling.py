@@ -1,0 +1,161 @@
+"""Output fit for logs and stages that keep their share of the CPU: the status line off a terminal is
+plain lines, a session says what it starts before its slow imports, a finished session keeps no empty
+error records, and no stage is ranked below unrelated jobs."""
+
+from __future__ import annotations
+
+import io
+import subprocess
+import sys
+from dataclasses import dataclass
+
+import pytest
+from helpers import ROOT
+
+from octolog.shell import cli, errorfile, statusline
+from octolog.shell.children import NICENESS, StageProcesses, launch
+from octolog.shell.run import STAGES
+from octolog.shell.statusline import StatusLine
+
+
+class Clock:
+    """A clock the test moves by hand."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_off_a_terminal_the_status_is_a_plain_line_every_few_seconds_and_the_last_one_always():
+    out, clock = io.StringIO(), Clock()
+    line = StatusLine(out, tty=False, interval_s=5.0, clock=clock)
+    for second in range(13):  # a state every second
+        clock.now = float(second)
+        line.show(f"state {second}")
+    line.end()
+    assert "\r" not in out.getvalue()
+    assert out.getvalue().splitlines() == ["state 0", "state 5", "state 10", "state 12"]
+    line.end()  # nothing held back: nothing more
+    assert out.getvalue().endswith("state 12\n") and out.getvalue().count("\n") == 4
+
+
+def test_on_a_terminal_the_status_is_redrawn_in_place_and_ended_once():
+    out = io.StringIO()
+    line = StatusLine(out, tty=True, clock=Clock())
+    line.show("  100 frames, tracker 3 queued")
+    line.show("  110 frames")  # shorter: padded over the longer one
+    assert line.open
+    line.end()
+    assert out.getvalue() == "\r  100 frames, tracker 3 queued\r  110 frames" + " " * 18 + "\n"
+    line.end()
+    assert not line.open and out.getvalue().count("\n") == 1
+
+
+class FakeTty(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_a_relayed_stage_redraws_only_when_the_orchestrators_stderr_is_a_terminal(monkeypatch):
+    monkeypatch.delenv(statusline.ENV, raising=False)
+    assert statusline.is_terminal(FakeTty()) and not statusline.is_terminal(io.StringIO())
+    # under `octolog run` the stage's stderr is a pipe; the orchestrator says where it ends up
+    monkeypatch.setenv(statusline.ENV, "1")
+    assert statusline.is_terminal(io.StringIO())
+    monkeypatch.setenv(statusline.ENV, "0")
+    assert not statusline.is_terminal(FakeTty())
+
+
+@dataclass
+class ReplayStatusStub:
+    published: int
+    total: int
+
+    def line(self) -> str:
+        return f"{self.published}/{self.total} frames"
+
+
+def test_the_replays_progress_into_a_log_has_no_carriage_returns(monkeypatch, capsys):
+    """Whatever the time between frames: one line per state written, each ended, the last one there."""
+    monkeypatch.delenv(statusline.ENV, raising=False)
+    monkeypatch.setattr(cli, "_status", None)
+    for done in range(1, 31):
+        cli._progress(ReplayStatusStub(done, 30))
+    err = capsys.readouterr().err
+    assert "\r" not in err and err.endswith("\n")
+    lines = err.splitlines()
+    assert lines[0] == "  10/30 frames" and lines[-1] == "  30/30 frames", lines
+
+
+def test_an_error_after_a_redrawn_line_starts_a_line_of_its_own(monkeypatch, capsys):
+    monkeypatch.setenv(statusline.ENV, "1")
+    monkeypatch.setattr(cli, "_status", None)
+    cli._progress(ReplayStatusStub(10, 30))
+    cli._error_line("octolog replay: error: boom")
+    assert capsys.readouterr().err == "\r  10/30 frames\noctolog replay: error: boom\n"
+
+
+# The first line: printed before the orchestrator (and Zenoh, numpy, OpenCV...) is imported.
+BLOCK_THE_ORCHESTRATOR = """
+import sys
+class Block:
+    def find_spec(self, name, path=None, target=None):
+        if name == "octolog.shell.run":
+            raise ImportError("the test stops here")
+sys.meta_path.insert(0, Block())
+from octolog.shell import cli
+try:
+    cli.main(sys.argv[1:])
+except ImportError:
+    print("heavy modules loaded:", sorted(m for m in ("numpy", "zenoh", "cv2") if m in sys.modules))
+"""
+
+
+@pytest.mark.parametrize("command", [["run", "--source", "synthetic:5"], ["demo"]])
+def test_a_session_says_what_it_starts_before_its_slow_imports(tmp_path, command):
+    out = tmp_path / "s"
+    proc = subprocess.run([sys.executable, "-c", BLOCK_THE_ORCHESTRATOR, *command, "--out", str(out)],
+                          capture_output=True, text=True, timeout=120, cwd=ROOT)
+    source = "synthetic:5" if command[0] == "run" else "synthetic:150"
+    assert proc.stdout.splitlines() == [
+        f"octolog {command[0]}: {source} → {out} (stage logs: {out / 'logs'}); starting the stages",
+        "heavy modules loaded: []"], proc.stdout + proc.stderr
+
+
+def test_a_finished_run_keeps_no_empty_error_records(octolog_run):
+    out, stdout = octolog_run("synthetic:30")
+    assert stdout.startswith(f"octolog run: synthetic:30 → {out} ")
+    assert sorted(p.name for p in (out / "logs").glob("*.log")) == ["log.log", "mapper.log", "replay.log",
+                                                                     "tracker.log"]
+    assert list((out / "logs").glob("*.error.json")) == []
+
+
+def test_a_stage_keeps_its_reservation_while_it_runs_and_its_record_after(tmp_path):
+    """The space for a record is there from before the stage starts (a full disk cannot take it);
+    after the end, only a stage that recorded an error leaves its file."""
+    children = StageProcesses(tmp_path)
+    children.start("helped", ["--help"])  # exits 0, records nothing
+    assert children.error_file("helped").read_bytes() == b" " * errorfile.RESERVED_BYTES
+    children.start("failed", ["eval", str(tmp_path / "nope.txt"), str(tmp_path / "gt.txt")])  # an InputError
+    for proc in children.procs.values():
+        proc.wait(timeout=120)
+    children.stop_all()
+    assert not children.error_file("helped").exists()
+    record = errorfile.read(children.error_file("failed"))
+    assert record is not None and record.type == "InputError"
+
+
+def test_no_stage_leads_a_session_of_its_own_or_is_niced_without_session_grouping():
+    """Under autogroup a session is a scheduling group: a stage in a session of its own would compete
+    with unrelated jobs on its own weight (the mapper's, niced, on a tenth of theirs). In the
+    orchestrator's session its nice level only ranks it within the run; where the kernel does not
+    group by session, a nice level would rank it below every other process, so none is set."""
+    for name in (*STAGES, "recorder"):
+        for grouped in (True, False):
+            how = launch(name, grouped=grouped)
+            assert not how.start_new_session and how.process_group == 0, (name, how)
+            assert how.nice == (NICENESS.get(name, 0) if grouped else 0), (name, grouped, how)
+            assert how.nice >= 0
+    assert launch("mapper", grouped=True).nice > launch("tracker", grouped=True).nice  # it yields to the tracker
