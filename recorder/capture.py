@@ -73,9 +73,11 @@ class DeviceDescription:
     motion_intrinsics: dict[str, dict[str, list]] = field(default_factory=dict)
     options: dict[str, float] = field(default_factory=dict)
     distortion_models: dict[str, str] = field(default_factory=dict)
+    groundtruth_tum: str = ""  # a simulated camera's true colour poses (TUM text; docs/formats.md)
 
     def metadata(self) -> dict[str, dict[str, str]]:
-        """MCAP metadata records `device` and `calibration` (JSON values where structured)."""
+        """MCAP metadata records `device` and `calibration` (JSON values where structured), and
+        `groundtruth` when the camera is a simulated one that knows its path."""
 
         def intr(i: Intrinsics | None, model: str) -> str:
             if i is None:
@@ -97,7 +99,8 @@ class DeviceDescription:
                "color_from_depth": mat(self.color_from_depth),
                "depth_from_gyro": mat(self.depth_from_gyro), "depth_from_accel": mat(self.depth_from_accel),
                "imu_intrinsics": json.dumps(self.motion_intrinsics, sort_keys=True)}
-        return {"device": device, "calibration": cal}
+        truth = {"groundtruth": {"tum": self.groundtruth_tum}} if self.groundtruth_tum else {}
+        return {"device": device, "calibration": cal, **truth}
 
 
 @dataclass(frozen=True)

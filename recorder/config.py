@@ -14,13 +14,15 @@ from octolog.recorder.livesink import LiveSink
 from octolog.recorder.realsense_camera import RealSenseBackend
 from octolog.recorder.writer import Recorder
 from octolog.recorder.recording_types import Encoding, WriterParams
-from octolog.recorder.software_d455 import D455_IMU, SoftwareDeviceBackend
+from octolog.recorder.software_d455 import D455_IMU, ProviderFactory, SoftwareDeviceBackend
 
 BACKENDS = ("realsense", "software")
 COLOR_CODECS = ("raw", "jpeg")
 DEPTH_CODECS = ("raw", "png")
 EMITTER = ("", "off", "on", "auto")
 IMU_CHIPS = tuple(D455_IMU)  # the chips the software D455 can pose with
+SCENES = ("room", "pattern")  # what the software D455 films (SoftwareConfig.scene)
+MOTIONS = ("walk", "turns")
 PRESETS = ("", "custom", "default", "hand", "high_accuracy", "high_density", "medium_density")
 
 
@@ -42,10 +44,18 @@ class DepthConfig:
 class SoftwareConfig:
     """The software device (no camera needed): synthetic frames pushed through pyrealsense2."""
 
-    frames: int = 0  # colour/depth frame pairs to push, then the stream ends (0: until stopped)
+    frames: int = 0  # frame pairs to push, then the stream ends (0: until stopped; room: --duration's, else one walk)
     paced: bool = False  # push at the sensor rate in wall time (a live camera) instead of on demand
     unplug_after: int = 0  # simulate the camera vanishing after this many frame pairs (0: never)
     imu_chip: str = "bmi085"  # bmi085: gyro 200/400 Hz, accel 100/200 Hz; bmi055: accel 63/250 Hz
+    # what it films: "room" (the synthetic room along a known path, rendered ahead by the shell:
+    # shell/simcamera.py) or "pattern" (flat pictures and sine waves: the recorder alone, cheap)
+    scene: str = "room"
+    motion: str = "walk"  # room: walk (a hand-held walk round the room) or turns (the walk with fast head turns)
+    seed: int = 0  # room: another draw of the textures and of the depth and IMU noise
+    depth_bias_px: float = 0.0  # room: the depth's disparity offset (reads short if > 0), -1 to 1 px
+    imu_time_offset_ms: float = 0.0  # room: the IMU's stamps this much behind the camera's (-100 to 100)
+    imu_rotation_deg: float = 0.0  # room: the IMU turned this much about the camera's x axis from its calibration
 
 
 @dataclass(frozen=True)
@@ -114,6 +124,13 @@ class RecorderConfig:
         one_of("color_auto_exposure", self.color_auto_exposure, ("", "on", "off"))
         one_of("depth_auto_exposure", self.depth_auto_exposure, ("", "on", "off"))
         one_of("software.imu_chip", self.software.imu_chip, IMU_CHIPS)
+        one_of("software.scene", self.software.scene, SCENES)
+        one_of("software.motion", self.software.motion, MOTIONS)
+        if not abs(self.software.depth_bias_px) <= 1.0:
+            raise ConfigError(f"recorder.software.depth_bias_px {self.software.depth_bias_px}: want -1 to 1 px")
+        if not abs(self.software.imu_time_offset_ms) <= 100.0 or not abs(self.software.imu_rotation_deg) <= 45.0:
+            raise ConfigError("recorder.software.imu_time_offset_ms, imu_rotation_deg: want -100 to 100 ms, "
+                              "-45 to 45 degrees")
         for key, v in (("color", self.color), ("depth", self.depth)):
             if v.width <= 0 or v.height <= 0 or v.fps <= 0:
                 raise ConfigError(f"recorder.{key} {v.width}x{v.height}@{v.fps}: want positive size and rate")
@@ -167,12 +184,13 @@ def capture_profile(cfg: RecorderConfig) -> CaptureProfile:
                           raw_depth=cfg.raw_depth, options=opts)
 
 
-def make_backend(cfg: RecorderConfig) -> Backend:
-    """The configured frame source: a RealSense camera, or the software D455."""
+def make_backend(cfg: RecorderConfig, frames_from: ProviderFactory | None = None) -> Backend:
+    """The configured frame source: a RealSense camera, or the software D455 filming what
+    `frames_from` makes (the shell's rendered room, shell/simcamera.py; None: the flat pattern)."""
     if cfg.backend == "software":
         s = cfg.software
         return SoftwareDeviceBackend(frames=s.frames, paced=s.paced, unplug_after=s.unplug_after,
-                                     imu_chip=s.imu_chip)
+                                     imu_chip=s.imu_chip, frames_from=frames_from)
     return RealSenseBackend(cfg.serial)
 
 

@@ -1,17 +1,25 @@
-"""A software D455: pyrealsense2's software device posing as the camera, fed with a deterministic
-synthetic pattern, so the recorder runs end to end (tests, benchmarks) without hardware."""
+"""A software D455: pyrealsense2's software device posing as the camera, so the recorder runs end to
+end without hardware.
+
+What it films comes from a `FrameProvider`, made for the streams the device opens (`SimulatedLayout`:
+intrinsics, rates, depth units, the depth imager's and the IMU's place on the colour camera): by
+default `SyntheticPattern`, flat pictures and sine waves, cheap (the recorder's own tests and
+benchmarks); the shell gives it a rendered 3D scene with a known trajectory instead
+(shell/simcamera.py), whose ground truth the recording then carries."""
 
 from __future__ import annotations
 
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Any
+from collections.abc import Callable
+from typing import Any, Protocol
 
 import numpy as np
 import pyrealsense2 as rs
 
 from octolog.kit.errors import DeviceLost
+from octolog.kit.geometry import Intrinsics
 from octolog.recorder.capture import MOTION_STREAMS, CaptureProfile, DeviceDescription
 from octolog.recorder.device_profiles import apply_options, describe, resolve
 
@@ -24,6 +32,98 @@ D455_DEPTH = {(1280, 720): (5, 15, 30), (848, 480): (5, 15, 30, 60, 90), (640, 4
               (256, 144): (90,)}
 D455_IMU = {"bmi085": {"gyro": (200, 400), "accel": (100, 200)},
             "bmi055": {"gyro": (200, 400), "accel": (63, 250)}}
+DEPTH_FOV_DEG, COLOR_FOV_DEG = 87.0, 90.0  # horizontal; pinhole intrinsics from these (`video_intrinsics`)
+# calibration (D455-like): colour 59 mm beside the left imager, the IMU a little behind it. As
+# librealsense takes them: rotation column-major, p_to = R p_from + t
+DEPTH_TO_COLOR = ((0.99999, 0.00436, -0.00100, -0.00436, 0.99999, 0.00050, 0.00100, -0.00050, 1.0),
+                  (-0.059, 0.0001, 0.0003))
+DEPTH_TO_IMU = ((1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0), (-0.03022, 0.0074, 0.01602))
+START_NS = 1_000_000_000  # sensor clock at the first frame
+
+
+def video_intrinsics(w: int, h: int, fov_deg: float) -> Intrinsics:
+    """A software D455 stream's pinhole intrinsics: square pixels from the horizontal field of
+    view, the principal point a little off centre."""
+    f = w / 2 / np.tan(np.radians(fov_deg / 2))
+    return Intrinsics(w, h, float(f), float(f), w / 2 - 0.5 + 1.25, h / 2 - 0.5 - 0.75, (0.0,) * 5)
+
+
+def to_from(extrinsics: tuple[tuple[float, ...], tuple[float, ...]]) -> np.ndarray:
+    """librealsense extrinsics (column-major rotation, translation) as a 4x4 `to_from_from`."""
+    T = np.eye(4)
+    T[:3, :3] = np.asarray(extrinsics[0], dtype=np.float64).reshape(3, 3).T
+    T[:3, 3] = extrinsics[1]
+    return T
+
+
+def stamp_ns(rate: int, n: int) -> int:
+    """Sensor time of the n-th sample of a stream at `rate` Hz (integer ns on the device clock)."""
+    return START_NS + n * 1_000_000_000 // rate
+
+
+@dataclass(frozen=True)
+class SimulatedLayout:
+    """What a frame provider must produce for the streams the software D455 opened: colour
+    (`color` intrinsics) and depth (`depth` intrinsics, seen from the depth imager, in
+    `depth_units_m`) at `fps`, frame i at `stamp_ns(fps, i)`; gyro and accelerometer samples at
+    their rates (0: no IMU), in the IMU's frame (`color_from_depth @ depth_from_imu` places it)."""
+
+    color: Intrinsics
+    depth: Intrinsics
+    fps: int
+    gyro_hz: int
+    accel_hz: int
+    depth_units_m: float
+    color_from_depth: tuple[tuple[float, ...], ...]  # 4x4, row-major (hashable)
+    depth_from_imu: tuple[tuple[float, ...], ...]
+
+    @property
+    def color_from_imu(self) -> np.ndarray:
+        return np.asarray(self.color_from_depth) @ np.asarray(self.depth_from_imu)
+
+
+def simulated_layout(profile: CaptureProfile, gyro_hz: int, accel_hz: int) -> SimulatedLayout:
+    """The layout of a profile, with the IMU rates it resolves to (0: no IMU)."""
+    (cw, ch, fps), (dw, dh, _) = profile.color, profile.depth
+
+    def rows(m: np.ndarray) -> tuple[tuple[float, ...], ...]:
+        return tuple(tuple(float(v) for v in r) for r in m)
+
+    return SimulatedLayout(video_intrinsics(cw, ch, COLOR_FOV_DEG), video_intrinsics(dw, dh, DEPTH_FOV_DEG), fps,
+                           gyro_hz if profile.imu else 0, accel_hz if profile.imu else 0,
+                           profile.options.depth_units_m or 0.001, rows(to_from(DEPTH_TO_COLOR)),
+                           rows(np.linalg.inv(to_from(DEPTH_TO_IMU))))
+
+
+def default_imu_rates(profile: CaptureProfile, imu_chip: str) -> tuple[int, int]:
+    """The gyro and accelerometer rates a profile opens the chip at (0: the device's default)."""
+    rates = D455_IMU[imu_chip]
+    return profile.gyro_fps or rates["gyro"][0], profile.accel_fps or rates["accel"][0]
+
+
+class FrameProvider(Protocol):
+    """What the software D455 films, per frame index and IMU sample index (see SimulatedLayout)."""
+
+    frames: int  # frame pairs it has (0: endless); the stream ends after them
+
+    def color(self, i: int) -> np.ndarray:
+        """(H, W, 3) uint8 RGB."""
+        ...
+
+    def depth(self, i: int) -> np.ndarray:
+        """(H, W) uint16 in the layout's depth units, 0 = no reading, from the depth imager's pose."""
+        ...
+
+    def motion(self, stream: str, k: int) -> tuple[float, float, float]:
+        """The k-th gyro (rad/s) or accelerometer (m/s²) sample, as float32 would hold it."""
+        ...
+
+    def groundtruth_tum(self) -> str:
+        """The colour camera's true poses at the frames' stamps (TUM text), "" if unknown."""
+        ...
+
+
+ProviderFactory = Callable[[SimulatedLayout], FrameProvider]
 
 
 class SyntheticPattern:
@@ -37,6 +137,14 @@ class SyntheticPattern:
     """
 
     PAD = 96
+    frames = 0  # endless
+
+    @classmethod
+    def for_layout(cls, layout: SimulatedLayout) -> SyntheticPattern:
+        return cls((layout.color.width, layout.color.height), (layout.depth.width, layout.depth.height))
+
+    def groundtruth_tum(self) -> str:
+        return ""  # no rigid motion explains these frames
 
     def __init__(self, color_wh: tuple[int, int], depth_wh: tuple[int, int], *, seed: int = 0) -> None:
         rng = np.random.default_rng(seed)
@@ -94,23 +202,26 @@ class Pushed:
 
 class SoftwareDeviceBackend:
     """pyrealsense2's software device posing as a D455: every D455 colour/depth profile and the
-    IMU rates of the chosen chip, D455-like calibration and options. Frames of the synthetic
-    pattern are pushed into the sensors and come back through `rs.syncer` as real rs frames.
+    IMU rates of the chosen chip, D455-like calibration and options. Frames of a `FrameProvider`
+    (`frames_from` makes one for the opened streams; default the synthetic pattern) are pushed into
+    the sensors and come back through `rs.syncer` as real rs frames; a provider with a ground truth
+    puts it into the device's description (the recording's `groundtruth` record).
 
     On demand (default) a frame pair and the IMU samples up to the next frame time are pushed
     each time the recorder asks, so sensor time runs as fast as the recorder takes frames;
     `paced` pushes on the sensor clock in wall time, like a camera, from the recorder's first `wait`
     (a recorder still setting up its outputs loses no frames to it). `frames` ends the stream
-    after that many pairs; `unplug_after` raises DeviceLost after that many, like a pulled cable.
-    `pushed` logs what went in, for tests.
+    after that many pairs (or the provider's last); `unplug_after` raises DeviceLost after that many,
+    like a pulled cable. `pushed` logs what went in, for tests.
     """
 
-    START_NS = 1_000_000_000  # sensor clock at the first frame
+    START_NS = START_NS
     MAX_LAG_S = 0.25
 
     def __init__(self, *, frames: int = 0, paced: bool = False, unplug_after: int = 0, imu_chip: str = "bmi085",
-                 seed: int = 0, serial: str = "SW-D455-0001") -> None:
+                 seed: int = 0, serial: str = "SW-D455-0001", frames_from: ProviderFactory | None = None) -> None:
         self.frames = frames
+        self.frames_from = frames_from
         self.paced = paced
         self.realtime = paced
         self.unplug_after = unplug_after
@@ -119,7 +230,7 @@ class SoftwareDeviceBackend:
         self.serial = serial
         self.pushed: list[Pushed] = []
         self.skipped: list[Pushed] = []  # paced: samples lost because the recorder was late
-        self.pattern: SyntheticPattern | None = None
+        self.pattern: FrameProvider | None = None
         self._i = 0
         self._k = {"gyro": 0, "accel": 0}
         self._t0 = 0.0
@@ -150,8 +261,9 @@ class SoftwareDeviceBackend:
     def _add_video_streams(self, uid: Iterator[int]) -> None:
         """Every depth and colour profile of a D455, each with pinhole intrinsics from its field of view."""
         for table, sensor, stream, fmt, bpp, fov, store, default in (
-                (D455_DEPTH, self._depth_s, rs.stream.depth, rs.format.z16, 2, 87.0, self._dprof, (848, 480, 30)),
-                (D455_COLOR, self._color_s, rs.stream.color, rs.format.rgb8, 3, 90.0, self._cprof,
+                (D455_DEPTH, self._depth_s, rs.stream.depth, rs.format.z16, 2, DEPTH_FOV_DEG, self._dprof,
+                 (848, 480, 30)),
+                (D455_COLOR, self._color_s, rs.stream.color, rs.format.rgb8, 3, COLOR_FOV_DEG, self._cprof,
                  (1280, 720, 30))):
             for (w, h), rates in table.items():
                 for fps in rates:
@@ -159,9 +271,9 @@ class SoftwareDeviceBackend:
                     vs.type, vs.index, vs.uid, vs.width, vs.height, vs.fps = stream, 0, next(uid), w, h, fps
                     vs.bpp, vs.fmt = bpp, fmt
                     intr = rs.intrinsics()
-                    f = w / 2 / np.tan(np.radians(fov / 2))
-                    intr.width, intr.height, intr.fx, intr.fy = w, h, f, f
-                    intr.ppx, intr.ppy = w / 2 - 0.5 + 1.25, h / 2 - 0.5 - 0.75
+                    k = video_intrinsics(w, h, fov)
+                    intr.width, intr.height, intr.fx, intr.fy = w, h, k.fx, k.fy
+                    intr.ppx, intr.ppy = k.cx, k.cy
                     intr.model = rs.distortion.brown_conrady
                     intr.coeffs = [0.0] * 5
                     vs.intrinsics = intr
@@ -181,13 +293,9 @@ class SoftwareDeviceBackend:
                 self._mprof[(stream_name, fps)] = self._motion_s.add_motion_stream(ms, n == 0)
 
     def _register_extrinsics(self) -> None:
-        # calibration: colour 59 mm beside the left imager, IMU a little behind it (D455-like)
-        to_color = rs.extrinsics()
-        to_color.rotation = [0.99999, 0.00436, -0.00100, -0.00436, 0.99999, 0.00050, 0.00100, -0.00050, 1.0]
-        to_color.translation = [-0.059, 0.0001, 0.0003]
-        to_imu = rs.extrinsics()
-        to_imu.rotation = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
-        to_imu.translation = [-0.03022, 0.0074, 0.01602]
+        to_color, to_imu = rs.extrinsics(), rs.extrinsics()
+        to_color.rotation, to_color.translation = (list(v) for v in DEPTH_TO_COLOR)
+        to_imu.rotation, to_imu.translation = (list(v) for v in DEPTH_TO_IMU)
         for dp in self._dprof.values():
             for cp in self._cprof.values():
                 dp.register_extrinsics_to(cp, to_color)
@@ -229,13 +337,21 @@ class SoftwareDeviceBackend:
         _, cp = res.profiles["color"]
         _, dp = res.profiles["depth"]
         self._fps = cp.fps()
-        self.pattern = SyntheticPattern(profile.color[:2], profile.depth[:2], seed=self.seed)
-        return describe(self._dev, res, "software", options)
+        rates = [res.profiles[s][1].fps() if s in res.profiles else 0 for s in MOTION_STREAMS]
+        layout = simulated_layout(profile, *rates)
+        if self.frames_from is None:
+            self.pattern = SyntheticPattern(profile.color[:2], profile.depth[:2], seed=self.seed)
+        else:
+            self.pattern = self.frames_from(layout)
+        if self.pattern.frames and not 0 < self.frames <= self.pattern.frames:
+            self.frames = self.pattern.frames  # the provider's last frame ends the stream
+        desc = describe(self._dev, res, "software", options)
+        desc.groundtruth_tum = self.pattern.groundtruth_tum()
+        return desc
 
     def stamp_of(self, stream: str, n: int) -> int:
         """Sensor time of the n-th pushed sample of a stream (integer ns on the device clock)."""
-        fps = self._res.profiles[stream][1].fps() if stream in MOTION_STREAMS else self._fps
-        return self.START_NS + n * 1_000_000_000 // fps
+        return stamp_ns(self._res.profiles[stream][1].fps() if stream in MOTION_STREAMS else self._fps, n)
 
     def wait(self, timeout_s: float) -> list[Any] | None:
         if self._done:
@@ -295,13 +411,14 @@ class SoftwareDeviceBackend:
         One at a time, drained at once: librealsense's frame pool for a software sensor is small,
         and frames pushed while many are still held are lost without a word.
         """
+        assert self.pattern is not None
         t_video = self.stamp_of("color", self._i)
         if self._profile.imu:
             stream = min(MOTION_STREAMS, key=lambda st: (self.stamp_of(st, self._k[st]), st))
             ts = self.stamp_of(stream, self._k[stream])
             if ts < t_video:
                 k = self._k[stream]
-                x, y, z = SyntheticPattern.motion(stream, k)
+                x, y, z = self.pattern.motion(stream, k)
                 v = rs.vector()
                 v.x, v.y, v.z = x, y, z
                 f = rs.software_motion_frame()
@@ -315,7 +432,6 @@ class SoftwareDeviceBackend:
                 self._k[stream] += 1
                 return
         i = self._i
-        assert self.pattern is not None
         for sensor, key, arr, bpp in ((self._color_s, "color", self.pattern.color(i), 3),
                                       (self._depth_s, "depth", self.pattern.depth(i), 2)):
             f = rs.software_video_frame()

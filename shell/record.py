@@ -134,12 +134,18 @@ def cmd_record(args: argparse.Namespace) -> int:
     if folder:  # a session folder, like `octolog run` makes
         out.mkdir(parents=True, exist_ok=True)
         out = out / "session.mcap"
+    backend = None
+    if cfg.backend == "software" and cfg.software.scene == "room":
+        # lazy: replay's renderer (open3d and the room's textures on a cold cache)
+        from octolog.shell import simcamera
+
+        backend = simcamera.backend(cfg, args.duration, quiet=args.quiet)  # every frame rendered before it starts
     line = StatusLine()
     res = node.run(cfg, out, bus_cfg=bus_config(args) if args.publish else None,
                    rerun=getattr(args, "rerun", None) or "off",
                    recording_id=getattr(args, "recording_id", None) or str(uuid.uuid4()),
                    duration_s=args.duration, overwrite=args.overwrite,
-                   status=None if args.quiet else _status_printer(line))
+                   status=None if args.quiet else _status_printer(line), backend=backend)
     line.end()
     frames = ", ".join(f"{s} {st.frames}" for s, st in res.streams.items() if st.frames)
     drops = ", ".join(f"{s} {st.dropped}" for s, st in res.streams.items() if st.dropped) or "none"

@@ -36,7 +36,7 @@ from octolog.schemas import codec
 from octolog.schemas import topics as T
 from octolog.schemas.topics import RGBD, RGBD_COMPRESSED, TRACKING_STATUS
 from octolog.schemas.wirecompression import SOURCE
-from octolog.shell import errorfile
+from octolog.shell import errorfile, simcamera
 from octolog.shell.children import StageProcesses, hosted_router
 from octolog.shell.info import depth_bias_line, imu_line, prior_line
 from octolog.shell.priormap import check_prior, prior_mapper
@@ -80,14 +80,16 @@ LIVE_SOURCES = {"d455": "realsense", "d455:software": "software"}
 
 @dataclass
 class LiveSource:
-    """What the orchestrator knows of a live camera before it runs: no frames, no ground truth."""
+    """What the orchestrator knows of a live camera before it runs: no frames; a ground truth only
+    for the simulated one (shell/simcamera.py: its path, rendered ahead)."""
 
     name: str
     readout_s: float = 0.0  # the D455's colour camera has a global shutter
     duration_ns: int = 0  # known from the session log afterwards
+    groundtruth: str = ""  # TUM text
 
     def groundtruth_tum(self) -> str | None:
-        return None
+        return self.groundtruth or None
 
     def gravity_up(self) -> None:
         return None  # the live D455's accelerometer is not read for gravity yet
@@ -206,6 +208,10 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     marker.write_text(f"octolog run has not finished writing this session (started {started}, pid {os.getpid()}); "
                       f"if no run is going on, it failed or was killed\n")
     try:
+        rec = cfgs.get("recorder")
+        if isinstance(src, LiveSource) and rec.backend == "software" and rec.software.scene == "room":
+            # the simulated camera's frames rendered before any stage starts; its path is the ground truth
+            src.groundtruth = simcamera.prepare(rec, duration_s, quiet=quiet).groundtruth_tum()
         summary = _run(SessionPlan(source, out, src, cfgs, feed_tracker, rerun, recording_id, quiet, duration_s,
                                    router, ros2_domain, map_frame))
     except BaseException as exc:

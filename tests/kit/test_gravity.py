@@ -84,9 +84,11 @@ def test_levelling_on_a_plane_takes_the_floor_not_a_wall() -> None:
 def test_a_recordings_accelerometer_gives_up(tmp_path: Path) -> None:
     """`octolog record` writes the D455's accelerometer (camera/accel/sample) and where it sits
     (/tf_static); replaying the recording takes up from it, in the colour camera's frame. The
-    simulated D455 is held level: up is image-up, (0, -1, 0), within its samples' wobble."""
+    simulated D455 filming its flat pattern (`software.scene`; the room's walk looks down a little) is
+    held level: up is image-up, (0, -1, 0), within its samples' wobble."""
     out = tmp_path / "r.mcap"
-    octolog("record", str(out), "--backend", "software", "--duration", "1", "--quiet")
+    octolog("record", str(out), "--backend", "software", "--duration", "1", "--quiet",
+            "--set", 'software.scene="pattern"')
     up = open_source(f"mcap:{out}").gravity_up()
     assert angle_deg(up, np.array([0.0, -1.0, 0.0])) < 2.0
 

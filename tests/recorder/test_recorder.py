@@ -256,12 +256,17 @@ def _on_disk(line: str) -> int:
     return int(line.rsplit("(", 1)[1].split()[0]) if "on disk)" in line else -1
 
 
+# the software D455 filming its flat pattern, not the rendered room (shell/simcamera.py): these test
+# the recorder, and start at once
+PATTERN = ("--set", 'software.scene="pattern"')
+
+
 def test_sigkill_mid_recording_then_recover(tmp_path):
     from octolog.shell.info import describe
 
     out = tmp_path / "killed.mcap"
     proc = _spawn(tmp_path, str(out), "--backend", "software", "--set", "chunk_size_mb=1", "--set",
-                  "raw_depth=true")
+                  "raw_depth=true", *PATTERN)
     lines = _Lines(proc)
     line = lines.wait(lambda x: _on_disk(x) >= 400)
     reported = _on_disk(line)
@@ -287,7 +292,7 @@ def test_sigkill_mid_recording_then_recover(tmp_path):
 
 def test_sigterm_finishes_the_file(tmp_path):
     out = tmp_path / "term.mcap"
-    proc = _spawn(tmp_path, str(out), "--backend", "software")
+    proc = _spawn(tmp_path, str(out), "--backend", "software", *PATTERN)
     lines = _Lines(proc)
     lines.wait(lambda x: _on_disk(x) > 0)
     proc.send_signal(signal.SIGTERM)
@@ -549,9 +554,10 @@ def test_record_into_a_session_folder(tmp_path):
     from octolog.kit.config import load
 
     out = tmp_path / "field"
-    cli("record", str(out), "--backend", "software", "--duration", "1", "--quiet")
+    cli("record", str(out), "--backend", "software", "--duration", "1", "--quiet", *PATTERN)
     assert (out / "session.mcap").is_file()
-    assert load(RecorderConfig, out / "config.toml", section="recorder") == RecorderConfig(backend="software")
+    assert load(RecorderConfig, out / "config.toml", section="recorder") == RecorderConfig(
+        backend="software", software=SoftwareConfig(scene="pattern"))
     summary = json.loads((out / "summary.json").read_text())
     assert summary["dropped"] == 0 and summary["streams"]["color"]["frames"] == 30
     assert summary["stop_reason"] == "duration reached" and "numpy" in summary["versions"]
