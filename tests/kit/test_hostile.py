@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
-from helpers import ROOT, free_port, octolog, random_frame, tum_first300
+from helpers import ROOT, free_port, random_frame, tum_first300
 
 from octolog.kit.bus import Bus, BusConfig, wire
 from octolog.kit.errors import StageError
@@ -155,10 +155,10 @@ def _intruder(endpoint: str) -> Iterator[Bus]:
 
 
 @pytest.mark.slow
-def test_a_run_under_a_stream_of_malformed_samples_gives_the_undisturbed_trajectory(router, tmp_path):
+def test_a_run_under_a_stream_of_malformed_samples_gives_the_undisturbed_trajectory(router, tmp_path, first300_run):
     """1,000 malformed samples on camera/rgbd during `octolog run` on first300: the trajectory is
-    byte-identical to an undisturbed run's, and summary.json counts the 1,000 for each stage that
-    takes camera frames (tracker and session log)."""
+    byte-identical to an undisturbed run's (the shared default run on first300), and summary.json
+    counts the 1,000 for each stage that takes camera frames (tracker and session log)."""
     src = f"tum:{tum_first300()}"
     proc = _run_on(router, src, tmp_path / "hit")
     with _intruder(router) as bus:
@@ -167,8 +167,7 @@ def test_a_run_under_a_stream_of_malformed_samples_gives_the_undisturbed_traject
         # the session stays open until the run ends: closing it would drop what is still queued
         out, err = proc.communicate(timeout=600)
     assert proc.returncode == 0, err
-    octolog("run", "--source", src, "--out", str(tmp_path / "calm"), "--rerun", "off", "--quiet")
-    hit, calm = tmp_path / "hit", tmp_path / "calm"
+    hit, calm = tmp_path / "hit", first300_run[0]
     assert (hit / "trajectory.txt").read_bytes() == (calm / "trajectory.txt").read_bytes()
     summary = json.loads((hit / "summary.json").read_text())
     assert summary["malformed"] == {"log": {topics.RGBD.name: 1000}, "tracker": {topics.RGBD.name: 1000}}

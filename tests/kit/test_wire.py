@@ -118,8 +118,9 @@ def _run(out: Path, *sets: str) -> Path:
 
 
 @pytest.fixture(scope="module")
-def raw(tmp_path_factory) -> Path:
-    return _run(tmp_path_factory.mktemp("raw"))
+def raw(octolog_run) -> Path:
+    """The run with the default (raw) wire: the shared run, read-only."""
+    return octolog_run(f"synthetic:{N_FRAMES}")[0]
 
 
 @pytest.mark.slow

@@ -18,6 +18,7 @@ When a golden hash test fails:
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import subprocess
@@ -86,6 +87,12 @@ def _vendor() -> str:
     return ""
 
 
+@functools.cache
+def _default_probe(source: str, frames: int) -> str:
+    """The unrestricted probe of `source`: one reference run for every restriction it is compared with."""
+    return _probe(source, frames, {})
+
+
 def _probe(source: str, frames: int, env: dict[str, str]) -> str:
     proc = subprocess.run([sys.executable, str(ROOT / "tests" / "isa_probe.py"), source, str(frames)],
                           capture_output=True, text=True, timeout=600, cwd=ROOT,
@@ -100,7 +107,7 @@ def test_tracker_core_same_bytes_under_restricted_instruction_sets(restriction):
     """Rendered synthetic frames, ORB features and poses: the restricted run gives the same bytes."""
     env = {**LEVELS, **ALONE}[restriction]
     source = "synthetic:24"
-    assert _probe(source, 24, env) == _probe(source, 24, {}), f"{restriction}: bytes differ from the default run"
+    assert _probe(source, 24, env) == _default_probe(source, 24), f"{restriction}: bytes differ from the default run"
 
 
 @pytest.mark.slow
@@ -109,7 +116,7 @@ def test_the_imu_path_same_bytes_under_restricted_instruction_sets(level):
     """With the simulated IMU: preintegration (gtsam), the biases, gravity, the INERTIAL poses through
     a textureless half second: the restricted run gives the same bytes."""
     source = "synthetic:100:imu=200:blank=2.2+0.5"
-    assert _probe(source, 100, LEVELS[level]) == _probe(source, 100, {}), f"{level}: bytes differ from the default run"
+    assert _probe(source, 100, LEVELS[level]) == _default_probe(source, 100), f"{level}: bytes differ from the default"
 
 
 def test_an_octolog_process_pins_numpy_and_openblas_before_numpy_loads():
@@ -133,14 +140,14 @@ def test_opencvs_optimisation_switch_changes_no_byte_of_the_tracker():
     the default run's bytes (TUM: on its texture ORB's smoothing does differ, so the probe would see
     a call that depends on the switch; it fails when ORB.compute runs outside baseline_simd)."""
     source = f"tum:{tum_first300()}"
-    assert _probe(source, 40, {"OCTOLOG_PROBE_CV_UNOPTIMIZED": "1"}) == _probe(source, 40, {})
+    assert _probe(source, 40, {"OCTOLOG_PROBE_CV_UNOPTIMIZED": "1"}) == _default_probe(source, 40)
 
 
 def test_orb_features_same_bytes_on_tum_under_opencv_baseline():
     """TUM frames (real texture): ORB's descriptors were the part that differed before baseline_simd."""
     source = f"tum:{tum_first300()}"
     env = ALONE["opencv-sse3"]
-    assert _probe(source, 40, env) == _probe(source, 40, {})
+    assert _probe(source, 40, env) == _default_probe(source, 40)
 
 
 def _sha(path: Path) -> str:

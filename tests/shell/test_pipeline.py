@@ -20,12 +20,11 @@ N_FRAMES = 30
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory) -> tuple[Path, Path]:
-    """The same synthetic session twice: with Rerun files, and with Rerun off."""
-    a, b = tmp_path_factory.mktemp("a"), tmp_path_factory.mktemp("b")
+def runs(tmp_path_factory, octolog_run) -> tuple[Path, Path]:
+    """The same synthetic session twice: with Rerun files, and with Rerun off (the shared run, read-only)."""
+    a = tmp_path_factory.mktemp("a")
     octolog("run", "--source", f"synthetic:{N_FRAMES}", "--out", str(a), "--quiet")
-    octolog("run", "--source", f"synthetic:{N_FRAMES}", "--out", str(b), "--quiet", "--rerun", "off")
-    return a, b
+    return a, octolog_run(f"synthetic:{N_FRAMES}")[0]
 
 
 @pytest.mark.slow

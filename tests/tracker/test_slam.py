@@ -239,35 +239,49 @@ def with_loops(loop_frames):
     return _run(loop_frames, background=True)
 
 
+@pytest.fixture(scope="module")
+def inline(loop_frames):
+    """The default tracker with its back end inline (no worker, nothing deferred)."""
+    return _run(loop_frames, background=False)
+
+
+_DENSE = KeyframeParams(translation_m=0.06, rotation_deg=6.0, close_tracked=0)
+
+
+@pytest.fixture(scope="module")
+def dense_without_loops(loop_frames):
+    """Visual odometry alone with dense keyframes: the drift a closed loop must halve."""
+    return _run(loop_frames, local_ba=False, loop_closing=False, background=True, keyframes=_DENSE)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("with_bow", [False, True], ids=["all-candidates", "bow-candidates"])
-def test_loop_closing_halves_the_error_of_a_loop(room, loop_frames, vocabulary, with_bow) -> None:
+def test_loop_closing_halves_the_error_of_a_loop(room, loop_frames, vocabulary, dense_without_loops,
+                                                with_bow) -> None:
     # visual odometry alone (no local BA) accumulates drift over the loop; closing it must halve the ATE.
     # Keyframes every 6 cm / 6 deg (denser than the default): odometry then drifts ~3 cm over this
     # loop, far above its ~0.5 cm noise floor, so the correction is what is measured. With a
     # vocabulary, candidates are the best bag-of-words matches above ORB-SLAM's covisibility floor.
-    dense = KeyframeParams(translation_m=0.06, rotation_deg=6.0, close_tracked=0)
-    odo, results = _run(loop_frames, local_ba=False, background=True, keyframes=dense,
+    odo, results = _run(loop_frames, local_ba=False, background=True, keyframes=_DENSE,
                         vocabulary=vocabulary if with_bow else None)
     # the start is found again: the old end of a loop is a keyframe of the loop's first 2 s (of 20)
     assert odo.loops and any(odo.map.keyframes[old].seq < 20 for _, old in odo.loops), odo.loops
     assert all(r.state in (TrackingState.INIT, TrackingState.OK) for r in results)
     closed = [r for r in results if r.loop is not None]
     assert closed and all(len(r.corrected) == r.loop[0] + 1 for r in closed)
-    no_loops, _ = _run(loop_frames, local_ba=False, loop_closing=False, background=True, keyframes=dense)
-    a_loop, a_none = _ate(room, odo), _ate(room, no_loops)
+    a_loop, a_none = _ate(room, odo), _ate(room, dense_without_loops[0])
     assert a_loop * 2 <= a_none, (a_loop, a_none)
 
 
 @pytest.mark.slow
-def test_background_thread_changes_nothing(loop_frames, with_loops) -> None:
+def test_background_thread_changes_nothing(with_loops, inline) -> None:
     odo, results = with_loops
-    same = _run(loop_frames, background=False)
-    assert _digest(*same) == _digest(odo, results)
+    assert _digest(*inline) == _digest(odo, results)
 
 
 @pytest.mark.slow
-def test_a_live_tracker_goes_on_while_the_back_end_works_and_its_record_replays_exactly(room, loop_frames) -> None:
+def test_a_live_tracker_goes_on_while_the_back_end_works_and_its_record_replays_exactly(room, loop_frames,
+                                                                                          inline) -> None:
     """Live, a keyframe goes in while the back end is still busy with the previous one (at most
     `defer_backend` in a row, then the tracker waits); the result lands at a later keyframe with the
     keyframes in between carried along. A back end that never reports done before it is waited
@@ -286,8 +300,7 @@ def test_a_live_tracker_goes_on_while_the_back_end_works_and_its_record_replays_
     replay.finish()
     assert [r.seq for r in again if r.backend_deferred] == deferred
     assert _digest(replay, again) == _digest(odo, results)
-    waited = _run(loop_frames)  # and the record is what made the difference
-    assert _digest(*waited) != _digest(odo, results)
+    assert _digest(*inline) != _digest(odo, results)  # and the record is what made the difference
 
 
 def test_a_late_loop_result_carries_the_keyframes_inserted_since_its_job() -> None:
