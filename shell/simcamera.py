@@ -20,9 +20,11 @@ frames are rendered ahead, before the camera starts (`SceneCamera.render`, with 
 into a cache folder keyed by a hash of everything that decides their bytes (the layout, the
 options, the renderer's source and library versions): `$OCTOLOG_SIM_CACHE`, else
 `$XDG_CACHE_HOME/octolog/simcamera`, else `~/.cache/octolog/simcamera`. Each frame is one file
-(zstd-compressed colour and depth), written to a temporary name and renamed, so a killed render
-leaves whole frames only; frame i depends on (options, i) alone, so a longer run renders only the
-frames a shorter one did not. The camera itself then reads one file a frame (~2 ms).
+(colour and depth as they are: 1.5 MB at 640x480), written to a temporary name and renamed, so a
+killed render leaves whole frames only; frame i depends on (options, i) alone, so a longer run
+renders only the frames a shorter one did not. The camera itself then reads one file a frame
+(uncompressed: zstd saved a third of the disk for 3 ms of the recorder's capture thread a frame,
+which doubled its CPU and cost it IMU samples on a loaded machine).
 """
 
 from __future__ import annotations
@@ -42,7 +44,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import zstandard
 
 from octolog.kit.errors import ConfigError
 from octolog.kit.geometry import matrix_to_pose
@@ -61,7 +62,7 @@ from octolog.replay import (
 from octolog.replay.synthetic import SyntheticScene
 
 CACHE_ENV = "OCTOLOG_SIM_CACHE"
-FORMAT = 1  # the cache's layout and `_Renderer`'s recipe: bump it when either changes (a new key)
+FORMAT = 2  # the cache's layout and `_Renderer`'s recipe: bump it when either changes (a new key)
 MOTIONS = {"walk": "loop", "turns": "turns"}  # SoftwareConfig.motion -> replay/synthetic_trajectory.py's
 MIN_DEPTH_M, MAX_DEPTH_M = 0.4, 10.0  # nearer or farther reads 0 (a D455 at 640x480: ~0.4 m minimum)
 # BMI085 datasheet: gyro noise 0.014 deg/s/√Hz and accelerometer 160 µg/√Hz (kit/imu.py: D455), zero-rate
@@ -143,7 +144,6 @@ class SceneCamera:
         self.options, self.frames = options, frames
         self.folder = (root or cache_root()) / options.key()
         self._last: tuple[int, np.ndarray, np.ndarray] | None = None
-        self._dctx = zstandard.ZstdDecompressor()
 
     # --- the trajectory and its ground truth -------------------------------------------------------
 
@@ -229,7 +229,7 @@ class SceneCamera:
             if not 0 <= i < self.frames:
                 raise IndexError(f"simulated frame {i}: the camera has {self.frames}")
             try:
-                raw = self._dctx.decompress(self.path(i).read_bytes())
+                raw = self.path(i).read_bytes()
             except FileNotFoundError:
                 raise ConfigError(f"{self.path(i)}: the simulated camera's frame {i} was not rendered "
                                   "(SceneCamera.render first)") from None
@@ -264,11 +264,10 @@ class SceneCamera:
         self.folder.mkdir(parents=True, exist_ok=True)
         (self.folder / "options.json").write_text(json.dumps(dataclasses.asdict(self.options), indent=1) + "\n")
         renderer = _Renderer(self)
-        cctx = zstandard.ZstdCompressor(level=3)
         for n, i in enumerate(todo):
             colour, depth = renderer.frame(i)
             tmp = self.path(i).with_suffix(f".tmp{os.getpid()}")
-            tmp.write_bytes(cctx.compress(colour.tobytes() + depth.tobytes()))
+            tmp.write_bytes(colour.tobytes() + depth.tobytes())
             os.replace(tmp, self.path(i))
             if progress is not None:
                 progress(n + 1, len(todo))
