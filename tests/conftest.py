@@ -103,3 +103,14 @@ def pytest_collection_modifyitems(config, items) -> None:
         return (LONGEST_FIRST.index(name) if name in LONGEST_FIRST else len(LONGEST_FIRST), -slow[name])
 
     items.sort(key=rank)  # stable: a module's tests keep their order
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _sim_cache(tmp_path_factory) -> None:
+    """The simulated D455's rendered frames (shell/simcamera.py) go under the test run's base
+    folder, shared by the xdist workers, never into the user's ~/.cache."""
+    import os
+
+    base = tmp_path_factory.getbasetemp()
+    shared = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+    os.environ.setdefault("OCTOLOG_SIM_CACHE", str(shared / "sim-cache"))
