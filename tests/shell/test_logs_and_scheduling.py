@@ -13,7 +13,7 @@ import pytest
 from helpers import ROOT
 
 from octolog.shell import cli, errorfile, statusline
-from octolog.shell.children import NICENESS, StageProcesses, launch
+from octolog.shell.children import Launch, StageProcesses, launch
 from octolog.shell.run import STAGES
 from octolog.shell.statusline import StatusLine
 
@@ -147,15 +147,25 @@ def test_a_stage_keeps_its_reservation_while_it_runs_and_its_record_after(tmp_pa
     assert record is not None and record.type == "InputError"
 
 
-def test_no_stage_leads_a_session_of_its_own_or_is_niced_without_session_grouping():
-    """Under autogroup a session is a scheduling group: a stage in a session of its own would compete
-    with unrelated jobs on its own weight (the mapper's, niced, on a tenth of theirs). In the
-    orchestrator's session its nice level only ranks it within the run; where the kernel does not
-    group by session, a nice level would rank it below every other process, so none is set."""
+def test_no_stage_is_ranked_below_unrelated_jobs():
+    """Under autogroup a session is a scheduling group: a niced stage in a session of its own would
+    compete with unrelated jobs on a fraction of their weight. In the orchestrator's session its nice
+    level only ranks it within the run; where the kernel does not group by session, a nice level
+    would rank it below every other process, so none is set."""
     for name in (*STAGES, "recorder"):
         for grouped in (True, False):
             how = launch(name, grouped=grouped)
-            assert not how.start_new_session and how.process_group == 0, (name, how)
-            assert how.nice == (NICENESS.get(name, 0) if grouped else 0), (name, grouped, how)
             assert how.nice >= 0
+            if how.start_new_session:  # a job of its own: at the machine's common level
+                assert how.nice == 0 and how.process_group is None, (name, how)
+            else:  # in the run's group, leading a process group that stop_all signals whole
+                assert how.process_group == 0, (name, how)
+            if not grouped:
+                assert how.nice == 0, (name, how)
     assert launch("mapper", grouped=True).nice > launch("tracker", grouped=True).nice  # it yields to the tracker
+    assert not launch("mapper", grouped=True).start_new_session and not launch("tracker", grouped=True).start_new_session
+
+
+def test_the_live_camera_is_a_job_of_its_own():
+    """A starved recorder drops camera frames for good: it never shares the run's group."""
+    assert launch("recorder", grouped=True) == Launch(0, start_new_session=True, process_group=None)
