@@ -34,7 +34,6 @@ import hashlib
 import json
 import math
 import os
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -60,6 +59,7 @@ from octolog.replay import (
     synthetic_trajectory,
 )
 from octolog.replay.synthetic import SyntheticScene
+from octolog.shell.statusline import StatusLine
 
 CACHE_ENV = "OCTOLOG_SIM_CACHE"
 FORMAT = 2  # the cache's layout and `_Renderer`'s recipe: bump it when either changes (a new key)
@@ -322,20 +322,17 @@ class _Renderer:
 
 
 def progress_line(label: str = "simulated D455") -> Callable[[int, int], None]:
-    """A progress callback printing `label: rendering frame N/M` on stderr (rewritten in place on a tty)."""
-    tty = sys.stderr.isatty()
+    """A progress callback showing `label: rendered N/M frames ahead` on the status line (redrawn in
+    place on a terminal, a plain line every few seconds elsewhere: shell/statusline.py)."""
+    line = StatusLine()
     t0 = time.monotonic()
-    last = [0.0]
 
     def show(done: int, total: int) -> None:
-        now = time.monotonic()
-        if done < total and now - last[0] < 1.0:
-            return
-        last[0] = now
-        per = (now - t0) / done
-        text = (f"{label}: rendered {done}/{total} frames ahead ({per * 1e3:.0f} ms each, "
-                f"{per * (total - done):.0f} s left)")
-        print(("\r" if tty else "") + text, end="" if tty and done < total else "\n", file=sys.stderr, flush=True)
+        per = (time.monotonic() - t0) / max(done, 1)
+        line.show(f"{label}: rendered {done}/{total} frames ahead ({per * 1e3:.0f} ms each, "
+                  f"{per * (total - done):.0f} s left)")
+        if done >= total:
+            line.end()
 
     return show
 
