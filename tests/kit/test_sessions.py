@@ -14,11 +14,14 @@ from helpers import octolog, rerun_cli
 from octolog.kit.mcaplog import read_wire
 
 
+FRAMES = 40
+
+
 @pytest.fixture(scope="module")
-def live(tmp_path_factory) -> Path:
-    """A live-paced session: frames at 1x sensor rate, a tracker too slow to keep up (skips frames)."""
-    src = tmp_path_factory.mktemp("src")
-    octolog("run", "--source", "synthetic:45", "--out", str(src), "--quiet", "--rerun", "off")
+def live(tmp_path_factory, octolog_run) -> Path:
+    """A live-paced session: frames at 1x sensor rate, a tracker too slow to keep up (skips frames);
+    the frames are those of the shared run on the synthetic room."""
+    src = octolog_run(f"synthetic:{FRAMES}")[0]
     out = tmp_path_factory.mktemp("live")
     octolog("run", "--source", f"mcap:{src / 'session.mcap'}", "--out", str(out), "--quiet",
             "--set", "replay.rate=1.0", "--set", "tracker.live=true", "--set", "tracker.throttle_ms=70")
@@ -31,8 +34,8 @@ def _payloads(log: Path, topic: str) -> list[bytes]:
 
 def test_live_tracker_skipped_frames_on_record(live):
     frames = json.loads((live / "summary.json").read_text())["frames"]
-    assert frames["published"] == 45
-    assert frames["skipped"] > 0 and frames["consumed"] + frames["skipped"] == 45
+    assert frames["published"] == FRAMES
+    assert frames["skipped"] > 0 and frames["consumed"] + frames["skipped"] == FRAMES
 
 
 def test_replaying_tracker_and_mapper_reproduces_the_live_session(live, tmp_path):

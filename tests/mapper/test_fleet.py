@@ -393,8 +393,18 @@ def _tum_halves() -> _Halves:
     return h
 
 
+@pytest.fixture(scope="module")
+def tum_halves_placed(tmp_path_factory) -> Path:
+    """The two halves of first300 through the real processes, r2 placed by its ground-truth start pose:
+    one run read by the byte-for-byte check against the reference and by the merge's map check."""
+    h = _tum_halves()
+    out = tmp_path_factory.mktemp("tum-halves") / "processes"
+    run_fleet(out, h.start_poses, source=h.source, windows=h.windows, shifts=h.shifts)
+    return out
+
+
 @pytest.mark.slow
-def test_two_halves_of_a_tum_sequence_fuse_like_on_one_host(tmp_path):
+def test_two_halves_of_a_tum_sequence_fuse_like_on_one_host(tmp_path, tum_halves_placed):
     """Two robots on real frames: r1 the first half, r2 the second, shifted to run alongside; r2's
     start pose from the TUM ground truth. Byte-identical to the in-process reference, and each
     robot's keyframes near the ground truth in the common world."""
@@ -406,10 +416,9 @@ def test_two_halves_of_a_tum_sequence_fuse_like_on_one_host(tmp_path):
     world_from_first = gt_pose(h.stamps[0])
     kw = {"source": source, "windows": windows, "shifts": shifts}
     _reference(tmp_path / "reference", start_poses, **kw)
-    run_fleet(tmp_path / "processes", start_poses, **kw)
     for name in ("map.bt", "map.ot", "cloud.ply", "keyframes_r1.txt", "keyframes_r2.txt"):
-        assert (tmp_path / "processes" / name).read_bytes() == (tmp_path / "reference" / name).read_bytes(), name
-    r1, r2 = (read_tum(tmp_path / "processes" / f"keyframes_{r}.txt") for r in ROBOTS)
+        assert (tum_halves_placed / name).read_bytes() == (tmp_path / "reference" / name).read_bytes(), name
+    r1, r2 = (read_tum(tum_halves_placed / f"keyframes_{r}.txt") for r in ROBOTS)
     assert r2.stamps_ns[0] < r1.stamps_ns[-1]  # interleaved
     for traj, shift in ((r1, shifts[0]), (r2, shifts[1])):
         for stamp, p in zip(traj.stamps_ns, traj.positions):
@@ -418,7 +427,7 @@ def test_two_halves_of_a_tum_sequence_fuse_like_on_one_host(tmp_path):
 
 
 @pytest.mark.slow
-def test_two_halves_merge_without_start_poses(tmp_path, first300_run):
+def test_two_halves_merge_without_start_poses(tmp_path, first300_run, tum_halves_placed):
     """Robot r1 the first half of first300, r2 the second, no start poses. The mapper
     places r2 from a place both saw; every keyframe of both lies within 5 cm of the ground truth
     after one rigid alignment of the merged trajectory, and the map agrees with one robot's."""
@@ -445,10 +454,10 @@ def test_two_halves_merge_without_start_poses(tmp_path, first300_run):
     # the map: against the same two robots placed by their ground-truth start poses (what the merge
     # should reproduce), and, for the record, against one robot tracking the whole sequence (two
     # trackers choose other keyframes: surfaces move by a voxel here and there whatever the merge)
-    run_fleet(tmp_path / "known", h.start_poses, source=source, windows=windows, shifts=shifts)
+    known = tum_halves_placed
     single = first300_run[0]
-    disagree, n_cells = occupied_disagreement(out / "map.bt", tmp_path / "known" / "map.bt")
-    floor, _ = occupied_disagreement(tmp_path / "known" / "map.bt", single / "map.bt")
+    disagree, n_cells = occupied_disagreement(out / "map.bt", known / "map.bt")
+    floor, _ = occupied_disagreement(known / "map.bt", single / "map.bt")
     merged = cells(out / "map.bt")
     vs_single, _ = occupied_disagreement(merged, single / "map.bt")
     # the target is <= 2 %; at 5 cm voxels two trackers' maps differ by a voxel along most surfaces
