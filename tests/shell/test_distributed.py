@@ -65,7 +65,9 @@ def hosts():
 
 def _start(ns: str, *args: str, log: Path | None) -> subprocess.Popen:
     """A stage in a namespace; output to `log`, or to a pipe (text) when `log` is None."""
-    env = {**os.environ, "RERUN_DISABLE_ANALYTICS": "1", "PYTHONUNBUFFERED": "1"}
+    # OCTOLOG_STATUS_TTY: the replay's progress redrawn at every update, as on a terminal, so a test
+    # waiting for "N/FRAMES frames" sees every count (off a terminal a line comes every few seconds)
+    env = {**os.environ, "RERUN_DISABLE_ANALYTICS": "1", "PYTHONUNBUFFERED": "1", "OCTOLOG_STATUS_TTY": "1"}
     return subprocess.Popen(["ip", "netns", "exec", ns, sys.executable, "-m", "octolog", *args], cwd=ROOT, env=env,
                             stdout=open(log, "w") if log else subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=log is None)
@@ -179,7 +181,7 @@ def _pid(*words: str) -> int | None:
 def test_run_starts_a_killed_mapper_again(single_host, tmp_path):
     """`octolog run` on one host: the mapper SIGKILLed mid-run is started again, same map."""
     out = tmp_path / "run"
-    env = {**os.environ, "RERUN_DISABLE_ANALYTICS": "1"}
+    env = {**os.environ, "RERUN_DISABLE_ANALYTICS": "1", "OCTOLOG_STATUS_TTY": "1"}  # every count shown (see _start)
     run = subprocess.Popen([sys.executable, "-m", "octolog", "run", "--source", f"synthetic:{FRAMES}", "--out",
                             str(out), "--rerun", "off"], cwd=ROOT, env=env, stdout=subprocess.PIPE,
                            stderr=subprocess.PIPE, text=True)
