@@ -50,9 +50,13 @@ def test_a_live_session_counts_its_skips_and_its_log_replays_to_the_same_bytes(t
     assert log.topics["tracker/backend_deferred"].count >= 2
     # the map frame from the camera's accelerometer on the bus (the mapper's LiveUp), as the
     # file-based reading finds it at the first keyframe (within a degree: a live bus may drop IMU
-    # samples the file keeps, and the software device's accelerometer is noisy)
+    # samples the file keeps, and the software device's accelerometer is noisy); when the tracker
+    # came to trust its IMU within the run (how many frames it tracked is the machine's business),
+    # its estimate replaced that reading: gravity and the accelerometer's bias together, a few
+    # degrees from a single mean at most
     summary = json.loads((live / "summary.json").read_text())
-    assert summary["map_frame"].startswith("gravity-aligned (the live camera's accelerometer")
+    from_accel = summary["map_frame"].startswith("gravity-aligned (the live camera's accelerometer")
+    assert from_accel or summary["map_frame"].startswith("gravity-aligned (the tracker's IMU estimate")
     up = np.array(tomllib.loads((live / "config.toml").read_text())["mapper"]["grid_up"])
     first = int(metrics.read_tum(live / "trajectory.txt").stamps_ns[0])
     from_file = recorded_up(live / "recording.mcap", first, "camera_color_optical_frame")
@@ -60,7 +64,7 @@ def test_a_live_session_counts_its_skips_and_its_log_replays_to_the_same_bytes(t
         frame = next(f for f in open_source(f"mcap:{live / 'recording.mcap'}").frames() if f.stamp_ns == first)
         from_file, levelled = level_on_plane(from_file, frame)
         assert levelled
-    assert np.degrees(np.arccos(np.clip(up @ from_file, -1, 1))) < 1.0
+    assert np.degrees(np.arccos(np.clip(up @ from_file, -1, 1))) < (1.0 if from_accel else 5.0)
     assert log.topics["tf_static"].count == 2  # the camera's tree (camera_link ...) and map -> world
     # the camera's IMU reached the tracker over the bus, and is on record for the replay below
     assert summary["imu"]["samples"] > 0 and log.topics["camera/gyro/sample"].count > 0
