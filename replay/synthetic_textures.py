@@ -11,6 +11,8 @@ from functools import lru_cache
 
 import numpy as np
 
+from octolog.kit import cache
+from octolog.replay import synthetic_room
 from octolog.replay.synthetic_room import Face, scene_faces, scene_triangles
 
 
@@ -151,9 +153,31 @@ def _pack_shelves(shapes: list[tuple[int, int]], width: int, gap: int = 2) -> tu
     return corners, row + shelf
 
 
+_FIELDS = ("atlas", "origin", "limit", "coef", "normal")
+
+
 @lru_cache(maxsize=2)
 def scene_textures(seed: int, texel: float, levels: int) -> Textures:
-    """Bake every face's texture pyramid into one atlas image (shared by scenes alike)."""
+    """Every face's texture pyramid in one atlas (shared by scenes alike). Baking takes ~1.5 s, in
+    every process that renders the room: the result is kept in octolog's cache (octolog.kit.cache),
+    keyed by the arguments, this module's and the room's source and numpy's version."""
+    import sys
+
+    key = cache.key_of((seed, texel, levels), (sys.modules[__name__], synthetic_room), ("numpy",))
+    path = cache.cache_root("synthetic") / f"textures-{key}.npz"
+    kept = cache.load_arrays(path)
+    if kept is not None and set(kept) == set(_FIELDS):
+        out = Textures(**kept)
+    else:
+        out = _bake(seed, texel, levels)
+        cache.store_arrays(path, {name: getattr(out, name) for name in _FIELDS})
+    for arr in (out.atlas, out.origin, out.limit, out.coef, out.normal):
+        arr.setflags(write=False)
+    return out
+
+
+def _bake(seed: int, texel: float, levels: int) -> Textures:
+    """Bake every face's texture pyramid into one atlas image."""
     faces = scene_faces()
     verts, tris, tri_face = scene_triangles()
     images = [_pyramid(_face_texture(face, f, seed, texel), levels) for f, face in enumerate(faces)]
@@ -178,13 +202,10 @@ def scene_textures(seed: int, texel: float, levels: int) -> Textures:
         rel = verts[tri] - face.origin
         uv = np.stack([rel @ uh, rel @ vh], axis=1) / texel
         coef[t] = [*uv[0], *(uv[1] - uv[0]), *(uv[2] - uv[0])]
-    out = Textures(
+    return Textures(
         atlas=atlas,
         origin=np.ascontiguousarray(origin[:, tri_face], dtype=np.float32),
         limit=np.ascontiguousarray(limit[:, tri_face], dtype=np.float32),
         coef=coef.astype(np.float32),
         normal=np.array([faces[f].normal for f in tri_face], dtype=np.float32),
     )
-    for arr in (out.atlas, out.origin, out.limit, out.coef, out.normal):
-        arr.setflags(write=False)
-    return out

@@ -18,8 +18,8 @@ fast head turns), per frame i at the device's stamp:
 Rendering costs ~0.3 s a frame at 640x480 on two cores: far too much beside a live pipeline. So
 frames are rendered ahead, before the camera starts (`SceneCamera.render`, with a progress line),
 into a cache folder keyed by a hash of everything that decides their bytes (the layout, the
-options, the renderer's source and library versions): `$OCTOLOG_SIM_CACHE`, else
-`$XDG_CACHE_HOME/octolog/simcamera`, else `~/.cache/octolog/simcamera`. Each frame is one file
+options, the renderer's source and library versions): `$OCTOLOG_SIM_CACHE`, else `simcamera` in
+octolog's cache folder (octolog.kit.cache: `$OCTOLOG_CACHE`, `$XDG_CACHE_HOME/octolog`, `~/.cache/octolog`). Each frame is one file
 (colour and depth as they are: 1.5 MB at 640x480), written to a temporary name and renamed, so a
 killed render leaves whole frames only; frame i depends on (options, i) alone, so a longer run
 renders only the frames a shorter one did not. The camera itself then reads one file a frame
@@ -44,6 +44,7 @@ from typing import Any
 
 import numpy as np
 
+from octolog.kit import cache
 from octolog.kit.errors import ConfigError
 from octolog.kit.geometry import matrix_to_pose
 from octolog.kit.imu import D455, GRAVITY_MS2
@@ -111,8 +112,7 @@ def cache_root() -> Path:
     """Where rendered frames are kept (see the module's docstring)."""
     if os.environ.get(CACHE_ENV):
         return Path(os.environ[CACHE_ENV])
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "octolog" / "simcamera"
+    return cache.cache_root("simcamera")
 
 
 def options_for(cfg: RecorderConfig) -> SceneOptions:

@@ -120,11 +120,12 @@ def pytest_collection_modifyitems(config, items) -> None:
 
 
 @pytest.fixture(scope="session", autouse=True)
-def _sim_cache(tmp_path_factory) -> None:
-    """The simulated D455's rendered frames (shell/simcamera.py) go under the test run's base
-    folder, shared by the xdist workers, never into the user's ~/.cache."""
+def _cache(tmp_path_factory) -> None:
+    """octolog's cache (octolog.kit.cache: the synthetic room's textures, the simulated D455's
+    rendered frames) goes under the test run's base folder, shared by the xdist workers, never into
+    the user's ~/.cache."""
     import os
 
     base = tmp_path_factory.getbasetemp()
     shared = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
-    os.environ.setdefault("OCTOLOG_SIM_CACHE", str(shared / "sim-cache"))
+    os.environ.setdefault("OCTOLOG_CACHE", str(shared / "cache"))
