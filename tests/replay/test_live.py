@@ -65,7 +65,8 @@ def test_a_live_session_counts_its_skips_and_its_log_replays_to_the_same_bytes(t
         from_file, levelled = level_on_plane(from_file, frame)
         assert levelled
     assert np.degrees(np.arccos(np.clip(up @ from_file, -1, 1))) < (1.0 if from_accel else 5.0)
-    assert log.topics["tf_static"].count == 2  # the camera's tree (camera_link ...) and map -> world
+    # the camera's tree (camera_link ...) and map -> world, announced again at each of the tracker's estimates
+    assert log.topics["tf_static"].count == 2 if from_accel else log.topics["tf_static"].count > 2
     # the camera's IMU reached the tracker over the bus, and is on record for the replay below
     assert summary["imu"]["samples"] > 0 and log.topics["camera/gyro/sample"].count > 0
     again = tmp_path / "again"
