@@ -37,10 +37,13 @@ from octolog.tracker.preintegration import (
 )
 
 # The IMU is trusted (it may place a frame, and veto vision's fit) once its propagated position has
-# been within AGREE_M of vision's for TRUST_FRAMES frames in a row; vision overrules it after
-# MAX_DISAGREEING vetoes in a row
+# been within AGREE_M of vision's at every frame for TRUST_S, and at least TRUST_FRAMES frames, in a
+# row: time, not a frame count, so a camera at 15 fps or a live stream that skips frames earns it as
+# soon (a wrong extrinsic, clock offset or noise model is metres off within a few frames). Vision
+# overrules it after MAX_DISAGREEING vetoes in a row.
 AGREE_M = 0.02
-TRUST_FRAMES = 30
+TRUST_S = 0.5
+TRUST_FRAMES = 10
 MAX_DISAGREEING = 3
 
 
@@ -63,16 +66,24 @@ class ImuTrust:
 
     def __init__(self) -> None:
         self._agreeing = self._disagreeing = 0
+        self._since_ns = self._last_ns = 0  # the run of agreeing frames: its first and newest stamp
         self.distrusted = 0  # times vision overruled the IMU
 
     @property
     def trusted(self) -> bool:
-        """The propagated poses agreed with vision's for the last TRUST_FRAMES frames."""
-        return self._agreeing >= TRUST_FRAMES
+        """The propagated poses agreed with vision's at every frame for the last TRUST_S (and at
+        least TRUST_FRAMES frames)."""
+        return self._agreeing >= TRUST_FRAMES and self._last_ns - self._since_ns >= TRUST_S * 1e9
 
-    def compare(self, off_m: float) -> None:
-        """Vision placed a frame `off_m` from the propagated position."""
-        self._agreeing = self._agreeing + 1 if off_m <= AGREE_M else 0
+    def compare(self, off_m: float, stamp_ns: int) -> None:
+        """Vision placed the frame at `stamp_ns` `off_m` from the propagated position."""
+        if off_m > AGREE_M:
+            self._agreeing = 0
+            return
+        if self._agreeing == 0:
+            self._since_ns = stamp_ns
+        self._agreeing += 1
+        self._last_ns = stamp_ns
 
     def placed(self) -> None:
         """Vision placed a frame: the run of vetoes ends."""
@@ -179,7 +190,7 @@ class Inertial:
 
     @property
     def trusted(self) -> bool:
-        """The IMU's propagated poses have agreed with vision's for the last TRUST_FRAMES frames it
+        """The IMU's propagated poses have agreed with vision's for the last TRUST_S of frames it
         placed (a wrong extrinsic, clock offset or noise model never gets there)."""
         return self._trust.trusted
 
@@ -216,7 +227,7 @@ class Inertial:
         self._pending = None
         T = world_from_camera @ self.camera_from_imu
         if self._propagated is not None and self._propagated[0] == stamp_ns and continuous:
-            self._trust.compare(float(np.linalg.norm(T[:3, 3] - self._propagated[1][:3, 3])))
+            self._trust.compare(float(np.linalg.norm(T[:3, 3] - self._propagated[1][:3, 3])), stamp_ns)
         self._propagated = None
         self._trust.placed()
         last = self._history.last

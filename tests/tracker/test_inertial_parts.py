@@ -4,6 +4,8 @@ check of the gyro, the gyro's bias, the gravity alignment and the trust in the I
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -18,7 +20,7 @@ from octolog.tracker.gyro import (
     GyroCheck,
     GyroSpan,
 )
-from octolog.tracker.inertial import MAX_DISAGREEING, TRUST_FRAMES, ImuTrust
+from octolog.tracker.inertial import MAX_DISAGREEING, TRUST_FRAMES, TRUST_S, ImuTrust
 from octolog.tracker.pose import so3_exp, so3_log
 from octolog.tracker.preintegration import (
     MAX_GAP_NS,
@@ -262,16 +264,32 @@ def test_an_untrusted_alignment_leaves_up_alone() -> None:
 
 def test_the_imu_earns_trust_by_agreeing_and_loses_it_to_repeated_vetoes() -> None:
     trust = ImuTrust()
-    for _ in range(TRUST_FRAMES - 1):
-        trust.compare(0.005)
+    stamps = (round(i * 1e9 / 30) for i in range(10**6))  # 30 fps
+    agreeing_for = math.ceil(TRUST_S * 30)  # frames after the first that span TRUST_S
+    for _ in range(agreeing_for):
+        trust.compare(0.005, next(stamps))
     assert not trust.trusted and not trust.disagrees()  # not yet: no veto
-    trust.compare(0.05)  # one frame far off starts the count again
-    for _ in range(TRUST_FRAMES - 1):
-        trust.compare(0.005)
+    trust.compare(0.05, next(stamps))  # one frame far off starts the run again
+    for _ in range(agreeing_for):
+        trust.compare(0.005, next(stamps))
     assert not trust.trusted
-    trust.compare(0.005)
+    trust.compare(0.005, next(stamps))
     assert trust.trusted
     trust.placed()
     assert all(trust.disagrees() for _ in range(MAX_DISAGREEING))
     assert not trust.disagrees()  # vision wins
     assert not trust.trusted and trust.distrusted == 1
+
+
+def test_trust_takes_the_same_time_at_any_frame_rate_and_a_few_frames_at_least() -> None:
+    """TRUST_S of agreement at 60 fps as at 30; at 5 fps TRUST_FRAMES frames, whatever their span."""
+    for fps in (30, 60):
+        trust = ImuTrust()
+        stamps = [round(i * 1e9 / fps) for i in range(4 * fps)]
+        first = next(i for i, t in enumerate(stamps) if (trust.compare(0.001, t), trust.trusted)[1])
+        assert stamps[first] >= TRUST_S * 1e9 > stamps[first - 1]
+    trust = ImuTrust()
+    for i in range(TRUST_FRAMES):
+        assert not trust.trusted
+        trust.compare(0.001, i * 200_000_000)
+    assert trust.trusted
