@@ -9,8 +9,7 @@ import numpy as np
 
 from octolog.kit.errors import ConfigError
 from octolog.mapper.fleet.order import start_pose_matrix
-from octolog.mapper.grid import DEFAULT_UP
-from octolog.mapper.params import BACKENDS, CloudParams, GridParams, MapperParams, OccupancyParams
+from octolog.mapper.params import BACKENDS, DEFAULT_UP, CloudParams, GridParams, MapperParams, OccupancyParams
 from octolog.mapper.sensor_model import PROBABILITIES, SensorModel
 from octolog.mapper.tiles import Tiles, parse_shard
 

@@ -34,6 +34,7 @@ import numpy as np
 from octolog.kit.errors import MapError
 from octolog.kit.files import write_bytes_atomic
 from octolog.mapper.cloud import column_max, column_min, rows_where
+from octolog.mapper.params import DEFAULT_UP
 from octolog.schemas import codec
 from octolog.schemas.msgtypes import OccupancyGrid
 
@@ -55,7 +56,6 @@ __all__ = [
 UNKNOWN, FREE, OCCUPIED = -1, 0, 100
 PGM_OCCUPIED, PGM_FREE, PGM_UNKNOWN = 0, 254, 205
 OCCUPIED_THRESH, FREE_THRESH = 0.65, 0.196
-DEFAULT_UP = (0.0, -1.0, 0.0)  # a level optical-frame camera: image "up" is -y
 _MIN_HORIZONTAL = 1e-3  # below this, world +z is treated as vertical and world +x gives the heading
 
 

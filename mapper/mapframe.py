@@ -32,7 +32,7 @@ from octolog.kit.geometry import RgbdFrame
 from octolog.kit.up_vector import LiveUp, level_on_plane
 from octolog.kit.viz import Viz
 from octolog.mapper.core import Mapper
-from octolog.mapper.grid import DEFAULT_UP
+from octolog.mapper.params import DEFAULT_UP
 from octolog.schemas import codec, posemsgs
 from octolog.schemas.topics import ACCEL, GRAVITY, TF_STATIC
 

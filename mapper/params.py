@@ -42,6 +42,9 @@ class OccupancyParams:
     sensor: SensorModel
 
 
+DEFAULT_UP = (0.0, -1.0, 0.0)  # a level optical-frame camera: image "up" is -y
+
+
 @dataclass(frozen=True)
 class GridParams:
     """The 2D grid: a height band in a level frame whose +z is `up` (mapper.grid)."""
