@@ -21,7 +21,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.sparse
 
 from octolog.tracker.pose import CHI2_2DOF, CHI2_3DOF, so3_exp
 
@@ -347,6 +346,8 @@ class _Solve:
             Gd = Gd.reshape(6 * nf, 3 * self.pts.size)
             S = -(Gd @ Gd.T)
         else:  # scipy's sparse product: sequential sums in the CSR order, no threads
+            import scipy.sparse  # lazy: ~0.15 s to import, for the back end's process, not the tracker's
+
             Gs = scipy.sparse.csr_matrix((self._csr_data(G), self.csr_indices, self.csr_indptr),
                                          shape=(6 * nf, 3 * self.pts.size))
             S = -(Gs @ Gs.T).toarray()
