@@ -276,3 +276,27 @@ def test_exposure_blurs_colour_along_the_turn_only() -> None:
     assert sharpness(still_blurred.rgb) > 0.75 * sharpness(still.rgb)  # the walk turns at under 50 deg/s
     with pytest.raises(ValueError, match="exposure_ms"):
         SyntheticScene(n_frames=2, exposure_ms=50.0)  # longer than a frame at 30 fps
+
+
+def test_the_texture_atlas_from_the_cache_is_the_baked_one_and_a_broken_file_is_baked_again(tmp_path, monkeypatch):
+    """The room's textures are kept in octolog's cache (octolog.kit.cache): what comes back is the
+    bake, bit for bit, and a truncated cache file is baked again and replaced, never read as data."""
+    from octolog.replay import synthetic_textures as st
+
+    monkeypatch.setenv("OCTOLOG_CACHE", str(tmp_path))
+    fields = ("atlas", "origin", "limit", "coef", "normal")
+    baked = st._bake(3, 0.02, 2)
+    st.scene_textures.cache_clear()
+    first = st.scene_textures(3, 0.02, 2)  # baked and kept
+    (kept,) = (tmp_path / "synthetic").glob("textures-*.npz")
+    st.scene_textures.cache_clear()
+    again = st.scene_textures(3, 0.02, 2)  # from the file
+    for got in (first, again):
+        for name in fields:
+            a, b = getattr(got, name), getattr(baked, name)
+            assert a.dtype == b.dtype and np.array_equal(a, b), name
+    kept.write_bytes(kept.read_bytes()[:1000])
+    st.scene_textures.cache_clear()
+    assert np.array_equal(st.scene_textures(3, 0.02, 2).atlas, baked.atlas)
+    assert kept.stat().st_size > 1000  # replaced whole
+    st.scene_textures.cache_clear()
