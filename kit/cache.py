@@ -30,18 +30,18 @@ def cache_root(name: str) -> Path:
     return Path(base) / "octolog" / name
 
 
-def key_of(parts: Iterable[object], sources: Iterable[object] = (), libraries: Iterable[str] = ()) -> str:
-    """A hash of `parts` (their repr), the source files of the modules in `sources` and the installed
-    versions of `libraries`: what decides a cached result's bytes."""
+def key_of(parts: Iterable[object], files: Iterable[str | Path] = (), libraries: Iterable[str] = ()) -> str:
+    """A hash of `parts` (their repr), the bytes of `files` (the source that computes the result)
+    and the installed versions of `libraries`: what decides a cached result's bytes."""
     h = hashlib.sha256()
     for part in parts:
         h.update(repr(part).encode())
-    for module in sources:
-        h.update(Path(str(module.__file__)).read_bytes())  # type: ignore[attr-defined]
+    for file in files:
+        h.update(Path(file).read_bytes())
     for lib in libraries:
         try:
             h.update(f"{lib}={version(lib)}".encode())
-        except PackageNotFoundError:
+        except PackageNotFoundError:  # not installed under that name: part of the key all the same
             h.update(f"{lib}=unknown".encode())
     return h.hexdigest()[:24]
 

@@ -161,9 +161,7 @@ def scene_textures(seed: int, texel: float, levels: int) -> Textures:
     """Every face's texture pyramid in one atlas (shared by scenes alike). Baking takes ~1.5 s, in
     every process that renders the room: the result is kept in octolog's cache (octolog.kit.cache),
     keyed by the arguments, this module's and the room's source and numpy's version."""
-    import sys
-
-    key = cache.key_of((seed, texel, levels), (sys.modules[__name__], synthetic_room), ("numpy",))
+    key = cache.key_of((seed, texel, levels), (__file__, str(synthetic_room.__file__)), ("numpy",))
     path = cache.cache_root("synthetic") / f"textures-{key}.npz"
     kept = cache.load_arrays(path)
     if kept is not None and set(kept) == set(_FIELDS):
@@ -171,8 +169,8 @@ def scene_textures(seed: int, texel: float, levels: int) -> Textures:
     else:
         out = _bake(seed, texel, levels)
         cache.store_arrays(path, {name: getattr(out, name) for name in _FIELDS})
-    for arr in (out.atlas, out.origin, out.limit, out.coef, out.normal):
-        arr.setflags(write=False)
+    for name in _FIELDS:
+        getattr(out, name).setflags(write=False)
     return out
 
 

@@ -30,7 +30,6 @@ which doubled its CPU and cost it IMU samples on a loaded machine).
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import math
 import os
@@ -38,7 +37,6 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
-from importlib.metadata import version
 from pathlib import Path
 from typing import Any
 
@@ -93,19 +91,8 @@ class SceneOptions:
         frames = {"format": FORMAT, "color": dataclasses.asdict(lay.color), "depth": dataclasses.asdict(lay.depth),
                   "fps": lay.fps, "depth_units_m": lay.depth_units_m, "color_from_depth": lay.color_from_depth,
                   "motion": self.motion, "seed": self.seed, "depth_bias_px": self.depth_bias_px}
-        h = hashlib.sha256(json.dumps(frames, sort_keys=True).encode())
-        for module in _RENDERER:
-            h.update(Path(str(module.__file__)).read_bytes())
-        for lib in ("numpy", "open3d-cpu", "opencv-python-headless", "scipy"):
-            h.update(f"{lib}={_version(lib)}".encode())
-        return h.hexdigest()[:24]
-
-
-def _version(lib: str) -> str:
-    try:
-        return version(lib)
-    except Exception:  # noqa: BLE001 - not installed under that name: part of the key all the same
-        return "unknown"
+        return cache.key_of((json.dumps(frames, sort_keys=True),), [str(m.__file__) for m in _RENDERER],
+                            ("numpy", "open3d-cpu", "opencv-python-headless", "scipy"))
 
 
 def cache_root() -> Path:
