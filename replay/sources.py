@@ -359,6 +359,10 @@ class Subsampled:
         return self.inner.duration_ns
 
     def frames(self, start: int = 0, end: int | None = None) -> Iterator[RgbdFrame]:
+        if isinstance(self.inner, SyntheticSource):  # it renders any frame alone: those between are never rendered
+            stop = len(self.inner) if end is None else min(end * self.every, len(self.inner))
+            return (dataclasses.replace(self.inner.scene.render(i), seq=i // self.every)
+                    for i in range(start * self.every, stop, self.every))
         return self._every(self.inner.frames, start, end)
 
     def encoded_frames(self, start: int = 0, end: int | None = None) -> Iterator[EncodedRgbd]:

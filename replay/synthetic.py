@@ -7,25 +7,34 @@ depth), colour from a trilinear atlas lookup at the hit point (`cv2.remap`).
 
 Nothing heavy happens at import or construction time: open3d, the geometry, the textures
 (~1-2 s, shared by scenes with the same seed) and the ray caster are built on first use.
+
+A frame costs ~0.1 s of CPU to render at 640x480, as much as the tracker spends on it: `render`
+keeps each frame in octolog's cache (octolog.kit.cache, `synthetic/frames-KEY/`, colour and depth
+as they are: 1.5 MB a frame at 640x480), keyed by everything that decides its bytes (the scene's
+parameters but its length, this package's renderer source, the rendering libraries' versions).
+Frame i does not depend on the sequence's length, so a longer run renders only the frames a
+shorter one did not; a replay of a rendered sequence reads one file a frame.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 from fractions import Fraction
 from functools import cached_property
+from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
-from octolog.kit import imu
+from octolog.kit import cache, imu, opencv
 from octolog.kit.geometry import Intrinsics, RgbdFrame, matrix_to_pose
 from octolog.kit.up_vector import WINDOW_S, up_from_samples
 from octolog.kit.opencv import baseline_simd
-from octolog.replay import depth_noise, synthetic_imu
+from octolog.replay import depth_noise, synthetic_imu, synthetic_room, synthetic_textures, synthetic_trajectory
 from octolog.replay.source_gravity import simulated_up
 from octolog.replay.synthetic_room import OBJECTS, ROOM, scene_faces, scene_triangles
 from octolog.replay.synthetic_textures import Textures, scene_textures
@@ -33,6 +42,11 @@ from octolog.replay.synthetic_imu import SimulatedImu
 from octolog.replay.synthetic_trajectory import MOTIONS, camera_trajectory
 
 EPOCH_NS = 1_700_000_000 * 1_000_000_000
+FRAME_FORMAT = 1  # the frame cache's layout: bump it when it changes (a new key)
+# what renders a frame: these modules' source and these libraries' versions key the frame cache
+_RENDERER = (__file__, depth_noise.__file__, synthetic_room.__file__, synthetic_textures.__file__,
+             synthetic_trajectory.__file__, opencv.__file__)
+_RENDER_LIBRARIES = ("numpy", "open3d", "opencv-python-headless")
 BLANK_GREY = 128  # the colour of a textureless stretch (`blank_s`)
 
 
@@ -381,22 +395,47 @@ class SyntheticScene:
                                            borderMode=cv2.BORDER_REPLICATE)
         return (acc * np.float32(1.0 / len(rot)) + np.float32(0.5)).astype(np.uint8)
 
+    @cached_property
+    def _frame_folder(self) -> Path:
+        """Where this scene's rendered frames are kept (see the module's docstring); the sequence's
+        length and the ray caster's thread count do not change a frame's bytes."""
+        cfg = dataclasses.replace(self.config, n_frames=0, nthreads=0)
+        key = cache.key_of((FRAME_FORMAT, cfg), [str(f) for f in _RENDERER], _RENDER_LIBRARIES)
+        return cache.cache_root("synthetic") / f"frames-{key}"
+
     def render(self, i: int) -> RgbdFrame:
-        """The RGB-D frame i (seq = i) at its ground-truth pose (mid-exposure)."""
+        """The RGB-D frame i (seq = i) at its ground-truth pose (mid-exposure), from the frame cache
+        when it is there (a missing or unreadable file is rendered again)."""
+        i = self._check(i)
+        K = self.intrinsics
+        path = self._frame_folder / f"{i:06d}.npz"
+        kept = cache.load_arrays(path)
+        if (kept is not None and set(kept) == {"rgb", "depth"} and kept["rgb"].shape == (K.height, K.width, 3)
+                and kept["rgb"].dtype == np.uint8 and kept["depth"].shape == (K.height, K.width)
+                and kept["depth"].dtype == np.uint16):
+            rgb, depth = kept["rgb"], kept["depth"]
+        else:
+            rgb, depth = self.render_frame(i)
+            cache.store_arrays(path, {"rgb": rgb, "depth": depth})
+        return RgbdFrame(
+            seq=i,
+            stamp_ns=self.stamp_ns(i),
+            rgb=rgb,
+            depth=depth,
+            depth_scale_m=self.depth_scale_m,
+            intrinsics=K,
+        )
+
+    def render_frame(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """Colour and depth of frame i, rendered (the frame cache's source): the view from its
+        ground-truth pose, its sensor's depth noise, its motion blur, its blank stretch."""
         noise = np.random.default_rng([self.config.seed, int(i)]) if self.config.depth_noise != "none" else None
         rgb, depth = self.render_pose(self.pose(i), noise)
         if self.config.exposure_ms > 0:
             rgb = self._motion_blur(int(i), rgb)
         if self.config.blank_s > 0 and 0.0 <= i / self.config.fps - self.config.blank_at_s < self.config.blank_s:
             rgb = np.full_like(rgb, BLANK_GREY)
-        return RgbdFrame(
-            seq=int(i),
-            stamp_ns=self.stamp_ns(i),
-            rgb=rgb,
-            depth=depth,
-            depth_scale_m=self.depth_scale_m,
-            intrinsics=self.intrinsics,
-        )
+        return rgb, depth
 
     def frames(self) -> Iterator[RgbdFrame]:
         """All frames in order."""

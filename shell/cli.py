@@ -501,6 +501,25 @@ def _run_command(args: argparse.Namespace) -> int:
         return 130
     except BrokenPipeError:
         os._exit(1)
+    except Exception as exc:
+        # a stop (Ctrl-C, SIGTERM) that a library turned into its own error: open3d's import raises
+        # ImportError("initialization failed") when interrupted part-way
+        if not _caused_by_interrupt(exc):
+            raise
+        _error_line(f"octolog {args.command}: interrupted")
+        return 130
+
+
+def _caused_by_interrupt(exc: BaseException) -> bool:
+    """Whether a KeyboardInterrupt is among `exc`'s causes."""
+    seen: set[int] = set()
+    cause: BaseException | None = exc
+    while cause is not None and id(cause) not in seen:
+        if isinstance(cause, KeyboardInterrupt):
+            return True
+        seen.add(id(cause))
+        cause = cause.__cause__ or cause.__context__
+    return False
 
 
 if __name__ == "__main__":

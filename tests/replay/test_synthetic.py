@@ -169,13 +169,14 @@ def test_features_track_to_the_ground_truth_motion() -> None:
 
 
 def test_render_is_deterministic(small: SyntheticScene) -> None:
-    a = small.render(42)
-    b = small.render(42)
-    assert np.array_equal(a.rgb, b.rgb) and np.array_equal(a.depth, b.depth)
-    other = SyntheticScene(n_frames=540, width=160, height=120).render(42)
-    assert np.array_equal(a.rgb, other.rgb) and np.array_equal(a.depth, other.depth)
+    """The renderer itself (`render_frame`, not the frame cache in front of it)."""
+    a = small.render_frame(42)
+    b = small.render_frame(42)
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    other = SyntheticScene(n_frames=540, width=160, height=120).render_frame(42)
+    assert np.array_equal(a[0], other[0]) and np.array_equal(a[1], other[1])
     reseeded = SyntheticScene(n_frames=50, width=160, height=120, seed=3, texel_m=0.02)
-    assert not np.array_equal(a.rgb, reseeded.render(42).rgb)
+    assert not np.array_equal(a[0], reseeded.render_frame(42)[0])
 
 
 def _digest(f) -> str:
@@ -187,8 +188,8 @@ def test_render_is_deterministic_across_processes(small: SyntheticScene) -> None
         "import hashlib, sys\n"
         "from octolog.replay.synthetic import SyntheticScene\n"
         "assert 'open3d' not in sys.modules  # lazy: nothing heavy at import\n"
-        "f = SyntheticScene(n_frames=540, width=160, height=120, nthreads=1).render(77)\n"
-        "print(hashlib.sha256(f.rgb.tobytes() + f.depth.tobytes()).hexdigest())\n"
+        "rgb, depth = SyntheticScene(n_frames=540, width=160, height=120, nthreads=1).render_frame(77)\n"
+        "print(hashlib.sha256(rgb.tobytes() + depth.tobytes()).hexdigest())\n"
     )
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=REPO, check=True)
@@ -300,3 +301,25 @@ def test_the_texture_atlas_from_the_cache_is_the_baked_one_and_a_broken_file_is_
     assert np.array_equal(st.scene_textures(3, 0.02, 2).atlas, baked.atlas)
     assert kept.stat().st_size > 1000  # replaced whole
     st.scene_textures.cache_clear()
+
+
+def test_a_frame_from_the_cache_is_the_rendered_one_and_a_broken_file_is_rendered_again(tmp_path, monkeypatch):
+    """Rendered frames are kept in octolog's cache: a scene of another length reads them back bit
+    for bit (frame i does not depend on the length), another scene does not share them, and a
+    truncated file is rendered again and replaced."""
+    monkeypatch.setenv("OCTOLOG_CACHE", str(tmp_path))
+    short = SyntheticScene(n_frames=10, width=160, height=120)
+    rendered = short.render_frame(4)
+    first = short.render(4)  # rendered and kept
+    (folder,) = (tmp_path / "synthetic").glob("frames-*")
+    (kept,) = folder.glob("*.npz")
+    longer = SyntheticScene(n_frames=300, width=160, height=120)
+    again = longer.render(4)  # from the file
+    for got in (first, again):
+        assert np.array_equal(got.rgb, rendered[0]) and np.array_equal(got.depth, rendered[1])
+        assert got.seq == 4 and got.stamp_ns == short.stamp_ns(4)
+    SyntheticScene(n_frames=10, width=160, height=120, seed=5).render(4)
+    assert len(list((tmp_path / "synthetic").glob("frames-*"))) == 2  # a scene of its own
+    kept.write_bytes(kept.read_bytes()[:1000])
+    assert np.array_equal(SyntheticScene(n_frames=10, width=160, height=120).render(4).rgb, rendered[0])
+    assert kept.stat().st_size > 1000  # replaced whole

@@ -40,3 +40,24 @@ def test_stage_failures_are_typed_and_name_the_stage(tmp_path):
     for exc in (killed, exited):
         with pytest.raises(StageFailed):
             raise exc
+
+
+def test_a_stop_that_a_library_turns_into_its_own_error_is_an_interruption(monkeypatch, capsys):
+    """SIGTERM raises KeyboardInterrupt wherever the stage is; inside open3d's import that comes out as
+    ImportError("initialization failed"): still a stop (exit 130, one line), not a traceback. Any
+    other error is not swallowed."""
+    import argparse
+
+    def stopped_in_an_import(args):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as exc:
+            raise ImportError("initialization failed") from exc
+
+    def broken(args):
+        raise ImportError("no module named x")
+
+    assert cli._run_command(argparse.Namespace(command="replay", func=stopped_in_an_import)) == 130
+    assert capsys.readouterr().err == "octolog replay: interrupted\n"
+    with pytest.raises(ImportError, match="no module named x"):
+        cli._run_command(argparse.Namespace(command="replay", func=broken))
