@@ -334,13 +334,16 @@ def camera_frames(recording: Path) -> int:
     return min(colour, counts.get(T.ALIGNED_DEPTH.name, 0) + counts.get(T.ALIGNED_DEPTH_PNG.name, 0))
 
 
-def frame_counts(log: Path, camera: int | None = None) -> dict[str, int]:
-    """What the session log says about frames: published, consumed by the tracker, skipped. With the
-    frames a live camera delivered (`camera`), the ones it did not publish count as skipped too
-    (`held_back`: the tracker had RecorderConfig.publish_window frames in hand, or the
+def frame_counts(log: Path, camera: int | None = None) -> tuple[dict[str, int], int]:
+    """What the session log says about frames: published, consumed by the tracker, skipped; and the
+    sensor time between the first and the last frame the tracker consumed (its statuses' stamps:
+    what a replay played, a start/end window or loops included; 0 without statuses). One pass over
+    the log. With the frames a live camera delivered (`camera`), the ones it did not publish count as
+    skipped too (`held_back`: the tracker had RecorderConfig.publish_window frames in hand, or the
     recorder's live queue was full; the recorder's own summary line tells the two apart)."""
-    skipped_code = codec.msgtype(TRACKING_STATUS.msgtype).SKIPPED
+    status = codec.msgtype(TRACKING_STATUS.msgtype)
     published = consumed = skipped = 0
+    first_ns = last_ns = None
     counts = message_counts(log)  # the frames counted from the summary: not read (they are gigabytes)
     frame_topics = [] if counts is not None else [RGBD.name, RGBD_COMPRESSED.name]
     if counts is not None:
@@ -348,15 +351,21 @@ def frame_counts(log: Path, camera: int | None = None) -> dict[str, int]:
     for m in read_wire(log, [*frame_topics, TRACKING_STATUS.name]):
         if m.topic in (RGBD.name, RGBD_COMPRESSED.name):
             published += 1
-        elif codec.decode(m.data, TRACKING_STATUS.msgtype).state == skipped_code:
+            continue
+        msg = codec.decode(m.data, TRACKING_STATUS.msgtype)
+        t = codec.stamp_ns(msg.header)
+        first_ns = t if first_ns is None else min(first_ns, t)
+        last_ns = t if last_ns is None else max(last_ns, t)
+        if msg.state == status.SKIPPED:
             skipped += 1
         else:
             consumed += 1
+    span_ns = 0 if first_ns is None or last_ns is None else last_ns - first_ns
     if camera is None:
-        return {"published": published, "consumed": consumed, "skipped": skipped}
+        return {"published": published, "consumed": consumed, "skipped": skipped}, span_ns
     held_back = max(0, camera - published)
-    return {"camera": camera, "published": published, "consumed": consumed, "skipped": skipped + held_back,
-            "held_back": held_back}
+    return ({"camera": camera, "published": published, "consumed": consumed, "skipped": skipped + held_back,
+             "held_back": held_back}, span_ns)
 
 
 def played_ns(duration_ns: int, frames: int, loop: int) -> int:
@@ -368,30 +377,22 @@ def played_ns(duration_ns: int, frames: int, loop: int) -> int:
     return loop * duration_ns + (loop - 1) * gap
 
 
-def _status_span_ns(out: Path) -> int:
-    """Sensor time between the first and the last frame the tracker consumed (its statuses' stamps):
-    what a replay played, a start/end window or loops included; 0 without statuses."""
-    stamps = [codec.stamp_ns(codec.decode(m.data, m.msgtype).header)
-              for m in read_wire(out / "session.mcap", [TRACKING_STATUS.name])]
-    return max(stamps) - min(stamps) if stamps else 0
-
-
 def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, recording_id: str, *,
                loop: int = 1) -> SessionSummary:
     if isinstance(src, LiveSource):  # how long the camera ran: the frames the session log holds
         t = next((t for name, t in summarize(out / "session.mcap").topics.items() if name in (RGBD.name,
                   RGBD_COMPRESSED.name)), None)
         src.duration_ns = t.last_ns - t.first_ns if t is not None else 0
+    live = isinstance(src, LiveSource) and (out / "recording.mcap").exists()
+    frames, status_span_ns = frame_counts(out / "session.mcap", camera_frames(out / "recording.mcap") if live else None)
     played = src.duration_ns if isinstance(src, LiveSource) else \
-        (_status_span_ns(out) or played_ns(src.duration_ns, len(src), loop))
+        (status_span_ns or played_ns(src.duration_ns, len(src), loop))
     s = SessionSummary(out=out, source=source, wall_s=wall, duration_s=played * 1e-9)
     s.map = json.loads((out / "map_stats.json").read_text())
     if "map_frame" in s.map:  # the mapper found up: a live camera's accelerometer, the tracker's IMU
         _keep_live_up(out, s.map["map_frame"])
     if (out / "metadata.json").exists():
         s.map_frame = json.loads((out / "metadata.json").read_text()).get("gravity", {}).get("note", NOT_ALIGNED)
-    live = isinstance(src, LiveSource) and (out / "recording.mcap").exists()
-    frames = frame_counts(out / "session.mcap", camera_frames(out / "recording.mcap") if live else None)
     if (out / "trajectory.txt").exists():  # absent when the tracker was fed from a log
         traj = metrics.read_tum(out / "trajectory.txt")
         s.frames = len(traj.stamps_ns)

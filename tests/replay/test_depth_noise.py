@@ -7,7 +7,6 @@ model, along a slow and a fast path, and its Sim(3) scale must stay within 0.2 %
 
 from __future__ import annotations
 
-import dataclasses
 import sys
 from pathlib import Path
 
@@ -21,28 +20,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))
 import depth_scale  # noqa: E402  (bench/depth_scale.py: the same runs as the table)
 
 
-class _RenderedOnce(SyntheticScene):
-    """The synthetic room as track_scene renders it, each noisy frame rendered once for this module's
-    runs of the same scene (the slow and the fast path, a biased camera tracked twice). A frame's
-    noise is seeded by its index, so a frame is the same bytes whichever run renders it; each run
-    gets its own copy. Holds one scene's frames at a time (the runs of a scene are adjacent)."""
-
-    _held: dict = {"scene": None, "frames": {}}
-
-    def render(self, i: int):
-        held = _RenderedOnce._held
-        if held["scene"] != self.config:
-            held["scene"], held["frames"] = self.config, {}
-        if i not in held["frames"]:
-            held["frames"][i] = super().render(i)
-        f = held["frames"][i]
-        return dataclasses.replace(f, rgb=f.rgb.copy(), depth=f.depth.copy())
-
-
 @pytest.fixture
-def track_scene(monkeypatch):
-    """bench/depth_scale.py's track_scene, its scenes rendered once per module (_RenderedOnce)."""
-    monkeypatch.setattr(depth_scale, "SyntheticScene", _RenderedOnce)
+def track_scene():
+    """bench/depth_scale.py's track_scene: the same runs as its table (each noisy frame rendered
+    once for all of them: replay/synthetic.py's frame cache)."""
     return depth_scale.track_scene
 
 
@@ -100,12 +81,13 @@ def test_dark_surfaces_lose_depth_under_structured_light_only():
 
 
 def test_noisy_frames_are_deterministic_and_differ_from_exact_ones():
-    a = SyntheticScene(n_frames=3, width=160, height=120, depth_noise="d455").render(2)
-    b = SyntheticScene(n_frames=3, width=160, height=120, depth_noise="d455").render(2)
-    exact = SyntheticScene(n_frames=3, width=160, height=120).render(2)
-    assert np.array_equal(a.depth, b.depth) and np.array_equal(a.rgb, exact.rgb)
-    both = (a.depth > 0) & (exact.depth > 0)
-    assert 0 < np.mean(a.depth[both] != exact.depth[both])
+    """The renderer itself (`render_frame`, not the frame cache in front of it)."""
+    a_rgb, a_depth = SyntheticScene(n_frames=3, width=160, height=120, depth_noise="d455").render_frame(2)
+    _, b_depth = SyntheticScene(n_frames=3, width=160, height=120, depth_noise="d455").render_frame(2)
+    exact_rgb, exact_depth = SyntheticScene(n_frames=3, width=160, height=120).render_frame(2)
+    assert np.array_equal(a_depth, b_depth) and np.array_equal(a_rgb, exact_rgb)
+    both = (a_depth > 0) & (exact_depth > 0)
+    assert 0 < np.mean(a_depth[both] != exact_depth[both])
     with pytest.raises(ValueError, match="depth_noise"):
         SyntheticScene(depth_noise="lidar")
 
