@@ -123,9 +123,9 @@ def test_robots_running_ahead_never_starve_the_one_the_merge_awaits():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("n_robots", [3, 5])
-def test_fleets_of_three_and_five_robots_complete(tmp_path, octolog_run, n_robots):
-    """docs/deployment.md's fleet layout with 3 and with 5 robots and no start poses: a router, one
+def test_a_fleet_of_five_robots_completes(tmp_path, octolog_run):
+    """docs/deployment.md's fleet layout with 5 robots and no start poses (a fleet of 3 is its first
+    three robots, the same windows: a run of its own would add nothing): a router, one
     mapper for every robot, and per robot its tracker's keyframe stream replayed from a session log
     (`replay.play = "tracker"`). Each robot replays another window of the log: robot k the keyframes
     made from frame 4k on, so each starts at a view of its own and shares places with the first.
@@ -134,6 +134,7 @@ def test_fleets_of_three_and_five_robots_complete(tmp_path, octolog_run, n_robot
     from octolog.kit.metrics import read_tum
 
     log = octolog_run(f"synthetic:{FRAMES}")[0] / "session.mcap"
+    n_robots = 5
     robots = [f"r{k + 1}" for k in range(n_robots)]
     starts = [4 * k for k in range(n_robots)]
     out = tmp_path / "fleet"
