@@ -488,6 +488,10 @@ def _run_command(args: argparse.Namespace) -> int:
         errorfile.write(exc)  # for `octolog run`, when this is one of its stages; first: stderr may be full
         _error_line(f"octolog {args.command}: error: {exc}")
         return 1
+    except BrokenPipeError:  # the reader went away (`octolog info ... | head`): stop quietly
+        # stdout to /dev/null: Python's own flush at exit would hit the closed pipe again
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
     except OSError as exc:
         if exc.errno != errno.ENOSPC:
             raise
@@ -499,8 +503,6 @@ def _run_command(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         _error_line(f"octolog {args.command}: interrupted")
         return 130
-    except BrokenPipeError:
-        os._exit(1)
     except Exception as exc:
         # a stop (Ctrl-C, SIGTERM) that a library turned into its own error: open3d's import raises
         # ImportError("initialization failed") when interrupted part-way

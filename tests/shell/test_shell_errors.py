@@ -61,3 +61,23 @@ def test_a_stop_that_a_library_turns_into_its_own_error_is_an_interruption(monke
     assert capsys.readouterr().err == "octolog replay: interrupted\n"
     with pytest.raises(ImportError, match="no module named x"):
         cli._run_command(argparse.Namespace(command="replay", func=broken))
+
+
+def test_a_reader_that_goes_away_stops_the_command_quietly(tmp_path):
+    """`octolog info SESSION | head`: the pipe closes before the command writes (here: closed from
+    the start); no traceback, exit 1."""
+    import os
+    import subprocess
+    import sys
+
+    from octolog.shell.sessiondir import INCOMPLETE
+
+    (tmp_path / INCOMPLETE).write_text("the tracker stage exited with code 1\n")
+    read, write = os.pipe()
+    os.close(read)
+    try:
+        proc = subprocess.run([sys.executable, "-m", "octolog", "info", str(tmp_path)], stdout=write,
+                              stderr=subprocess.PIPE, text=True, timeout=120)
+    finally:
+        os.close(write)
+    assert proc.returncode == 1 and proc.stderr == "", proc.stderr
