@@ -1,18 +1,24 @@
 """Rerun logging: the only module that imports rerun.
 
 `--rerun off` (default), `--rerun save:DIR` (one `<stage>.rrd` per stage) or `--rerun connect:URL`
-(stream to a viewer). All stages of a session share one recording id so their data merges into one
+(stream to a viewer; with `$OCTOLOG_RERUN_COPY` set, as `octolog run` sets it to OUT/rerun, also
+saved there, so a viewer that is not there costs nothing). A viewer that cannot be reached is a
+warning, never a stage's failure: `VIEWER_MISSED` says so for the stage's report. All stages of a session share one recording id so their data merges into one
 recording; timelines are `sensor_time` (sensor timestamps) and `frame` (source sequence numbers).
 Entity paths mirror topic names.
 """
 
 from __future__ import annotations
 
+import logging
+import os
 import shutil
+import socket
 from collections.abc import Sequence
 from pathlib import Path
 from types import ModuleType
 from typing import Any
+from urllib.parse import urlsplit
 
 import numpy as np
 
@@ -22,6 +28,12 @@ from octolog.kit.geometry import Intrinsics, matrix_to_pose
 from octolog.schemas.imagecodec import depth_png
 
 APPLICATION_ID = "octolog"
+COPY_ENV = "OCTOLOG_RERUN_COPY"  # with `connect`: also save the stage's recording in this folder
+DEFAULT_VIEWER = "rerun+http://127.0.0.1:9876/proxy"  # rerun's own default for `connect` without a URL
+# {"url": ..., "saved": path or None, "reason": ...} once this process's viewer could not be reached
+VIEWER_MISSED: dict[str, str | None] = {}
+
+log = logging.getLogger(__name__)
 
 
 JPEG_QUALITY = 75  # colour in the recordings: for looking at, not for measuring
@@ -96,7 +108,29 @@ def parse_spec(spec: str) -> tuple[str, str]:
     raise ConfigError(f"--rerun {spec!r}: want off, save:DIR or connect[:URL]")
 
 
+def viewer_unreachable(url: str, timeout_s: float = 1.0) -> str | None:
+    """Why nothing would take a recording streamed to the viewer at `url` (`connect`'s target, rerun's
+    default when empty): nothing listens at its host and port, or they do not resolve; None when a
+    TCP connection opens (the viewer, or whatever else listens there)."""
+    url = url or DEFAULT_VIEWER
+    parts = urlsplit(url.replace("rerun+", "", 1) if url.startswith("rerun+") else url)
+    try:
+        port = parts.port or {"https": 443, "http": 80}.get(parts.scheme, 9876)
+    except ValueError:
+        return f"{url} names no port"
+    if not parts.hostname:
+        return f"{url} names no host"
+    try:
+        with socket.create_connection((parts.hostname, port), timeout=timeout_s):
+            return None
+    except OSError as exc:
+        return f"nothing listens at {parts.hostname}:{port} ({exc.strerror or exc})"
+
+
 FILE_FLUSH_S = 1.0  # see Viz.__init__
+# Streaming to a viewer, the last flush waits at most this long: rerun's gRPC sink waits for ever on a
+# viewer it never reached (a saved copy, rerun's file sink beside it, is whole all the same)
+VIEWER_FLUSH_S = 10.0
 
 
 class Viz:
@@ -107,6 +141,7 @@ class Viz:
         self.stage = stage
         self.rec: Any = None  # rerun's RecordingStream when on (Any: rerun is imported only then)
         self.path: Path | None = None
+        self.viewer = (target or DEFAULT_VIEWER) if self.kind == "connect" else ""
         if self.kind == "off":
             return
         import rerun as rr  # here, not at the top: rerun-sdk takes ~1.5 s to import; "off" never needs it
@@ -120,12 +155,16 @@ class Viz:
         # a connected viewer keeps the default.
         batching = rr.ChunkBatcherConfig(flush_tick=FILE_FLUSH_S) if self.kind == "save" else None
         self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id, batcher_config=batching)
-        if self.kind == "save":
-            self.path = Path(target) / f"{stage}.rrd"
+        copy = os.environ.get(COPY_ENV) if self.kind == "connect" else None
+        if self.kind == "save" or copy:
+            self.path = Path(target if self.kind == "save" else copy) / f"{stage}.rrd"
             self.path.parent.mkdir(parents=True, exist_ok=True)
+        if self.kind == "save":
             self.rec.save(self.path)
+        elif self.path is not None:  # the viewer and the file alike (rerun's tee of sinks)
+            self.rec.set_sinks(rr.GrpcSink(self.viewer), rr.FileSink(self.path))
         else:
-            self.rec.connect_grpc(target or None)
+            self.rec.connect_grpc(self.viewer)
         # the root is the map frame (REP 103: x forward, y left, z up); `world` (the tracker's: its
         # first camera's optical frame) sits in it by the transform the mapper logs (`map_frame`)
         self.rec.log("/", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
@@ -144,12 +183,21 @@ class Viz:
         rec, self.rec = self.rec, None
         try:
             with charge("rerun"):
-                rec.flush()
-        except RuntimeError as exc:  # rerun's file writer died (it logs the OS error itself)
-            raise self._write_error(exc) from None
+                rec.flush(timeout_sec=VIEWER_FLUSH_S if self.kind == "connect" else 1e38)
+        except RuntimeError as exc:  # rerun's file writer died (it logs the OS error itself), or no viewer
+            if self.kind != "connect":
+                raise self._write_error(exc) from None
+            self._viewer_missed(exc)
         finally:
             note_threads()  # rerun's threads end with the recording: their CPU, counted before
-            rec.disconnect()
+            rec.disconnect()  # a viewer never reached: rerun gives it one last try (~5 s)
+
+    def _viewer_missed(self, exc: RuntimeError) -> None:
+        """The viewer was not there: said once, the run goes on (its file, if any, is whole)."""
+        saved = str(self.path) if self.path is not None else None
+        VIEWER_MISSED.update(url=self.viewer, saved=saved, reason=str(exc).splitlines()[0] if str(exc) else "")
+        log.warning("rerun: the viewer at %s could not be reached (%s); %s", self.viewer, VIEWER_MISSED["reason"],
+                    f"the recording is saved in {saved}" if saved else "nothing of this stage's recording was kept")
 
     def _write_error(self, exc: RuntimeError) -> Exception:
         if self.path is None:

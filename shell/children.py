@@ -85,8 +85,9 @@ def _niced(n: int) -> list[str]:
 class StageProcesses:
     """The stage processes; stops them all on the first failure or on exit."""
 
-    def __init__(self, logs: Path) -> None:
+    def __init__(self, logs: Path, env: dict[str, str] | None = None) -> None:
         self.logs = logs
+        self.env = env or {}  # for every stage, on top of this process's environment
         self.procs: dict[str, subprocess.Popen] = {}
         self.argv: dict[str, tuple[list[str], bool]] = {}
         self.restarts: dict[str, int] = {}
@@ -98,7 +99,7 @@ class StageProcesses:
         process's level (`--log-level`)."""
         log = open(self.logs / f"{name}.log", "ab" if append else "wb")  # noqa: SIM115 - owned by the child
         errorfile.reserve(self.error_file(name))
-        env = {**os.environ, "PYTHONHASHSEED": "0", "PYTHONUNBUFFERED": "1", errorfile.ENV: str(self.error_file(name)),
+        env = {**os.environ, **self.env, "PYTHONHASHSEED": "0", "PYTHONUNBUFFERED": "1", errorfile.ENV: str(self.error_file(name)),
                errorfile.REPORT_ENV: str(self.logs / f"{name}.report.json"),
                # its status line ends up on our stderr: redrawn only if that is a terminal
                statusline.ENV: "1" if show_stderr and statusline.is_terminal(sys.stderr) else "0"}

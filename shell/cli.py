@@ -477,6 +477,11 @@ def main(argv: list[str] | None = None) -> int:
         if "octolog.kit.bus.screening" in sys.modules:  # a command that took samples off a bus
             from octolog.kit.bus import screening  # lazy: only a command that used a bus has it (Zenoh) loaded
 
+            if "octolog.kit.viz" in sys.modules:
+                from octolog.kit import viz  # lazy: loaded already (a stage that logs to Rerun)
+
+                if viz.VIEWER_MISSED:
+                    errorfile.FINDINGS["viewer_missed"] = dict(viz.VIEWER_MISSED)
             errorfile.write_report(screening.totals(), cpuclock.report())
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import os
 import subprocess
 import sys
@@ -25,7 +26,7 @@ from octolog.kit import metrics
 from octolog.kit.config import load, to_dict, to_toml
 from octolog.kit.errors import ConfigError, InputError, OctologError, StageError
 from octolog.kit.mcaplog import message_counts, read_wire, summarize
-from octolog.kit.viz import parse_spec
+from octolog.kit.viz import COPY_ENV, DEFAULT_VIEWER, parse_spec, viewer_unreachable
 from octolog.mapper.config import MapperConfig
 from octolog.recorder.config import RecorderConfig
 from octolog.replay import source_gravity
@@ -45,6 +46,8 @@ from octolog.shell.versions import versions
 from octolog.tracker.config import TrackerConfig, for_source
 from octolog.tracker.mapfile import FILENAME as MAP_FILENAME
 from octolog.tracker.mapfile import map_path
+
+log = logging.getLogger(__name__)
 
 STAGES = ("log", "mapper", "tracker", "replay")
 
@@ -70,6 +73,7 @@ class SessionSummary:
     depth_bias: dict | None = None  # the tracker's estimate of the depth camera's systematic error (summary.json)
     imu: dict | None = None  # what the tracker's IMU did (summary.json; None: no IMU, or vision only)
     prior_map: dict | None = None  # what became of the saved map the tracker was given (tracker.map)
+    viewer_missed: dict | None = None  # `--rerun connect`: the viewer no stage could reach (kit/viz.py)
 
 
 # Live sources: a D455 (pyrealsense2) or the simulated one (its software device, paced at the
@@ -300,10 +304,19 @@ def _start_stages(children: StageProcesses, plan: SessionPlan, endpoint: str, re
 
 def _run(plan: SessionPlan) -> SessionSummary:
     rerun = f"save:{plan.out / 'rerun'}" if plan.rerun == "save" else plan.rerun
-    parse_spec(rerun)
+    kind, viewer = parse_spec(rerun)
+    # streamed to a viewer, each stage's recording is saved in OUT/rerun as well: a viewer that is
+    # not there (or closed part-way) costs nothing of the session; one that is not there at the
+    # start is not waited for at all
+    missed = viewer_unreachable(viewer) if kind == "connect" else None
+    if missed is not None:
+        log.warning("no Rerun viewer at %s (%s): the stages' recordings are saved in %s instead; "
+                    "`octolog view %s` opens them", viewer or DEFAULT_VIEWER, missed, plan.out / "rerun", plan.out)
+        rerun = f"save:{plan.out / 'rerun'}"
+    copy = {COPY_ENV: str(plan.out / "rerun")} if kind == "connect" else {}
     config_path = _write_session_files(plan)
     with hosted_router(plan.router) as endpoint:
-        children = StageProcesses(plan.out / "logs")
+        children = StageProcesses(plan.out / "logs", env=copy)
         t0 = time.monotonic()
         try:
             _start_stages(children, plan, endpoint, rerun, config_path)
@@ -312,7 +325,9 @@ def _run(plan: SessionPlan) -> SessionSummary:
             children.stop_all()
             children.end_line()
         wall = time.monotonic() - t0
-    return _summarize(plan.out, plan.source, plan.src, wall, plan.recording_id, loop=plan.cfgs["replay"].loop)
+    return _summarize(plan.out, plan.source, plan.src, wall, plan.recording_id, loop=plan.cfgs["replay"].loop,
+                      viewer_missed=None if missed is None else {"url": viewer or DEFAULT_VIEWER, "reason": missed,
+                                                                 "saved": str(plan.out / "rerun")})
 
 
 def _keep_live_up(out: Path, found: dict) -> None:
@@ -378,7 +393,7 @@ def played_ns(duration_ns: int, frames: int, loop: int) -> int:
 
 
 def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, recording_id: str, *,
-               loop: int = 1) -> SessionSummary:
+               loop: int = 1, viewer_missed: dict | None = None) -> SessionSummary:
     if isinstance(src, LiveSource):  # how long the camera ran: the frames the session log holds
         t = next((t for name, t in summarize(out / "session.mcap").topics.items() if name in (RGBD.name,
                   RGBD_COMPRESSED.name)), None)
@@ -410,10 +425,12 @@ def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, re
     s.depth_bias = errorfile.read_finding(out / "logs" / "tracker.report.json", "depth_bias")
     s.prior_map = errorfile.read_finding(out / "logs" / "tracker.report.json", "prior_map")
     s.imu = errorfile.read_finding(out / "logs" / "tracker.report.json", "imu")
+    s.viewer_missed = viewer_missed or next((found for p in sorted((out / "logs").glob("*.report.json"))
+                                             if (found := errorfile.read_finding(p, "viewer_missed"))), None)
     (out / "summary.json").write_text(json.dumps(
         {"source": source, "frames": frames, "tracked_frames": s.frames, "wall_s": round(wall, 3),
          "malformed": s.malformed, "map_frame": s.map_frame, "cpu_s": cpu, "depth_bias": s.depth_bias, "prior_map": s.prior_map,
-         "imu": s.imu,
+         "imu": s.imu, "viewer_missed": s.viewer_missed,
          "duration_s": s.duration_s, "ate": s.ate, "map": s.map, "files": sorted(s.files),
          "recording_id": recording_id, "versions": versions()},
         indent=2, sort_keys=True) + "\n")
@@ -436,6 +453,9 @@ def format_summary(s: SessionSummary) -> str:
         lines.append(depth_bias_line(s.depth_bias))
     if s.prior_map:
         lines.append("  " + prior_line(s.prior_map))
+    if s.viewer_missed:
+        lines.append(f"  viewer: not reachable at {s.viewer_missed.get('url')}; the stages' recordings are in "
+                     f"{s.out / 'rerun'} (`octolog view {s.out}`)")
     for stage, counts in s.malformed.items():
         lines.append(f"  {stage} dropped malformed samples: " + ", ".join(f"{n} on {t}" for t, n in counts.items()))
     lines.append("  files: " + ", ".join(sorted(s.files)))
