@@ -213,6 +213,34 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
+ROUTER_WAIT_S = 3.0  # a router started just before the run (a script's `octolog router &`) is given this long
+
+
+def router_unreachable(endpoint: str, wait_s: float = ROUTER_WAIT_S) -> str | None:
+    """Why the stages could not meet at the router `endpoint` (tcp/ or tls/HOST:PORT): nothing
+    listens there, or the host does not resolve or answer, still so after `wait_s`; None once a TCP
+    connection opens. Other protocols are not probed (None): Zenoh itself reports on them."""
+    proto, _, addr = endpoint.partition("/")
+    host, _, port = addr.split("#", 1)[0].split("?", 1)[0].rpartition(":")
+    host = host.strip("[]")
+    if proto not in ("tcp", "tls") or not host or not port.isdigit():
+        return None
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            with socket.create_connection((host, int(port)), timeout=min(2.0, wait_s)):
+                return None
+        except socket.gaierror as exc:
+            return f"cannot resolve {host!r} ({exc.strerror})"
+        except ConnectionRefusedError:
+            why = f"nothing listens at {host}:{port}"
+        except OSError as exc:
+            why = f"no answer from {host}:{port} ({exc.strerror or exc})"
+        if time.monotonic() >= deadline:
+            return f"{why} (tried for {wait_s:.0f} s)"
+        time.sleep(0.25)  # a router starting up: try again
+
+
 @contextlib.contextmanager
 def hosted_router(given: str | None) -> Iterator[str]:
     """The endpoint the stages meet at: `given`, or a Zenoh router this process hosts on a free

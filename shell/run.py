@@ -38,7 +38,7 @@ from octolog.schemas import topics as T
 from octolog.schemas.topics import RGBD, RGBD_COMPRESSED, TRACKING_STATUS
 from octolog.schemas.wirecompression import SOURCE
 from octolog.shell import errorfile, simcamera
-from octolog.shell.children import StageProcesses, hosted_router
+from octolog.shell.children import StageProcesses, hosted_router, router_unreachable
 from octolog.shell.info import depth_bias_line, imu_line, prior_line
 from octolog.shell.priormap import check_prior, prior_mapper
 from octolog.shell.sessiondir import INCOMPLETE, incomplete_reason, prepare_out
@@ -205,6 +205,9 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     cfgs["mapper"], map_frame = _map_frame(cfgs["mapper"], src,
                                            imu=cfgs["tracker"].imu and not isinstance(src, LiveSource)
                                            and has_imu(src))
+    if router is not None and (why := router_unreachable(router)) is not None:  # before any file is written
+        raise ConfigError(f"--router {router}: {why}; start one first (`octolog router --listen {router}`) "
+                          "or leave --router out (the run hosts its own)")
     prepare_out(out, overwrite=overwrite)
     marker = out / INCOMPLETE
     # written first, removed last: even a kill -9 of this process leaves the folder marked

@@ -13,6 +13,7 @@ held: `on_back` runs after it is released.
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -21,6 +22,9 @@ from octolog.kit.bus.session import Session
 from octolog.kit.busconfig import BusConfig
 from octolog.kit.errors import StageError
 from octolog.schemas.topics import stage_token
+
+log = logging.getLogger(__name__)
+SAY_WAITING_S = 5.0  # a wait for other stages longer than this is said (see Membership.wait_for)
 
 DONE = "_octolog/done"  # `<ns>/_octolog/done/<stage>`: put by a stage that finished without error
 
@@ -92,13 +96,21 @@ class Membership:
         self._session.watch_tokens(stage_token("*", self._cfg.namespace), on_token)
 
     def wait_for(self, stages: Iterable[str], timeout_s: float = 30.0) -> None:
-        """Block until every named stage has announced itself (they must be watched)."""
+        """Block until every named stage has announced itself (they must be watched); a wait longer
+        than SAY_WAITING_S is said once (a stage started alone is not silent for a minute)."""
         stages = set(stages)
-        deadline = time.monotonic() + timeout_s
+        start = time.monotonic()
+        deadline, said = start + timeout_s, False
         with self._changed:
             while not stages <= self._alive:
                 self._raise_if_lost()
                 left = deadline - time.monotonic()
+                if not said and time.monotonic() - start >= SAY_WAITING_S:
+                    said = True
+                    log.warning("%s: waiting for the %s stage%s to appear on the bus (namespace %r), up to %.0f s "
+                                "more; started alone, a stage needs the others running (or `octolog run`)",
+                                self._stage, ", ".join(sorted(stages - self._alive)),
+                                "s" if len(stages - self._alive) > 1 else "", self._cfg.namespace or "(none)", left)
                 if left <= 0:
                     missing = ", ".join(sorted(stages - self._alive))
                     raise StageError(f"{self._stage}: no {missing} stage appeared within {timeout_s:.0f} s "

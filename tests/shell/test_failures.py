@@ -129,3 +129,43 @@ def test_random_bytes_are_no_mcap_for_info_or_recover(tmp_path, head):
         assert proc.returncode == 1, proc.stdout
         assert proc.stderr.count("\n") == 1 and proc.stderr.startswith(f"octolog {args[0]}: error: {junk}: ")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["junk.mcap"]  # recover wrote nothing, no .part
+
+
+def test_a_router_that_is_not_there_is_one_line_naming_it_and_no_folder(tmp_path):
+    """`run --router EP` with nothing listening at EP: refused before any process starts or any file
+    is written, in one line naming EP and what to do, not a minute later blaming the stages."""
+    from helpers import free_port
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    out = tmp_path / "s"
+    proc = octolog("run", "--source", "synthetic:5", "--out", str(out), "--router", endpoint, "--quiet", check=False,
+                   timeout=120)
+    assert proc.returncode == 1
+    assert proc.stderr.count("\n") == 1, proc.stderr
+    assert proc.stderr.startswith(f"octolog run: error: --router {endpoint}: nothing listens at 127.0.0.1:"), proc.stderr
+    assert f"octolog router --listen {endpoint}" in proc.stderr
+    assert not out.exists()
+
+
+def test_a_stage_started_alone_says_what_it_waits_for(tmp_path):
+    """`octolog replay` with no tracker or mapper on the bus: it says within seconds which stages it
+    waits for and that they must run too (read as it comes, then stopped), not a minute of silence."""
+    import os
+    import sys
+
+    from helpers import ROOT
+
+    proc = subprocess.Popen([sys.executable, "-m", "octolog", "replay", "--source", "synthetic:5", "--no-multicast",
+                             "--namespace", f"alone{os.getpid()}", "--rerun", "off", "--quiet"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        said = ""
+        for line in proc.stderr:  # blocking reads: the line is the event
+            said += line
+            if "waiting for the" in line:
+                break
+    finally:
+        proc.kill()
+        proc.wait(timeout=60)
+    assert "replay: waiting for the tracker stage to appear on the bus" in said, said
+    assert "octolog run" in said
