@@ -8,6 +8,7 @@ gtsam, open3d, rerun) take seconds to import, `octolog --help` a fraction of one
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import errno
 import json
@@ -460,8 +461,20 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+_stopping = False  # a first Ctrl-C or SIGTERM is being handled
+
+
 def _terminate(signum: int, frame: object) -> None:
-    raise KeyboardInterrupt  # unwind: context managers finish files and stop child processes
+    """Ctrl-C or SIGTERM: unwind (context managers finish files and stop child processes); another
+    while that runs is said and ignored, so the stop finishes what was recorded instead of ending in
+    a traceback part-way (every stop is bounded)."""
+    global _stopping
+    if _stopping:
+        with contextlib.suppress(OSError):
+            print("octolog: stopping already; finishing what was written", file=sys.stderr, flush=True)
+        return
+    _stopping = True
+    raise KeyboardInterrupt
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -470,6 +483,7 @@ def main(argv: list[str] | None = None) -> int:
     if getattr(args, "rerun", "") is None:
         args.rerun = "save" if getattr(args, "session", None) else "off"
     signal.signal(signal.SIGTERM, _terminate)
+    signal.signal(signal.SIGINT, _terminate)
     try:
         with command_logging(args):
             return _run_command(args)

@@ -81,3 +81,14 @@ def test_a_reader_that_goes_away_stops_the_command_quietly(tmp_path):
     finally:
         os.close(write)
     assert proc.returncode == 1 and proc.stderr == "", proc.stderr
+
+
+def test_a_second_stop_while_stopping_is_said_and_ignored(monkeypatch, capsys):
+    """Ctrl-C / SIGTERM: the first unwinds (KeyboardInterrupt), one more while that runs is said on
+    stderr and ignored, so the stop finishes instead of ending in a traceback."""
+    monkeypatch.setattr(cli, "_stopping", False)
+    with pytest.raises(KeyboardInterrupt):
+        cli._terminate(2, None)
+    assert cli._terminate(2, None) is None
+    assert capsys.readouterr().err == "octolog: stopping already; finishing what was written\n"
+
