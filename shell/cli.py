@@ -391,7 +391,7 @@ def _add_file_commands(sub: Subcommands) -> None:
     p = sub.add_parser("eval", help="ATE and RPE of a TUM trajectory against ground truth")
     p.add_argument("trajectory")
     p.add_argument("groundtruth")
-    p.add_argument("--max-dt", type=float, default=0.02, help="association window in seconds (default 0.02)")
+    p.add_argument("--max-dt", type=_positive_seconds, default=0.02, help="association window in seconds (default 0.02)")
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("view", help="merge a session's .rrd files into one recording and open it in Rerun")
@@ -462,6 +462,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 _stopping = False  # a first Ctrl-C or SIGTERM is being handled
+
+
+def _positive_seconds(text: str) -> float:
+    """An argparse type: a time window in seconds, > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"{text}: want a window of more than 0 seconds")
+    return value
 
 
 def _terminate(signum: int, frame: object) -> None:

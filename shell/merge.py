@@ -77,7 +77,7 @@ def merge_sessions(folders: list[Path], out: Path, cfg: MapperConfig | None = No
     """Merge the sessions in `folders` into `out` (map files, keyframe trajectories, map_stats.json);
     returns the stats."""
     if len(folders) < 2:
-        raise InputError("octolog merge: give two sessions or more")
+        raise InputError("give two sessions or more")
     names = tuple(f"session{i}" for i in range(len(folders)))
     streams = [session_items(f) for f in folders]  # all read before anything is written
     cfg = _first_config(folders[0], cfg or MapperConfig())

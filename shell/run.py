@@ -508,6 +508,9 @@ def replay_session(session: Path, *, out: Path, stages: tuple[str, ...] = ("trac
 
 def merge_rrd(session: Path) -> Path:
     """Merge a session's per-stage .rrd files into `session.rrd` (one recording, one timeline)."""
+    if not session.is_dir():
+        raise InputError(f"{session}: no such session folder" if not session.exists() else
+                         f"{session}: a file, not a session folder")
     parts = sorted((session / "rerun").glob("*.rrd"))
     parts = [p for p in parts if p.name != "session.rrd"]
     if not parts:

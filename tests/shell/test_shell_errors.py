@@ -92,3 +92,18 @@ def test_a_second_stop_while_stopping_is_said_and_ignored(monkeypatch, capsys):
     assert cli._terminate(2, None) is None
     assert capsys.readouterr().err == "octolog: stopping already; finishing what was written\n"
 
+
+
+def test_messages_name_the_problem_once(tmp_path, capsys):
+    """One line, one prefix, the real cause: `merge` of one session, `view` of a folder that is not
+    there, `eval --max-dt` of no window."""
+    (tmp_path / "a").mkdir()
+    assert cli.main(["merge", str(tmp_path / "a"), "--out", str(tmp_path / "m")]) == 1
+    assert capsys.readouterr().err == "octolog merge: error: give two sessions or more\n"
+    assert cli.main(["view", str(tmp_path / "nope")]) == 1
+    assert capsys.readouterr().err == f"octolog view: error: {tmp_path / 'nope'}: no such session folder\n"
+    with pytest.raises(SystemExit) as stop:
+        cli.main(["eval", "a.txt", "b.txt", "--max-dt", "-1"])
+    assert stop.value.code == 2
+    assert capsys.readouterr().err.splitlines()[-1] == ("octolog eval: error: argument --max-dt: -1: want a window of "
+                                                        "more than 0 seconds")
