@@ -92,7 +92,7 @@ def first300_run(octolog_run: RunFn) -> tuple[Path, str]:
 MODULE_SECONDS = {
     "test_fleet": 263, "test_distributed": 205, "test_determinism": 170, "test_prior_map": 149, "test_slam": 136,
     "test_depth_noise": 120, "test_relink": 115, "test_pipeline": 103, "test_wire": 101, "test_failures": 82,
-    "test_imu": 70, "test_recorder": 61, "test_fleet_order": 56, "test_gravity": 52, "test_tls": 35,
+    "test_imu": 70, "test_recorder": 61, "test_gravity": 52, "test_fleet_order": 30, "test_tls": 35,
     "test_odometry": 33, "test_journal": 29, "test_live": 29, "test_hostile": 28, "test_sessions": 27,
     "test_simcamera": 25, "test_orbslam3": 21, "test_shards": 17,
 }
