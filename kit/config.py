@@ -107,9 +107,32 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
     return data
 
 
+# the sections of a session's config file (config.toml): one per stage
+SECTIONS = ("replay", "tracker", "mapper", "recorder")
+
+
+def _for_section(cls: type, overrides: list[str], section: str) -> list[str]:
+    """`--set` overrides for one [section]: `KEY=V` as it is, `SECTION.KEY=V` (the form `octolog run`
+    takes) with the section dropped; another section's key is an error saying which form fits."""
+    fields = {f.name for f in dataclasses.fields(cls)}
+    out = []
+    for item in overrides:
+        head, dot, _ = item.split("=", 1)[0].strip().partition(".")
+        if dot and head in SECTIONS and head not in fields:
+            if head != section:
+                raise ConfigError(f"--set {item!r}: this command takes [{section}] keys: --set KEY=VALUE "
+                                  f"or --set {section}.KEY=VALUE")
+            item = item.strip()[len(section) + 1:]
+        out.append(item)
+    return out
+
+
 def load(cls: type[T], path: str | Path | None = None, overrides: list[str] | None = None,
          *, section: str | None = None) -> T:
-    """Load `cls` from an optional TOML file (optionally one [section] of it) and overrides."""
+    """Load `cls` from an optional TOML file (optionally one [section] of it) and overrides (with a
+    section: `KEY=V` or `SECTION.KEY=V` alike)."""
+    if section is not None and overrides:
+        overrides = _for_section(cls, overrides, section)
     data: dict[str, Any] = {}
     if path is not None:
         p = Path(path)

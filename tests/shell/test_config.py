@@ -94,3 +94,17 @@ def test_a_live_session_runs_the_camera_at_640x480_unless_told(tmp_path):
     cfg.write_text("[recorder.depth]\nwidth = 848\nheight = 480\n")
     from_file = _live_resolution(rec, str(cfg), [])
     assert (from_file.color.width, from_file.depth.width) == (640, rec.depth.width)
+
+
+def test_set_takes_the_section_form_everywhere(capsys):
+    """`--set tracker.n_features=800`, the form `octolog run` takes, works for `track` too (and the
+    bare `n_features=800`); another stage's key says which forms this command takes."""
+    from octolog.kit.config import load
+    from octolog.shell import cli
+    from octolog.tracker.config import TrackerConfig
+
+    assert load(TrackerConfig, None, ["tracker.n_features=800"], section="tracker").n_features == 800
+    assert load(TrackerConfig, None, ["n_features=700"], section="tracker").n_features == 700
+    assert cli.main(["track", "--set", "mapper.voxel_m=0.1"]) == 1
+    assert capsys.readouterr().err == ("octolog track: error: --set 'mapper.voxel_m=0.1': this command takes "
+                                       "[tracker] keys: --set KEY=VALUE or --set tracker.KEY=VALUE\n")
