@@ -42,13 +42,16 @@ def bus_config(args: argparse.Namespace) -> BusConfig:
 def add_viz_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("Rerun")
     g.add_argument("--rerun", default=None, metavar="SPEC",
-                   help="off (default; a SESSION replay: save into OUT/rerun), save:DIR or connect[:URL]")
+                   help="off (default; `replay SESSION`: save into OUT/rerun), save:DIR (DIR/STAGE.rrd) or "
+                        "connect[:URL] (a viewer; one not there is a warning)")
     g.add_argument("--recording-id", default=None, help="shared by all stages of one session")
 
 
 def add_config_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", metavar="FILE", help="TOML file with [replay] [tracker] [mapper] sections")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
+    p.add_argument("--config", metavar="FILE",
+                   help="TOML file with [replay] [tracker] [mapper] [recorder] sections (each command reads its own)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a config key (KEY or SECTION.KEY; `run`: SECTION.KEY)")
 
 
 def recording_id(args: argparse.Namespace) -> str:

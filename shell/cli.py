@@ -18,6 +18,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from octolog import __version__
 from octolog.kit import cpuclock
 from octolog.kit.config import load
 from octolog.kit.errors import ConfigError, DiskFull, OctologError
@@ -399,8 +400,8 @@ def _add_file_commands(sub: Subcommands) -> None:
     p.add_argument("--headless", action="store_true", help="only write SESSION/rerun/session.rrd")
     p.set_defaults(func=cmd_view)
 
-    p = sub.add_parser("info", help="summary of an MCAP file")
-    p.add_argument("file")
+    p = sub.add_parser("info", help="what a session folder, an MCAP file or an OctoMap file (.bt, .ot) holds")
+    p.add_argument("file", help="a session folder, an MCAP recording or session log, or a .bt/.ot map")
     p.set_defaults(func=cmd_info)
 
     p = sub.add_parser("merge", help="sessions recorded apart into one map, placed by the places they share")
@@ -440,7 +441,8 @@ def _add_vocab_command(sub: Subcommands) -> None:
 def _add_router_command(sub: Subcommands) -> None:
     """`router`: a Zenoh router hosted in Python."""
     p = sub.add_parser("router", help="host a Zenoh router (no zenohd needed)")
-    p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT")
+    p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                   help="where stages and robots connect (default tcp/0.0.0.0:7447; repeat for several)")
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                    help="another router to join (a robot's own router joining the server's)")
     p.add_argument("--zenoh-config", metavar="FILE")
@@ -450,6 +452,7 @@ def _add_router_command(sub: Subcommands) -> None:
 def build_parser() -> argparse.ArgumentParser:
     """The `octolog` parser with every subcommand (in the order `octolog --help` lists them)."""
     parser = argparse.ArgumentParser(prog="octolog", description="RGB-D record/replay and mapping over Zenoh.")
+    parser.add_argument("--version", action="version", version=f"octolog {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     _add_session_commands(sub)
     _add_stage_commands(sub)

@@ -107,3 +107,16 @@ def test_messages_name_the_problem_once(tmp_path, capsys):
     assert stop.value.code == 2
     assert capsys.readouterr().err.splitlines()[-1] == ("octolog eval: error: argument --max-dt: -1: want a window of "
                                                         "more than 0 seconds")
+
+
+def test_version_and_help_texts_say_what_the_commands_take(capsys):
+    """`octolog --version`; `info` says it reads sessions and maps too; `router --listen` says what it is."""
+    from octolog import __version__
+
+    with pytest.raises(SystemExit) as stop:
+        cli.main(["--version"])
+    assert stop.value.code == 0 and capsys.readouterr().out == f"octolog {__version__}\n"
+    for argv, want in ((["info", "--help"], "a session folder, an MCAP"), (["router", "--help"], "where stages and robots")):
+        with pytest.raises(SystemExit):
+            cli.main(argv)
+        assert want in " ".join(capsys.readouterr().out.split()), argv
