@@ -14,7 +14,16 @@ from octolog.recorder.device_profiles import apply_options, describe, resolve
 
 QUEUE_FRAMES = 64  # librealsense's frame queue between its pipeline thread and our capture thread
 STALL_S = 3.0  # no frames for this long means the camera is gone (a streaming one sends many a second)
-NO_DEVICE = ("no RealSense device found (is the camera plugged in, and does `rs-enumerate-devices` list it?)")
+NO_DEVICE = ("no RealSense device found (is the camera plugged in, and does `rs-enumerate-devices` list it?); "
+             "without one, the simulated D455 stands in: `octolog record --backend software`, "
+             "`octolog run --source d455:software`")
+
+
+def check_attached() -> None:
+    """RecorderError(NO_DEVICE) unless a RealSense device is attached: what a live run checks before
+    it writes anything."""
+    if not len(rs.context().query_devices()):
+        raise RecorderError(NO_DEVICE)
 
 
 class RealSenseBackend:

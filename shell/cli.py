@@ -170,6 +170,8 @@ def cmd_log(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     """`octolog run`: the whole pipeline as processes on this machine."""
+    if args.source == "d455":
+        record.require_camera()  # no camera: one line, and no session folder left behind
     _starting(f"{args.command}: {args.source}", Path(args.out))
     from octolog.shell import run  # lazy: the orchestrator loads every stage's config, Zenoh and mcap
 

@@ -172,6 +172,13 @@ def _write_session_files(folder: Path, cfg: RecorderConfig, res: RecordResult) -
          "wall_s": round(res.wall_s, 3), "versions": versions()}, indent=2, sort_keys=True) + "\n")
 
 
+def require_camera() -> None:
+    """A one-line error unless a RealSense camera is attached (`run --source d455`, before any file)."""
+    from octolog.recorder.realsense_camera import check_attached  # lazy: pyrealsense2
+
+    check_attached()
+
+
 def cmd_recover(args: argparse.Namespace) -> int:
     """`octolog recover`: rebuild a complete MCAP file from one a killed recorder left."""
     from octolog.recorder.recover import recover  # lazy: mcap, numpy, rosbags

@@ -25,7 +25,7 @@ from octolog.kit.mcaplog import read_messages, summarize
 from octolog.recorder import node
 from octolog.recorder.capture import Capture, CaptureProfile
 from octolog.recorder.config import RecorderConfig, SoftwareConfig, make_recorder
-from octolog.recorder.realsense_camera import RealSenseBackend
+from octolog.recorder.realsense_camera import NO_DEVICE, RealSenseBackend
 from octolog.recorder.recording_types import JPEG_FORMAT, PNG_FORMAT, output_paths
 from octolog.recorder.recover import recover
 from octolog.recorder.software_d455 import SoftwareDeviceBackend, SyntheticPattern
@@ -396,8 +396,14 @@ def test_no_camera_cli(tmp_path):
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 1 and r.stderr.strip() == \
         "octolog record: error: no RealSense device found (is the camera plugged in, and does " \
-        "`rs-enumerate-devices` list it?)"
+        "`rs-enumerate-devices` list it?); without one, the simulated D455 stands in: " \
+        "`octolog record --backend software`, `octolog run --source d455:software`"
     assert not (tmp_path / "x.mcap").exists()
+    # the whole pipeline on it: the same one line, nothing else said, no session folder
+    r = subprocess.run([sys.executable, "-m", "octolog", "run", "--source", "d455", "--out", str(tmp_path / "s")],
+                       cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 1 and r.stderr.strip() == "octolog run: error: " + NO_DEVICE and r.stdout == ""
+    assert not (tmp_path / "s").exists()
 
 
 def test_unplugged_mid_recording(tmp_path):
