@@ -21,10 +21,11 @@ from typing import TYPE_CHECKING
 from octolog import __version__
 from octolog.kit import cpuclock
 from octolog.kit.config import load
-from octolog.kit.errors import ConfigError, DiskFull, OctologError
+from octolog.kit.errors import ConfigError, DiskFull, InputError, OctologError
 from octolog.shell import errorfile, record
 from octolog.shell.args import add_bus_arguments, add_config_arguments, add_viz_arguments, bus_config, recording_id
 from octolog.shell.args import Subcommands, add_log_arguments, command_logging
+from octolog.shell.sessiondir import not_a_session
 from octolog.shell.statusline import StatusLine, end_latest
 
 if TYPE_CHECKING:
@@ -86,6 +87,9 @@ def cmd_replay_session(args: argparse.Namespace) -> int:
     stages = ("mapper",) if args.from_stage == "tracker" else tuple(args.stages.split(","))
     if args.from_stage not in (None, "tracker"):
         raise ConfigError(f"--from {args.from_stage}: only --from tracker (the mapper rebuilt from the tracker's log)")
+    why = not_a_session(Path(args.session))
+    if why is not None:
+        raise InputError(why)
     out = Path(args.out or (Path(args.session) / "replay"))
     _starting(f"replay: {','.join(stages)} of {args.session}", out)
     from octolog.shell import run  # lazy: the orchestrator loads every stage's config, Zenoh and mcap

@@ -41,7 +41,7 @@ from octolog.shell import errorfile, simcamera
 from octolog.shell.children import StageProcesses, hosted_router, router_unreachable
 from octolog.shell.info import depth_bias_line, imu_line, prior_line
 from octolog.shell.priormap import check_prior, prior_mapper
-from octolog.shell.sessiondir import INCOMPLETE, incomplete_reason, prepare_out
+from octolog.shell.sessiondir import INCOMPLETE, incomplete_reason, not_a_session, prepare_out
 from octolog.shell.versions import versions
 from octolog.tracker.config import TrackerConfig, for_source
 from octolog.tracker.mapfile import FILENAME as MAP_FILENAME
@@ -479,8 +479,8 @@ def replay_session(session: Path, *, out: Path, stages: tuple[str, ...] = ("trac
     key = tuple(s for s in ("tracker", "mapper") if s in stages)
     if key not in STAGE_CHOICES or set(stages) - {"tracker", "mapper"}:
         raise ConfigError(f"--stages {','.join(stages)}: want tracker,mapper or mapper (= --from tracker)")
-    if not session.is_dir():
-        raise InputError(f"{session}: not a session folder")
+    if (why := not_a_session(session)) is not None:
+        raise InputError(why)
     why = incomplete_reason(session)
     if why is not None:
         raise InputError(f"{session}: an incomplete session ({INCOMPLETE}: {why}); run it again, "
@@ -508,9 +508,8 @@ def replay_session(session: Path, *, out: Path, stages: tuple[str, ...] = ("trac
 
 def merge_rrd(session: Path) -> Path:
     """Merge a session's per-stage .rrd files into `session.rrd` (one recording, one timeline)."""
-    if not session.is_dir():
-        raise InputError(f"{session}: no such session folder" if not session.exists() else
-                         f"{session}: a file, not a session folder")
+    if (why := not_a_session(session)) is not None:
+        raise InputError(why)
     parts = sorted((session / "rerun").glob("*.rrd"))
     parts = [p for p in parts if p.name != "session.rrd"]
     if not parts:

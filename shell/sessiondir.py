@@ -54,3 +54,16 @@ def incomplete_reason(session: Path) -> str | None:
     except OSError as exc:
         text = f"(unreadable: {exc.strerror})"
     return text or "the run did not finish"
+
+
+def not_a_session(path: Path) -> str | None:
+    """Why `path` is no session folder to re-run (`octolog replay SESSION`), with the command that
+    takes what it is; None when it is a folder (what it holds is checked by the replay)."""
+    if path.is_dir():
+        return None
+    if not path.exists():
+        return f"{path}: no such session folder"
+    if path.name == "session.mcap" and (path.parent / "config.toml").is_file():
+        return (f"{path}: a session's log, not its folder; `octolog replay {path.parent}` re-runs that "
+                f"session's stages, `octolog run --source mcap:{path}` runs the pipeline on it afresh")
+    return f"{path}: a file, not a session folder; `octolog run --source mcap:{path}` runs the pipeline on a recording"

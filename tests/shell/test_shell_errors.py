@@ -120,3 +120,19 @@ def test_version_and_help_texts_say_what_the_commands_take(capsys):
         with pytest.raises(SystemExit):
             cli.main(argv)
         assert want in " ".join(capsys.readouterr().out.split()), argv
+
+
+def test_replay_of_a_file_points_to_the_command_that_takes_it(tmp_path, capsys):
+    """`octolog replay SESSION/session.mcap` and `octolog replay RECORDING.mcap`: one line naming
+    what the file is and the command for it, before anything starts."""
+    session = tmp_path / "s"
+    session.mkdir()
+    (session / "config.toml").write_text("")
+    (session / "session.mcap").write_bytes(b"")
+    (tmp_path / "r.mcap").write_bytes(b"")
+    assert cli.main(["replay", str(session / "session.mcap")]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"octolog replay: error: {session / 'session.mcap'}: a session's log, not its folder; "
+                          f"`octolog replay {session}` re-runs") and err.count("\n") == 1, err
+    assert cli.main(["replay", str(tmp_path / "r.mcap")]) == 1
+    assert f"`octolog run --source mcap:{tmp_path / 'r.mcap'}`" in capsys.readouterr().err
