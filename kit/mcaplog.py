@@ -226,6 +226,13 @@ def message_counts(path: str | Path) -> dict[str, int] | None:
             if c in channels}
 
 
+def damaged(path: str | Path, problem: str) -> str:
+    """The one-line message for a truncated or corrupt MCAP file: what is wrong and what saves it."""
+    stem = Path(path).name.removesuffix(".mcap")
+    return (f"{path}: truncated or corrupt MCAP ({problem}); `octolog info {path}` shows what is readable, "
+            f"`octolog recover {path} {stem}-recovered.mcap` saves it to a complete file")
+
+
 def read_messages(path: str | Path, topics: Iterable[str] | None = None) -> Iterator[LoggedMessage]:
     """Messages in file order. A truncated or corrupt file raises McapError naming the problem."""
     wanted = None if topics is None else {t if t.startswith("/") else "/" + t for t in topics}
@@ -243,8 +250,7 @@ def read_messages(path: str | Path, topics: Iterable[str] | None = None) -> Iter
                 yield LoggedMessage(channel.topic.lstrip("/"), schema.name if schema else "",
                                     bytes(message.data), message.log_time, message.publish_time, message.sequence)
         except _DAMAGE as exc:
-            raise McapError(f"{p}: truncated or corrupt MCAP after {n} messages ({type(exc).__name__}: {exc}); "
-                            f"`octolog info {p}` shows what is readable") from None
+            raise McapError(damaged(p, f"after {n} messages: {type(exc).__name__}: {exc}")) from None
 
 
 def read_wire(path: str | Path, topics: Iterable[str] | None = None) -> Iterator[LoggedMessage]:

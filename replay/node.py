@@ -13,7 +13,7 @@ from octolog.kit.bus import Bus, BusConfig, Received
 from octolog.kit.config import to_dict
 from octolog.kit.errors import ConfigError, InputError
 from octolog.kit.geometry import EncodedRgbd, RgbdFrame
-from octolog.kit.mcaplog import read_wire, summarize
+from octolog.kit.mcaplog import damaged, read_wire, summarize
 from octolog.kit.tftree import LINK_FROM_OPTICAL
 from octolog.kit.viz import Viz
 from octolog.replay import source_gravity
@@ -256,7 +256,7 @@ def play_tracker_log(cfg: ReplayConfig, bus_cfg: BusConfig) -> ReplayResult:
         raise ConfigError(f"replay.play = tracker needs an mcap:PATH source, got {cfg.source!r}")
     summary = summarize(path)
     if not summary.complete:
-        raise InputError(f"{path}: truncated or corrupt MCAP ({summary.problem})")
+        raise InputError(damaged(path, summary.problem))
     kf_topic = KEYFRAME if KEYFRAME.name in summary.topics else KEYFRAME_COMPRESSED
     if kf_topic.name not in summary.topics:
         raise InputError(f"{path}: no /{KEYFRAME.name} topic: nothing to feed a mapper with")

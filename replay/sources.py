@@ -21,7 +21,7 @@ from octolog.kit.depthmodel import DepthModel
 from octolog.kit.errors import ConfigError, InputError
 from octolog.kit.geometry import EncodedRgbd, RgbdFrame
 from octolog.kit import metrics
-from octolog.kit.mcaplog import read_wire, summarize
+from octolog.kit.mcaplog import damaged, read_wire, summarize
 from octolog.kit.tum import open_tum, readout_for
 from octolog.replay import depth_noise, source_gravity
 from octolog.replay.standard import has_standard_frames, open_standard
@@ -129,8 +129,7 @@ class McapSource:
         self._calibration = load_calibration(self.calibration) if self.calibration else None
         summary = summarize(self.path)
         if not summary.complete:
-            raise InputError(f"{self.path}: truncated or corrupt MCAP ({summary.problem}); "
-                             f"`octolog info {self.path}` shows what is readable")
+            raise InputError(damaged(self.path, summary.problem))
         # a session log holds the frames raw or compressed (replay.wire_compression)
         wire = summary.wire_topics
         self._topic = RGBD_COMPRESSED if RGBD_COMPRESSED.name in wire else RGBD

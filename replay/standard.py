@@ -19,7 +19,7 @@ import numpy as np
 from octolog.kit.calibration import Calibration
 from octolog.kit.errors import InputError
 from octolog.kit.geometry import Intrinsics, RgbdFrame
-from octolog.kit.mcaplog import read_messages, summarize
+from octolog.kit.mcaplog import damaged, read_messages, summarize
 from octolog.kit.tum import associate
 from octolog.replay.source_gravity import recorded_up
 from octolog.schemas import codec, imagecodec, sensormsgs
@@ -142,8 +142,7 @@ def open_standard(path: str | Path, calibration: Calibration | None = None) -> S
     path = Path(path)
     summary = summarize(path)
     if not summary.complete:
-        raise InputError(f"{path}: truncated or corrupt MCAP ({summary.problem}); "
-                         f"`octolog info {path}` shows what is readable")
+        raise InputError(damaged(path, summary.problem))
     topics = summary.topics
     color = next((t for t in COLOR_TOPICS if t.name in topics), None)
     depth = next((t for t in DEPTH_TOPICS if t.name in topics), None)

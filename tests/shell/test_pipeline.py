@@ -383,6 +383,7 @@ def test_truncated_mcap_is_refused_and_described(runs, tmp_path):
     proc = octolog("run", "--source", f"mcap:{cut}", "--out", str(tmp_path / "o"), check=False)
     assert proc.returncode == 1
     assert f"{cut}: truncated or corrupt MCAP" in proc.stderr and proc.stderr.count("\n") == 1
+    assert f"`octolog recover {cut} cut-recovered.mcap`" in proc.stderr  # what saves it
     info = octolog("info", str(cut)).stdout
     assert "INCOMPLETE" in info and "readable before the damage" in info
 
