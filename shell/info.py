@@ -84,8 +84,9 @@ def imu_line(imu: dict | None) -> str:
 def describe_mcap(path: Path) -> str:
     """An MCAP file: profile, topics, rates, gaps, calibration and metadata."""
     s = summarize(path)
-    if not s.complete and not (s.profile or s.topics or s.metadata):
-        raise McapError(f"{path}: no readable MCAP records after the magic ({s.problem})")
+    if not s.complete and not (s.topics or s.metadata):  # a header alone says nothing of what was recorded
+        raise McapError(f"{path}: no readable MCAP records after the {'header' if s.profile else 'magic'} "
+                        f"({s.problem}); nothing to recover")
     lines = [f"{path}: {s.size_bytes / 1e6:.1f} MB, profile {s.profile or '(none)'}, "
              + ("complete" if s.complete else f"INCOMPLETE: {s.problem}")]
     if s.topics:

@@ -136,3 +136,15 @@ def test_replay_of_a_file_points_to_the_command_that_takes_it(tmp_path, capsys):
                           f"`octolog replay {session}` re-runs") and err.count("\n") == 1, err
     assert cli.main(["replay", str(tmp_path / "r.mcap")]) == 1
     assert f"`octolog run --source mcap:{tmp_path / 'r.mcap'}`" in capsys.readouterr().err
+
+
+def test_info_of_an_mcap_holding_only_its_header_is_an_error(tmp_path, capsys):
+    """docs/cli.md: an MCAP with no readable record is an error; a header alone (a recorder killed
+    before its first message) says nothing of what was recorded."""
+    from mcap.writer import Writer
+
+    path = tmp_path / "header.mcap"
+    with open(path, "wb") as f:
+        Writer(f).start(profile="ros2", library="test")  # never finished: magic and header only
+    assert cli.main(["info", str(path)]) == 1
+    assert capsys.readouterr().err.startswith(f"octolog info: error: {path}: no readable MCAP records after the header")
