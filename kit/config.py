@@ -128,9 +128,10 @@ def _for_section(cls: type, overrides: list[str], section: str) -> list[str]:
 
 
 def load(cls: type[T], path: str | Path | None = None, overrides: list[str] | None = None,
-         *, section: str | None = None) -> T:
+         *, section: str | None = None, own: bool = False) -> T:
     """Load `cls` from an optional TOML file (optionally one [section] of it) and overrides (with a
-    section: `KEY=V` or `SECTION.KEY=V` alike)."""
+    section: `KEY=V` or `SECTION.KEY=V` alike). `own`: the file is for this section's command alone,
+    so one that holds other stages' sections and not this one is an error (the wrong file)."""
     if section is not None and overrides:
         overrides = _for_section(cls, overrides, section)
     data: dict[str, Any] = {}
@@ -147,6 +148,10 @@ def load(cls: type[T], path: str | Path | None = None, overrides: list[str] | No
         except OSError as exc:
             raise ConfigError(f"{p}: cannot read the config file: {exc.strerror}") from None
         if section is not None:
+            others = sorted(k for k in data if k in SECTIONS and k != section)
+            if own and section not in data and others:
+                raise ConfigError(f"{p}: no [{section}] section (it has {', '.join(f'[{k}]' for k in others)}); "
+                                  f"this command reads [{section}]")
             data = data.get(section, {})
     return from_dict(cls, apply_overrides(data, overrides or []))
 

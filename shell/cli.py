@@ -72,7 +72,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from octolog.replay import node
     from octolog.replay.config import ReplayConfig
 
-    cfg = load(ReplayConfig, args.config, args.set, section="replay")
+    cfg = load(ReplayConfig, args.config, args.set, section="replay", own=True)
     if args.source:
         cfg = dataclasses.replace(cfg, source=args.source)
     res = node.run(cfg, bus_config(args), rerun=args.rerun, recording_id=recording_id(args),
@@ -119,7 +119,7 @@ def cmd_track(args: argparse.Namespace) -> int:
     from octolog.tracker import node
     from octolog.tracker.config import TrackerConfig
 
-    cfg = load(TrackerConfig, args.config, args.set, section="tracker")
+    cfg = load(TrackerConfig, args.config, args.set, section="tracker", own=True)
     if args.map:
         cfg = dataclasses.replace(cfg, map=args.map)
     res = node.run(cfg, bus_config(args), trajectory=Path(args.trajectory) if args.trajectory else None,
@@ -148,7 +148,7 @@ def cmd_map(args: argparse.Namespace) -> int:
     from octolog.mapper import node
     from octolog.mapper.config import MapperConfig
 
-    cfg = load(MapperConfig, args.config, args.set, section="mapper")
+    cfg = load(MapperConfig, args.config, args.set, section="mapper", own=True)
     res = node.run(cfg, bus_config(args), out_dir=Path(args.out), rerun=args.rerun,
                    recording_id=recording_id(args))
     print(f"mapper: {res.keyframes} keyframes ({res.skipped} skipped), {res.stats.get('occupied_voxels', 0)} occupied "
@@ -207,7 +207,7 @@ def cmd_merge(args: argparse.Namespace) -> int:
     from octolog.mapper.config import MapperConfig
     from octolog.shell.merge import merge_sessions
 
-    cfg = load(MapperConfig, args.config, args.set, section="mapper")
+    cfg = load(MapperConfig, args.config, args.set, section="mapper", own=True)
     stats = merge_sessions([Path(f) for f in args.sessions], Path(args.out), cfg, overwrite=args.overwrite)
     print(f"merge: {len(args.sessions)} sessions -> {args.out}: {stats['keyframes']} keyframes, "
           f"{stats['occupied_voxels']} occupied voxels, {len(stats['merges'])} placed by a shared place")

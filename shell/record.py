@@ -126,7 +126,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     from octolog.recorder import node
     from octolog.recorder.config import RecorderConfig
 
-    cfg = load(RecorderConfig, args.config, overrides(args), section="recorder")
+    cfg = load(RecorderConfig, args.config, overrides(args), section="recorder", own=True)
     if args.duration < 0:
         raise ConfigError(f"--duration {args.duration}: want >= 0 seconds")
     out = Path(args.out)

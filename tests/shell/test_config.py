@@ -108,3 +108,19 @@ def test_set_takes_the_section_form_everywhere(capsys):
     assert cli.main(["track", "--set", "mapper.voxel_m=0.1"]) == 1
     assert capsys.readouterr().err == ("octolog track: error: --set 'mapper.voxel_m=0.1': this command takes "
                                        "[tracker] keys: --set KEY=VALUE or --set tracker.KEY=VALUE\n")
+
+
+def test_a_stage_commands_config_file_without_its_section_is_the_wrong_file(tmp_path, capsys):
+    """`record --config` of a file with [tracker] alone is refused in one line naming the sections it
+    has; `run` reads such a file (each stage its own section, defaults for the others)."""
+    from octolog.kit.config import load
+    from octolog.recorder.config import RecorderConfig
+    from octolog.shell import cli
+
+    f = tmp_path / "t.toml"
+    f.write_text("[tracker]\nn_features = 800\n")
+    assert load(RecorderConfig, f, section="recorder") == RecorderConfig()  # run's reading: defaults
+    assert cli.main(["record", str(tmp_path / "x.mcap"), "--config", str(f)]) == 1
+    assert capsys.readouterr().err == (f"octolog record: error: {f}: no [recorder] section (it has [tracker]); "
+                                       "this command reads [recorder]\n")
+    assert not (tmp_path / "x.mcap").exists()
