@@ -39,11 +39,13 @@ def bus_config(args: argparse.Namespace) -> BusConfig:
     return cfg
 
 
-def add_viz_arguments(p: argparse.ArgumentParser) -> None:
+def add_viz_arguments(p: argparse.ArgumentParser, *, session_default: bool = False) -> None:
+    """`--rerun`, `--recording-id`; `session_default`: the command also re-runs a SESSION, whose
+    recordings are saved into OUT/rerun unless told otherwise (`replay`)."""
     g = p.add_argument_group("Rerun")
+    default = "off (default; re-running a SESSION: save into OUT/rerun)" if session_default else "off (default)"
     g.add_argument("--rerun", default=None, metavar="SPEC",
-                   help="off (default; `replay SESSION`: save into OUT/rerun), save:DIR (DIR/STAGE.rrd) or "
-                        "connect[:URL] (a viewer; one not there is a warning)")
+                   help=f"{default}, save:DIR (DIR/STAGE.rrd) or connect[:URL] (a viewer; one not there is a warning)")
     g.add_argument("--recording-id", default=None, help="shared by all stages of one session")
 
 

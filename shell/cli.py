@@ -303,7 +303,7 @@ def _stage_parser(sub: Subcommands, name: str, help_: str) -> argparse.ArgumentP
     p = sub.add_parser(name, help=help_, description=help_)
     add_config_arguments(p)
     add_bus_arguments(p)
-    add_viz_arguments(p)
+    add_viz_arguments(p, session_default=name == "replay")
     return p
 
 

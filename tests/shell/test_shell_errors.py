@@ -116,7 +116,9 @@ def test_version_and_help_texts_say_what_the_commands_take(capsys):
     with pytest.raises(SystemExit) as stop:
         cli.main(["--version"])
     assert stop.value.code == 0 and capsys.readouterr().out == f"octolog {__version__}\n"
-    for argv, want in ((["info", "--help"], "a session folder, an MCAP"), (["router", "--help"], "where stages and robots")):
+    for argv, want in ((["info", "--help"], "a session folder, an MCAP"), (["router", "--help"], "where stages and robots"),
+                       (["track", "--help"], "--rerun SPEC off (default), save:DIR"),
+                       (["replay", "--help"], "off (default; re-running a SESSION: save into OUT/rerun)")):
         with pytest.raises(SystemExit):
             cli.main(argv)
         assert want in " ".join(capsys.readouterr().out.split()), argv
