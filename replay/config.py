@@ -52,6 +52,10 @@ class ReplayConfig:
     # tum: folder or an mcap: recording without CameraInfo; "": from the name, and an error when the
     # name says none (never a silent default)
     camera: str = ""
+    # an mcap: recording with colour and depth on topics of their own: images closer than this pair
+    # into a frame (TUM's 20 ms by default; a RealSense recording whose streams were not synchronised
+    # needs more). TUM folders pair at 20 ms, as TUM's tools do
+    pair_ms: float = 20.0
     wait_timeout_s: float = 60.0
 
     def validate(self) -> None:
@@ -70,6 +74,8 @@ class ReplayConfig:
             raise ConfigError(f"replay.every {self.every}: want >= 1")
         if self.loop < 1:
             raise ConfigError(f"replay.loop {self.loop}: want >= 1")
+        if not 0 < self.pair_ms <= 1000:
+            raise ConfigError(f"replay.pair_ms {self.pair_ms}: want more than 0 and at most 1000 ms")
         for item in self.remap:
             if item.count("=") != 1 or not all(item.split("=")):
                 raise ConfigError(f"replay.remap {item!r}: want FROM=TO topic names")

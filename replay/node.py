@@ -133,7 +133,7 @@ def run(cfg: ReplayConfig, bus_cfg: BusConfig, *, rerun: str = "off", recording_
     if cfg.play == "tracker":
         return play_tracker_log(cfg, bus_cfg)
     source = open_source(cfg.source, only_consumed=cfg.only_consumed, camera=cfg.camera, every=cfg.every,
-                         retime=cfg.retime)
+                         retime=cfg.retime, pair_ms=cfg.pair_ms)
     with Bus(bus_cfg, "replay") as bus, Viz(rerun, "replay", recording_id) as viz:
         return publish(source, cfg, bus, viz, progress)
 

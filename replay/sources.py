@@ -123,6 +123,7 @@ class McapSource:
     only_consumed: bool = False
     calibration: str = ""  # a calibration file for a recording without CameraInfo (replay.camera)
     keyframes_only: bool = False  # a log fed to a mapper alone (replay.play = tracker): frames optional
+    pair_ms: float = 20.0  # a recording's colour and depth images closer than this pair (replay.pair_ms)
 
     def __post_init__(self) -> None:
         self.name = f"mcap:{self.path}"
@@ -153,7 +154,7 @@ class McapSource:
             if self.only_consumed:
                 raise InputError(f"{self.path}: a recording, not a session log: no record of consumed frames")
             # a recording or an import: colour and depth on their own topics, paired like TUM
-            self._standard = open_standard(self.path, self._calibration)
+            self._standard = open_standard(self.path, self._calibration, max_dt_ns=round(self.pair_ms * 1e6))
             self._count = len(self._standard)
             self._metadata = summary.metadata
             return
@@ -425,7 +426,7 @@ class Retimed:
 
 
 def open_source(spec: str, *, only_consumed: bool = False, camera: str = "", every: int = 1,
-                keyframes_only: bool = False, retime: bool = False) -> Source:
+                keyframes_only: bool = False, retime: bool = False, pair_ms: float = 20.0) -> Source:
     """Open `tum:PATH`, `mcap:PATH` or `synthetic[:N][:KEY=VALUE...]` (SYNTHETIC_SPEC); errors name the
     problem in one line.
     `camera` names a TUM folder's camera when its name does not (replay.camera); `every` > 1 plays
@@ -438,18 +439,18 @@ def open_source(spec: str, *, only_consumed: bool = False, camera: str = "", eve
     if kind == "tum" and arg:
         source: Source = TumSource(Path(arg), camera, every)
     else:
-        source = _open(spec, only_consumed, camera)
+        source = _open(spec, only_consumed, camera, pair_ms)
         source = source if every == 1 else Subsampled(source, every)
     return Retimed(source, every) if retime and every > 1 else source
 
 
-def _open(spec: str, only_consumed: bool, camera: str) -> Source:
+def _open(spec: str, only_consumed: bool, camera: str, pair_ms: float = 20.0) -> Source:
     kind, _, arg = spec.partition(":")
     if camera and kind != "tum" and not (kind == "mcap" and is_calibration_file(camera)):
         raise ConfigError(f"replay.camera {camera!r}: a tum: source takes a camera name or a calibration file, "
                           f"an mcap: recording a calibration file (got {spec!r})")
     if kind == "mcap" and arg:
-        return McapSource(Path(arg), only_consumed, camera)
+        return McapSource(Path(arg), only_consumed, camera, pair_ms=pair_ms)
     if only_consumed:
         raise ConfigError(f"source {spec!r}: only an MCAP session log knows which frames were consumed")
     if kind == "synthetic":

@@ -5,6 +5,9 @@ Colour (camera/color/image_raw, or its /compressed variant) and registered depth
 TUM folder: nearest stamps, each image used once, closer than 20 ms. seq is the pair index, the stamp
 is the colour image's. Intrinsics come from the colour camera_info; the depth scale from the
 "calibration" metadata record (0.001 m per unit, the ROS 16UC1 convention, when the file has none).
+A file with raw depth only (camera/depth/image_rect_raw: a RealSense Viewer recording imported, or
+`record --depth-streams raw`) is registered to colour on the fly (octolog.kit.registration) with
+the depth camera_info and the recording's `color_from_depth` extrinsics.
 """
 
 from __future__ import annotations
@@ -14,13 +17,16 @@ from collections.abc import Collection, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import json
+
 import numpy as np
 
 from octolog.kit.calibration import Calibration
 from octolog.kit.errors import InputError
 from octolog.kit.geometry import Intrinsics, RgbdFrame
 from octolog.kit.mcaplog import damaged, read_messages, summarize
-from octolog.kit.tum import associate
+from octolog.kit.registration import register_depth
+from octolog.kit.tum import MAX_PAIR_DT_NS, associate
 from octolog.replay.source_gravity import recorded_up
 from octolog.schemas import codec, imagecodec, sensormsgs
 from octolog.schemas.msgtypes import CompressedImage, Image
@@ -32,6 +38,7 @@ from octolog.schemas.topics import (
     COLOR_INFO,
     COLOR_JPEG,
     DEPTH,
+    DEPTH_INFO,
     DEPTH_PNG,
     Topic,
 )
@@ -40,6 +47,7 @@ DEFAULT_DEPTH_SCALE_M = 0.001
 # Topics that make a file replayable as RGB-D frames (any colour variant + any aligned depth variant).
 COLOR_TOPICS = (COLOR, COLOR_JPEG)
 DEPTH_TOPICS = (ALIGNED_DEPTH, ALIGNED_DEPTH_PNG)
+RAW_DEPTH_TOPICS = (DEPTH, DEPTH_PNG)  # registered to colour on reading (module docstring)
 
 
 @dataclass(frozen=True)
@@ -55,6 +63,8 @@ class StandardSequence:
     depth_scale_m: float
     depth_scale_source: str
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    # raw depth: its camera's intrinsics and color_from_depth (4x4), to register it to colour
+    registration: tuple[Intrinsics, np.ndarray] | None = None
 
     def __len__(self) -> int:
         return len(self.pairs)
@@ -114,6 +124,12 @@ class StandardSequence:
         if depth.ndim != 2 or depth.dtype != np.uint16:
             raise InputError(f"{self.path}: frame {seq}: /{self.depth.name} is not 16-bit depth")
         intr = self.intrinsics
+        if self.registration is not None:
+            depth_k, color_from_depth = self.registration
+            if depth.shape != (depth_k.height, depth_k.width):
+                raise InputError(f"{self.path}: frame {seq}: depth {depth.shape[1]}x{depth.shape[0]}, its camera_info "
+                                 f"{depth_k.width}x{depth_k.height}")
+            depth = register_depth(depth, depth_k, intr, color_from_depth, self.depth_scale_m)
         if rgb.shape[:2] != depth.shape or depth.shape != (intr.height, intr.width):
             raise InputError(f"{self.path}: frame {seq}: sizes disagree: colour {rgb.shape[1]}x{rgb.shape[0]}, "
                              f"depth {depth.shape[1]}x{depth.shape[0]}, camera_info {intr.width}x{intr.height}")
@@ -137,7 +153,8 @@ def _header_stamp(data: bytes) -> int:
     return sec * 1_000_000_000 + nsec
 
 
-def open_standard(path: str | Path, calibration: Calibration | None = None) -> StandardSequence:
+def open_standard(path: str | Path, calibration: Calibration | None = None, *,
+                  max_dt_ns: int = MAX_PAIR_DT_NS) -> StandardSequence:
     """Open a recorder-layout MCAP and pair its frames; InputError says what is missing."""
     path = Path(path)
     summary = summarize(path)
@@ -149,10 +166,13 @@ def open_standard(path: str | Path, calibration: Calibration | None = None) -> S
     if color is None:
         raise InputError(f"{path}: /{COLOR.name} missing: no colour images "
                          f"(topics: {', '.join(sorted(topics)) or 'none'})")
+    registration = None
     if depth is None:
-        raw = [t.name for t in (DEPTH, DEPTH_PNG) if t.name in topics]
-        hint = f" (the file has only raw depth /{raw[0]})" if raw else ""
-        raise InputError(f"{path}: /{ALIGNED_DEPTH.name} missing: the tracker needs depth registered to colour{hint}")
+        depth = next((t for t in RAW_DEPTH_TOPICS if t.name in topics), None)
+        if depth is None:
+            raise InputError(f"{path}: no depth images: neither /{ALIGNED_DEPTH.name} nor /{DEPTH.name} "
+                             f"(topics: {', '.join(sorted(topics))})")
+        registration = _registration(path, topics, summary.metadata.get("calibration", {}), depth)
     for t in (color, depth):
         if topics[t.name].msgtype != t.msgtype:
             raise InputError(f"{path}: /{t.name} holds {topics[t.name].msgtype}, want {t.msgtype}")
@@ -181,18 +201,44 @@ def open_standard(path: str | Path, calibration: Calibration | None = None) -> S
     # associate() wants sorted stamps; files written in time order are already sorted.
     c_order = sorted(range(len(c_stamps)), key=c_stamps.__getitem__)
     d_order = sorted(range(len(d_stamps)), key=d_stamps.__getitem__)
-    pairs = associate([c_stamps[i] for i in c_order], [d_stamps[i] for i in d_order])
+    pairs = associate([c_stamps[i] for i in c_order], [d_stamps[i] for i in d_order], max_dt_ns)
     if not pairs:
-        raise InputError(f"{path}: no colour/depth pairs within 20 ms "
-                         f"({len(c_stamps)} colour, {len(d_stamps)} depth images)")
+        gap = min((abs(c - d) for c in c_stamps for d in d_stamps), default=0)
+        raise InputError(f"{path}: no colour/depth pairs within {max_dt_ns / 1e6:g} ms ({len(c_stamps)} colour, "
+                         f"{len(d_stamps)} depth images, the closest {gap / 1e6:.0f} ms apart; a wider window: "
+                         f"--set replay.pair_ms=MS)")
 
     scale, source = _depth_scale(path, summary.metadata.get("calibration", {}), calibration)
     return StandardSequence(
         path=path, color=color, depth=depth,
         pairs=tuple((c_order[i], d_order[k]) for i, k in pairs),
         color_stamps=tuple(c_stamps), intrinsics=info, depth_scale_m=scale, depth_scale_source=source,
-        metadata=summary.metadata,
+        metadata=summary.metadata, registration=registration,
     )
+
+
+def _registration(path: Path, topics: Collection[str], calib: dict[str, str],
+                  depth: Topic) -> tuple[Intrinsics, np.ndarray]:
+    """What registering raw depth to colour takes: the depth camera_info's intrinsics and the
+    calibration's `color_from_depth` (`octolog record`: a JSON 4x4; `octolog import`: 12 numbers,
+    3x4 row-major); InputError names what is missing."""
+    if DEPTH_INFO.name not in topics:
+        raise InputError(f"{path}: raw depth /{depth.name} without /{DEPTH_INFO.name}: cannot register it to colour")
+    text = calib.get("color_from_depth", "")
+    try:
+        values = np.array(json.loads(text) if text.lstrip().startswith("[") else text.split(), dtype=np.float64)
+        T = np.vstack([values.reshape(-1, 4)[:3], [0.0, 0.0, 0.0, 1.0]])
+        if values.size not in (12, 16) or not np.isfinite(T).all():
+            raise ValueError(text)
+    except ValueError:
+        raise InputError(f"{path}: raw depth /{depth.name} without the depth-to-colour extrinsics (calibration "
+                         f"color_from_depth {text[:60]!r}): cannot register it to colour") from None
+    for m in read_messages(path, [DEPTH_INFO.name]):
+        try:
+            return sensormsgs.intrinsics_from(codec.decode(m.data, DEPTH_INFO.msgtype)), T
+        except InputError as exc:
+            raise InputError(f"{path}: /{m.topic}: {exc}") from None
+    raise InputError(f"{path}: /{DEPTH_INFO.name} has no messages: cannot register raw depth to colour")
 
 def _depth_scale(path: Path, calib: dict[str, str], calibration: Calibration | None) -> tuple[float, str]:
     """Metres per depth unit and where that came from: a calibration file given wins, then the
@@ -223,5 +269,7 @@ def count_standard_frames(path: str | Path) -> int:
 
 
 def has_standard_frames(topics: Collection[str]) -> bool:
-    """Whether a file with these topics (McapSummary.topics) holds colour and aligned depth."""
-    return any(t.name in topics for t in COLOR_TOPICS) and any(t.name in topics for t in DEPTH_TOPICS)
+    """Whether a file with these topics (McapSummary.topics) holds colour and depth (aligned, or raw
+    to register)."""
+    return any(t.name in topics for t in COLOR_TOPICS) and \
+        any(t.name in topics for t in (*DEPTH_TOPICS, *RAW_DEPTH_TOPICS))

@@ -193,7 +193,7 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     # opened here to fail fast, before any process starts
     src = LiveSource(source) if live else open_source(source, only_consumed=replay_cfg.only_consumed,
                                                       camera=replay_cfg.camera, every=replay_cfg.every,
-                                                      retime=replay_cfg.retime,
+                                                      retime=replay_cfg.retime, pair_ms=replay_cfg.pair_ms,
                                                       keyframes_only=feed_tracker)
     cfgs["tracker"] = for_source(cfgs["tracker"], src)  # an unset rolling shutter: the source's camera
     if cfgs["tracker"].map:
@@ -411,7 +411,9 @@ def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, re
         _keep_live_up(out, s.map["map_frame"])
     if (out / "metadata.json").exists():
         s.map_frame = json.loads((out / "metadata.json").read_text()).get("gravity", {}).get("note", NOT_ALIGNED)
-    if (out / "trajectory.txt").exists():  # absent when the tracker was fed from a log
+    tracked_any = (out / "trajectory.txt").exists() and any(
+        line.strip() and not line.startswith("#") for line in (out / "trajectory.txt").read_text().splitlines())
+    if tracked_any:  # no file: the tracker was fed from a log; an empty one: every frame LOST (said below)
         traj = metrics.read_tum(out / "trajectory.txt")
         s.frames = len(traj.stamps_ns)
         if (out / "groundtruth.txt").exists():
@@ -444,6 +446,9 @@ def format_summary(s: SessionSummary) -> str:
     """The summary `octolog run` prints: frames and rate, ATE, map, files."""
     lines = [f"session {s.out}: {s.frames} frames from {s.source} in {s.wall_s:.1f} s "
              f"(real-time factor {s.duration_s / s.wall_s if s.wall_s else 0:.2f})"]
+    if not s.frames and (s.out / "trajectory.txt").exists():
+        lines.append(f"  no frame tracked: every frame LOST (the tracker's count: {s.out / 'logs' / 'tracker.log'}), "
+                     "so nothing is mapped")
     if s.ate:
         lines.append(f"  ATE RMSE {s.ate['rmse_m'] * 100:.2f} cm (mean {s.ate['mean_m'] * 100:.2f} cm, "
                      f"max {s.ate['max_m'] * 100:.2f} cm, {s.ate['pairs']} poses)")
