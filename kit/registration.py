@@ -24,7 +24,8 @@ def register_depth(depth: np.ndarray, depth_k: Intrinsics, color_k: Intrinsics, 
     (color_k's size, the same units); 0 where no depth lands."""
     v, u = np.nonzero(depth)
     z = depth[v, u].astype(np.float64) * depth_scale_m
-    R, t = np.asarray(color_from_depth, dtype=np.float64)[:3, :3], np.asarray(color_from_depth, dtype=np.float64)[:3, 3]
+    T = np.asarray(color_from_depth, dtype=np.float64)
+    R, t = T[:3, :3], T[:3, 3]
     out = np.full((color_k.height, color_k.width), np.iinfo(np.uint16).max, dtype=np.uint16)
     corners = []
     for du in (-0.5, 0.5):  # the pixel's footprint: its two opposite corners, projected

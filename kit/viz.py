@@ -3,8 +3,8 @@
 `--rerun off` (default), `--rerun save:DIR` (one `<stage>.rrd` per stage) or `--rerun connect:URL`
 (stream to a viewer; with `$OCTOLOG_RERUN_COPY` set, as `octolog run` sets it to OUT/rerun, also
 saved there, so a viewer that is not there costs nothing). A viewer that cannot be reached is a
-warning, never a stage's failure: `VIEWER_MISSED` says so for the stage's report. All stages of a session share one recording id so their data merges into one
-recording; timelines are `sensor_time` (sensor timestamps) and `frame` (source sequence numbers).
+warning, never a stage's failure: `VIEWER_MISSED` says so for the stage's report. All stages of a
+session share one recording id so their data merges into one recording; timelines are `sensor_time` (sensor timestamps) and `frame` (source sequence numbers).
 Entity paths mirror topic names.
 """
 
@@ -109,10 +109,9 @@ def parse_spec(spec: str) -> tuple[str, str]:
 
 
 def viewer_unreachable(url: str, timeout_s: float = 1.0) -> str | None:
-    """Why nothing would take a recording streamed to the viewer at `url` (`connect`'s target, rerun's
-    default when empty): nothing listens at its host and port, or they do not resolve; None when a
+    """Why nothing would take a recording streamed to the viewer at `url` (`connect`'s target, or
+    DEFAULT_VIEWER): nothing listens at its host and port, or they do not resolve; None when a
     TCP connection opens (the viewer, or whatever else listens there)."""
-    url = url or DEFAULT_VIEWER
     parts = urlsplit(url.replace("rerun+", "", 1) if url.startswith("rerun+") else url)
     try:
         port = parts.port or {"https": 443, "http": 80}.get(parts.scheme, 9876)

@@ -12,12 +12,11 @@ the depth camera_info and the recording's `color_from_depth` extrinsics.
 
 from __future__ import annotations
 
+import json
 import struct
 from collections.abc import Collection, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-
-import json
 
 import numpy as np
 
@@ -239,6 +238,7 @@ def _registration(path: Path, topics: Collection[str], calib: dict[str, str],
         except InputError as exc:
             raise InputError(f"{path}: /{m.topic}: {exc}") from None
     raise InputError(f"{path}: /{DEPTH_INFO.name} has no messages: cannot register raw depth to colour")
+
 
 def _depth_scale(path: Path, calib: dict[str, str], calibration: Calibration | None) -> tuple[float, str]:
     """Metres per depth unit and where that came from: a calibration file given wins, then the

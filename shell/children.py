@@ -19,6 +19,7 @@ from pathlib import Path
 
 from octolog.kit import logs
 from octolog.kit.bus import Bus, BusConfig, wait_interruptibly
+from octolog.kit.bus.diagnose import tcp_address
 from octolog.kit.errors import StageExited, StageKilled
 from octolog.shell import errorfile, statusline
 
@@ -99,8 +100,8 @@ class StageProcesses:
         process's level (`--log-level`)."""
         log = open(self.logs / f"{name}.log", "ab" if append else "wb")  # noqa: SIM115 - owned by the child
         errorfile.reserve(self.error_file(name))
-        env = {**os.environ, **self.env, "PYTHONHASHSEED": "0", "PYTHONUNBUFFERED": "1", errorfile.ENV: str(self.error_file(name)),
-               errorfile.REPORT_ENV: str(self.logs / f"{name}.report.json"),
+        env = {**os.environ, **self.env, "PYTHONHASHSEED": "0", "PYTHONUNBUFFERED": "1",
+               errorfile.ENV: str(self.error_file(name)), errorfile.REPORT_ENV: str(self.logs / f"{name}.report.json"),
                # its status line ends up on our stderr: redrawn only if that is a terminal
                statusline.ENV: "1" if show_stderr and statusline.is_terminal(sys.stderr) else "0"}
         self.argv[name] = (argv, show_stderr)
@@ -220,15 +221,14 @@ def router_unreachable(endpoint: str, wait_s: float = ROUTER_WAIT_S) -> str | No
     """Why the stages could not meet at the router `endpoint` (tcp/ or tls/HOST:PORT): nothing
     listens there, or the host does not resolve or answer, still so after `wait_s`; None once a TCP
     connection opens. Other protocols are not probed (None): Zenoh itself reports on them."""
-    proto, _, addr = endpoint.partition("/")
-    host, _, port = addr.split("#", 1)[0].split("?", 1)[0].rpartition(":")
-    host = host.strip("[]")
-    if proto not in ("tcp", "tls") or not host or not port.isdigit():
+    address = tcp_address(endpoint)
+    if address is None:
         return None
+    _, host, port = address
     deadline = time.monotonic() + wait_s
     while True:
         try:
-            with socket.create_connection((host, int(port)), timeout=min(2.0, wait_s)):
+            with socket.create_connection((host, port), timeout=min(2.0, wait_s)):
                 return None
         except socket.gaierror as exc:
             return f"cannot resolve {host!r} ({exc.strerror})"

@@ -308,13 +308,14 @@ def _start_stages(children: StageProcesses, plan: SessionPlan, endpoint: str, re
 def _run(plan: SessionPlan) -> SessionSummary:
     rerun = f"save:{plan.out / 'rerun'}" if plan.rerun == "save" else plan.rerun
     kind, viewer = parse_spec(rerun)
+    viewer = viewer or DEFAULT_VIEWER
     # streamed to a viewer, each stage's recording is saved in OUT/rerun as well: a viewer that is
     # not there (or closed part-way) costs nothing of the session; one that is not there at the
     # start is not waited for at all
     missed = viewer_unreachable(viewer) if kind == "connect" else None
     if missed is not None:
         log.warning("no Rerun viewer at %s (%s): the stages' recordings are saved in %s instead; "
-                    "`octolog view %s` opens them", viewer or DEFAULT_VIEWER, missed, plan.out / "rerun", plan.out)
+                    "`octolog view %s` opens them", viewer, missed, plan.out / "rerun", plan.out)
         rerun = f"save:{plan.out / 'rerun'}"
     copy = {COPY_ENV: str(plan.out / "rerun")} if kind == "connect" else {}
     config_path = _write_session_files(plan)
@@ -329,7 +330,7 @@ def _run(plan: SessionPlan) -> SessionSummary:
             children.end_line()
         wall = time.monotonic() - t0
     return _summarize(plan.out, plan.source, plan.src, wall, plan.recording_id, loop=plan.cfgs["replay"].loop,
-                      viewer_missed=None if missed is None else {"url": viewer or DEFAULT_VIEWER, "reason": missed,
+                      viewer_missed=None if missed is None else {"url": viewer, "reason": missed,
                                                                  "saved": str(plan.out / "rerun")})
 
 

@@ -39,17 +39,27 @@ def endpoints(zc: ZenohConfig) -> list[str]:
         return []
 
 
+def tcp_address(endpoint: str) -> tuple[str, str, int] | None:
+    """(protocol, host, port) of a `tcp/` or `tls/` Zenoh endpoint (`tls/[::1]:7447#iface=lo`);
+    None for other protocols and malformed ones, which only Zenoh itself can judge."""
+    proto, _, addr = endpoint.partition("/")
+    host, _, port = addr.split("#", 1)[0].split("?", 1)[0].rpartition(":")
+    host = host.strip("[]")
+    if proto not in ("tcp", "tls") or not host or not port.isdigit():
+        return None
+    return proto, host, int(port)
+
+
 def probe(endpoint: str, zc: ZenohConfig, timeout_s: float = PROBE_S) -> str:
     """What connecting to `endpoint` runs into, in a few words (empty when nothing is wrong that
     this probe can see)."""
-    proto, _, addr = endpoint.partition("/")
-    addr = addr.split("#", 1)[0].split("?", 1)[0]
-    host, _, port = addr.rpartition(":")
-    host = host.strip("[]")
-    if proto not in ("tcp", "tls") or not host or not port.isdigit():
+    address = tcp_address(endpoint)
+    if address is None:
         return ""
+    proto, host, port = address
+    addr = f"{host}:{port}" if ":" not in host else f"[{host}]:{port}"
     try:
-        sock = socket.create_connection((host, int(port)), timeout=timeout_s)
+        sock = socket.create_connection((host, port), timeout=timeout_s)
     except socket.gaierror as exc:
         return f"{endpoint}: cannot resolve {host!r} ({exc.strerror})"
     except ConnectionRefusedError:
