@@ -115,7 +115,7 @@ def cmd_view(args: argparse.Namespace) -> int:
 def cmd_track(args: argparse.Namespace) -> int:
     """`octolog track`: the tracker process."""
     # lazy: the tracker stage loads Zenoh, numpy, scipy, OpenCV and gtsam
-    from octolog.shell.info import imu_line, prior_line
+    from octolog.shell.info import imu_line, prior_line, uninitialised_line
     from octolog.tracker import node
     from octolog.tracker.config import TrackerConfig
 
@@ -131,6 +131,9 @@ def cmd_track(args: argparse.Namespace) -> int:
           + (f", {res.backend_deferred} keyframes without waiting for the back end" if res.backend_deferred else ""))
     for problem in res.problems[:5]:
         print(f"tracker: rejected {problem}")
+    if res.uninitialised is not None:
+        print(f"tracker: {uninitialised_line(res.uninitialised)}")
+        errorfile.FINDINGS["uninitialised"] = res.uninitialised
     errorfile.FINDINGS["imu"] = res.imu
     print(f"tracker: {imu_line(res.imu)}")
     if res.depth_bias is not None:

@@ -155,6 +155,13 @@ def describe_map(path: Path) -> str:
             f"{occupied} occupied and {free} free leaves")
 
 
+def uninitialised_line(u: dict) -> str:
+    """Why the tracker never made its first keyframe (summary.json `uninitialised`)."""
+    return (f"never initialised: no frame had {u['min_init_points']} corners with depth "
+            f"(tracking.min_init_points), the best had {u['best_points']} (a dark, blank or out-of-range view; "
+            f"--set tracker.tracking.min_init_points=N starts from fewer)")
+
+
 def prior_line(p: dict) -> str:
     """What became of a saved map the tracker was given (summary.json `prior_map`)."""
     mode = " (localize: not changed)" if p.get("mode") == "localize" else ""

@@ -39,7 +39,7 @@ from octolog.schemas.topics import RGBD, RGBD_COMPRESSED, TRACKING_STATUS
 from octolog.schemas.wirecompression import SOURCE
 from octolog.shell import errorfile, simcamera
 from octolog.shell.children import StageProcesses, hosted_router, router_unreachable
-from octolog.shell.info import depth_bias_line, imu_line, prior_line
+from octolog.shell.info import depth_bias_line, imu_line, prior_line, uninitialised_line
 from octolog.shell.priormap import check_prior, prior_mapper
 from octolog.shell.sessiondir import INCOMPLETE, incomplete_reason, not_a_session, prepare_out
 from octolog.shell.versions import versions
@@ -73,6 +73,7 @@ class SessionSummary:
     depth_bias: dict | None = None  # the tracker's estimate of the depth camera's systematic error (summary.json)
     imu: dict | None = None  # what the tracker's IMU did (summary.json; None: no IMU, or vision only)
     prior_map: dict | None = None  # what became of the saved map the tracker was given (tracker.map)
+    uninitialised: dict | None = None  # the tracker never made a first keyframe: why (tracker.report.json)
     viewer_missed: dict | None = None  # `--rerun connect`: the viewer no stage could reach (kit/viz.py)
 
 
@@ -431,12 +432,13 @@ def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, re
     s.depth_bias = errorfile.read_finding(out / "logs" / "tracker.report.json", "depth_bias")
     s.prior_map = errorfile.read_finding(out / "logs" / "tracker.report.json", "prior_map")
     s.imu = errorfile.read_finding(out / "logs" / "tracker.report.json", "imu")
+    s.uninitialised = errorfile.read_finding(out / "logs" / "tracker.report.json", "uninitialised")
     s.viewer_missed = viewer_missed or next((found for p in sorted((out / "logs").glob("*.report.json"))
                                              if (found := errorfile.read_finding(p, "viewer_missed"))), None)
     (out / "summary.json").write_text(json.dumps(
         {"source": source, "frames": frames, "tracked_frames": s.frames, "wall_s": round(wall, 3),
          "malformed": s.malformed, "map_frame": s.map_frame, "cpu_s": cpu, "depth_bias": s.depth_bias, "prior_map": s.prior_map,
-         "imu": s.imu, "viewer_missed": s.viewer_missed,
+         "imu": s.imu, "uninitialised": s.uninitialised, "viewer_missed": s.viewer_missed,
          "duration_s": s.duration_s, "ate": s.ate, "map": s.map, "files": sorted(s.files),
          "recording_id": recording_id, "versions": versions()},
         indent=2, sort_keys=True) + "\n")
@@ -450,6 +452,8 @@ def format_summary(s: SessionSummary) -> str:
     if not s.frames and (s.out / "trajectory.txt").exists():
         lines.append(f"  no frame tracked: every frame LOST (the tracker's count: {s.out / 'logs' / 'tracker.log'}), "
                      "so nothing is mapped")
+        if s.uninitialised:
+            lines.append("  tracker " + uninitialised_line(s.uninitialised))
     if s.ate:
         lines.append(f"  ATE RMSE {s.ate['rmse_m'] * 100:.2f} cm (mean {s.ate['mean_m'] * 100:.2f} cm, "
                      f"max {s.ate['max_m'] * 100:.2f} cm, {s.ate['pairs']} poses)")

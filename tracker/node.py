@@ -82,6 +82,8 @@ class TrackerRunSummary:
     # with a saved map (tracker.map): its keyframes, the frame the camera was found at in it (-1:
     # never), and whether the tracker gave it up for a map of its own
     prior: dict | None = None
+    # no first keyframe: the most corners with depth any frame had, and tracking.min_init_points
+    uninitialised: dict | None = None
 
 
 def run(cfg: TrackerConfig, bus_cfg: BusConfig, *, trajectory: Path | None = None, rerun: str = "off",
@@ -93,6 +95,9 @@ def run(cfg: TrackerConfig, bus_cfg: BusConfig, *, trajectory: Path | None = Non
         result.prior = {"map": cfg.map, "mode": cfg.mode, "keyframes": odometry.prior_keyframes,
                         "found_at_frame": odometry.prior_found_at, "frames_before": odometry.prior_misses,
                         "dropped": odometry.prior_dropped, "placed_keyframes": odometry.prior_placed}
+    if not result.keyframes and getattr(odometry, "init_best", -1) >= 0:
+        result.uninitialised = {"best_points": odometry.init_best,
+                                "min_init_points": odometry.params.tracking.min_init_points}
     if save_map is not None and hasattr(odometry, "save_map") and result.tracked:
         odometry.save_map(save_map)
     if trajectory is not None:

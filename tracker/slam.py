@@ -99,6 +99,7 @@ class RgbdSlam:
         self.depth = DepthCorrection(params)
         self.frames = Trajectory()
         self.saved = SavedMapSearch()
+        self.init_best = -1  # before the first keyframe: the most corners with depth a frame had
 
     @property
     def params(self) -> OdometryParams:
@@ -202,6 +203,7 @@ class RgbdSlam:
         """The first frame with enough depth is the first keyframe, at the world's origin."""
         pose = np.eye(4)
         if int(feats.has_depth.sum()) < self.params.tracking.min_init_points:
+            self.init_best = max(self.init_best, int(feats.has_depth.sum()))
             return TrackResult(frame.seq, frame.stamp_ns, pose, TrackingState.LOST, False, -1, 0, 0)
         empty = np.zeros(0, np.int64)
         kf_id = self._insert_keyframe(frame, pose, feats, TrackedFrame(np.eye(4), empty, empty, 0, 0, feats))

@@ -14,6 +14,7 @@ from octolog.kit.errors import InputError
 from octolog.kit.geometry import Intrinsics, invert, pose_to_matrix
 from octolog.kit.mcaplog import read_messages, summarize
 from octolog.kit.tum import TUM_DEPTH_SCALE_M, open_tum
+from octolog.mapper.cloud import _PLY_DTYPE
 from octolog.recorder.importers import import_source, parse_topic_map
 from octolog.recorder.tum_import import import_tum
 from octolog.replay.standard import count_standard_frames, open_standard, read_standard_frames
@@ -477,3 +478,27 @@ def test_a_realsense_viewer_bag_imports_to_a_session_that_maps(tmp_path):
     assert stats["keyframes"] == 1 and stats["occupied_voxels"] > 500, stats
     cloud = (tmp_path / "s" / "cloud.ply").read_bytes()
     assert b"element vertex" in cloud
+
+
+@pytest.mark.slow
+def test_the_dark_realsense_bag_says_why_it_cannot_start_and_maps_when_told(tmp_path):
+    """README's second bag: one dark 1920x1080 colour frame (27 corners with depth), depth at 1280x720.
+    `octolog run` says in its summary why nothing was tracked (the tracker never initialised, naming
+    tracking.min_init_points); with that lowered the frame is the first keyframe, its depth registered
+    to colour at the bag's units: the map's points lie where the bag's depth says (about 1.5 m)."""
+    from helpers import octolog
+
+    octolog("import", str(realsense_bag(REALSENSE_BAGS[1])), str(tmp_path / "dark.mcap"))
+    source = f"mcap:{tmp_path / 'dark.mcap'}"
+    lost = octolog("run", "--source", source, "--out", str(tmp_path / "no"), "--rerun", "off")
+    assert "tracker never initialised" in lost.stdout and "tracker.tracking.min_init_points" in lost.stdout, lost.stdout
+    summary = json.loads((tmp_path / "no" / "summary.json").read_text())
+    assert summary["uninitialised"]["best_points"] < summary["uninitialised"]["min_init_points"] == 100
+    octolog("run", "--source", source, "--set", "tracker.tracking.min_init_points=20", "--out", str(tmp_path / "s"),
+            "--quiet", "--rerun", "off")
+    stats = json.loads((tmp_path / "s" / "map_stats.json").read_text())
+    assert stats["keyframes"] == 1 and stats["occupied_voxels"] > 300, stats
+    head, _, body = (tmp_path / "s" / "cloud.ply").read_bytes().partition(b"end_header\n")
+    pts = np.frombuffer(body, _PLY_DTYPE)
+    xyz = np.stack([pts["x"], pts["y"], pts["z"]], axis=1)
+    assert 1.0 < float(np.median(np.linalg.norm(xyz, axis=1))) < 2.5  # the bag's depth units, not 1 mm guessed
