@@ -222,7 +222,7 @@ def publish(source: Source, cfg: ReplayConfig, bus: Bus, viz: Viz, progress: Pro
     wall_s = time.monotonic() - t0
     # stay (histories and all) until the tracker has taken every frame: a tracker far behind would
     # otherwise see its source gone before the end and, after peer_timeout_s, take it for dead
-    bus.linger("tracker")
+    bus.linger("tracker", status.feed)
     duration = ((last_stamp or 0) - (first_stamp or 0)) * 1e-9
     return ReplayResult(frames_pub.count, wall_s, duration)
 

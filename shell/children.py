@@ -102,6 +102,7 @@ class StageProcesses:
         errorfile.reserve(self.error_file(name))
         env = {**os.environ, **self.env, "PYTHONHASHSEED": "0", "PYTHONUNBUFFERED": "1",
                errorfile.ENV: str(self.error_file(name)), errorfile.REPORT_ENV: str(self.logs / f"{name}.report.json"),
+               errorfile.PARENT_ENV: str(os.getpid()),
                # its status line ends up on our stderr: redrawn only if that is a terminal
                statusline.ENV: "1" if show_stderr and statusline.is_terminal(sys.stderr) else "0"}
         self.argv[name] = (argv, show_stderr)

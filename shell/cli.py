@@ -507,6 +507,7 @@ def main(argv: list[str] | None = None) -> int:
         args.rerun = "save" if getattr(args, "session", None) else "off"
     signal.signal(signal.SIGTERM, _terminate)
     signal.signal(signal.SIGINT, _terminate)
+    errorfile.stop_with_parent()
     try:
         with command_logging(args):
             return _run_command(args)

@@ -13,6 +13,9 @@ from __future__ import annotations
 
 import json
 import os
+import signal
+import threading
+import time
 from dataclasses import dataclass
 from typing import Any
 from pathlib import Path
@@ -21,6 +24,7 @@ from octolog.kit.errors import OctologError
 
 ENV = "OCTOLOG_ERROR_FILE"
 REPORT_ENV = "OCTOLOG_REPORT_FILE"  # where a stage reports what it dropped (see `write_report`)
+PARENT_ENV = "OCTOLOG_PARENT_PID"  # the `octolog run` a stage belongs to (see `stop_with_parent`)
 RESERVED_BYTES = 8192  # a record longer than this is cut (its message: to fit)
 
 
@@ -118,3 +122,20 @@ def read_malformed(path: Path) -> dict[str, int]:
         return {str(k): int(v) for k, v in data["malformed"].items()}
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return {}
+
+
+def stop_with_parent() -> None:
+    """In a stage of `octolog run` (`$OCTOLOG_PARENT_PID` set): once that run is gone (killed outright,
+    SIGKILL or out of memory, so it could not stop its stages), stop as if interrupted, finishing
+    what was written, instead of running on alone for peers that went with it."""
+    parent = os.environ.get(PARENT_ENV)
+    if not parent or os.getppid() != int(parent):
+        return
+
+    def watch() -> None:
+        while os.getppid() == int(parent):
+            time.sleep(1.0)  # polling the parent's pid: no event tells a child its parent died
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    threading.Thread(target=watch, name="octolog-parent", daemon=True).start()
+

@@ -196,15 +196,24 @@ class Bus:
         """Stop caring about a peer (it finished its stream and may leave)."""
         self._membership.unwatch(stage)
 
-    def linger(self, stage: str) -> bool:
+    def linger(self, stage: str, on_received: Callable[[Received], None] | None = None) -> bool:
         """Stay up, histories and all, until `stage` has finished, so that a consumer restarted
         meanwhile still recovers everything it needs. Follow the stage from the start
         (`watch([stage], required=False)`).
 
+        What this stage's subscriptions still receive meanwhile goes to `on_received` (default:
+        dropped): left in a full inbox it would block the receive thread, and with it the very
+        news that `stage` finished.
+
         Returns True once it said it finished; False at once if it never showed up, or once it has
         been gone for `peer_timeout_s` (dead for good: nothing left to wait for).
         """
-        return self._membership.linger(stage)
+        def drain() -> None:
+            while (r := self.receive_nowait()) is not None:
+                if on_received is not None:
+                    on_received(r)
+
+        return self._membership.linger(stage, drain)
 
     def check_peers(self) -> None:
         """Raise StageError if samples were lost for good or a watched peer stage is dead."""

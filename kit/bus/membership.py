@@ -124,16 +124,20 @@ class Membership:
             if stage not in self._followed:
                 self._lost.pop(stage, None)
 
-    def linger(self, stage: str) -> bool:
+    def linger(self, stage: str, poll: Callable[[], None] | None = None) -> bool:
         """Wait until `stage` has finished. True once it said so; False at once if it never showed
-        up, or once it has been gone for `peer_timeout_s` (dead for good: nothing to wait for)."""
-        with self._changed:
-            while stage not in self._done:
+        up, or once it has been gone for `peer_timeout_s` (dead for good: nothing to wait for).
+        `poll` runs between looks, without the lock held (the caller draining its inbox)."""
+        while True:
+            with self._changed:
+                if stage in self._done:
+                    return True
                 since = self._lost.get(stage)
                 if stage not in self._alive and (since is None or time.monotonic() - since > self._cfg.peer_timeout_s):
                     return False
-                self._changed.wait(0.5)
-            return True
+                self._changed.wait(0.1 if poll is not None else 0.5)
+            if poll is not None:
+                poll()
 
     def report_loss(self, what: str) -> None:
         """Samples (`what`) are gone for good: the next check raises."""

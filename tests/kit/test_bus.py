@@ -291,6 +291,29 @@ def test_a_producer_lingers_until_its_consumer_is_done(endpoints):
         assert prod.linger("mapper") is True  # it said it finished
 
 
+def test_a_lingering_producer_drains_what_it_still_receives(endpoints):
+    """A producer subscribed to its consumer's replies (a replay's status line) lingers while the
+    consumer sends more than its inbox holds, then finishes: the replies reach `on_received` in
+    order and the linger ends. Left in the inbox they would block the receive thread and the news
+    of the end with it: the linger would never return (run in a thread, so a hang fails here)."""
+    server, client = endpoints
+    with Bus(server, "replay", inbox_size=4) as prod:
+        prod.subscribe([NUMBERED])
+        prod.watch(["tracker"], required=False)
+        seen: list[int] = []
+        with Bus(client, "tracker") as cons:
+            cons.announce()
+            prod.wait_for(["tracker"], timeout_s=20)
+            p = cons.publisher(NUMBERED)
+            for i in range(20):
+                p.put(streammsgs.stream_end_msg("x", i))
+        done: list[bool] = []
+        t = threading.Thread(target=lambda: done.append(prod.linger("tracker", lambda r: seen.append(r.decode().count))))
+        t.start()
+        t.join(120)
+        assert done == [True] and seen == list(range(20)), (done, seen)
+
+
 def test_a_producer_stops_lingering_for_a_consumer_that_died(endpoints):
     server, client = endpoints
     with Bus(dataclasses.replace(server, peer_timeout_s=1.0), "tracker") as prod:

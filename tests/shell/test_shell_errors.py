@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from octolog.kit.errors import InputError, StageExited, StageFailed, StageKilled
@@ -150,3 +152,45 @@ def test_info_of_an_mcap_holding_only_its_header_is_an_error(tmp_path, capsys):
         Writer(f).start(profile="ros2", library="test")  # never finished: magic and header only
     assert cli.main(["info", str(path)]) == 1
     assert capsys.readouterr().err.startswith(f"octolog info: error: {path}: no readable MCAP records after the header")
+
+
+def test_stages_of_a_run_killed_outright_finish_their_files_and_stop(tmp_path):
+    """`octolog run` killed with SIGKILL cannot stop its stages: each notices its run is gone, stops as
+    if interrupted and leaves a readable session log instead of running on for peers that are gone."""
+    import os
+    import select
+    import signal
+    import subprocess
+    import sys
+
+    from helpers import ROOT, read_until
+
+    from octolog.kit.mcaplog import summarize
+
+    out = tmp_path / "s"
+    run = subprocess.Popen([sys.executable, "-m", "octolog", "run", "--source", "synthetic:3000", "--rerun", "off",
+                            "--out", str(out)], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    read_until(run, "starting the stages")
+    read_until(run, " frames ")  # the replay's status line: the stages are up and working
+    stages = [int(p.name) for p in Path("/proc").iterdir() if p.name.isdigit() and _cmdline_has(p, str(out))
+              and int(p.name) != run.pid]
+    assert len(stages) >= 4, stages
+    run.send_signal(signal.SIGKILL)
+    run.wait()
+    for pid in stages:  # each pid's end is an event (pidfd): nothing here sleeps
+        try:
+            fd = os.pidfd_open(pid)
+        except ProcessLookupError:
+            continue
+        ready, _, _ = select.select([fd], [], [], 120)
+        os.close(fd)
+        assert ready, f"stage {pid} still running 120 s after its run was killed"
+    assert summarize(out / "session.mcap").topics  # finished: a summary section, readable
+    assert "interrupted" in (out / "logs" / "tracker.log").read_text()
+
+
+def _cmdline_has(proc: Path, text: str) -> bool:
+    try:
+        return text in (proc / "cmdline").read_bytes().decode(errors="replace")
+    except OSError:
+        return False
