@@ -15,6 +15,7 @@ at is the same either way, so the outputs do not depend on when it ran.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
@@ -29,6 +30,7 @@ from octolog.mapper.grid import OccupancyGrid2D, map_from_world_for_up, project_
 from octolog.mapper.occupancy import OccupancyMap, make_occupancy_map
 from octolog.mapper.params import GridParams, MapperParams
 from octolog.mapper.tiles import Tiles
+from octolog.mapper.voxelmap import VoxelOccupancyMap
 
 __all__ = ["FrameRef", "KeyframeCloud", "Mapper", "bt_payload", "make_mapper", "project_grid", "reaches",
            "write_map_files"]
@@ -197,10 +199,18 @@ class Mapper:
         return c.pixel_stride if recent < c.full_per_s else max(c.pixel_stride, c.burst_stride)
 
     def _insert(self, kf_id: int, kf: KeyframeCloud) -> None:
+        if (scan := self._place(kf_id, kf)) is not None:
+            # the range limit was applied when back-projecting (depth <= max_range_m), so the dense
+            # cloud and the octree hold the same points; a second, Euclidean cut would make them differ
+            self._octree.insert(*scan[:2], colours=scan[2], max_range_m=-1.0)
+
+    def _place(self, kf_id: int, kf: KeyframeCloud) -> tuple[np.ndarray, np.ndarray, np.ndarray | None] | None:
+        """The keyframe's points into the dense cloud at its current pose; its scan for the octree
+        (map-frame points, camera origin, colours or None), None when it reaches none of the map."""
         if kf.points_cam is None:
             if not self._within_reach(kf):
                 self._cloud.remove(kf_id)
-                return
+                return None
             self._make_cloud(kf)
         map_from_camera = self.map_from_world @ kf.world_from_camera
         pts = transform(kf.points_cam, map_from_camera)
@@ -210,11 +220,7 @@ class Mapper:
         else:  # a shard: the cloud's points in its tiles; the octree keeps its tiles' voxels itself
             mine = tiles.keep_points(pts)
             self._cloud.add(kf_id, rows_where(pts, mine), rows_where(kf.colours, mine))
-        # the range limit was applied when back-projecting (depth <= max_range_m), so the dense cloud
-        # and the octree hold the same points; a second, Euclidean cut here would make them differ
-        colour = self.params.occupancy.colour
-        self._octree.insert(pts, map_from_camera[:3, 3], colours=kf.colours if colour else None,
-                           max_range_m=-1.0)
+        return pts, map_from_camera[:3, 3], kf.colours if self.params.occupancy.colour else None
 
     def correct(self, poses: dict[int, np.ndarray], depth_inverse_offset: float | None = None) -> int:
         """Move known keyframes to corrected poses, and with `depth_inverse_offset` (the tracker's new
@@ -257,8 +263,12 @@ class Mapper:
         """Re-integrate every keyframe, in arrival order, with its current pose (and map frame)."""
         self._octree = self._new_octree()
         self._stale = False
-        for kf_id, kf in self.keyframes.items():
-            self._insert(kf_id, kf)
+        scans = (scan for kf_id, kf in self.keyframes.items() if (scan := self._place(kf_id, kf)) is not None)
+        if isinstance(self._octree, VoxelOccupancyMap):  # the next keyframe's rays cast while one goes in
+            self._octree.insert_all(scans, max_range_m=-1.0)
+        else:
+            for pts, origin, colours in scans:
+                self._octree.insert(pts, origin, colours=colours, max_range_m=-1.0)
         self.rebuilds += 1
 
     def stats(self) -> dict:
@@ -273,26 +283,50 @@ class Mapper:
         """The 2D grid of the current octree, or None while no known voxel lies in the band."""
         return project_grid(self.octree, self.params.grid, self.map_from_world)
 
-    def write(self, out_dir: Path, stem: str = "map") -> dict[str, str]:
-        """Write the map files (.bt, .ot, cloud .ply/.pcd, the 2D grid if any); returns {kind: path}."""
-        pts, cols = self.cloud.cloud()
-        return write_map_files(out_dir, self.octree, pts, cols, self.project_grid(), stem)
+    def write(self, out_dir: Path, stem: str = "map", *, meanwhile: Callable[[], None] | None = None) -> dict[str, str]:
+        """Write the map files (.bt, .ot, cloud .ply/.pcd, the 2D grid if any); returns {kind: path}.
+
+        The dense cloud is merged and written on a second thread while the octree's files are written
+        and `meanwhile` runs (the run's last snapshot): the merge's compiled kernels and NumPy run
+        without the GIL, so at a run's end, the tracker gone, the mapper has both cores. The files
+        are the same bytes either way."""
+        octree = self.octree  # a pending correction first: its rebuild re-places the cloud's keyframes too
+        out_dir.mkdir(parents=True, exist_ok=True)
+        with ThreadPoolExecutor(1, thread_name_prefix="mapper-cloud") as pool:
+            cloud = pool.submit(lambda: _cloud_files(out_dir, *self._cloud.cloud()))
+            if meanwhile is not None:
+                meanwhile()
+            files = _octree_files(out_dir, octree, stem)
+            grid = _grid_files(out_dir, self.project_grid(), stem)
+            return {**files, **cloud.result(), **grid}
 
 
 def write_map_files(out_dir: Path, octree: OccupancyMap, points: np.ndarray, colours: np.ndarray,
                     grid: OccupancyGrid2D | None, stem: str = "map") -> dict[str, str]:
     """The map files of an octree, a dense cloud and a grid (None: no grid files); {kind: path}."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    bt, ply, pcd = out_dir / f"{stem}.bt", out_dir / "cloud.ply", out_dir / "cloud.pcd"
-    ot = out_dir / f"{stem}.ot"
+    return {**_octree_files(out_dir, octree, stem), **_cloud_files(out_dir, points, colours),
+            **_grid_files(out_dir, grid, stem)}
+
+
+def _octree_files(out_dir: Path, octree: OccupancyMap, stem: str) -> dict[str, str]:
+    bt, ot = out_dir / f"{stem}.bt", out_dir / f"{stem}.ot"
     octree.write_bt(bt)
     octree.write_ot(ot)
+    return {"bt": str(bt), "ot": str(ot)}
+
+
+def _cloud_files(out_dir: Path, points: np.ndarray, colours: np.ndarray) -> dict[str, str]:
+    ply, pcd = out_dir / "cloud.ply", out_dir / "cloud.pcd"
     write_ply(ply, points, colours)
     write_pcd(pcd, points, colours)
-    files = {"bt": str(bt), "ot": str(ot), "ply": str(ply), "pcd": str(pcd)}
-    if grid is not None:
-        files.update({f"grid_{k}": v for k, v in write_map_server(grid, out_dir / stem).items()})
-    return files
+    return {"ply": str(ply), "pcd": str(pcd)}
+
+
+def _grid_files(out_dir: Path, grid: OccupancyGrid2D | None, stem: str) -> dict[str, str]:
+    if grid is None:
+        return {}
+    return {f"grid_{k}": v for k, v in write_map_server(grid, out_dir / stem).items()}
 
 
 def make_mapper(cfg: MapperConfig) -> Mapper:

@@ -80,8 +80,9 @@ def finish(mapper: Mapper, result: MapperResult, bus: Bus, viz: Viz, publisher: 
            extra_stats: dict | None = None) -> None:
     """The last snapshot, the map files and stats, the end message."""
     last_stamp = max((kf.stamp_ns for kf in mapper.keyframes.values()), default=0)
-    publisher.now(last_stamp)
-    result.files = mapper.write(out_dir)
+    if publisher.frame is not None:
+        publisher.frame.resolve()  # the map frame settled before the files' cloud merge starts
+    result.files = mapper.write(out_dir, meanwhile=lambda: publisher.now(last_stamp))
     result.stats = mapper.stats()
     result.cloud_points = len(mapper.cloud.cloud()[0])
     if mapper.params.tiles is not None:

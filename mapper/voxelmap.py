@@ -30,6 +30,9 @@ average of the children's set colours).
 from __future__ import annotations
 
 import os
+from collections.abc import Iterable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
@@ -57,6 +60,16 @@ class Region(Protocol):
 _DBL_MAX = float(np.finfo(np.float64).max)
 _DENSE_MAX_CELLS = 1 << 26  # per-scan scratch grid limit (64 MiB of uint8), beyond it use np.unique
 _RAY_CHUNK = 65536  # rays per DDA batch: caps its working arrays (~100 bytes a ray) at a few MB
+
+
+@dataclass(frozen=True)
+class _Scan:
+    """One scan's updates (VoxelOccupancyMap._scan): packed free and occupied keys, sorted, and the
+    occupied end points' (packed keys, mean colours) when coloured."""
+
+    free: np.ndarray
+    occ: np.ndarray
+    colour: tuple[np.ndarray, np.ndarray] | None
 
 BT_HEADER = "# Octomap OcTree binary file"
 OT_HEADER = "# Octomap OcTree file"
@@ -264,6 +277,14 @@ class VoxelOccupancyMap:
         `discretize=False` casts rays to the raw points (OctoMap's default) instead of voxel centres.
         Returns the number of points given.
         """
+        scan = self._cast(points_world, origin, colours, max_range_m, discretize)
+        if scan is not None:
+            self._commit(scan)
+        return int(np.shape(points_world)[0])
+
+    def _cast(self, points_world: np.ndarray, origin: np.ndarray, colours: np.ndarray | None, max_range_m: float,
+              discretize: bool) -> _Scan | None:
+        """`insert`'s checks of its arguments, then the scan's updates (`_scan`); None: nothing to add."""
         pts = np.asarray(points_world)
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise MapError(f"octree points must have shape (N, 3), got {pts.shape}")
@@ -282,14 +303,31 @@ class VoxelOccupancyMap:
                 raise MapError(f"colours must be ({pts.shape[0]}, 3) uint8, got {colours.shape} {colours.dtype}")
         limit = TREE_MAX_VAL * self.resolution
         if pts.shape[0] == 0:
-            return 0
+            return None
         if np.abs(pts_range).max() >= limit or np.abs(org).max() >= limit:
             raise MapError(f"points outside the octree's addressable cube of +/-{limit:g} m")
-        self._integrate(pts, org, colours, float(max_range_m), bool(discretize))
-        return int(pts.shape[0])
+        return self._scan(pts, org, colours, float(max_range_m), bool(discretize))
 
-    def _integrate(self, pts: np.ndarray, org: np.ndarray, colours: np.ndarray | None,
-                   max_range: float, discretize: bool) -> None:
+    def insert_all(self, scans: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray | None]], *,
+                   max_range_m: float = -1.0) -> None:
+        """`insert(points, origin, colours=colours, max_range_m=...)` of each (points, origin, colours)
+        in order (a rebuild). The rays of the next scan are cast on a second thread while this one's
+        updates go in: the cast is pure (compiled, without the GIL) and the updates keep their order,
+        so the map is the same bytes as from one `insert` after another."""
+        with ThreadPoolExecutor(1, thread_name_prefix="voxelmap-rays") as pool:
+            ahead = None
+            for pts, origin, colours in scans:
+                nxt = pool.submit(self._cast, pts, origin, colours, max_range_m, True)
+                if ahead is not None and (scan := ahead.result()) is not None:
+                    self._commit(scan)
+                ahead = nxt
+            if ahead is not None and (scan := ahead.result()) is not None:
+                self._commit(scan)
+
+    def _scan(self, pts: np.ndarray, org: np.ndarray, colours: np.ndarray | None,
+              max_range: float, discretize: bool) -> _Scan | None:
+        """One scan's updates, from the scan alone (nothing of the map is read or changed): its free
+        and occupied voxels and, with `colours`, their colours; None when no ray reaches the region."""
         res = self.resolution
         rf = 1.0 / res
         p32 = pts.astype(np.float32)
@@ -330,18 +368,23 @@ class VoxelOccupancyMap:
         ghi = np.maximum(hi, column_max(ray_keys))
         # Pad one voxel: the DDA never leaves the segment's key box, but be safe at borders.
         if self.region is not None and not self.region.touches_keys(glo - 1, ghi + 1):
-            return  # no ray of this scan reaches the shard's tiles
+            return None  # no ray of this scan reaches the shard's tiles
         grid = _ScanGrid(glo - 1, ghi + 1)
         for s in range(0, ends.shape[0], _RAY_CHUNK):
             _cast_rays(grid, o32, ends[s:s + _RAY_CHUNK], res)
         free, occ = grid.result(grid.lin(occ_keys))
         if self.region is not None:
             free, occ = free[self.region.keep_packed(free)], occ[self.region.keep_packed(occ)]
-
-        self._apply_updates(free, occ)
-
+        colour = None
         if colours is not None and occ.shape[0]:
-            self._integrate_colour(colours, inverse, ulin, in_range, box, keys, discretize)
+            colour = self._scan_colour(colours, inverse, ulin, in_range, box, keys, discretize)
+        return _Scan(free, occ, colour)
+
+    def _commit(self, scan: _Scan) -> None:
+        """A scan's updates into the map: the misses and hits, then the colours."""
+        self._apply_updates(scan.free, scan.occ)
+        if scan.colour is not None:
+            self._store.average_colour(*scan.colour)
 
     def _apply_updates(self, free: np.ndarray, occ: np.ndarray) -> None:
         """Free cells get the miss update, occupied cells the hit update (once per scan), clamped."""
@@ -349,9 +392,10 @@ class VoxelOccupancyMap:
                                  occ, np.full(occ.shape[0], self._hit, np.float32))
         self._store.update(keys, upd, self._lmin, self._lmax)
 
-    def _integrate_colour(self, colours: np.ndarray, inverse: np.ndarray, ulin: np.ndarray,
-                          in_range: np.ndarray, box: _ScanGrid, keys: np.ndarray, discretize: bool) -> None:
-        """averageNodeColor with the scan's mean colour of each occupied end-point voxel."""
+    def _scan_colour(self, colours: np.ndarray, inverse: np.ndarray, ulin: np.ndarray, in_range: np.ndarray,
+                     box: _ScanGrid, keys: np.ndarray, discretize: bool) -> tuple[np.ndarray, np.ndarray]:
+        """The scan's mean colour of each occupied end-point voxel (packed keys, colours), for
+        averageNodeColor."""
         m = ulin.shape[0]
         pt_ok = in_range[inverse] if discretize else in_range
         idx = inverse[pt_ok]
@@ -364,7 +408,7 @@ class VoxelOccupancyMap:
         if self.region is not None:
             mine = self.region.keep_packed(packed)
             packed, mean = packed[mine], mean[mine]
-        self._store.average_colour(packed, mean)
+        return packed, mean
 
     # ---- queries -------------------------------------------------------------------------------
 

@@ -13,7 +13,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -131,6 +131,14 @@ class StageProcesses:
             self.line_open = not chunk.endswith(b"\n")
         pipe.close()
 
+    def say(self, line: str) -> None:
+        """One line on stderr between the stages' relayed ones (an open progress line ended first)."""
+        if self.line_open:
+            sys.stderr.write("\n")
+            self.line_open = False
+        sys.stderr.write(line + "\n")
+        sys.stderr.flush()
+
     def end_line(self) -> None:
         """Once the stages are gone: end a relayed progress line, so an error line starts on its own."""
         for relay in self.relays:
@@ -152,8 +160,9 @@ class StageProcesses:
         self.start(name, argv, show_stderr=show_stderr, append=True)
         return True
 
-    def wait_all(self) -> None:
-        """Wait until every stage has exited; restart a killed mapper; raise StageFailed for a failed stage."""
+    def wait_all(self, on_done: Callable[[str, list[str]], None] | None = None) -> None:
+        """Wait until every stage has exited; restart a killed mapper; raise StageFailed for a failed
+        stage. `on_done(stage, still running)`: a stage finished without error."""
         pending = dict(self.procs)
         while pending:
             for name, proc in list(pending.items()):
@@ -161,6 +170,8 @@ class StageProcesses:
                 if code is None:
                     continue
                 del pending[name]
+                if code == 0 and on_done is not None:
+                    on_done(name, sorted(pending))
                 if code != 0 and self.restart(name, code):
                     pending[name] = self.procs[name]
                     continue

@@ -325,7 +325,7 @@ def _run(plan: SessionPlan) -> SessionSummary:
         t0 = time.monotonic()
         try:
             _start_stages(children, plan, endpoint, rerun, config_path)
-            children.wait_all()
+            children.wait_all(lambda stage, running: _finishing(children, plan, stage, running))
         finally:
             children.stop_all()
             children.end_line()
@@ -333,6 +333,16 @@ def _run(plan: SessionPlan) -> SessionSummary:
     return _summarize(plan.out, plan.source, plan.src, wall, plan.recording_id, loop=plan.cfgs["replay"].loop,
                       viewer_missed=None if missed is None else {"url": viewer, "reason": missed,
                                                                  "saved": str(plan.out / "rerun")})
+
+
+def _finishing(children: StageProcesses, plan: SessionPlan, stage: str, running: list[str]) -> None:
+    """Said when the frames' source ends and other stages still work: a log or terminal is not silent
+    through the tracker's last adjustment and the map's files (seconds, for a long session)."""
+    left = [work for name, work in (("tracker", "the tracker's last adjustment"), ("mapper", "the map and its files"))
+            if name in running]
+    if stage in ("recorder", "replay") and not plan.quiet and left:
+        what = "the camera stopped" if plan.live else "the replay sent its last frame"
+        children.say(f"octolog run: {what}; finishing {' and '.join(left)}")
 
 
 def _keep_live_up(out: Path, found: dict) -> None:

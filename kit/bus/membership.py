@@ -108,7 +108,7 @@ class Membership:
                 if not said and time.monotonic() - start >= SAY_WAITING_S:
                     said = True
                     log.warning("%s: waiting for the %s stage%s to appear on the bus (namespace %r), up to %.0f s "
-                                "more; started alone, a stage needs the others running (or `octolog run`)",
+                                "more (a stage started on its own waits for the others: start them too, or use `octolog run`)",
                                 self._stage, ", ".join(sorted(stages - self._alive)),
                                 "s" if len(stages - self._alive) > 1 else "", self._cfg.namespace or "(none)", left)
                 if left <= 0:

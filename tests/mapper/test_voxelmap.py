@@ -118,6 +118,24 @@ def test_compiled_and_vectorised_ray_walks_give_the_same_tree(monkeypatch):
     assert compiled.ot_bytes(colour=False) == vectorised.ot_bytes(colour=False) == ref.ot_bytes()
 
 
+def test_insert_all_is_one_insert_after_another():
+    """A rebuild's `insert_all` (the next scan's rays cast on a second thread) gives the bytes of
+    one `insert` after another, colours, clamping and a cut range included; a bad scan raises what
+    `insert` raises, after the scans before it went in."""
+    clouds = raw_clouds(stride=4, n=3) * 3
+    one_by_one, all_at_once = VoxelOccupancyMap(RES), VoxelOccupancyMap(RES)
+    for pts, cols, T in clouds:
+        one_by_one.insert(pts, T[:3, 3], colours=cols, max_range_m=2.2)
+    all_at_once.insert_all(((pts, T[:3, 3], cols) for pts, cols, T in clouds), max_range_m=2.2)
+    assert all_at_once.ot_bytes() == one_by_one.ot_bytes() and all_at_once.bt_bytes() == one_by_one.bt_bytes()
+    partial, first = VoxelOccupancyMap(RES), VoxelOccupancyMap(RES)
+    (pts, cols, T), bad = clouds[0], np.full((5, 3), np.nan)
+    first.insert(pts, T[:3, 3], colours=cols)
+    with pytest.raises(MapError, match="NaN"):
+        partial.insert_all([(pts, T[:3, 3], cols), (bad, T[:3, 3], None), (pts, T[:3, 3], cols)])
+    assert partial.ot_bytes() == first.ot_bytes()
+
+
 def test_same_tree_as_octomap_on_filtered_clouds():
     depth, rgb = scene()
     clouds = []

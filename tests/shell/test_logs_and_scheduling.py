@@ -169,3 +169,27 @@ def test_no_stage_is_ranked_below_unrelated_jobs():
 def test_the_live_camera_is_a_job_of_its_own():
     """A starved recorder drops camera frames for good: it never shares the run's group."""
     assert launch("recorder", grouped=True) == Launch(0, start_new_session=True, process_group=None)
+
+
+def test_the_run_says_what_it_finishes_once_the_frames_end(tmp_path, capsys):
+    """When the frames' source ends and the tracker or the mapper still works, one line says so
+    (the seconds of a last adjustment and a map's files are not silent); `--quiet` says nothing,
+    nor does a stage's end that leaves nothing to wait for. The stages' exits drive it."""
+    from types import SimpleNamespace
+
+    from octolog.shell.run import _finishing
+
+    children = StageProcesses(tmp_path)
+    children.start("replay", ["--version"])
+    done: list[tuple[str, list[str]]] = []
+    children.wait_all(lambda stage, running: done.append((stage, running)))
+    assert done == [("replay", [])]
+    for plan, stage, running in ((SimpleNamespace(quiet=False, live=True), "recorder", ["log", "mapper", "tracker"]),
+                                 (SimpleNamespace(quiet=False, live=False), "replay", ["log", "mapper"]),
+                                 (SimpleNamespace(quiet=False, live=False), "tracker", ["log", "mapper"]),
+                                 (SimpleNamespace(quiet=False, live=False), "replay", ["log"]),
+                                 (SimpleNamespace(quiet=True, live=True), "recorder", ["mapper", "tracker"])):
+        _finishing(children, plan, stage, running)
+    assert capsys.readouterr().err.splitlines() == [
+        "octolog run: the camera stopped; finishing the tracker's last adjustment and the map and its files",
+        "octolog run: the replay sent its last frame; finishing the map and its files"]
