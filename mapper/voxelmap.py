@@ -71,6 +71,7 @@ class _Scan:
     occ: np.ndarray
     colour: tuple[np.ndarray, np.ndarray] | None
 
+
 BT_HEADER = "# Octomap OcTree binary file"
 OT_HEADER = "# Octomap OcTree file"
 _COMMENT = "\n# (feel free to add / change comments, but leave the first line as it is!)\n#\n"
