@@ -3,7 +3,6 @@ logs/STAGE.log, watched until all end; the first failure stops the others, a kil
 
 from __future__ import annotations
 
-import contextlib
 import io
 import os
 import socket
@@ -13,7 +12,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -253,35 +252,44 @@ def router_unreachable(endpoint: str, wait_s: float = ROUTER_WAIT_S) -> str | No
         time.sleep(0.25)  # a router starting up: try again
 
 
-@contextlib.contextmanager
-def hosted_router(given: str | None) -> Iterator[str]:
+class HostedRouter:
     """The endpoint the stages meet at: `given`, or a Zenoh router this process hosts on a free
-    loopback port (on a thread, until the session ends)."""
-    if given is not None:
-        yield given
-        return
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    stop, ready = threading.Event(), threading.Event()
-    error: list[BaseException] = []
+    loopback port (on a thread, until the session ends). Its start (~0.5 s) overlaps the stages'
+    own (their imports take longer, and a stage that connects first retries until it listens):
+    `ready()` waits for it and raises what stopped it."""
 
-    def host() -> None:
+    def __init__(self, given: str | None) -> None:
+        self.given = given
+        self.endpoint = given if given is not None else f"tcp/127.0.0.1:{free_port()}"
+        self._stop, self._ready = threading.Event(), threading.Event()
+        self._error: list[BaseException] = []
+        self._thread: threading.Thread | None = None
+
+    def __enter__(self) -> HostedRouter:
+        if self.given is None:
+            self._thread = threading.Thread(target=self._host, daemon=True, name="octolog-router")
+            self._thread.start()
+        return self
+
+    def _host(self) -> None:
         try:
-            with Bus(BusConfig(mode="router", listen=(endpoint,), multicast_scouting=False), "router"):
-                ready.set()
-                stop.wait()
-        except BaseException as exc:  # reported by the main thread
-            error.append(exc)
-            ready.set()
+            with Bus(BusConfig(mode="router", listen=(self.endpoint,), multicast_scouting=False), "router"):
+                self._ready.set()
+                self._stop.wait()
+        except BaseException as exc:  # reported by the main thread (`ready`)
+            self._error.append(exc)
+            self._ready.set()
 
-    thread = threading.Thread(target=host, daemon=True)
-    thread.start()
-    wait_interruptibly(ready)
-    if error:
-        raise error[0]
-    try:
-        yield endpoint
-    finally:
-        stop.set()
-        # let the router's session close before the interpreter exits: a daemon thread still inside
-        # Zenoh at exit aborts the process
-        thread.join(timeout=10)
+    def ready(self) -> None:
+        if self._thread is None:
+            return
+        wait_interruptibly(self._ready)
+        if self._error:
+            raise self._error[0]
+
+    def __exit__(self, *exc: object) -> None:
+        if self._thread is not None:
+            self._stop.set()
+            # let the router's session close before the interpreter exits: a daemon thread still
+            # inside Zenoh at exit aborts the process
+            self._thread.join(timeout=10)

@@ -39,7 +39,7 @@ from octolog.schemas import topics as T
 from octolog.schemas.topics import RGBD, RGBD_COMPRESSED, TRACKING_STATUS
 from octolog.schemas.wirecompression import SOURCE
 from octolog.shell import errorfile, simcamera
-from octolog.shell.children import StageProcesses, hosted_router, router_unreachable
+from octolog.shell.children import HostedRouter, StageProcesses, router_unreachable
 from octolog.shell.info import depth_bias_line, imu_line, prior_line, uninitialised_line
 from octolog.shell.priormap import check_prior, prior_mapper
 from octolog.shell.sessiondir import INCOMPLETE, incomplete_reason, not_a_session, prepare_out
@@ -322,12 +322,13 @@ def _run(plan: SessionPlan) -> SessionSummary:
                     "`octolog view %s` opens them", viewer, missed, plan.out / "rerun", plan.out)
         rerun = f"save:{plan.out / 'rerun'}"
     copy = {COPY_ENV: str(plan.out / "rerun")} if kind == "connect" else {}
-    with hosted_router(plan.router) as endpoint:
+    with HostedRouter(plan.router) as router:
         config_path = _write_session_files(plan)
         children = StageProcesses(plan.out / "logs", env=copy)
         t0 = time.monotonic()
         try:
-            _start_stages(children, plan, endpoint, rerun, config_path)
+            _start_stages(children, plan, router.endpoint, rerun, config_path)
+            router.ready()
             children.wait_all(lambda stage, running: _finishing(children, plan, stage, running))
         finally:
             children.stop_all()
