@@ -4,8 +4,8 @@
 (stream to a viewer; with `$OCTOLOG_RERUN_COPY` set, as `octolog run` sets it to OUT/rerun, also
 saved there, so a viewer that is not there costs nothing). A viewer that cannot be reached is a
 warning, never a stage's failure: `VIEWER_MISSED` says so for the stage's report. All stages of a
-session share one recording id so their data merges into one recording; timelines are `sensor_time` (sensor timestamps) and `frame` (source sequence numbers).
-Entity paths mirror topic names.
+session share one recording id so their data merges into one recording; timelines are `sensor_time`
+(sensor timestamps) and `frame` (source sequence numbers). Entity paths mirror topic names.
 """
 
 from __future__ import annotations

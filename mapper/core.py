@@ -200,9 +200,10 @@ class Mapper:
 
     def _insert(self, kf_id: int, kf: KeyframeCloud) -> None:
         if (scan := self._place(kf_id, kf)) is not None:
+            pts, origin, colours = scan
             # the range limit was applied when back-projecting (depth <= max_range_m), so the dense
             # cloud and the octree hold the same points; a second, Euclidean cut would make them differ
-            self._octree.insert(*scan[:2], colours=scan[2], max_range_m=-1.0)
+            self._octree.insert(pts, origin, colours=colours, max_range_m=-1.0)
 
     def _place(self, kf_id: int, kf: KeyframeCloud) -> tuple[np.ndarray, np.ndarray, np.ndarray | None] | None:
         """The keyframe's points into the dense cloud at its current pose; its scan for the octree

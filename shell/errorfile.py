@@ -6,7 +6,9 @@ the orchestrator learns what went wrong without searching the child's log for th
 The orchestrator reserves the file's space before the stage starts (`reserve`), so the record can
 be written on a disk the stage has just filled: the stage overwrites bytes that are already there.
 Once the stage has ended, a reservation it did not use is removed (`release`): a finished session
-holds `logs/STAGE.error.json` only for a stage that reported an error.
+holds `logs/STAGE.error.json` only for a stage that reported an error. The same environment tells a
+stage which run it belongs to (`OCTOLOG_PARENT_PID`), so it stops when that run is killed outright
+(`stop_with_parent`).
 """
 
 from __future__ import annotations
@@ -138,4 +140,3 @@ def stop_with_parent() -> None:
         os.kill(os.getpid(), signal.SIGTERM)
 
     threading.Thread(target=watch, name="octolog-parent", daemon=True).start()
-

@@ -17,7 +17,6 @@ import subprocess
 import sys
 import time
 import tomllib
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -92,10 +91,10 @@ class LiveSource:
     name: str
     readout_s: float = 0.0  # the D455's colour camera has a global shutter
     duration_ns: int = 0  # known from the session log afterwards
-    groundtruth: str | Future[str] = ""  # TUM text (a Future while it is worked out beside the start)
+    groundtruth: str = ""  # TUM text
 
     def groundtruth_tum(self) -> str | None:
-        return (self.groundtruth.result() if isinstance(self.groundtruth, Future) else self.groundtruth) or None
+        return self.groundtruth or None
 
     def gravity_up(self) -> None:
         return None  # the live D455's accelerometer is not read for gravity yet
@@ -218,13 +217,11 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
                       f"if no run is going on, it failed or was killed\n")
     try:
         rec = cfgs.get("recorder")
-        with ThreadPoolExecutor(1, thread_name_prefix="groundtruth") as pool:
-            if isinstance(src, LiveSource) and rec.backend == "software" and rec.software.scene == "room":
-                # the simulated camera's frames rendered before any stage starts; its path is the
-                # ground truth, worked out while the router starts (its pose maths' imports take ~0.4 s)
-                src.groundtruth = pool.submit(simcamera.prepare(rec, duration_s, quiet=quiet).groundtruth_tum)
-            summary = _run(SessionPlan(source, out, src, cfgs, feed_tracker, rerun, recording_id, quiet, duration_s,
-                                       router, ros2_domain, map_frame))
+        if isinstance(src, LiveSource) and rec.backend == "software" and rec.software.scene == "room":
+            # the simulated camera's frames rendered before any stage starts; its path is the ground truth
+            src.groundtruth = simcamera.prepare(rec, duration_s, quiet=quiet).groundtruth_tum()
+        summary = _run(SessionPlan(source, out, src, cfgs, feed_tracker, rerun, recording_id, quiet, duration_s,
+                                   router, ros2_domain, map_frame))
     except BaseException as exc:
         what = str(exc) if isinstance(exc, OctologError) else \
             ("interrupted" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}")

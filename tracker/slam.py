@@ -202,8 +202,9 @@ class RgbdSlam:
     def _initialise(self, frame: RgbdFrame, feats: FrameFeatures) -> TrackResult:
         """The first frame with enough depth is the first keyframe, at the world's origin."""
         pose = np.eye(4)
-        if int(feats.has_depth.sum()) < self.params.tracking.min_init_points:
-            self.init_best = max(self.init_best, int(feats.has_depth.sum()))
+        with_depth = int(feats.has_depth.sum())
+        if with_depth < self.params.tracking.min_init_points:
+            self.init_best = max(self.init_best, with_depth)
             return TrackResult(frame.seq, frame.stamp_ns, pose, TrackingState.LOST, False, -1, 0, 0)
         empty = np.zeros(0, np.int64)
         kf_id = self._insert_keyframe(frame, pose, feats, TrackedFrame(np.eye(4), empty, empty, 0, 0, feats))
