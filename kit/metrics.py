@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from octolog.kit.errors import InputError
+from octolog.kit.geometry import matrices_to_quats, quats_to_matrices
 
 NS_PER_S = 1_000_000_000
 DEFAULT_MAX_DT_NS = 20_000_000
@@ -63,16 +64,14 @@ class Trajectory:
         poses = _as_pose_stack(poses)
         quats = np.zeros((0, 4))
         if len(poses):
-            from scipy.spatial.transform import Rotation  # imported on use: 0.5 s and ~40 MB
-            quats = Rotation.from_matrix(poses[:, :3, :3]).as_quat(canonical=True)
+            quats = _canonical_quats(matrices_to_quats(poses[:, :3, :3]))
         return cls(np.asarray(stamps_ns, dtype=np.int64), poses[:, :3, 3].copy(), quats)
 
     def matrices(self) -> np.ndarray:
         """The poses as (N,4,4) homogeneous transforms."""
         T = np.tile(np.eye(4), (len(self), 1, 1))
         if len(self):
-            from scipy.spatial.transform import Rotation  # imported on use: 0.5 s and ~40 MB
-            T[:, :3, :3] = Rotation.from_quat(self.quats_xyzw).as_matrix()
+            T[:, :3, :3] = quats_to_matrices(self.quats_xyzw)
         T[:, :3, 3] = self.positions
         return T
 
@@ -210,8 +209,7 @@ def format_tum(stamps_ns: np.ndarray, poses: np.ndarray | Trajectory) -> str:
         else:
             arr = _as_pose_stack(arr)
             pos = arr[:, :3, 3]
-            from scipy.spatial.transform import Rotation  # imported on use: 0.5 s and ~40 MB
-            quats = Rotation.from_matrix(arr[:, :3, :3]).as_quat() if len(arr) else np.zeros((0, 4))
+            quats = matrices_to_quats(arr[:, :3, :3]) if len(arr) else np.zeros((0, 4))
     stamps = [int(s) for s in np.asarray(stamps_ns).reshape(-1)]
     if len(stamps) != len(pos):
         raise ValueError(f"{len(stamps)} stamps for {len(pos)} poses")

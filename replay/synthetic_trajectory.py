@@ -15,6 +15,8 @@ import math
 
 import numpy as np
 
+from octolog.kit.geometry import euler_to_matrices
+
 LOOP_S = 18.0  # one loop around the pillar
 TILT_S = 1.0  # a tilted start (`start_tilt_deg`) levels out over this long
 MOTIONS = ("loop", "turns")
@@ -64,9 +66,7 @@ def camera_trajectory(t: np.ndarray, *, periodic: bool = False, start_tilt_deg: 
     elif motion != "loop":
         raise ValueError(f"motion {motion!r}: want one of {', '.join(MOTIONS)}")
     roll = math.radians(3.0) * np.sin(2.0 * math.pi * t / period(4.1))
-    from scipy.spatial.transform import Rotation  # lazy: scipy.spatial costs ~0.2 s to import, only the room needs it
-
     # body frame: x forward, y left, z up; a positive pitch raises the view.
-    body = Rotation.from_euler("ZYX", np.stack([yaw, -pitch, roll], axis=1)).as_matrix()
+    body = euler_to_matrices("ZYX", np.stack([yaw, -pitch, roll], axis=1))
     optical_in_body = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
     return pos, body @ optical_in_body
