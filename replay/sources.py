@@ -280,7 +280,7 @@ def backend_deferred(path: Path) -> list[int]:
 
 
 SYNTHETIC_SPEC = ("synthetic[:N][:tilt=DEG][:motion=loop|turns][:exposure=MS][:noise=none|kinect|d455][:bias=PX]"
-                  "[:seed=S][:imu=HZ][:blank=AT+SECONDS]")
+                  "[:seed=S][:imu=HZ][:imunoise=X][:imurot=DEG][:imudt=MS][:blank=AT+SECONDS]")
 
 
 @dataclass
@@ -293,6 +293,9 @@ class SyntheticSource:
     depth_bias_px: float = 0.0  # `bias=PX`: the depth sensor's systematic disparity offset (reads short if > 0)
     seed: int = 0  # `seed=S`: another room's textures and another draw of the depth noise
     imu_hz: float = 0.0  # `imu=HZ`: a simulated D455 IMU at HZ (replay/synthetic_imu.py)
+    imu_noise_scale: float = 1.0  # `imunoise=X`: its noise X times the datasheet's (the tracker is not told)
+    imu_rotation_deg: float = 0.0  # `imurot=DEG`: its axes turned DEG from the camera's (the tracker is not told)
+    imu_late_ms: float = 0.0  # `imudt=MS`: its clock MS late (the tracker is not told)
     blank: tuple[float, float] = (0.0, 0.0)  # `blank=AT+S`: no texture in sight from AT s for S s
     readout_s = 0.0  # rendered, every row at once
     encoded = False  # rendered pixels
@@ -307,6 +310,8 @@ class SyntheticSource:
         self.scene = SyntheticScene(n_frames=self.n_frames, start_tilt_deg=self.start_tilt_deg, motion=self.motion,
                                     exposure_ms=self.exposure_ms, depth_noise=self.depth_noise,
                                     depth_bias_px=self.depth_bias_px, seed=self.seed, imu_hz=self.imu_hz,
+                                    imu_noise_scale=self.imu_noise_scale, imu_rotation_deg=self.imu_rotation_deg,
+                                    imu_late_ms=self.imu_late_ms,
                                     blank_at_s=self.blank[0], blank_s=self.blank[1])
         options = {"tilt": f"{self.start_tilt_deg:g}" if self.start_tilt_deg else "",
                    "motion": "" if self.motion == "loop" else self.motion,
@@ -314,6 +319,9 @@ class SyntheticSource:
                    "noise": "" if self.depth_noise == "none" else self.depth_noise,
                    "bias": f"{self.depth_bias_px:g}" if self.depth_bias_px else "",
                    "seed": str(self.seed) if self.seed else "", "imu": f"{self.imu_hz:g}" if self.imu_hz else "",
+                   "imunoise": f"{self.imu_noise_scale:g}" if self.imu_noise_scale != 1.0 else "",
+                   "imurot": f"{self.imu_rotation_deg:g}" if self.imu_rotation_deg else "",
+                   "imudt": f"{self.imu_late_ms:g}" if self.imu_late_ms else "",
                    "blank": "{:g}+{:g}".format(*self.blank) if self.blank[1] else ""}
         self.name = ":".join([f"synthetic:{self.n_frames}", *(f"{k}={v}" for k, v in options.items() if v)])
 
@@ -462,7 +470,8 @@ def _synthetic(spec: str, arg: str) -> SyntheticSource:
     """`synthetic[:N][:KEY=VALUE...]` (SYNTHETIC_SPEC); a bad count, key or value is a one-line error."""
     count, *options = arg.split(":") if arg else [""]
     keys = {"tilt": "start_tilt_deg", "motion": "motion", "exposure": "exposure_ms", "noise": "depth_noise",
-            "bias": "depth_bias_px", "seed": "seed", "imu": "imu_hz", "blank": "blank"}
+            "bias": "depth_bias_px", "seed": "seed", "imu": "imu_hz", "imunoise": "imu_noise_scale",
+            "imurot": "imu_rotation_deg", "imudt": "imu_late_ms", "blank": "blank"}
     kwargs: dict[str, Any] = {}
     try:
         n = int(count) if count else 150

@@ -75,6 +75,10 @@ class SyntheticConfig:
     exposure_ms: float = 0.0  # colour exposure: > 0 blurs colour by the camera's rotation over it
     depth_bias_px: float = 0.0  # the depth sensor's systematic disparity offset (replay.depth_noise.apply)
     imu_hz: float = 0.0  # > 0: a simulated D455 IMU at this rate (replay.synthetic_imu)
+    # An IMU nobody calibrated (the consumer is told the datasheet's noise, the camera's axes, its clock):
+    imu_noise_scale: float = 1.0  # its white noise and bias random walk, times the D455 datasheet's
+    imu_rotation_deg: float = 0.0  # its axes turned this far from the colour camera's (synthetic_imu.MISMATCH_AXIS)
+    imu_late_ms: float = 0.0  # each sample measures the motion this long before its stamp
     blank_at_s: float = 0.0  # with blank_s > 0: from this time on the colour camera sees no texture
     blank_s: float = 0.0  # for this long (a blank wall, a covered lens; depth is unchanged)
 
@@ -95,6 +99,10 @@ class SyntheticConfig:
         if self.imu_hz < 0 or self.blank_s < 0 or self.blank_at_s < 0:
             raise ValueError(f"imu_hz, blank_at_s, blank_s: want >= 0 (got {self.imu_hz}, {self.blank_at_s}, "
                              f"{self.blank_s})")
+        if not (0.0 < self.imu_noise_scale <= 100.0 and abs(self.imu_rotation_deg) <= 90.0
+                and abs(self.imu_late_ms) <= 1000.0 / self.fps):
+            raise ValueError(f"imu_noise_scale, imu_rotation_deg, imu_late_ms: want 0-100 times, at most 90 deg and "
+                             f"a frame period (got {self.imu_noise_scale}, {self.imu_rotation_deg}, {self.imu_late_ms})")
         if not abs(self.depth_bias_px) <= 1.0:
             raise ValueError(f"depth_bias_px {self.depth_bias_px}: want -1 to 1 px")
 
@@ -178,12 +186,15 @@ class SyntheticScene:
 
     @cached_property
     def simulated_imu(self) -> SimulatedImu | None:
-        """The camera's IMU over the sequence (D455 noise), None unless `imu_hz` > 0."""
+        """The camera's IMU over the sequence (D455 noise, or the mismatched IMU's), None unless `imu_hz` > 0."""
         cfg = self.config
         if cfg.imu_hz <= 0:
             return None
-        return synthetic_imu.simulate(self._trajectory, max(cfg.n_frames - 1, 0) / cfg.fps, cfg.imu_hz, imu.D455,
-                                      cfg.seed, cfg.start_ns)
+        d, k = imu.D455, cfg.imu_noise_scale
+        noise = imu.ImuNoise(d.gyro_noise * k, d.accel_noise * k, d.gyro_walk * k, d.accel_walk * k)
+        turned = synthetic_imu.mismatch_rotation(cfg.imu_rotation_deg) if cfg.imu_rotation_deg else None
+        return synthetic_imu.simulate(self._trajectory, max(cfg.n_frames - 1, 0) / cfg.fps, cfg.imu_hz, noise,
+                                      cfg.seed, cfg.start_ns, turned, cfg.imu_late_ms * 1e-3)
 
     def pose(self, i: int) -> np.ndarray:
         """Ground-truth world_from_camera 4x4 of frame i (optical camera convention)."""
@@ -398,8 +409,9 @@ class SyntheticScene:
     @cached_property
     def _frame_folder(self) -> Path:
         """Where this scene's rendered frames are kept (see the module's docstring); the sequence's
-        length and the ray caster's thread count do not change a frame's bytes."""
-        cfg = dataclasses.replace(self.config, n_frames=0, nthreads=0)
+        length, the ray caster's thread count and the IMU do not change a frame's bytes."""
+        cfg = dataclasses.replace(self.config, n_frames=0, nthreads=0, imu_hz=0.0, imu_noise_scale=1.0,
+                                  imu_rotation_deg=0.0, imu_late_ms=0.0)
         key = cache.key_of((FRAME_FORMAT, cfg), [str(f) for f in _RENDERER], _RENDER_LIBRARIES)
         return cache.cache_root("synthetic") / f"frames-{key}"
 

@@ -4,7 +4,9 @@ frame is the colour camera's optical frame).
 
 The truth is the trajectory's derivatives (central differences over ±1 ms of an analytic path:
 errors ~1e-7 of the signal), gravity along world -z. The noise is a function of the seed and the
-sample index only, so sample k is the same whatever the sequence length.
+sample index only, so sample k is the same whatever the sequence length. For the IMU nobody
+calibrated, the noise can be any multiple of the datasheet's, the axes turned and the clock late
+(`mismatch`): the consumer is still told the datasheet's noise, the camera's axes and its clock.
 """
 
 from __future__ import annotations
@@ -49,12 +51,18 @@ def true_motion(trajectory: Trajectory, t: np.ndarray) -> tuple[np.ndarray, np.n
 
 
 def simulate(trajectory: Trajectory, duration_s: float, rate_hz: float, noise: ImuNoise, seed: int,
-             start_ns: int) -> SimulatedImu:
-    """Samples at k / rate_hz for k = 0 ... up to duration_s (and one sample past it)."""
+             start_ns: int, imu_from_camera: np.ndarray | None = None, late_s: float = 0.0) -> SimulatedImu:
+    """Samples at k / rate_hz for k = 0 ... up to duration_s (and one sample past it).
+
+    An IMU nobody calibrated: `imu_from_camera` (3x3) turns its axes away from the camera's (which
+    the consumer is told they are), and each sample measures the motion `late_s` before its stamp
+    (the IMU's clock runs late against the camera's)."""
     n = int(np.floor(duration_s * rate_hz)) + 2
     k = np.arange(n)
     t = k / rate_hz
-    gyro, force = true_motion(trajectory, t)
+    gyro, force = true_motion(trajectory, t - late_s)
+    if imu_from_camera is not None:
+        gyro, force = gyro @ imu_from_camera.T, force @ imu_from_camera.T
     def draws(stream: int, sigma: float) -> np.ndarray:  # one generator per stream: sample k's draw is fixed
         return np.random.default_rng([seed, 0x1A0, stream]).normal(0.0, sigma, (n, 3))
 
@@ -66,6 +74,18 @@ def simulate(trajectory: Trajectory, duration_s: float, rate_hz: float, noise: I
     force = force + ba + draws(4, noise.accel_noise / np.sqrt(dt))
     stamps = start_ns + np.round(k * (1e9 / rate_hz)).astype(np.int64)
     return SimulatedImu(ImuSamples(stamps, gyro, force), bg, ba)
+
+
+# `mismatch`'s turn of the IMU's axes: about this fixed oblique axis (every axis of the camera turned)
+MISMATCH_AXIS = np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0)
+
+
+def mismatch_rotation(degrees: float) -> np.ndarray:
+    """imu_from_camera (3x3) of an IMU turned `degrees` about MISMATCH_AXIS (Rodrigues)."""
+    a = np.radians(degrees)
+    k = MISMATCH_AXIS
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(a) * K + (1.0 - np.cos(a)) * K @ K
 
 
 def _log(R: np.ndarray) -> np.ndarray:

@@ -323,3 +323,34 @@ def test_a_frame_from_the_cache_is_the_rendered_one_and_a_broken_file_is_rendere
     kept.write_bytes(kept.read_bytes()[:1000])
     assert np.array_equal(SyntheticScene(n_frames=10, width=160, height=120).render(4).rgb, rendered[0])
     assert kept.stat().st_size > 1000  # replaced whole
+
+
+def test_an_uncalibrated_imu_is_the_same_samples_turned_late_and_noisier() -> None:
+    """`imurot`, `imudt`, `imunoise`: the development data of an IMU nobody calibrated. Against the
+    calibrated IMU of the same room and draws, the turned and late one differs by exactly the turn of
+    the motion measured earlier (bias and noise cancel); the noisier one's third differences (the
+    noise, the motion all but gone) scale with the factor."""
+    from octolog.replay.imu import source_imu
+    from octolog.replay.sources import open_source
+    from octolog.replay.synthetic_imu import mismatch_rotation, true_motion
+
+    base = open_source("synthetic:90:imu=200")
+    turned = open_source("synthetic:90:imu=200:imurot=5:imudt=10")
+    noisier = open_source("synthetic:90:imu=200:imunoise=3")
+    a, b, c = (source_imu(s).samples for s in (base, turned, noisier))
+    assert turned.name == "synthetic:90:imu=200:imurot=5:imudt=10"
+    R = mismatch_rotation(5.0)
+    assert math.isclose(np.degrees(np.arccos((np.trace(R) - 1) / 2)), 5.0, rel_tol=1e-9)
+    t = (a.stamp_ns - a.stamp_ns[0]) * 1e-9
+    scene = base.scene
+    w_now, f_now = true_motion(scene._trajectory, t)
+    w_late, f_late = true_motion(scene._trajectory, t - 0.010)
+    assert np.allclose(b.gyro - a.gyro, w_late @ R.T - w_now, atol=1e-9)
+    assert np.allclose(b.accel - a.accel, f_late @ R.T - f_now, atol=1e-9)
+
+    def spread(x: np.ndarray) -> float:
+        return float(np.median(np.abs(x[3:] - 3 * x[2:-1] + 3 * x[1:-2] - x[:-3])))
+    assert 2.7 < spread(c.gyro) / spread(a.gyro) < 3.3
+    assert 2.7 < spread(c.accel) / spread(a.accel) < 3.3
+    with pytest.raises(Exception, match="synthetic"):
+        open_source("synthetic:90:imu=200:imunoise=0")
