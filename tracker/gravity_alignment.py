@@ -42,6 +42,10 @@ class GravityAlignment:
         self._since_align = 0
         self._up_sum, self._up_n = np.zeros(3), 0  # the trusted alignments' up directions
 
+    def set_noise(self, noise: ImuNoise) -> None:
+        """The accelerometer's white noise from here on (a measured one in place of the datasheet's)."""
+        self._accel_noise = noise.accel_noise
+
     @property
     def known(self) -> bool:
         """Gravity and the velocity are known: a pose can be propagated."""

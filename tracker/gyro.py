@@ -53,6 +53,7 @@ class GyroSpan(NamedTuple):
     seconds: float
     gyro: np.ndarray  # imu_first_from_imu_last (3x3) as the gyro has it, with the current biases
     vision: np.ndarray  # the same as vision placed the frames
+    rate_change: np.ndarray = np.zeros(3)  # the gyro's rate at the span's end less at its start (rad/s)
 
 
 class GyroCheck:
@@ -76,6 +77,12 @@ class GyroCheck:
         return not self._residuals or float(np.median(self._residuals)) <= GYRO_AGREE_RATIO
 
     @property
+    def disagreement(self) -> float:
+        """The median relative residual of the newest turning spans: how far, as a share of the angle
+        turned, the gyro's rotations and vision's part (vision's own error included); 0 before the first."""
+        return float(np.median(self._residuals)) if self._residuals else 0.0
+
+    @property
     def confirmed(self) -> bool:
         """`trusted` after at least one turning span."""
         return bool(self._residuals) and self.trusted
@@ -90,10 +97,14 @@ class GyroBias:
         self.bg = np.zeros(3)
         self._H, self._g = np.eye(3) / GYRO_BIAS_SIGMA**2, np.zeros(3)
 
+    def set_noise(self, noise: ImuNoise) -> None:
+        """The gyro's white noise from here on (a measured one in place of the datasheet's)."""
+        self._gyro_noise = noise.gyro_noise
+
     def add(self, span: GyroSpan, ba: np.ndarray) -> bool:
         """A span of GYRO_SPAN frames (preintegrated with the accelerometer's bias `ba` and `bg`) into
         the normal equations; False when it is no evidence (a bad pose, or a turn too fast)."""
-        pim, dt, R0, vis = span
+        pim, dt, R0, vis = span.pim, span.seconds, span.gyro, span.vision
         r = so3_log(R0.T @ vis)
         if np.linalg.norm(r) > MAX_ROTATION_RESIDUAL or np.linalg.norm(so3_log(R0)) > MAX_EVIDENCE_RATE * dt:
             return False
@@ -112,11 +123,14 @@ class GyroBias:
         self.bg = np.linalg.solve(self._H, self._g)
         return True
 
-    def rotation_sigma(self, segments: Segments) -> float:
+    def rotation_sigma(self, segments: Segments, disagreement: float = 0.0) -> float:
         """The gyro's rotation error over an interval's pieces (rad): its white noise, the bias
-        estimate's uncertainty, and GYRO_SCALE_ERROR of the angle turned along the way."""
+        estimate's uncertainty, and GYRO_SCALE_ERROR of the angle turned along the way, or the share
+        of each turn by which vision and the gyro have been seen to disagree if that is more (a
+        camera-IMU rotation or clock not yet measured, a scale error: vision then leads)."""
         dt = float(segments[0].sum())
         bias_sigma = float(np.sqrt(np.linalg.eigvalsh(np.linalg.inv(self._H)).max()))
         turned = float(np.linalg.norm(segments[1] - self.bg, axis=1) @ segments[0])  # the path's angle, not the net
-        sigma = np.sqrt(self._gyro_noise**2 * dt + (bias_sigma * dt) ** 2 + (GYRO_SCALE_ERROR * turned) ** 2)
+        share = max(GYRO_SCALE_ERROR, disagreement)
+        sigma = np.sqrt(self._gyro_noise**2 * dt + (bias_sigma * dt) ** 2 + (share * turned) ** 2)
         return float(sigma)

@@ -93,7 +93,10 @@ class ImuFusion:
             out[:3, :3] = motion.last_pose[:3, :3] @ rotation
         if (motion.tracked or motion.coasting) and self._imu.gyro_confirmed:  # the step from the last pose is motion
             frames = max(1.0, (stamp_ns - motion.last_stamp) / FRAME_NS)
-            self.rotation_prior = (out[:3, :3].T.copy(), ROTATION_PRIOR_SIGMA * np.sqrt(frames))
+            # and the share of the turn by which the gyro and vision have been seen to part
+            turned = float(np.arccos(np.clip((np.trace(rotation) - 1.0) * 0.5, -1.0, 1.0)))
+            sigma = np.hypot(ROTATION_PRIOR_SIGMA * np.sqrt(frames), self._imu.gyro_disagreement * turned)
+            self.rotation_prior = (out[:3, :3].T.copy(), float(sigma))
         return out, propagated
 
     def rejects(self, camera_from_world: np.ndarray, propagated: np.ndarray | None) -> bool:

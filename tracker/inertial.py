@@ -24,6 +24,8 @@ import numpy as np
 
 from octolog.kit.imu import D455, ImuNoise, ImuSamples
 from octolog.tracker.gravity_alignment import WINDOW_S, GravityAlignment
+from octolog.tracker.imu_mounting import ImuMounting
+from octolog.tracker.imu_noise import NoiseMeter
 from octolog.tracker.gyro import GYRO_CHECK_FRAMES, GYRO_SPAN, GyroBias, GyroCheck, GyroSpan
 from octolog.tracker.preintegration import (
     FrameHistory,
@@ -45,6 +47,7 @@ AGREE_M = 0.02
 TRUST_S = 0.5
 TRUST_FRAMES = 10
 MAX_DISAGREEING = 3
+MEASURE_EVERY_S = 1.0  # the IMU's noise is measured again after this long of frames
 
 
 @dataclass
@@ -58,6 +61,15 @@ class InertialState:
     gravity: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     distrusted: int = 0  # times vision overruled the IMU (MAX_DISAGREEING vetoes in a row)
     trusted_frames: int = 0  # frames the IMU's pose was trusted at (Inertial.trusted)
+    # white-noise densities, gyro (rad/s/√Hz) and accelerometer (m/s²/√Hz): the datasheet's (or the
+    # calibration file's) the tracker started from, and the ones measured from the samples (empty: too few)
+    noise_assumed: list[float] = field(default_factory=list)
+    noise_measured: list[float] = field(default_factory=list)
+    # the camera-IMU rotation as measured (3x3, camera_from_imu; empty: the turns have not shown it
+    # yet), its angle from the stated one, and how late the IMU's clock runs (ms)
+    camera_from_imu_rotation: list[list[float]] = field(default_factory=list)
+    rotation_change_deg: float = 0.0
+    late_ms: float = 0.0
 
 
 class ImuTrust:
@@ -116,10 +128,13 @@ class Inertial:
         self._gyro_bias = GyroBias(noise)
         self._alignment = GravityAlignment(self._preintegrator, noise)
         self._trust = ImuTrust()
+        self._meter = NoiseMeter(noise)
+        self._mounting = ImuMounting(self.camera_from_imu)
+        self._next_measure_ns: int | None = None  # the stamp from which the noise is measured again
         self._pending: tuple[int, Segments | None] | None = None  # the frame step_to went to, its pieces
         self._propagated: tuple[int, np.ndarray, np.ndarray] | None = None  # stamp, world_from_imu, velocity
         self._keyframe_mark: tuple[int, int] | None = None  # the newest keyframe's id and stamp
-        self.state = InertialState()
+        self.state = InertialState(noise_assumed=[noise.gyro_noise, noise.accel_noise])
 
     @property
     def bg(self) -> np.ndarray:
@@ -139,6 +154,7 @@ class Inertial:
     def add(self, samples: ImuSamples) -> None:
         """Samples in time order (older than the newest held: ignored)."""
         self.state.samples += self._buffer.add(samples)
+        self._meter.add(samples)
 
     # -- per frame ------------------------------------------------------------------------------
 
@@ -181,6 +197,12 @@ class Inertial:
         newest GYRO_CHECK_SPANS turning spans is at most GYRO_AGREE_RATIO (true before the first
         span; a wrong camera-IMU rotation, swapped axes or a made-up IMU fail at it)."""
         return self._gyro_check.trusted
+
+    @property
+    def gyro_disagreement(self) -> float:
+        """How far the gyro's rotations and vision's part, as a share of the angle turned (vision's
+        own error included; tracker/gyro.py: GyroCheck.disagreement)."""
+        return self._gyro_check.disagreement
 
     @property
     def gyro_confirmed(self) -> bool:
@@ -238,6 +260,7 @@ class Inertial:
         self._history.append(FrameRecord(stamp_ns, T, True, continuous and seg is not None, seg))
         self._check_gyro()
         self._estimate_gyro_bias()
+        self._measure(stamp_ns)
         self._alignment.count_frame()
         if self._alignment.due:
             self._align(stamp_ns)
@@ -258,7 +281,7 @@ class Inertial:
         seg = joined([*since, pending[1]])
         ba, bg = self._alignment.ba, self._gyro_bias.bg
         dR, _, _ = bias_corrected(self._preintegrator.integrate(seg, ba, bg), ba, bg)
-        sigma = self._gyro_bias.rotation_sigma(seg)
+        sigma = self._gyro_bias.rotation_sigma(seg, self._gyro_check.disagreement)
         Rci = self.camera_from_imu[:3, :3]
         return prev[0], Rci @ dR @ Rci.T, sigma
 
@@ -280,7 +303,7 @@ class Inertial:
         pim = self._preintegrator.integrate(seg, ba, bg)
         R0, _, _ = bias_corrected(pim, ba, bg)
         vision = recs[0].world_from_imu[:3, :3].T @ recs[-1].world_from_imu[:3, :3]
-        return GyroSpan(pim, float(seg[0].sum()), R0, vision)
+        return GyroSpan(pim, float(seg[0].sum()), R0, vision, seg[1][-1] - seg[1][0])
 
     def _check_gyro(self) -> None:
         span = self._span(GYRO_CHECK_FRAMES)
@@ -289,7 +312,10 @@ class Inertial:
 
     def _estimate_gyro_bias(self) -> None:
         span = self._span(GYRO_SPAN)
-        if span is not None and self._gyro_bias.add(span, self._alignment.ba):
+        if span is None:
+            return
+        self._mounting.add(span.gyro, span.vision, span.rate_change, span.seconds, self._gyro_bias.bg)
+        if self._gyro_bias.add(span, self._alignment.ba):
             self.state.gyro_bias = self._gyro_bias.bg.tolist()
 
     def _align(self, stamp_ns: int) -> None:
@@ -299,6 +325,40 @@ class Inertial:
             self.state.initialised_at_ns = stamp_ns
         self.state.accel_bias = self._alignment.ba.tolist()
         self.state.gravity = self._alignment.gravity.tolist()  # type: ignore[union-attr]
+
+    def _measure(self, stamp_ns: int) -> None:
+        """Every MEASURE_EVERY_S of frames: the noise measured from the samples up to this frame
+        (tracker/imu_noise.py) takes the datasheet's place in every part that weighs the IMU, and
+        the camera-IMU rotation and clock offset measured from vision's turns
+        (tracker/imu_mounting.py) the calibration's."""
+        if self._next_measure_ns is not None and stamp_ns < self._next_measure_ns:
+            return
+        self._next_measure_ns = stamp_ns + int(MEASURE_EVERY_S * 1e9)
+        noise = self._meter.measure(stamp_ns)
+        if noise is not None:
+            self.noise = noise
+            self._preintegrator.set_noise(noise)
+            self._gyro_bias.set_noise(noise)
+            self._alignment.set_noise(noise)
+            self.state.noise_measured = [noise.gyro_noise, noise.accel_noise]
+        rotation = self._mounting.solve_rotation()
+        if rotation is not None:
+            self._remount(rotation)
+        late = self._mounting.solve_late()
+        if late is not None:
+            self._buffer.retime(round(late * 1e9) - self._buffer.late_ns)
+            self._mounting.late_s = self._buffer.late_ns * 1e-9
+            self.state.late_ms = self._mounting.late_s * 1e3
+
+    def _remount(self, rotation: np.ndarray) -> None:
+        """The IMU's rotation on the camera is `rotation` (camera_from_imu's 3x3)."""
+        new = self.camera_from_imu.copy()
+        new[:3, :3] = rotation
+        self._history.remount(self.imu_from_camera @ new)
+        self.camera_from_imu, self.imu_from_camera = new, np.linalg.inv(new)
+        self._mounting.rotation = rotation.copy()
+        self.state.camera_from_imu_rotation = rotation.tolist()
+        self.state.rotation_change_deg = self._mounting.rotation_change_deg
 
     def _trim(self) -> None:
         """Keep the records and samples the estimates still need."""

@@ -32,13 +32,15 @@ class ImuBuffer:
         self._t = np.zeros(0, np.int64)
         self._w = np.zeros((0, 3))
         self._a = np.zeros((0, 3))
+        self.late_ns = 0  # the IMU's clock runs this late: every sample is held this much earlier
 
     def add(self, samples: ImuSamples) -> int:
         """Samples in time order (older than the newest held: ignored); how many were kept."""
         if len(samples) == 0:
             return 0
-        keep = samples.stamp_ns > (self._t[-1] if self._t.size else np.iinfo(np.int64).min)
-        self._t = np.concatenate([self._t, samples.stamp_ns[keep]])
+        stamps = samples.stamp_ns - self.late_ns
+        keep = stamps > (self._t[-1] if self._t.size else np.iinfo(np.int64).min)
+        self._t = np.concatenate([self._t, stamps[keep]])
         self._w = np.concatenate([self._w, samples.gyro[keep]])
         self._a = np.concatenate([self._a, samples.accel[keep]])
         return int(keep.sum())
@@ -62,6 +64,11 @@ class ImuBuffer:
         a = np.stack([np.interp(mid - t0, tk, self._a[lo:hi + 1, k]) for k in range(3)], axis=1)
         return np.diff(edges) * 1e-9, w, a
 
+    def retime(self, more_late_ns: int) -> None:
+        """The IMU's clock runs `more_late_ns` later than held: the samples move back by it."""
+        self._t = self._t - more_late_ns
+        self.late_ns += more_late_ns
+
     def trim(self, stamp_ns: int) -> None:
         """Drop the samples before the last one at or before `stamp_ns` (no interval starts earlier)."""
         cut = int(np.searchsorted(self._t, stamp_ns, side="left")) - 1
@@ -73,6 +80,10 @@ class Preintegrator:
     """Preintegration with one IMU's noise (gravity is left to the caller: it is not known here)."""
 
     def __init__(self, noise: ImuNoise) -> None:
+        self.set_noise(noise)
+
+    def set_noise(self, noise: ImuNoise) -> None:
+        """The IMU's noise from here on (a measured one in place of the datasheet's)."""
         p = gtsam.PreintegrationParams(np.zeros(3))
         p.setGyroscopeCovariance(np.eye(3) * noise.gyro_noise**2)
         p.setAccelerometerCovariance(np.eye(3) * noise.accel_noise**2)
@@ -167,6 +178,11 @@ class FrameHistory:
         """The map moved (4x4 world_new_from_world_old): so do the poses."""
         for r in self._records:
             r.world_from_imu = correction @ r.world_from_imu
+
+    def remount(self, old_imu_from_new_imu: np.ndarray) -> None:
+        """The IMU is placed otherwise on the camera (4x4): the frames' IMU poses move with it."""
+        for r in self._records:
+            r.world_from_imu = r.world_from_imu @ old_imu_from_new_imu
 
     def trim(self, keep_from_ns: int, keep_at_least: int) -> None:
         """Drop records older than `keep_from_ns`, keeping at least `keep_at_least`."""
