@@ -114,6 +114,21 @@ def load_calibration(path: str | Path) -> Calibration:
                        _rigid(data["camera_from_imu"], p) if "camera_from_imu" in data else None, offset / 1e3, noise)
 
 
+def imu_keys(camera_from_imu: np.ndarray | None, time_offset_ms: float, noise: ImuNoise | None) -> str:
+    """The IMU's keys of a calibration file (`load_calibration` reads them), for what a session
+    measured of its IMU: the lines to put in the camera's calibration file."""
+    lines = ["# The IMU as octolog's tracker measured it (summary.json `imu`): these keys go into the camera's",
+             "# calibration file (replay.camera = \"PATH.toml\", docs/formats.md), so the next session starts from them."]
+    if camera_from_imu is not None:
+        rows = ", ".join("[" + ", ".join(f"{v:.9g}" for v in row) + "]" for row in np.asarray(camera_from_imu, float))
+        lines.append(f"camera_from_imu = [{rows}]")
+    lines.append(f"imu_time_offset_ms = {time_offset_ms + 0.0:.3f}")  # + 0.0: no "-0.000"
+    if noise is not None:
+        lines += [f"{key} = {value:.4g}" for key, value in zip(IMU_NOISE_FIELDS,
+                  (noise.gyro_noise, noise.accel_noise, noise.gyro_walk, noise.accel_walk))]
+    return "\n".join(lines) + "\n"
+
+
 def _rigid(value: object, p: Path) -> np.ndarray:
     """A 4x4 rigid transform given as its rows."""
     try:

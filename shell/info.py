@@ -78,7 +78,22 @@ def imu_line(imu: dict | None) -> str:
         return (f"IMU: {imu['samples']} samples, never trusted: its motion did not agree with vision's "
                 f"(the camera-IMU transform, clock offset or noise?); gyro bias {bg} deg/s")
     return (f"IMU: used ({imu['samples']} samples, trusted at {trusted} frames), {imu['inertial_frames']} frames "
-            f"placed by the IMU alone (INERTIAL); gyro bias {bg} deg/s, accelerometer bias {ba} m/s²")
+            f"placed by the IMU alone (INERTIAL); gyro bias {bg} deg/s, accelerometer bias {ba} m/s²"
+            + imu_measured(imu))
+
+
+def imu_measured(imu: dict) -> str:
+    """What the tracker measured of its IMU against what it was told (summary.json `imu`)."""
+    parts = []
+    measured, assumed = imu.get("noise_measured") or [], imu.get("noise_assumed") or []
+    if measured and assumed:
+        parts.append("noise {:.2g}x (gyro) and {:.2g}x (accelerometer) the stated".format(
+            *(m / a for m, a in zip(measured[:2], assumed[:2]))))
+    if imu.get("camera_from_imu"):
+        parts.append(f"camera-IMU rotation {imu.get('rotation_change_deg', 0.0):.2f} deg from the stated")
+    if imu.get("late_ms"):
+        parts.append(f"its clock {imu['late_ms']:.1f} ms late")
+    return "; measured: " + ", ".join(parts) if parts else ""
 
 
 def describe_mcap(path: Path) -> str:

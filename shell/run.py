@@ -21,10 +21,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from octolog import __version__
 from octolog.kit import metrics
+from octolog.kit.calibration import imu_keys
 from octolog.kit.config import load, to_dict, to_toml
 from octolog.kit.errors import ConfigError, InputError, OctologError, StageError
+from octolog.kit.imu import ImuNoise
 from octolog.kit.mcaplog import message_counts, read_wire, summarize
 from octolog.kit.viz import COPY_ENV, DEFAULT_VIEWER, parse_spec, viewer_unreachable
 from octolog.mapper.config import MapperConfig
@@ -443,6 +447,11 @@ def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, re
     s.depth_bias = errorfile.read_finding(out / "logs" / "tracker.report.json", "depth_bias")
     s.prior_map = errorfile.read_finding(out / "logs" / "tracker.report.json", "prior_map")
     s.imu = errorfile.read_finding(out / "logs" / "tracker.report.json", "imu")
+    if s.imu and (s.imu.get("noise_measured") or s.imu.get("camera_from_imu") or s.imu.get("late_ms")):
+        (out / "imu.toml").write_text(imu_keys(np.array(s.imu["camera_from_imu"]) if s.imu.get("camera_from_imu") else None,
+                                               -float(s.imu.get("late_ms", 0.0)),
+                                               ImuNoise(*s.imu["noise_measured"]) if s.imu.get("noise_measured") else None))
+        s.files["imu.toml"] = str(out / "imu.toml")
     s.uninitialised = errorfile.read_finding(out / "logs" / "tracker.report.json", "uninitialised")
     s.viewer_missed = viewer_missed or next((found for p in sorted((out / "logs").glob("*.report.json"))
                                              if (found := errorfile.read_finding(p, "viewer_missed"))), None)

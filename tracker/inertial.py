@@ -18,6 +18,7 @@ the camera by `camera_from_imu`. Deterministic: the same samples and poses give 
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -61,13 +62,13 @@ class InertialState:
     gravity: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     distrusted: int = 0  # times vision overruled the IMU (MAX_DISAGREEING vetoes in a row)
     trusted_frames: int = 0  # frames the IMU's pose was trusted at (Inertial.trusted)
-    # white-noise densities, gyro (rad/s/√Hz) and accelerometer (m/s²/√Hz): the datasheet's (or the
-    # calibration file's) the tracker started from, and the ones measured from the samples (empty: too few)
+    # the IMU's noise (kit/imu.py: ImuNoise's four figures): the datasheet's (or the calibration
+    # file's) the tracker started from, and the one measured from the samples (empty: too few)
     noise_assumed: list[float] = field(default_factory=list)
     noise_measured: list[float] = field(default_factory=list)
-    # the camera-IMU rotation as measured (3x3, camera_from_imu; empty: the turns have not shown it
-    # yet), its angle from the stated one, and how late the IMU's clock runs (ms)
-    camera_from_imu_rotation: list[list[float]] = field(default_factory=list)
+    # the IMU on the camera as measured (4x4 camera_from_imu; empty: the turns have not shown it
+    # yet), its rotation's angle from the stated one, and how late the IMU's clock runs (ms)
+    camera_from_imu: list[list[float]] = field(default_factory=list)
     rotation_change_deg: float = 0.0
     late_ms: float = 0.0
 
@@ -134,7 +135,7 @@ class Inertial:
         self._pending: tuple[int, Segments | None] | None = None  # the frame step_to went to, its pieces
         self._propagated: tuple[int, np.ndarray, np.ndarray] | None = None  # stamp, world_from_imu, velocity
         self._keyframe_mark: tuple[int, int] | None = None  # the newest keyframe's id and stamp
-        self.state = InertialState(noise_assumed=[noise.gyro_noise, noise.accel_noise])
+        self.state = InertialState(noise_assumed=list(dataclasses.astuple(noise)))
 
     @property
     def bg(self) -> np.ndarray:
@@ -340,7 +341,7 @@ class Inertial:
             self._preintegrator.set_noise(noise)
             self._gyro_bias.set_noise(noise)
             self._alignment.set_noise(noise)
-            self.state.noise_measured = [noise.gyro_noise, noise.accel_noise]
+            self.state.noise_measured = list(dataclasses.astuple(noise))
         rotation = self._mounting.solve_rotation()
         if rotation is not None:
             self._remount(rotation)
@@ -357,7 +358,7 @@ class Inertial:
         self._history.remount(self.imu_from_camera @ new)
         self.camera_from_imu, self.imu_from_camera = new, np.linalg.inv(new)
         self._mounting.rotation = rotation.copy()
-        self.state.camera_from_imu_rotation = rotation.tolist()
+        self.state.camera_from_imu = new.tolist()
         self.state.rotation_change_deg = self._mounting.rotation_change_deg
 
     def _trim(self) -> None:

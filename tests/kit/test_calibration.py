@@ -105,3 +105,21 @@ def test_the_depth_error_model_comes_from_the_calibration_file_or_the_camera_the
     assert depthmodel.KINECT.sigma_m(5.0) == pytest.approx(0.0357, rel=0.01)
     assert depthmodel.realsense("Intel RealSense D435I", 213.0).baseline_m == 0.050
     assert depthmodel.realsense("Orbbec Astra", 570.0) is None
+
+
+def test_the_imu_a_session_measured_goes_into_a_calibration_file(tmp_path):
+    """`imu.toml` (kit/calibration.py: imu_keys) appended to a camera's calibration file loads back
+    as what was measured: the IMU's place, its clock offset and its noise."""
+    from octolog.kit.calibration import imu_keys
+    from octolog.kit.imu import ImuNoise
+    from octolog.replay.synthetic_imu import mismatch_rotation
+
+    placed = np.eye(4)
+    placed[:3, :3] = mismatch_rotation(4.0)
+    placed[:3, 3] = [0.01, -0.005, 0.02]
+    noise = ImuNoise(2.1e-3, 1.9e-2, 1.7e-4, 3.3e-3)
+    cal = load_calibration(_cal(tmp_path, CAL + imu_keys(placed, -7.25, noise)))
+    assert np.allclose(cal.camera_from_imu, placed, atol=1e-8)
+    assert cal.imu_time_offset_s == pytest.approx(-7.25e-3)
+    assert cal.imu_noise == noise
+    assert "imu_time_offset_ms = 0.000" in imu_keys(None, -0.0, None)
