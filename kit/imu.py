@@ -42,6 +42,9 @@ class ImuSamples:
     stamp_ns: np.ndarray
     gyro: np.ndarray
     accel: np.ndarray
+    # the accelerometer's own samples (stamps, values) where `accel` is them interpolated at the
+    # gyro's stamps (`unite`): what its noise is measured on (interpolation averages the noise away)
+    raw_accel: tuple[np.ndarray, np.ndarray] | None = None
 
     def __len__(self) -> int:
         return len(self.stamp_ns)
@@ -65,7 +68,7 @@ def unite(gyro_ns: np.ndarray, gyro: np.ndarray, accel_ns: np.ndarray, accel: np
     t = (gyro_ns - accel_ns[0]).astype(np.float64)
     ta = (accel_ns - accel_ns[0]).astype(np.float64)
     out = np.stack([np.interp(t, ta, acc[:, k]) for k in range(3)], axis=1)
-    return ImuSamples(gyro_ns, np.asarray(gyro, np.float64).reshape(-1, 3), out)
+    return ImuSamples(gyro_ns, np.asarray(gyro, np.float64).reshape(-1, 3), out, (accel_ns, acc))
 
 
 def read_imu_txt(path: Path) -> ImuSamples:

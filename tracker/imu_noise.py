@@ -22,36 +22,32 @@ import numpy as np
 from octolog.kit.imu import ImuNoise, ImuSamples
 
 WINDOW_S = 30.0  # the newest samples measured
-MIN_SAMPLES = 400  # at least this many differences before the first estimate (2 s at 200 Hz)
+MIN_SAMPLES = 400  # at least this many differences of each sensor before the first estimate (2-4 s)
 THIRD_DIFFERENCE_VARIANCE = 20.0  # 1 + 9 + 9 + 1
 MAD_TO_SIGMA = 1.482602218505602  # the median of |N(0, 1)|'s reciprocal
 GAP_RATIO = 1.5  # consecutive samples further apart than this times the median period: a gap
 
 
-class NoiseMeter:
-    """Measures the gyro's and the accelerometer's white-noise densities from the samples."""
+class _Stream:
+    """One sensor's newest samples."""
 
-    def __init__(self, datasheet: ImuNoise) -> None:
-        self.datasheet = datasheet
-        self._t = np.zeros(0, np.int64)
-        self._w = np.zeros((0, 3))
-        self._a = np.zeros((0, 3))
+    def __init__(self) -> None:
+        self.t = np.zeros(0, np.int64)
+        self.x = np.zeros((0, 3))
 
-    def add(self, samples: ImuSamples) -> None:
-        """Samples in time order (those not newer than the newest held are ignored)."""
-        keep = samples.stamp_ns > (self._t[-1] if self._t.size else np.iinfo(np.int64).min)
-        self._t = np.concatenate([self._t, samples.stamp_ns[keep]])
-        self._w = np.concatenate([self._w, samples.gyro[keep]])
-        self._a = np.concatenate([self._a, samples.accel[keep]])
-        if self._t.size and self._t[-1] - self._t[0] > 2 * WINDOW_S * 1e9:
-            keep = self._t >= self._t[-1] - int(WINDOW_S * 1e9) - 1_000_000_000
-            self._t, self._w, self._a = self._t[keep], self._w[keep], self._a[keep]
+    def add(self, stamps: np.ndarray, values: np.ndarray) -> None:
+        keep = stamps > (self.t[-1] if self.t.size else np.iinfo(np.int64).min)
+        self.t = np.concatenate([self.t, stamps[keep]])
+        self.x = np.concatenate([self.x, np.asarray(values, float).reshape(-1, 3)[keep]])
+        if self.t.size and self.t[-1] - self.t[0] > 2 * WINDOW_S * 1e9:
+            keep = self.t >= self.t[-1] - int(WINDOW_S * 1e9) - 1_000_000_000
+            self.t, self.x = self.t[keep], self.x[keep]
 
-    def measure(self, upto_ns: int) -> ImuNoise | None:
-        """The densities over the newest WINDOW_S of samples up to `upto_ns` (None: too few yet)."""
-        hi = int(np.searchsorted(self._t, upto_ns, side="right"))
-        lo = int(np.searchsorted(self._t, upto_ns - int(WINDOW_S * 1e9), side="left"))
-        t = self._t[lo:hi]
+    def density(self, upto_ns: int) -> float | None:
+        """The white-noise density over the newest WINDOW_S up to `upto_ns` (None: too few samples)."""
+        hi = int(np.searchsorted(self.t, upto_ns, side="right"))
+        lo = int(np.searchsorted(self.t, upto_ns - int(WINDOW_S * 1e9), side="left"))
+        t, x = self.t[lo:hi], self.x[lo:hi]
         if t.size < MIN_SAMPLES + 3:
             return None
         dt = np.diff(t)
@@ -60,14 +56,32 @@ class NoiseMeter:
         ok = even[:-2] & even[1:-1] & even[2:]  # the four samples of each difference evenly spaced
         if int(ok.sum()) < MIN_SAMPLES:
             return None
-        gyro = self._scale(self._w[lo:hi], ok) * np.sqrt(period * 1e-9)
-        accel = self._scale(self._a[lo:hi], ok) * np.sqrt(period * 1e-9)
+        d3 = x[3:] - 3.0 * x[2:-1] + 3.0 * x[1:-2] - x[:-3]
+        sigma = MAD_TO_SIGMA * np.median(np.abs(d3[ok])) / np.sqrt(THIRD_DIFFERENCE_VARIANCE)
+        return float(sigma * np.sqrt(period * 1e-9))
+
+
+class NoiseMeter:
+    """Measures the gyro's and the accelerometer's white-noise densities from the samples."""
+
+    def __init__(self, datasheet: ImuNoise) -> None:
+        self.datasheet = datasheet
+        self._gyro, self._accel = _Stream(), _Stream()
+
+    def add(self, samples: ImuSamples) -> None:
+        """Samples in time order (those not newer than the newest held are ignored); the
+        accelerometer's own samples when they came united onto the gyro's stamps."""
+        self._gyro.add(samples.stamp_ns, samples.gyro)
+        if samples.raw_accel is not None:
+            self._accel.add(*samples.raw_accel)
+        else:
+            self._accel.add(samples.stamp_ns, samples.accel)
+
+    def measure(self, upto_ns: int) -> ImuNoise | None:
+        """The densities over the newest WINDOW_S of samples up to `upto_ns` (None: too few yet)."""
+        gyro, accel = self._gyro.density(upto_ns), self._accel.density(upto_ns)
+        if gyro is None or accel is None:
+            return None
         d = self.datasheet
         return ImuNoise(gyro_noise=gyro, accel_noise=accel, gyro_walk=d.gyro_walk * gyro / d.gyro_noise,
                         accel_walk=d.accel_walk * accel / d.accel_noise)
-
-    @staticmethod
-    def _scale(x: np.ndarray, ok: np.ndarray) -> float:
-        """The white noise's standard deviation per sample (all three axes together)."""
-        d3 = x[3:] - 3.0 * x[2:-1] + 3.0 * x[1:-2] - x[:-3]
-        return float(MAD_TO_SIGMA * np.median(np.abs(d3[ok])) / np.sqrt(THIRD_DIFFERENCE_VARIANCE))

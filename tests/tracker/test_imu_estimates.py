@@ -136,3 +136,21 @@ def test_a_gyro_seen_to_part_from_vision_weighs_less() -> None:
     base = bias.rotation_sigma(seg)
     assert bias.rotation_sigma(seg, GYRO_SCALE_ERROR / 2) == base
     assert bias.rotation_sigma(seg, 0.1) == pytest.approx(0.1 * 0.2, rel=0.05)
+
+
+def test_the_accelerometers_noise_is_measured_on_its_own_samples_not_the_interpolated_ones() -> None:
+    """A D455 sends its accelerometer at 100 Hz, the gyro at 200 Hz, and the tracker takes them
+    united on the gyro's stamps (kit/imu.py: unite): the interpolation halves the noise it would
+    show, so the meter reads the accelerometer's own samples."""
+    from octolog.kit.imu import unite
+
+    path = lambda t: camera_trajectory(t)  # noqa: E731
+    gyro = simulate(path, 8.0, 200.0, _scaled(3.0), seed=5, start_ns=START_NS).samples
+    accel = simulate(path, 8.0, 100.0, _scaled(3.0), seed=6, start_ns=START_NS).samples
+    united = unite(gyro.stamp_ns, gyro.gyro, accel.stamp_ns, accel.accel)
+    meter = NoiseMeter(D455)
+    meter.add(united)
+    noise = meter.measure(int(gyro.stamp_ns[-1]))
+    assert noise is not None
+    assert noise.accel_noise == pytest.approx(3.0 * D455.accel_noise, rel=0.1)
+    assert noise.gyro_noise == pytest.approx(3.0 * D455.gyro_noise, rel=0.1)
