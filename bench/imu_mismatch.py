@@ -8,9 +8,10 @@ its white noise and bias random walk scaled (`imunoise=X`), its axes turned by D
 oblique axis (`imurot=DEG`), its clock late by MS (`imudt=MS`). Two motions: "slow" (the hand-held
 walk, 900 frames: 30 s, as long as the estimates take to settle) and "fast" (head turns of 150-210 deg/s with 25 ms of motion blur, 300 frames).
 Each row: ATE with the IMU, ATE with vision only (the same frames, `tracker.imu=false`), their
-ratio, and what the tracker measured of its IMU (summary.json `imu`): the noise densities (gyro /
-accelerometer) as multiples of the datasheet's, how far it turned the stated camera-IMU rotation,
-the clock offset it applied, and the share of frames the IMU was trusted at.
+ratio, and what the tracker measured of its IMU (summary.json `imu`) against the simulated truth:
+the noise densities (gyro / accelerometer) as multiples of the true ones, the error of the
+camera-IMU rotation it ended with, that of the clock offset, and the share of frames the IMU was
+trusted at.
 
     python bench/imu_mismatch.py [--seeds 0,1] [--cases noise0.3,noise1,...] [--motions slow,fast]
 """
@@ -23,6 +24,8 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 MOTIONS = {"slow": "synthetic:900:imu=200", "fast": "synthetic:300:motion=turns:exposure=25:imu=200"}
@@ -40,14 +43,24 @@ def run(source: str, imu: bool, out: Path) -> dict:
     return json.loads((out / "summary.json").read_text())
 
 
-def estimates(imu: dict, tracked: int) -> str:
-    """What the tracker measured of its IMU: noise against the datasheet's, the rotation it moved the
-    IMU by on the camera, the clock offset, the share of frames the IMU was trusted at."""
+def estimates(imu: dict, tracked: int, source: str) -> str:
+    """What the tracker measured of its IMU against the simulated truth: the noise densities as
+    multiples of the true ones (gyro/accelerometer), the camera-IMU rotation's error (deg), the
+    clock offset's error (ms), and the share of frames the IMU was trusted at."""
+    from octolog.replay.synthetic_imu import mismatch_rotation
+
     if not imu:
         return ""
-    noise = "/".join(f"{m / a:.2f}" for m, a in zip(imu.get("noise_measured", []), imu.get("noise_assumed", [])))
-    return (f"noise x{noise or '?'} rotation {imu.get('rotation_change_deg', 0.0):.2f} deg "
-            f"late {imu.get('late_ms', 0.0):.1f} ms trusted {imu.get('trusted_frames', 0) / max(tracked, 1):.0%}")
+    spec = dict(o.split("=", 1) for o in source.split(":") if "=" in o)
+    scale = float(spec.get("imunoise", 1.0))
+    noise = "/".join(f"{m / a / scale:.2f}" for m, a in zip(imu.get("noise_measured", [])[:2],
+                                                              imu.get("noise_assumed", [])[:2]))
+    truth = mismatch_rotation(float(spec.get("imurot", 0.0))).T  # camera_from_imu
+    placed = np.array(imu["camera_from_imu"])[:3, :3] if imu.get("camera_from_imu") else np.eye(3)
+    rot_err = np.degrees(np.arccos(np.clip((np.trace(truth.T @ placed) - 1.0) / 2.0, -1.0, 1.0)))
+    late_err = imu.get("late_ms", 0.0) - float(spec.get("imudt", 0.0))
+    return (f"noise x{noise or '?'} of the true, rotation off {rot_err:.2f} deg, clock off {late_err:+.1f} ms, "
+            f"trusted {imu.get('trusted_frames', 0) / max(tracked, 1):.0%}")
 
 
 def main() -> None:
@@ -68,7 +81,7 @@ def main() -> None:
                     s = run(source, True, Path(tmp) / "imu")
                     ate = s["ate"]["rmse_m"] * 100
                     est = s.get("imu") or {}
-                    shown = estimates(est, s.get("tracked_frames") or s["frames"])
+                    shown = estimates(est, s.get("tracked_frames") or s["frames"], source)
                     print(f"{motion:<6} {seed:>4} {case:<9} {ate:>7.2f} {vision:>9.2f} {ate / vision:>6.2f}  {shown}",
                           flush=True)
 
