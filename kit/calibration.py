@@ -118,7 +118,7 @@ def imu_keys(camera_from_imu: np.ndarray | None, time_offset_ms: float, noise: I
     """The IMU's keys of a calibration file (`load_calibration` reads them), for what a session
     measured of its IMU: the lines to put in the camera's calibration file."""
     lines = ["# The IMU as octolog's tracker measured it (summary.json `imu`): these keys go into the camera's",
-             "# calibration file (replay.camera = \"PATH.toml\", docs/formats.md), so the next session starts from them."]
+             "# calibration file (replay.camera = \"PATH.toml\", docs/formats.md): the sessions that load it start from them."]
     if camera_from_imu is not None:
         rows = ", ".join("[" + ", ".join(f"{v:.9g}" for v in row) + "]" for row in np.asarray(camera_from_imu, float))
         lines.append(f"camera_from_imu = [{rows}]")
