@@ -77,12 +77,6 @@ class GyroCheck:
         return not self._residuals or float(np.median(self._residuals)) <= GYRO_AGREE_RATIO
 
     @property
-    def disagreement(self) -> float:
-        """The median relative residual of the newest turning spans: how far, as a share of the angle
-        turned, the gyro's rotations and vision's part (vision's own error included); 0 before the first."""
-        return float(np.median(self._residuals)) if self._residuals else 0.0
-
-    @property
     def confirmed(self) -> bool:
         """`trusted` after at least one turning span."""
         return bool(self._residuals) and self.trusted
@@ -100,6 +94,12 @@ class GyroBias:
     def set_noise(self, noise: ImuNoise) -> None:
         """The gyro's white noise from here on (a measured one in place of the datasheet's)."""
         self._gyro_noise = noise.gyro_noise
+
+    def restart(self, bg: np.ndarray) -> None:
+        """Start again from `bg` (its spans were read through a wrong camera-IMU rotation)."""
+        self._H = np.eye(3) / GYRO_BIAS_SIGMA**2
+        self._g = self._H @ np.asarray(bg, float)
+        self.bg = np.asarray(bg, float).copy()
 
     def add(self, span: GyroSpan, ba: np.ndarray) -> bool:
         """A span of GYRO_SPAN frames (preintegrated with the accelerometer's bias `ba` and `bg`) into
@@ -123,14 +123,11 @@ class GyroBias:
         self.bg = np.linalg.solve(self._H, self._g)
         return True
 
-    def rotation_sigma(self, segments: Segments, disagreement: float = 0.0) -> float:
+    def rotation_sigma(self, segments: Segments) -> float:
         """The gyro's rotation error over an interval's pieces (rad): its white noise, the bias
-        estimate's uncertainty, and GYRO_SCALE_ERROR of the angle turned along the way, or the share
-        of each turn by which vision and the gyro have been seen to disagree if that is more (a
-        camera-IMU rotation or clock not yet measured, a scale error: vision then leads)."""
+        estimate's uncertainty, and GYRO_SCALE_ERROR of the angle turned along the way."""
         dt = float(segments[0].sum())
         bias_sigma = float(np.sqrt(np.linalg.eigvalsh(np.linalg.inv(self._H)).max()))
         turned = float(np.linalg.norm(segments[1] - self.bg, axis=1) @ segments[0])  # the path's angle, not the net
-        share = max(GYRO_SCALE_ERROR, disagreement)
-        sigma = np.sqrt(self._gyro_noise**2 * dt + (bias_sigma * dt) ** 2 + (share * turned) ** 2)
+        sigma = np.sqrt(self._gyro_noise**2 * dt + (bias_sigma * dt) ** 2 + (GYRO_SCALE_ERROR * turned) ** 2)
         return float(sigma)

@@ -41,6 +41,7 @@ class ImuFusion:
         self.rotation_prior: RotationPrior | None = None
         self.inertial_frames = 0  # frames given the IMU's pose (INERTIAL)
         self.rejected = 0  # pose fits the IMU's motion could not have made (`rejects`)
+        self._remounts = 0  # the IMU's remounts the keyframes' gyro factors have seen (Inertial.remounts)
 
     def set_camera_from_imu(self, camera_from_imu: np.ndarray) -> None:
         """Where the IMU sits on the colour camera (4x4); before the first samples."""
@@ -93,10 +94,7 @@ class ImuFusion:
             out[:3, :3] = motion.last_pose[:3, :3] @ rotation
         if (motion.tracked or motion.coasting) and self._imu.gyro_confirmed:  # the step from the last pose is motion
             frames = max(1.0, (stamp_ns - motion.last_stamp) / FRAME_NS)
-            # and the share of the turn by which the gyro and vision have been seen to part
-            turned = float(np.arccos(np.clip((np.trace(rotation) - 1.0) * 0.5, -1.0, 1.0)))
-            sigma = np.hypot(ROTATION_PRIOR_SIGMA * np.sqrt(frames), self._imu.gyro_disagreement * turned)
-            self.rotation_prior = (out[:3, :3].T.copy(), float(sigma))
+            self.rotation_prior = (out[:3, :3].T.copy(), ROTATION_PRIOR_SIGMA * np.sqrt(frames))
         return out, propagated
 
     def rejects(self, camera_from_world: np.ndarray, propagated: np.ndarray | None) -> bool:
@@ -125,7 +123,8 @@ class ImuFusion:
         While vision contradicts the gyro, the factors it gave leave every keyframe."""
         if self._imu is None:
             return None
-        if not self._imu.gyro_trusted:
+        if not self._imu.gyro_trusted or self._imu.remounts != self._remounts:  # or taken through a wrong rotation
+            self._remounts = self._imu.remounts
             for kf in keyframes:
                 kf.gyro = None
         return self._imu.keyframe_rotation(kf_id, stamp_ns)

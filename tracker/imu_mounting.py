@@ -111,6 +111,13 @@ class ImuMounting:
         d = np.sign(np.linalg.det(u @ vt))
         return u @ np.diag([1.0, 1.0, d]) @ vt
 
+    def solve_bias(self) -> np.ndarray:
+        """The gyro's bias (IMU frame, rad/s) fitted along with the rotation (zeros: not solved)."""
+        solved = self._solve()
+        if solved is None:
+            return np.zeros(3)
+        return self.rotation.T @ solved[0][9:12]
+
     def solve_late(self) -> float | None:
         """How late the IMU's clock runs (s); None until known to within OFFSET_SIGMA_S."""
         solved = self._solve()

@@ -28,6 +28,7 @@ from octolog.tracker.gravity_alignment import WINDOW_S, GravityAlignment
 from octolog.tracker.imu_mounting import ImuMounting
 from octolog.tracker.imu_noise import NoiseMeter
 from octolog.tracker.gyro import GYRO_CHECK_FRAMES, GYRO_SPAN, GyroBias, GyroCheck, GyroSpan
+from octolog.tracker.pose import so3_log
 from octolog.tracker.preintegration import (
     FrameHistory,
     FrameRecord,
@@ -48,6 +49,7 @@ AGREE_M = 0.02
 TRUST_S = 0.5
 TRUST_FRAMES = 10
 MAX_DISAGREEING = 3
+REMOUNT_DEG = 0.5  # a camera-IMU rotation moved further makes the gyro's earlier rotations wrong
 MEASURE_EVERY_S = 1.0  # the IMU's noise is measured again after this long of frames
 
 
@@ -132,6 +134,7 @@ class Inertial:
         self._meter = NoiseMeter(noise)
         self._mounting = ImuMounting(self.camera_from_imu)
         self._spans = 0  # spans of GYRO_SPAN frames read so far
+        self.remounts = 0  # times the camera-IMU rotation moved by more than REMOUNT_DEG
         self._next_measure_ns: int | None = None  # the stamp from which the noise is measured again
         self._pending: tuple[int, Segments | None] | None = None  # the frame step_to went to, its pieces
         self._propagated: tuple[int, np.ndarray, np.ndarray] | None = None  # stamp, world_from_imu, velocity
@@ -199,12 +202,6 @@ class Inertial:
         newest GYRO_CHECK_SPANS turning spans is at most GYRO_AGREE_RATIO (true before the first
         span; a wrong camera-IMU rotation, swapped axes or a made-up IMU fail at it)."""
         return self._gyro_check.trusted
-
-    @property
-    def gyro_disagreement(self) -> float:
-        """How far the gyro's rotations and vision's part, as a share of the angle turned (vision's
-        own error included; tracker/gyro.py: GyroCheck.disagreement)."""
-        return self._gyro_check.disagreement
 
     @property
     def gyro_confirmed(self) -> bool:
@@ -283,7 +280,7 @@ class Inertial:
         seg = joined([*since, pending[1]])
         ba, bg = self._alignment.ba, self._gyro_bias.bg
         dR, _, _ = bias_corrected(self._preintegrator.integrate(seg, ba, bg), ba, bg)
-        sigma = self._gyro_bias.rotation_sigma(seg, self._gyro_check.disagreement)
+        sigma = self._gyro_bias.rotation_sigma(seg)
         Rci = self.camera_from_imu[:3, :3]
         return prev[0], Rci @ dR @ Rci.T, sigma
 
@@ -355,7 +352,13 @@ class Inertial:
             self.state.late_ms = self._mounting.late_s * 1e3
 
     def _remount(self, rotation: np.ndarray) -> None:
-        """The IMU's rotation on the camera is `rotation` (camera_from_imu's 3x3)."""
+        """The IMU's rotation on the camera is `rotation` (camera_from_imu's 3x3). Moved by more than
+        REMOUNT_DEG, the gyro's rotations taken with the old one are wrong: the back end's factors
+        from them go (`remounts`), and the gyro's bias starts again from the one estimated along."""
+        change = float(np.degrees(np.linalg.norm(so3_log(self._mounting.rotation.T @ rotation))))
+        if change > REMOUNT_DEG:
+            self.remounts += 1
+            self._gyro_bias.restart(self._mounting.solve_bias())
         new = self.camera_from_imu.copy()
         new[:3, :3] = rotation
         self._history.remount(self.imu_from_camera @ new)

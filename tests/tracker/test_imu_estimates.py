@@ -11,7 +11,7 @@ import pytest
 from octolog.kit.imu import D455, ImuNoise, ImuSamples
 from octolog.replay.synthetic_imu import mismatch_rotation, simulate
 from octolog.replay.synthetic_trajectory import camera_trajectory
-from octolog.tracker.gyro import GYRO_SCALE_ERROR, GyroBias
+from octolog.tracker.gyro import GyroBias
 from octolog.tracker.imu_mounting import ImuMounting
 from octolog.tracker.imu_noise import MIN_SAMPLES, NoiseMeter
 from octolog.tracker.pose import so3_exp, so3_log
@@ -127,15 +127,13 @@ def test_the_buffer_retimes_and_the_history_remounts() -> None:
     assert np.allclose(history.last.world_from_imu, T @ move)
 
 
-def test_a_gyro_seen_to_part_from_vision_weighs_less() -> None:
-    """The back end's gyro factor: its sigma grows with the share of each turn by which the gyro and
-    vision have been seen to disagree, never below GYRO_SCALE_ERROR's."""
+def test_a_restarted_gyro_bias_holds_the_bias_it_restarts_from() -> None:
+    """After the IMU moved on the camera (Inertial._remount), the gyro's bias starts again from the
+    one fitted along with the rotation: nothing read through the old rotation pulls it."""
     bias = GyroBias(D455)
-    n = 40
-    seg = (np.full(n, 0.005), np.tile([0.0, 0.0, 1.0], (n, 1)), np.zeros((n, 3)))  # 0.2 rad in 0.2 s
-    base = bias.rotation_sigma(seg)
-    assert bias.rotation_sigma(seg, GYRO_SCALE_ERROR / 2) == base
-    assert bias.rotation_sigma(seg, 0.1) == pytest.approx(0.1 * 0.2, rel=0.05)
+    bias.restart(np.array([0.01, -0.02, 0.003]))
+    assert np.array_equal(bias.bg, [0.01, -0.02, 0.003])
+    assert np.allclose(np.linalg.solve(bias._H, bias._g), bias.bg)
 
 
 def test_the_accelerometers_noise_is_measured_on_its_own_samples_not_the_interpolated_ones() -> None:
