@@ -71,6 +71,7 @@ class SessionSummary:
     tracker: dict = field(default_factory=dict)
     map: dict = field(default_factory=dict)
     ate: dict | None = None
+    ate_note: str = ""  # why there is no ATE although there is a ground truth (too few poses to align)
     files: dict[str, str] = field(default_factory=dict)
     malformed: dict[str, dict[str, int]] = field(default_factory=dict)  # stage -> topic -> samples dropped
     map_frame: str = NOT_ALIGNED  # whether the map frame's z is up, and where that came from
@@ -434,8 +435,11 @@ def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, re
         traj = metrics.read_tum(out / "trajectory.txt")
         s.frames = len(traj.stamps_ns)
         if (out / "groundtruth.txt").exists():
-            a = metrics.ate(traj, metrics.read_tum(out / "groundtruth.txt"))
-            s.ate = {"rmse_m": a.rmse, "mean_m": a.mean, "max_m": a.max, "pairs": a.n_pairs}
+            try:
+                a = metrics.ate(traj, metrics.read_tum(out / "groundtruth.txt"))
+                s.ate = {"rmse_m": a.rmse, "mean_m": a.mean, "max_m": a.max, "pairs": a.n_pairs}
+            except InputError as exc:  # two poses, or all on a line: no alignment, but the run is whole
+                s.ate_note = str(exc)
     s.files = {p.name: str(p) for p in sorted(out.glob("*")) if p.is_file() and p.name != INCOMPLETE}
     s.files.update({f"rerun/{p.name}": str(p) for p in sorted((out / "rerun").glob("*.rrd"))})
     s.files["summary.json"] = str(out / "summary.json")
@@ -474,6 +478,8 @@ def format_summary(s: SessionSummary) -> str:
                      "so nothing is mapped")
         if s.uninitialised:
             lines.append("  tracker " + uninitialised_line(s.uninitialised))
+    if s.ate_note:
+        lines.append(f"  ATE: none ({s.ate_note})")
     if s.ate:
         lines.append(f"  ATE RMSE {s.ate['rmse_m'] * 100:.2f} cm (mean {s.ate['mean_m'] * 100:.2f} cm, "
                      f"max {s.ate['max_m'] * 100:.2f} cm, {s.ate['pairs']} poses)")

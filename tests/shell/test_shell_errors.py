@@ -194,3 +194,14 @@ def _cmdline_has(proc: Path, text: str) -> bool:
         return text in (proc / "cmdline").read_bytes().decode(errors="replace")
     except OSError:
         return False
+
+
+def test_a_run_too_short_to_align_says_why_it_has_no_ate_and_keeps_its_outputs(tmp_path):
+    """Two frames cannot be aligned to the ground truth (three non-collinear positions at least):
+    the run still ends well with every file, and its summary says why there is no ATE."""
+    from helpers import octolog
+
+    out = tmp_path / "two"
+    proc = octolog("run", "--source", "synthetic:2", "--out", str(out), "--rerun", "off", "--quiet")
+    assert "ATE: none (cannot align trajectories: 2 positions are degenerate" in proc.stdout
+    assert (out / "map.bt").exists() and (out / "summary.json").exists()
