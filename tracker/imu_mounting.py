@@ -22,16 +22,16 @@ from __future__ import annotations
 
 import numpy as np
 
+from octolog.tracker.gyro import GYRO_CHECK_MIN_RAD as MIN_TURN_RAD  # a span turning less says little about the axes
+from octolog.tracker.gyro import MAX_EVIDENCE_RATE as MAX_TURN_RATE  # faster: blurred images, vision's rotation uncertain
+from octolog.tracker.gyro import VISUAL_ROTATION_SIGMA
 from octolog.tracker.pose import so3_log
 
-MIN_TURN_RAD = np.radians(1.0)  # a span turning less says little about the axes
-MAX_TURN_RATE = np.radians(60.0)  # rad/s: a span turning faster has blurred images, vision's rotation uncertain
 MIN_EXCITATION = 0.02  # rad²: the turns' scatter in its second direction before the rotation is solved
 # A span whose gyro and vision disagree by more than this share of its turn (plus MAX_RESIDUAL_RAD)
 # is a bad pose, not evidence (a rotation off by 15 degrees is a quarter of each turn)
 MAX_RESIDUAL_SHARE = 0.3
 MAX_RESIDUAL_RAD = np.radians(1.0)
-VISUAL_ROTATION_SIGMA = 3e-4  # rad: vision's rotation error over a span (tracker/gyro.py's)
 ROTATION_SIGMA_RAD = np.radians(0.3)  # the rotation is applied once each of its entries is known to within this
 OFFSET_SIGMA_S = 0.5e-3  # the time offset is applied once known to within this
 MAX_OFFSET_S = 0.05  # an estimate further out is no clock offset (a bad span, a dropped frame)
