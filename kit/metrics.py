@@ -353,6 +353,17 @@ def ate(est: Trajectory, gt: Trajectory, *, max_dt_ns: int = DEFAULT_MAX_DT_NS,
     )
 
 
+def ate_in(est: Trajectory, gt: Trajectory, alignment: np.ndarray, *,
+           max_dt_ns: int = DEFAULT_MAX_DT_NS) -> AteResult:
+    """Translational ATE under a given alignment (gt ~= alignment @ est), not fitted to `est`: a
+    session placed in an earlier session's world, measured there (the earlier one's `ate().alignment`)."""
+    e, g = _pairs(est, gt, max_dt_ns)
+    err = np.linalg.norm(g.positions - (e.positions @ alignment[:3, :3].T + alignment[:3, 3]), axis=1)
+    return AteResult(rmse=_rmse(err), mean=float(np.mean(err)), median=float(np.median(err)), std=float(np.std(err)),
+                     min=float(np.min(err)), max=float(np.max(err)), n_pairs=int(err.size),
+                     alignment=np.array(alignment, dtype=float), errors=err, stamps_ns=e.stamps_ns.copy())
+
+
 def rpe(
     est: Trajectory,
     gt: Trajectory,

@@ -6,6 +6,7 @@ gtsam is imported where it is used, so a process that never closes a loop does n
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 
 import numpy as np
 
@@ -24,12 +25,13 @@ def optimize_pose_graph(
     poses_wc: np.ndarray,
     edges: list[tuple[int, int, np.ndarray, float]],
     *,
-    fixed: int = 0,
+    fixed: int | Iterable[int] = 0,
     iterations: int = 20,
 ) -> np.ndarray:
     """Keyframe poses that best agree with relative-pose edges (i, j, T_i_j = inv(T_wi) T_wj, weight).
 
-    Edge noise: 1 cm and 0.5 degree divided by sqrt(weight). Keyframe `fixed` does not move.
+    Edge noise: 1 cm and 0.5 degree divided by sqrt(weight). Keyframe `fixed` (or each of several)
+    does not move.
     """
     import gtsam
 
@@ -37,7 +39,8 @@ def optimize_pose_graph(
     values = gtsam.Values()
     for i, T in enumerate(poses_wc):
         values.insert(i, _pose3(T))
-    graph.add(gtsam.NonlinearEqualityPose3(fixed, _pose3(poses_wc[fixed])))
+    for k in ([fixed] if isinstance(fixed, int) else fixed):
+        graph.add(gtsam.NonlinearEqualityPose3(k, _pose3(poses_wc[k])))
     base = np.array([math.radians(0.5)] * 3 + [0.01] * 3)
     for i, j, T_ij, w in edges:
         graph.add(gtsam.BetweenFactorPose3(i, j, _pose3(T_ij),

@@ -279,8 +279,9 @@ def backend_deferred(path: Path) -> list[int]:
                   for m in read_wire(path, [BACKEND_DEFERRED.name]))
 
 
-SYNTHETIC_SPEC = ("synthetic[:N][:tilt=DEG][:motion=loop|turns][:exposure=MS][:noise=none|kinect|d455][:bias=PX]"
-                  "[:seed=S][:imu=HZ][:imunoise=X][:imurot=DEG][:imudt=MS][:blank=AT+SECONDS]")
+SYNTHETIC_SPEC = ("synthetic[:N][:tilt=DEG][:motion=loop|turns][:start=S][:reverse=1][:exposure=MS]"
+                  "[:noise=none|kinect|d455][:bias=PX][:seed=S][:imu=HZ][:imunoise=X][:imurot=DEG][:imudt=MS]"
+                  "[:blank=AT+SECONDS]")
 
 
 @dataclass
@@ -288,6 +289,8 @@ class SyntheticSource:
     n_frames: int = 150
     start_tilt_deg: float = 0.0  # `tilt=DEG`: the camera starts looking down DEG more
     motion: str = "loop"  # `motion=turns`: the walk with fast head turns (150-210 deg/s)
+    path_start_s: float = 0.0  # `start=S`: the walk starts S s along its path
+    reverse: bool = False  # `reverse=1`: the walk goes the other way round
     exposure_ms: float = 0.0  # `exposure=MS`: colour blurred by the camera's rotation over MS
     depth_noise: str = "none"  # `noise=kinect|d455`: the depth that sensor would read
     depth_bias_px: float = 0.0  # `bias=PX`: the depth sensor's systematic disparity offset (reads short if > 0)
@@ -308,13 +311,15 @@ class SyntheticSource:
 
     def __post_init__(self) -> None:
         self.scene = SyntheticScene(n_frames=self.n_frames, start_tilt_deg=self.start_tilt_deg, motion=self.motion,
-                                    exposure_ms=self.exposure_ms, depth_noise=self.depth_noise,
+                                    path_start_s=self.path_start_s, reverse=self.reverse, exposure_ms=self.exposure_ms, depth_noise=self.depth_noise,
                                     depth_bias_px=self.depth_bias_px, seed=self.seed, imu_hz=self.imu_hz,
                                     imu_noise_scale=self.imu_noise_scale, imu_rotation_deg=self.imu_rotation_deg,
                                     imu_late_ms=self.imu_late_ms,
                                     blank_at_s=self.blank[0], blank_s=self.blank[1])
         options = {"tilt": f"{self.start_tilt_deg:g}" if self.start_tilt_deg else "",
                    "motion": "" if self.motion == "loop" else self.motion,
+                   "start": f"{self.path_start_s:g}" if self.path_start_s else "",
+                   "reverse": "1" if self.reverse else "",
                    "exposure": f"{self.exposure_ms:g}" if self.exposure_ms else "",
                    "noise": "" if self.depth_noise == "none" else self.depth_noise,
                    "bias": f"{self.depth_bias_px:g}" if self.depth_bias_px else "",
@@ -469,7 +474,8 @@ def _open(spec: str, only_consumed: bool, camera: str, pair_ms: float = 20.0) ->
 def _synthetic(spec: str, arg: str) -> SyntheticSource:
     """`synthetic[:N][:KEY=VALUE...]` (SYNTHETIC_SPEC); a bad count, key or value is a one-line error."""
     count, *options = arg.split(":") if arg else [""]
-    keys = {"tilt": "start_tilt_deg", "motion": "motion", "exposure": "exposure_ms", "noise": "depth_noise",
+    keys = {"tilt": "start_tilt_deg", "motion": "motion", "start": "path_start_s", "reverse": "reverse",
+            "exposure": "exposure_ms", "noise": "depth_noise",
             "bias": "depth_bias_px", "seed": "seed", "imu": "imu_hz", "imunoise": "imu_noise_scale",
             "imurot": "imu_rotation_deg", "imudt": "imu_late_ms", "blank": "blank"}
     kwargs: dict[str, Any] = {}
@@ -479,7 +485,10 @@ def _synthetic(spec: str, arg: str) -> SyntheticSource:
             key, eq, value = option.partition("=")
             if not eq or key not in keys or keys[key] in kwargs:
                 raise ValueError(option)
+            if key == "reverse" and value not in ("0", "1"):
+                raise ValueError(option)
             kwargs[keys[key]] = (value if key in ("motion", "noise") else int(value) if key == "seed" else
+                                 value == "1" if key == "reverse" else
                                  tuple(float(v) for v in value.split("+", 1)) if key == "blank" else float(value))
             if key == "blank" and len(kwargs["blank"]) != 2:
                 raise ValueError(option)

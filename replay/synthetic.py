@@ -72,6 +72,8 @@ class SyntheticConfig:
     depth_noise: str = "none"  # none (exact, mm steps), kinect or d455: replay.depth_noise's models
     start_tilt_deg: float = 0.0  # the camera starts looking down this much more, level again after 1 s
     motion: str = "loop"  # loop (a walk round the pillar) or turns (the walk with fast head turns)
+    path_start_s: float = 0.0  # the walk starts this far along its path (s)
+    reverse: bool = False  # the walk goes the other way round
     exposure_ms: float = 0.0  # colour exposure: > 0 blurs colour by the camera's rotation over it
     depth_bias_px: float = 0.0  # the depth sensor's systematic disparity offset (replay.depth_noise.apply)
     imu_hz: float = 0.0  # > 0: a simulated D455 IMU at this rate (replay.synthetic_imu)
@@ -167,7 +169,9 @@ class SyntheticScene:
         return T
 
     def _trajectory(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return camera_trajectory(t, start_tilt_deg=self.config.start_tilt_deg, motion=self.config.motion)
+        cfg = self.config
+        return camera_trajectory(t, start_tilt_deg=cfg.start_tilt_deg, motion=cfg.motion,
+                                 path_start_s=cfg.path_start_s, reverse=cfg.reverse)
 
     def gravity_up(self) -> np.ndarray:
         """Up in frame 0's optical frame, from a simulated accelerometer on the camera: the

@@ -3,6 +3,10 @@
 0.5-5 m away (median 2.4-3.6 m). A function of time only, so frame i is the same whatever the
 sequence length.
 
+`path_start_s` starts the walk that far along it, `reverse` walks it the other way round (still
+looking towards the pillar): a second session through the same room from another place and in
+the other direction (bench/localize.py).
+
 `motion="turns"` is the hand-held user turning to look at the room: the same walk, and on top of
 it a turn of the head every 1.5 s, 0.75 s long, by +85, -85, -70, +70 degrees of yaw in turn
 (a smooth start and stop) with a 10-degree nod (pitch) on each: with the walk's own turning, the
@@ -38,7 +42,8 @@ def _turns(t: np.ndarray, steps_deg: tuple[float, ...]) -> np.ndarray:
 
 
 def camera_trajectory(t: np.ndarray, *, periodic: bool = False, start_tilt_deg: float = 0.0,
-                      motion: str = "loop") -> tuple[np.ndarray, np.ndarray]:
+                      motion: str = "loop", path_start_s: float = 0.0,
+                      reverse: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Camera centres (N, 3) and world_from_camera rotations (N, 3, 3) at times t (s).
 
     `periodic`: the height and look-around periods (7, 7.3, 5.3, 4.1 s) rounded to whole fractions
@@ -50,14 +55,16 @@ def camera_trajectory(t: np.ndarray, *, periodic: bool = False, start_tilt_deg: 
         return LOOP_S / max(1, round(LOOP_S / p)) if periodic else p
 
     w = 2.0 * math.pi / LOOP_S
-    th = w * t + math.radians(-100.0)
+    s = path_start_s + (-t if reverse else t)  # how far along the walk (s of the forward walk)
+    th = w * s + math.radians(-100.0)
     ax, ay = 1.3, 0.9
     pos = np.stack(
-        [ax * np.cos(th), ay * np.sin(th), 1.35 + 0.15 * np.sin(2.0 * math.pi * t / period(7.0))], axis=1
+        [ax * np.cos(th), ay * np.sin(th), 1.35 + 0.15 * np.sin(2.0 * math.pi * s / period(7.0))], axis=1
     )
-    heading = np.arctan2(ay * np.cos(th), -ax * np.sin(th))
-    yaw = heading + math.radians(30.0) + math.radians(20.0) * np.sin(2.0 * math.pi * t / period(7.3))
-    pitch = math.radians(-8.0) + math.radians(7.0) * np.sin(2.0 * math.pi * t / period(5.3) + 1.0)
+    heading = np.arctan2(ay * np.cos(th), -ax * np.sin(th)) + (math.pi if reverse else 0.0)
+    inward = math.radians(-30.0 if reverse else 30.0)  # the pillar is to the left going forward, right going back
+    yaw = heading + inward + math.radians(20.0) * np.sin(2.0 * math.pi * s / period(7.3))
+    pitch = math.radians(-8.0) + math.radians(7.0) * np.sin(2.0 * math.pi * s / period(5.3) + 1.0)
     if start_tilt_deg:  # looking down by this much at t <= 0, level with the usual path from TILT_S on
         pitch = pitch - math.radians(start_tilt_deg) * 0.5 * (1.0 + np.cos(math.pi * np.clip(t / TILT_S, 0.0, 1.0)))
     if motion == "turns":
@@ -65,7 +72,7 @@ def camera_trajectory(t: np.ndarray, *, periodic: bool = False, start_tilt_deg: 
         pitch = pitch + _turns(np.maximum(t, 0.0), TURN_PITCH_DEG)
     elif motion != "loop":
         raise ValueError(f"motion {motion!r}: want one of {', '.join(MOTIONS)}")
-    roll = math.radians(3.0) * np.sin(2.0 * math.pi * t / period(4.1))
+    roll = math.radians(3.0) * np.sin(2.0 * math.pi * s / period(4.1))
     # body frame: x forward, y left, z up; a positive pitch raises the view.
     body = euler_to_matrices("ZYX", np.stack([yaw, -pitch, roll], axis=1))
     optical_in_body = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])

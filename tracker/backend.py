@@ -55,6 +55,7 @@ class BackendJob:
     consistency_m: float
     consistency_rad: float
     refine: tuple[np.ndarray, float, float]
+    frozen_keyframes: int = 0  # the first this many (a saved map's) never move
 
 
 @dataclass
@@ -79,9 +80,10 @@ class LoopState:
 
 
 def _ba_problem(mp: MapPoints, kfs: list[Keyframe], params: OdometryParams, K: np.ndarray, window_n: int,
-                max_points: int | None) -> tuple[BundleProblem | None, np.ndarray, np.ndarray]:
+                max_points: int | None, frozen: int = 0) -> tuple[BundleProblem | None, np.ndarray, np.ndarray]:
     """build_job's local BA: the problem over the newest `window_n` keyframes and their fixed
-    neighbours, with the keyframes and point ids it covers (None and empty without local BA)."""
+    neighbours, with the keyframes and point ids it covers (None and empty without local BA); the
+    first `frozen` keyframes (a saved map's) are held wherever they fall."""
     ba_params = params.bundle_adjustment
     scale_factor = params.features.scale_factor
     n_kf = len(kfs)
@@ -120,7 +122,7 @@ def _ba_problem(mp: MapPoints, kfs: list[Keyframe], params: OdometryParams, K: n
         poses_wc=np.stack([kfs[i].world_from_camera for i in ba_kf]),
         # as ORB-SLAM3 does: with fewer than two fixed neighbours (a new area) the oldest
         # window keyframe is held too, or the window would be free to drift as a whole
-        fixed=np.array([i < window[0] or i == 0 or (fixed.size < 2 and i == window[0]) for i in ba_kf]),
+        fixed=np.array([i < window[0] or i == 0 or i < frozen or (fixed.size < 2 and i == window[0]) for i in ba_kf]),
         points=mp.xyz[pids].copy(),
         obs_kf=np.concatenate(kf_idx), obs_pt=np.concatenate(pt_idx), obs_uv=np.concatenate(uv),
         obs_z=np.concatenate(zz), obs_sigma=np.concatenate(sig),
@@ -179,16 +181,16 @@ def _loop_candidates(mp: MapPoints, kfs: list[Keyframe], params: OdometryParams,
 
 def build_job(points: MapPoints, keyframes: list[Keyframe], params: OdometryParams, *, K: np.ndarray,
               bow: BowIndex | None, loops: LoopState, window_n: int, max_points: int | None, loop_closing: bool,
-              iterations: int) -> BackendJob:
+              iterations: int, frozen_keyframes: int = 0) -> BackendJob:
     """A self-contained snapshot for the back end of the newest keyframe: BA over the newest
     `window_n` keyframes with at most `max_points` points (None: all), `iterations` long, and loop
-    detection if `loop_closing`."""
+    detection if `loop_closing`; the first `frozen_keyframes` (a saved map's) never move."""
     mp, kfs = points, keyframes
     lp = params.loops
     scale_factor = params.features.scale_factor
     new = kfs[-1]
     n_kf = len(kfs)
-    ba, ba_kf, ba_pids = _ba_problem(mp, kfs, params, K, window_n, max_points)
+    ba, ba_kf, ba_pids = _ba_problem(mp, kfs, params, K, window_n, max_points, frozen_keyframes)
     candidates = _loop_candidates(mp, kfs, params, bow, loops, loop_closing)
     return BackendJob(
         kf_id=new.id, poses_wc=np.stack([kf.world_from_camera for kf in kfs]), ba=ba, ba_kf=ba_kf,
@@ -204,17 +206,23 @@ def build_job(points: MapPoints, keyframes: list[Keyframe], params: OdometryPara
         refine=(K, scale_factor, params.tracking.inv_depth_sigma),
         previous_candidate=loops.previous_candidate,
         consistency_m=lp.consistency_m, consistency_rad=math.radians(lp.consistency_deg),
+        frozen_keyframes=frozen_keyframes,
     )
 
 
 def apply_result(res: BackendResult, keyframes: list[Keyframe], points: MapPoints, kf_pos: np.ndarray,
-                 kf_axis: np.ndarray, max_point_move_m: float) -> tuple[np.ndarray, dict[int, np.ndarray]]:
+                 kf_axis: np.ndarray, max_point_move_m: float,
+                 frozen_points: int = 0) -> tuple[np.ndarray, dict[int, np.ndarray]]:
     """Write a back-end result into the front end's map; returns how the job's newest keyframe moved
-    (world_from_world) and every keyframe moved (id -> world_from_camera).
+    (world_from_world) and every keyframe moved (id -> world_from_camera). The first
+    `frozen_points` (a saved map's, seen from its fixed keyframes) keep their place.
 
     Keyframes inserted after the job was built (a live tracker that went on while the back end was
     busy) and the points they made move rigidly with the job's newest keyframe: they were placed
     relative to it, and a closed loop must carry them along."""
+    if frozen_points and res.point_ids.size:
+        mine = res.point_ids >= frozen_points
+        res = dataclasses.replace(res, point_ids=res.point_ids[mine], points=res.points[mine])
     ref = keyframes[res.kf_id]
     old_ref = ref.world_from_camera.copy()
     moved = dict(res.poses)
@@ -322,7 +330,7 @@ def _backend(job: BackendJob) -> BackendResult:
     edges += [(j, i, rel(j, i), 1.0) for i, j in job.covis]
     edges += [(i, j, T, 1.0) for i, j, T in job.loop_edges]
     edges.append((old, new, measured, 1.0))
-    corrected = optimize_pose_graph(poses, edges, fixed=0)
+    corrected = optimize_pose_graph(poses, edges, fixed=range(max(1, job.frozen_keyframes)))
     delta = corrected @ np.stack([invert(T) for T in poses])
     assert job.xyz is not None and job.ref_kf is not None
     xyz = job.xyz.copy()

@@ -55,7 +55,7 @@ class BackendHandoff:
         if not isinstance(res, BackendResult):
             res = res.result()
         delta, moved = apply_result(res, self._map.keyframes, self._map.points, self._map.kf_pos, self._map.kf_axis,
-                                    self.params.bundle_adjustment.max_point_move_m)
+                                    self.params.bundle_adjustment.max_point_move_m, self._map.frozen_points)
         self._loop_candidate = (res.kf_id, res.candidate) if res.candidate is not None else (-1, None)
         if res.loop is None:
             return {}, None, delta
@@ -116,5 +116,6 @@ class BackendHandoff:
         candidate = self._loop_candidate[1]  # the previous job's: one job at a time, its result is in
         loops = LoopState(edges=self.loop_edges, last_loop_kf=self._last_loop_kf, previous_candidate=candidate)
         return build_job(self._map.points, self._map.keyframes, self.params, K=K, bow=self._map.index, loops=loops,
-                         window_n=window_n, max_points=max_points, loop_closing=loop_closing, iterations=iterations)
+                         window_n=window_n, max_points=max_points, loop_closing=loop_closing, iterations=iterations,
+                         frozen_keyframes=self._map.frozen_keyframes)
 

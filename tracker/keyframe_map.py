@@ -72,11 +72,20 @@ class MapPoints:
         self.xyz[ids] = (self.xyz[ids] * w_old[:, None] + xyz * w_new[:, None]) / (w_old + w_new)[:, None]
         self.weight[ids] = w_old + w_new
 
-    def cull(self, min_visible: int, min_found_ratio: float) -> None:
-        """Retire points that are seen in view but rarely matched: likely bad depth or repeats."""
+    def cull(self, min_visible: int, min_found_ratio: float, keep: int = 0) -> None:
+        """Retire points that are seen in view but rarely matched: likely bad depth or repeats (the
+        first `keep` never: a saved map localized in)."""
         n = self.size
-        bad = (self.n_visible[:n] >= min_visible) & (self.n_found[:n] < min_found_ratio * self.n_visible[:n])
-        self.bad[:n] |= bad & (self.n_obs[:n] < CULL_MAX_OBSERVATIONS)
+        bad = (self.n_visible[keep:n] >= min_visible) & (self.n_found[keep:n] < min_found_ratio * self.n_visible[keep:n])
+        self.bad[keep:n] |= bad & (self.n_obs[keep:n] < CULL_MAX_OBSERVATIONS)
+
+    def first(self, n: int) -> MapPoints:
+        """The first `n` points (views of the arrays: a saved map's part of this one, for writing)."""
+        head = MapPoints.__new__(MapPoints)
+        for name in ("xyz", "desc", "weight", "n_obs", "n_visible", "n_found", "bad", "ref_kf"):
+            setattr(head, name, getattr(self, name)[:n])
+        head.size = n
+        return head
 
 
 # Keyframes are ranked by distance + this many metres per radian of viewing-direction change (the

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from octolog.kit.geometry import Intrinsics
+from octolog.kit.geometry import Intrinsics, invert
 from octolog.tracker.config import OdometryParams
 from octolog.tracker.features import FrameFeatures
 from octolog.tracker.keyframe_map import METRES_PER_RADIAN, Keyframe, MapPoints, depth_weight, keyframe_wanted
@@ -47,6 +47,11 @@ class LocalMap:
         self.index = BowIndex(vocabulary) if vocabulary is not None else None  # None: every keyframe is a candidate
         self._kf_pos = np.zeros((0, 3))  # each keyframe's position and viewing axis, for `local_keyframes`
         self._kf_axis = np.zeros((0, 3))
+        # A saved map's keyframes and points (`adopt`): the first this many. They are the world a
+        # later session lives in: the back end never moves them, and in `localize` mode nothing
+        # changes them (the keyframes made then are temporary: tracking's, not the map's).
+        self.frozen_keyframes = 0
+        self.frozen_points = 0
 
     def __len__(self) -> int:
         return len(self.keyframes)
@@ -77,6 +82,22 @@ class LocalMap:
         ids = np.unique(np.concatenate([self.keyframes[i].point_ids for i in kfs]))
         return ids[~self.points.bad[ids]]
 
+    def saved_points_in_view(self, world_from_camera: np.ndarray, intr: Intrinsics) -> np.ndarray:
+        """Sorted ids of the saved map's good points (`frozen_points`) seen by those of its keyframes
+        that made the most points in view from a pose. By view, not by distance: a later session
+        walking the other way stands where the saved keyframes looked elsewhere."""
+        n = self.frozen_points
+        ids = np.flatnonzero(~self.points.bad[:n])
+        _, inside = self.project(ids, invert(world_from_camera), intr)
+        votes = np.bincount(self.points.ref_kf[ids[inside]], minlength=self.frozen_keyframes)
+        kfs = np.lexsort((np.arange(votes.size), -votes))[: self.params.local_map.n_keyframes]
+        kfs = kfs[votes[kfs] > 0]
+        if not kfs.size:
+            return np.zeros(0, np.int64)
+        pids = np.unique(np.concatenate([self.keyframes[i].point_ids for i in kfs]))
+        pids = pids[pids < n]
+        return pids[~self.points.bad[pids]]
+
     def project(self, ids: np.ndarray, camera_from_world: np.ndarray, intr: Intrinsics
                 ) -> tuple[np.ndarray, np.ndarray]:
         """Projected pixels of map points and the mask of those in front of and inside the image."""
@@ -97,8 +118,6 @@ class LocalMap:
         keyframe that holds most of the frame's inliers (ORB-SLAM's), not the newest: a camera back
         in a place the map already covers adds nothing, so a session that keeps revisiting a room
         keeps a map (and a back end) the size of the room, not of the session."""
-        if self.params.localize:  # tracker.mode = "localize": the map stays as it was
-            return False
         local = self.local_keyframes(pose, self.params.local_map.n_keyframes)
         shared_by = [int(np.isin(tracked.map_idx, self.keyframes[i].point_ids, assume_unique=True).sum())
                      for i in local]
@@ -114,13 +133,15 @@ class LocalMap:
         R, t = pose[:3, :3], pose[:3, 3]
         z = feats.z
         kp_m, ids_m = tracked.kp_idx, tracked.map_idx
-        with_d = z[kp_m] > 0.0
+        # tracker.mode = "localize": the saved map's points stay as they were
+        mine = ids_m >= self.frozen_points if self.params.localize else np.ones(ids_m.size, bool)
+        with_d = (z[kp_m] > 0.0) & mine
         if local.fuse_depth and np.any(with_d):
             k = kp_m[with_d]
             mp.fuse(ids_m[with_d], feats.xyz[k] @ R.T + t, depth_weight(z[k]))
         # The newest appearance matches the next frames best.
-        mp.desc[ids_m] = feats.desc[kp_m]
-        mp.n_obs[ids_m] += 1
+        mp.desc[ids_m[mine]] = feats.desc[kp_m[mine]]
+        mp.n_obs[ids_m[mine]] += 1
 
         kf_id = len(self.keyframes)
         fresh = np.ones(len(feats), dtype=bool)
@@ -129,7 +150,7 @@ class LocalMap:
         k = np.flatnonzero(fresh)
         new_ids = mp.add(feats.xyz[k] @ R.T + t, feats.desc[k], depth_weight(z[k]), kf_id)
 
-        mp.cull(local.cull_min_visible, local.cull_min_found_ratio)
+        mp.cull(local.cull_min_visible, local.cull_min_found_ratio, keep=self.frozen_points if self.params.localize else 0)
 
         point_ids = np.unique(np.concatenate([ids_m, new_ids]))
         shared = np.bincount(mp.ref_kf[ids_m], minlength=kf_id) if ids_m.size else np.zeros(kf_id, np.int64)
@@ -149,6 +170,7 @@ class LocalMap:
     def adopt(self, points: MapPoints, keyframes: list[Keyframe]) -> None:
         """A saved map's points and keyframes as this map (before any frame); the index made anew."""
         self.points, self.keyframes = points, keyframes
+        self.frozen_keyframes, self.frozen_points = len(keyframes), points.size
         self.reindex_poses()
         if self.index is not None:
             for kf in keyframes:
@@ -189,10 +211,12 @@ class LocalMap:
     def clear(self) -> None:
         """No keyframes, no points (the index kept empty over the same vocabulary)."""
         self.points, self.keyframes = MapPoints(), []
+        self.frozen_keyframes = self.frozen_points = 0
         self._kf_pos, self._kf_axis = np.zeros((0, 3)), np.zeros((0, 3))
         self.index = BowIndex(self.index.vocabulary) if self.index is not None else None
 
     def take(self, other: LocalMap) -> None:
         """Another map's whole state as this one's (a map of its own becomes the map)."""
         self.points, self.keyframes, self.index = other.points, other.keyframes, other.index
+        self.frozen_keyframes, self.frozen_points = other.frozen_keyframes, other.frozen_points
         self._kf_pos, self._kf_axis = other._kf_pos, other._kf_axis

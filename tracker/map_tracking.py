@@ -35,6 +35,23 @@ CONFIDENT_INLIER_FACTOR = 3
 RotationPrior = tuple[np.ndarray, float]
 
 
+def point_sigmas(weight: np.ndarray, points_w: np.ndarray, camera_from_world: np.ndarray, K: np.ndarray,
+                 inv_sigma_px: np.ndarray, inv_depth_sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Residual scales (1 / sigma: pixels, inverse depth) that carry each map point's own error.
+
+    A point fused from readings at ranges z_i (`MapPoints.weight` = sum z_i^-4) is known to
+    sigma_p = inv_depth_sigma / sqrt(weight) metres (the depth error grows with z^2). Seen from
+    range z now, that is f sigma_p / z pixels and sigma_p / z^2 in inverse depth, added in
+    quadrature to the keypoint's own sigmas. A saved map's wall seen from 3 m, localized in from
+    1 m, weighs what it is worth against the points seen from close by."""
+    sigma_p = inv_depth_sigma / np.sqrt(np.maximum(weight, 1e-12))
+    z = np.maximum(points_w @ camera_from_world[2, :3] + camera_from_world[2, 3], 1e-3)
+    px = K[0, 0] * sigma_p / z
+    inv_px = 1.0 / np.sqrt(inv_sigma_px ** -2 + px * px)
+    inv_d = 1.0 / np.sqrt(inv_depth_sigma ** 2 + (sigma_p / (z * z)) ** 2)
+    return inv_px, inv_d
+
+
 class MapTracker:
     """Frame-to-local-map pose estimation over `local_map`, with `front`'s camera and `motion`'s prediction."""
 
@@ -46,12 +63,21 @@ class MapTracker:
         self.rejected_jumps = 0  # tracked frames made LOST: a jump the motion cannot explain, on few inliers
 
     def locate(self, feats: FrameFeatures, predicted: np.ndarray, stamp_ns: int,
-               rotation_prior: RotationPrior | None = None) -> tuple[TrackedFrame | None, bool]:
+               rotation_prior: RotationPrior | None = None,
+               saved_first: bool = False) -> tuple[TrackedFrame | None, bool]:
         """The frame against the map from the prediction, else by place recognition; None when it
-        cannot be placed with the evidence its case asks for; and whether it was found again."""
+        cannot be placed with the evidence its case asks for; and whether it was found again.
+        `saved_first`: against a saved map's points alone first (`localize` mode), kept when they
+        give a confident pose (`CONFIDENT_INLIER_FACTOR` x `min_inliers` inliers), else all points."""
         by_place = False
         try:
-            tracked = self.track(feats, predicted, stamp_ns, rotation_prior)
+            tracked = None
+            if saved_first:
+                tracked = self.track(feats, predicted, stamp_ns, rotation_prior, saved_only=True)
+                if tracked is not None and tracked.n_inliers < CONFIDENT_INLIER_FACTOR * self.params.tracking.min_inliers:
+                    tracked = None
+            if tracked is None:
+                tracked = self.track(feats, predicted, stamp_ns, rotation_prior)
             if tracked is None and self.params.relocalise:
                 guess = relocalisation_guess(feats, self._map.keyframes, self._map.index, self.params, self._front.K)
                 if guess is not None:
@@ -90,7 +116,7 @@ class MapTracker:
         return tracked
 
     def track(self, raw: FrameFeatures, predicted_wc: np.ndarray, stamp_ns: int,
-              rotation_prior: RotationPrior | None = None) -> TrackedFrame | None:
+              rotation_prior: RotationPrior | None = None, saved_only: bool = False) -> TrackedFrame | None:
         """Match and estimate the pose; None when the frame cannot be tracked.
 
         With a rolling shutter the keypoints are moved to mid-readout twice: with the motion
@@ -103,15 +129,15 @@ class MapTracker:
         rolling = self.params.readout_s > 0.0 and motion.tracked
         feats = self._front.unroll(raw, motion.velocity) if rolling and motion.velocity is not None else raw
         guess_cw = invert(predicted_wc)
-        local = self._map.local_points(predicted_wc)
+        local = self._local(predicted_wc, saved_only)
 
-        best, attempt = self._first_pass(feats, local, guess_cw, rotation_prior)
+        best, attempt = self._first_pass(feats, local, guess_cw, rotation_prior, saved_only)
         if best is None:
             return None
         first = (best[0], best[1])
         ki, mi = best[2], best[3]
         if attempt > 0:
-            local = self._map.local_points(invert(best[0]))
+            local = self._local(invert(best[0]), saved_only)
         T_cw, _ = first
 
         # Second pass: with a good pose, all local points can be matched in a tight window.
@@ -121,7 +147,8 @@ class MapTracker:
             step = invert(motion.last_pose) @ invert(T_cw)
             feats2 = self._front.unroll(raw, (so3_log(step[:3, :3]), step[:3, 3].copy(), stamp_ns - motion.last_stamp))
         ki2, mi2, visible = self._guided(feats2, local, T_cw, self.params.tracking.refine_radius_px)
-        second = self.solve(feats2, ki2, mi2, T_cw, use_ransac=False, rotation_prior=rotation_prior)
+        second = self.solve(feats2, ki2, mi2, T_cw, use_ransac=False, rotation_prior=rotation_prior,
+                            weigh_points=saved_only)
         if second is not None and int(second[1].sum()) >= int(first[1].sum()) // 2:
             T_cw, inl = second
             ki, mi = ki2, mi2
@@ -143,11 +170,19 @@ class MapTracker:
         residual = float(np.sqrt(np.mean(np.sum(scaled * scaled, axis=1)))) if ki.size else float("nan")
         return TrackedFrame(T_cw, ki, mi, int(inl.size), int(inl.sum()), feats, residual)
 
+    def _local(self, world_from_camera: np.ndarray, saved_only: bool) -> np.ndarray:
+        """The points a pose is matched against: the local map's, or the saved map's in view."""
+        if saved_only:
+            assert self._front.intrinsics is not None
+            return self._map.saved_points_in_view(world_from_camera, self._front.intrinsics)
+        return self._map.local_points(world_from_camera)
+
     def solve(
         self, feats: FrameFeatures, kp_idx: np.ndarray, map_idx: np.ndarray, guess_cw: np.ndarray, use_ransac: bool,
-        rounds: int = 3, rotation_prior: RotationPrior | None = None,
+        rounds: int = 3, rotation_prior: RotationPrior | None = None, weigh_points: bool = False,
     ) -> tuple[np.ndarray, np.ndarray] | None:
-        """Pose (camera_from_world) and inlier mask from matches, or None when unreliable."""
+        """Pose (camera_from_world) and inlier mask from matches, or None when unreliable.
+        `weigh_points`: each point's own uncertainty (`point_sigmas`) joins its residuals' sigmas."""
         K, t = self._front.K, self.params.tracking
         if kp_idx.size < t.min_inliers:
             return None
@@ -171,7 +206,11 @@ class MapTracker:
             init_inl = np.zeros(kp_idx.size, dtype=bool)
             init_inl[inl.ravel()] = True
         inv_sigma = self.params.features.scale_factor ** (-feats.octave[kp_idx].astype(np.float64))
-        T, inl_mask = optimize_pose(guess, pts_w, uv, inv_sigma, feats.z[kp_idx], K, inv_depth_sigma=t.inv_depth_sigma,
+        inv_depth_sigma: float | np.ndarray = t.inv_depth_sigma
+        if weigh_points:
+            inv_sigma, inv_depth_sigma = point_sigmas(self._map.points.weight[map_idx], pts_w, guess, K, inv_sigma,
+                                                      t.inv_depth_sigma)
+        T, inl_mask = optimize_pose(guess, pts_w, uv, inv_sigma, feats.z[kp_idx], K, inv_depth_sigma=inv_depth_sigma,
                                     inliers=init_inl, rounds=rounds, rotation_prior=rotation_prior)
         if int(inl_mask.sum()) < t.min_inliers or not np.all(np.isfinite(T)):
             return None
@@ -211,10 +250,11 @@ class MapTracker:
         return n_inliers >= CONFIDENT_INLIER_FACTOR * t.min_inliers and n_inliers >= t.confident_ratio * n_matches
 
     def _first_pass(self, feats: FrameFeatures, local: np.ndarray, guess_cw: np.ndarray,
-                    rotation_prior: RotationPrior | None
+                    rotation_prior: RotationPrior | None, saved_only: bool = False
                     ) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None, int]:
         """The first pose: matches and a robust fit, escalating while the answer is weak; the best
-        (pose, inliers, keypoint ids, map ids) or None, and the attempt it stopped at."""
+        (pose, inliers, keypoint ids, map ids) or None, and the attempt it stopped at. `saved_only`:
+        the saved map's points, and no search beyond the windows (a fit on all points follows)."""
         # Escalate only while the answer is weak: a tight window around the prediction, wide ones, then
         # descriptor matching against the map around the last tracked pose (after LOST or a jolt the
         # prediction is useless, and that is where tracking resumes). Best inlier count wins.
@@ -224,10 +264,12 @@ class MapTracker:
         # (then a wide one over the seed, then over all). The second pass below matches the whole local map.
         motion = self._motion
         seed = self.last_inlier_ids if motion.tracked else np.zeros(0, np.int64)
+        if saved_only:
+            seed = seed[seed < self._map.frozen_points]
         if seed.size < CONFIDENT_INLIER_FACTOR * self.params.tracking.min_inliers:
             seed = local
         plan = [(seed, 1.0), (seed, WIDE_SEARCH_FACTOR)] + ([(local, WIDE_SEARCH_FACTOR)] if seed is not local else [])
-        for attempt in range(len(plan) + 1):
+        for attempt in range(len(plan) + (not saved_only)):
             if attempt < len(plan):
                 ids, factor = plan[attempt]
                 ki, mi, _ = self._guided(feats, ids, guess_cw, self.params.tracking.search_radius_px * factor)
@@ -240,7 +282,8 @@ class MapTracker:
             # needs no RANSAC (as ORB-SLAM's motion-model step); escalation brings RANSAC back.
             # This pose only seeds the tight second matching pass: two rounds suffice.
             trusted = attempt == 0 and motion.tracked and motion.velocity is not None
-            sol = self.solve(feats, ki, mi, guess_cw, use_ransac=not trusted, rounds=2, rotation_prior=rotation_prior)
+            sol = self.solve(feats, ki, mi, guess_cw, use_ransac=not trusted, rounds=2, rotation_prior=rotation_prior,
+                             weigh_points=saved_only)
             if sol is not None and (best is None or int(sol[1].sum()) > int(best[1].sum())):
                 best = (sol[0], sol[1], ki, mi)
             if best is not None and self._confident(int(best[1].sum()), best[2].size):

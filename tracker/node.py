@@ -94,7 +94,8 @@ def run(cfg: TrackerConfig, bus_cfg: BusConfig, *, trajectory: Path | None = Non
     if cfg.map:
         result.prior = {"map": cfg.map, "mode": cfg.mode, "keyframes": odometry.prior_keyframes,
                         "found_at_frame": odometry.prior_found_at, "frames_before": odometry.prior_misses,
-                        "dropped": odometry.prior_dropped, "placed_keyframes": odometry.prior_placed}
+                        "dropped": odometry.prior_dropped, "placed_keyframes": odometry.prior_placed,
+                        **odometry.prior_counts(), "relocalised": result.relocalisations}
     if not result.keyframes and getattr(odometry, "init_best", -1) >= 0:
         result.uninitialised = {"best_points": odometry.init_best,
                                 "min_init_points": odometry.params.tracking.min_init_points}

@@ -56,8 +56,16 @@ class SavedMapSearch:
     out at their placed poses (`TrackResult.placed`); tracking goes on in the saved map's world and,
     in `map` mode, extends it. Not found within `map_find_frames` frames, the tracker gives the
     saved map up: the held map becomes the map (its keyframes go out numbered from 0, in its own
-    world: `dropped`). In `localize` mode no keyframe is made and nothing of the map changes: nothing
-    is held, and the camera is looked for until the stream ends."""
+    world: `dropped`). The saved map's keyframes and points are frozen (`LocalMap.frozen_keyframes`):
+    the back end moves only this session's, so the session lives in the saved map's world.
+
+    In `localize` mode nothing of the saved map changes, and the camera is looked for until the
+    stream ends. The keyframes tracking makes are temporary: they carry the camera where the view
+    leaves the saved map (visual odometry on points that are not the map's), the back end ties them
+    back to the saved map when it is seen again (a loop with a frozen old keyframe), and they never
+    leave the tracker (no keyframe is published, held or saved). A tracked frame is `localized`
+    when at least `tracking.min_inliers` of its inliers are the saved map's points, else `carried`
+    by the temporary ones (or the IMU)."""
 
     keyframes: int = 0  # keyframes the saved map brought
     found_at: int = -1  # the frame seq the camera was first found at in it (-1: not yet, or no map)
@@ -66,6 +74,9 @@ class SavedMapSearch:
     placed: int = 0  # keyframes of the map of its own placed in the saved one when found
     sandbox: RgbdSlam | None = None  # the map of its own while the camera is not found
     held: dict[int, int] = field(default_factory=dict)  # its keyframes: id -> frame seq
+    localized: int = 0  # frames after found whose pose rests on the saved map's points
+    carried: int = 0  # frames after found tracked on this session's points alone, or by the IMU
+    lost: int = 0  # frames after found with no pose
 
 
 class RgbdSlam:
@@ -131,24 +142,36 @@ class RgbdSlam:
         if self.motion.last_pose is None:  # a saved map, the camera not found in it yet
             return self._find_in_saved(frame, feats, extracted)
         predicted, propagated = self.imu.predict(self.motion.predict(frame.stamp_ns), frame.stamp_ns)
-        tracked, relocalised = self.tracker.locate(feats, predicted, frame.stamp_ns, self.imu.rotation_prior)
+        tracked, relocalised = self.tracker.locate(feats, predicted, frame.stamp_ns, self.imu.rotation_prior,
+                                                   saved_first=self.params.localize)
         if tracked is not None and not relocalised and self.imu.rejects(tracked.camera_from_world, propagated):
             tracked = None  # a fit the IMU's motion cannot have made: the IMU's pose instead
         if tracked is None:
             if propagated is not None and self.imu.coasts(propagated):
+                self.saved.carried += self.saved.found_at >= 0
                 return self._coast(frame, propagated)
             self.motion.lost()  # the prediction keeps coming from the last tracked frame
+            self.saved.lost += self.saved.found_at >= 0
             return TrackResult(frame.seq, frame.stamp_ns, predicted.copy(), TrackingState.LOST, False, -1, 0, 0)
+        on_saved = 0
+        if self.saved.found_at >= 0:
+            on_saved = int(np.count_nonzero(tracked.map_idx < self.map.frozen_points))
+            self.saved.localized += on_saved >= self.params.tracking.min_inliers
+            self.saved.carried += on_saved < self.params.tracking.min_inliers
         pose = seen = invert(tracked.camera_from_world)
         kf_id, loop, deferred, map_moved_m, corrected = -1, None, False, 0.0, {}
         # A frame without enough depth adds no map points, so it must not replace the reference.
         if int(tracked.feats.has_depth.sum()) >= self.params.tracking.min_init_points and \
                 self.map.need_keyframe(pose, tracked):
             kf_id, loop, deferred, map_moved_m, corrected, pose = self._keyframe(frame, pose, tracked)
-        self.frames.add(frame.stamp_ns, self.map.keyframes[-1], pose)
+        # localized in a saved map: its frozen keyframes never move, so neither does the frame
+        localized = self.params.localize and on_saved >= self.params.tracking.min_inliers
+        self.frames.add(frame.stamp_ns, self.map.keyframes[0 if localized else -1], pose)
         self.imu.observe(frame.stamp_ns, pose, continuous=not relocalised,
                          moved=None if pose is seen else pose @ invert(seen))
         self.motion.remember(frame.stamp_ns, pose, continuous=not relocalised)
+        if self.params.localize:  # a temporary keyframe, and what the back end did to them: tracking's own
+            kf_id, corrected = -1, {}
         return TrackResult(
             frame.seq, frame.stamp_ns, pose.copy(), TrackingState.OK, kf_id >= 0, kf_id, tracked.n_matches,
             tracked.n_inliers,
@@ -172,7 +195,8 @@ class RgbdSlam:
             if delta is not None:
                 self.motion.move(delta)
                 pose = delta @ pose
-            found = self.depth.found(self.map)  # tracker.depth.correct_bias: every keyframe moves
+            # tracker.depth.correct_bias: every keyframe moves (not a saved map's: it is the world)
+            found = self.depth.found(self.map) if not self.saved.keyframes else None
             if found is not None:
                 s = self.depth.correct(self.map, found)
                 self.frames.scale(s)
@@ -229,6 +253,8 @@ class RgbdSlam:
             self._sync()
         self.backend.close()
         after = self.keyframe_poses()
+        if self.params.localize:  # only temporary keyframes move: nothing of the map
+            return {}
         return {i: T for i, T in after.items() if not np.array_equal(T, before[i])}
 
     def _sync(self) -> None:
@@ -355,8 +381,13 @@ class RgbdSlam:
         """Write the map as it stands (after `finish`: the final bundle adjustment) to `path`."""
         if self.front.intrinsics is None:
             raise TrackingError("no map to save: no frame was tracked")
-        save_map(path, intrinsics=self.front.intrinsics, keyframes=self.map.keyframes, points=self.map.points,
-                 loop_edges=self.backend.loop_edges, depth_offset=self.depth.offset)
+        keyframes, points, edges = self.map.keyframes, self.map.points, self.backend.loop_edges
+        if self.params.localize:  # the saved map alone, as it came: the temporary keyframes are not the map
+            n = self.map.frozen_keyframes
+            keyframes, points = keyframes[:n], points.first(self.map.frozen_points)
+            edges = [e for e in edges if e[0] < n and e[1] < n]
+        save_map(path, intrinsics=self.front.intrinsics, keyframes=keyframes, points=points,
+                 loop_edges=edges, depth_offset=self.depth.offset)
 
     @property
     def prior_keyframes(self) -> int:
@@ -378,18 +409,23 @@ class RgbdSlam:
     def prior_placed(self) -> int:
         return self.saved.placed
 
+    def prior_counts(self) -> dict[str, int]:
+        """Frames after the camera was found in the saved map: localized in it, carried by this
+        session's own points (or the IMU), lost (SavedMapSearch)."""
+        return {"localized": self.saved.localized, "carried": self.saved.carried, "lost": self.saved.lost}
+
     def _find_in_saved(self, frame: RgbdFrame, feats: FrameFeatures, extracted: Extracted) -> TrackResult:
         """A frame while the camera is not yet found in the saved map (see SavedMapSearch)."""
         search = self.saved
-        if search.misses == 0 and search.sandbox is None and not self.params.localize:
+        if search.misses == 0 and search.sandbox is None:
             # made at the first frame, once the stream's camera has set the parameters
             vocabulary = self.map.index.vocabulary if self.map.index is not None else None
-            search.sandbox = RgbdSlam(self.params, vocabulary=vocabulary)
+            search.sandbox = RgbdSlam(replace(self.params, localize=False), vocabulary=vocabulary)
             search.sandbox.depth.offset, search.sandbox.depth.model = self.depth.offset, self.depth.model
         own = search.sandbox.track(frame, (frame, extracted)) if search.sandbox is not None else None
         if own is not None and own.is_keyframe:
             search.held[own.keyframe_id] = frame.seq
-        hold = own is not None and own.is_keyframe
+        hold = own is not None and own.is_keyframe and not self.params.localize
         tracked = self.tracker.find(feats, frame.stamp_ns)
         if tracked is None:
             search.misses += 1
@@ -405,6 +441,8 @@ class RgbdSlam:
         self.frames.add(frame.stamp_ns, self.map.keyframes[-1], pose)
         self.motion.remember(frame.stamp_ns, pose, continuous=False)
         search.found_at = frame.seq
+        if self.params.localize:  # the map of its own placed as temporary keyframes: tracking's own
+            placed = {}
         return TrackResult(frame.seq, frame.stamp_ns, pose.copy(), TrackingState.OK, False, -1, tracked.n_matches,
                            tracked.n_inliers, relocalised=True, residual=tracked.residual,
                            depth_inverse_offset=self.depth.offset, hold=hold, placed=placed)
