@@ -68,16 +68,26 @@ class MapTracker:
         """The frame against the map from the prediction, else by place recognition; None when it
         cannot be placed with the evidence its case asks for; and whether it was found again.
         `saved_first`: against a saved map's points alone first (`localize` mode), kept when they
-        give a confident pose (`CONFIDENT_INLIER_FACTOR` x `min_inliers` inliers), else all points."""
+        give a confident pose (`CONFIDENT_INLIER_FACTOR` x `min_inliers` inliers), else all points
+        (and that fit when all points give none)."""
         by_place = False
+        motion = self._motion
+        continuous = motion.continuous(stamp_ns)
+
+        def jumps(t: TrackedFrame) -> bool:
+            return motion.velocity is not None and continuous and unsupported_jump(
+                self.params.tracking, predicted, invert(t.camera_from_world), t.n_inliers, stamp_ns - motion.last_stamp)
+
         try:
-            tracked = None
+            tracked = weak = None
             if saved_first:
                 tracked = self.track(feats, predicted, stamp_ns, rotation_prior, saved_only=True)
-                if tracked is not None and tracked.n_inliers < CONFIDENT_INLIER_FACTOR * self.params.tracking.min_inliers:
-                    tracked = None
+                if tracked is not None and (tracked.n_inliers < CONFIDENT_INLIER_FACTOR * self.params.tracking.min_inliers
+                                            or jumps(tracked)):
+                    tracked, weak = None, tracked
             if tracked is None:
                 tracked = self.track(feats, predicted, stamp_ns, rotation_prior)
+                tracked = tracked if tracked is not None else weak  # the saved map's fit, on fewer points, is a fit
             if tracked is None and self.params.relocalise:
                 guess = relocalisation_guess(feats, self._map.keyframes, self._map.index, self.params, self._front.K)
                 if guess is not None:
@@ -87,11 +97,7 @@ class MapTracker:
             # Degenerate geometry inside OpenCV or a singular system: this frame is untrackable,
             # the stream is not broken.
             tracked = None
-        motion = self._motion
-        continuous = motion.continuous(stamp_ns)
-        if tracked is not None and not by_place and motion.velocity is not None and continuous and \
-                unsupported_jump(self.params.tracking, predicted, invert(tracked.camera_from_world), tracked.n_inliers,
-                                 stamp_ns - motion.last_stamp):
+        if tracked is not None and not by_place and jumps(tracked):
             self.rejected_jumps += 1
             tracked = None
         # found again, after a longer LOST stretch or by place recognition (the step is unknown): only on

@@ -260,6 +260,29 @@ def test_turns_motion_is_fast_head_turns_on_the_same_walk() -> None:
         SyntheticScene(n_frames=2, motion="spin")
 
 
+def test_a_second_session_walks_the_loop_from_elsewhere_and_the_other_way_round() -> None:
+    """start=S, reverse=1 (bench/localize.py's second sessions): the same loop, entered S s along
+    it and walked backwards: frame i stands where the forward walk stood at S - i/fps, and looks
+    where it goes and towards the pillar (the room's centre), as the forward walk does."""
+    from octolog.kit.errors import ConfigError
+    from octolog.replay.sources import open_source
+    from octolog.replay.synthetic_trajectory import camera_trajectory
+
+    t = np.arange(0.0, 18.0, 0.25)
+    forward, _ = camera_trajectory(5.0 - t)
+    pos, rot = camera_trajectory(t, path_start_s=5.0, reverse=True)
+    assert np.allclose(pos, forward, atol=1e-12)
+    step = np.diff(pos, axis=0)
+    assert np.all(np.einsum("ij,ij->i", rot[:-1, :, 2], step / np.linalg.norm(step, axis=1, keepdims=True)) > 0.5)
+    inward = -pos[:, :2] / np.linalg.norm(pos[:, :2], axis=1, keepdims=True)
+    assert np.mean(np.einsum("ij,ij->i", rot[:, :2, 2], inward) > 0.0) > 0.9
+    src = open_source("synthetic:10:start=5:reverse=1")
+    frame3, _ = camera_trajectory(np.array([3 / 30.0]), path_start_s=5.0, reverse=True)
+    assert src.name == "synthetic:10:start=5:reverse=1" and np.allclose(src.scene.pose(3)[:3, 3], frame3[0])
+    with pytest.raises(ConfigError, match="synthetic"):
+        open_source("synthetic:10:reverse=2")
+
+
 def test_exposure_blurs_colour_along_the_turn_only() -> None:
     """exposure=MS smears colour by the camera's rotation over the exposure: a frame mid-turn loses
     most of its fine detail, a frame of the plain walk little, depth is untouched."""

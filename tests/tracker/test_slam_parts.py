@@ -153,6 +153,36 @@ def test_local_map_inserts_points_and_asks_for_keyframes_by_motion(params, frame
     assert local.need_keyframe(_moved(x=params.keyframes.translation_m * 2), again)
 
 
+def test_a_saved_point_seen_from_afar_weighs_less_in_a_pose_fit_than_one_seen_from_close():
+    """map_tracking.point_sigmas: a point fused from one reading at 3 m, localized in from 1 m, is
+    known to 9x the error of one read at 1 m: its residuals' sigmas widen (pixels and inverse
+    depth); one read many times from close by keeps the keypoint's own sigmas."""
+    from octolog.tracker.keyframe_map import depth_weight
+    from octolog.tracker.map_tracking import point_sigmas
+
+    K = np.array([[525.0, 0.0, 320.0], [0.0, 525.0, 240.0], [0.0, 0.0, 1.0]])
+    pts = np.array([[0.0, 0.0, 1.0]] * 3)
+    weight = np.array([depth_weight(np.array([3.0]))[0], depth_weight(np.array([1.0]))[0], 1e12])
+    own = np.ones(3)
+    inv_px, inv_d = point_sigmas(weight, pts, np.eye(4), K, own, 0.002)
+    assert inv_px[0] < inv_px[1] < inv_px[2] and inv_d[0] < inv_d[1] < inv_d[2]
+    assert inv_px[2] == pytest.approx(1.0) and inv_d[2] == pytest.approx(1.0 / 0.002)
+    assert 1.0 / inv_px[0] == pytest.approx(np.hypot(1.0, 525.0 * 0.002 * 9.0), rel=1e-9)
+
+
+def test_a_pose_graph_holds_every_fixed_keyframe():
+    """kit/posegraph: several fixed keyframes (a saved map's) stay where they are; a loop edge that
+    disagrees with them moves only the free ones."""
+    from octolog.kit.posegraph import optimize_pose_graph
+
+    poses = np.stack([_moved(x=0.1 * i) for i in range(4)])
+    edges = [(i, i + 1, np.linalg.inv(poses[i]) @ poses[i + 1], 1.0) for i in range(3)]
+    edges.append((0, 3, _moved(x=0.25), 1.0))  # says keyframe 3 is 5 cm nearer
+    out = optimize_pose_graph(poses, edges, fixed=range(2))
+    assert np.array_equal(out[0], poses[0]) and np.array_equal(out[1], poses[1])
+    assert out[3][0, 3] < 0.3 - 0.01
+
+
 # -- the pose fit --------------------------------------------------------------------------------
 
 
