@@ -14,7 +14,8 @@ The localize and map runs are measured in A's world: their poses under A's own a
 truth, no new fit. Prints, per run: the frames with a pose (as published live, and in
 trajectory.txt, where frames tracked before the camera was found in A's map are placed after),
 the ATE there and the worst pose, against B's own-fit ATE and A's, the real-time factor (B's
-camera time over the run's wall time), and the summary's counts (`prior_map`).
+camera time over the run's wall time), and the summary's counts (`prior_map`); per pair, how far
+A's map points stand off the room's true surfaces (what bounds a session placed in A's world).
 """
 
 from __future__ import annotations
@@ -26,10 +27,14 @@ import sys
 import tempfile
 from pathlib import Path
 
+import numpy as np
+
 from octolog.kit import metrics
 from octolog.kit.mcaplog import read_wire
 from octolog.schemas import codec
+from octolog.replay.sources import open_source
 from octolog.schemas.topics import TRACKING_STATUS
+from octolog.tracker.mapfile import load_map
 
 LOST = 2  # TrackingStatus.state (tracker/interface.py)
 
@@ -47,6 +52,15 @@ def octolog(*args: str) -> None:
 
 def summary(folder: Path) -> dict:
     return json.loads((folder / "summary.json").read_text())
+
+
+def map_error(session: Path, source: str, alignment: np.ndarray) -> tuple[float, float]:
+    """How far the saved map's good points stand off the room's true surfaces (median, p90, m)."""
+    saved = load_map(session)
+    n = saved.points.size
+    xyz = saved.points.xyz[:n][~saved.points.bad[:n]]
+    d = np.abs(open_source(source).scene.distance_to_surface(xyz @ alignment[:3, :3].T + alignment[:3, 3]))
+    return float(np.median(d)), float(np.percentile(d, 90))
 
 
 def live_share(folder: Path) -> float:
@@ -87,7 +101,9 @@ def main() -> None:
             print(f"| {name} | {label} | {live_share(folder) * 100:.1f} % / {res.n_pairs / len(gt_b) * 100:.1f} % | "
                   f"{res.rmse * 100:.2f} | {res.max * 100:.2f} | {res.rmse / own:.2f}x | {res.rmse / a_ate.rmse:.2f}x | "
                   f"{rtf:.2f} | {found} | {tally} |", flush=True)
-        print(f"pair {name}: A's own ATE {a_ate.rmse * 100:.2f} cm, B's own {own * 100:.2f} cm", flush=True)
+        med, p90 = map_error(a, a_src, a_ate.alignment)
+        print(f"pair {name}: A's own ATE {a_ate.rmse * 100:.2f} cm, B's own {own * 100:.2f} cm; A's map points off "
+              f"the room's surfaces: median {med * 100:.2f} cm, p90 {p90 * 100:.2f} cm", flush=True)
 
 
 if __name__ == "__main__":

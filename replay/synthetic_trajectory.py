@@ -4,7 +4,7 @@
 sequence length.
 
 `path_start_s` starts the walk that far along it, `reverse` walks it the other way round (still
-looking towards the pillar): a second session through the same room from another place and in
+looking towards the pillar): a later walk through the same room from another place and in
 the other direction (bench/localize.py).
 
 `motion="turns"` is the hand-held user turning to look at the room: the same walk, and on top of

@@ -57,7 +57,7 @@ class SavedMapSearch:
     in `map` mode, extends it. Not found within `map_find_frames` frames, the tracker gives the
     saved map up: the held map becomes the map (its keyframes go out numbered from 0, in its own
     world: `dropped`). The saved map's keyframes and points are frozen (`LocalMap.frozen_keyframes`):
-    the back end moves only this session's, so the session lives in the saved map's world.
+    the back end moves only the new ones, so the tracking lives in the saved map's world.
 
     In `localize` mode nothing of the saved map changes, and the camera is looked for until the
     stream ends. The keyframes tracking makes are temporary: they carry the camera where the view
@@ -75,7 +75,7 @@ class SavedMapSearch:
     sandbox: RgbdSlam | None = None  # the map of its own while the camera is not found
     held: dict[int, int] = field(default_factory=dict)  # its keyframes: id -> frame seq
     localized: int = 0  # frames after found whose pose rests on the saved map's points
-    carried: int = 0  # frames after found tracked on this session's points alone, or by the IMU
+    carried: int = 0  # frames after found tracked on the temporary points alone, or by the IMU
     lost: int = 0  # frames after found with no pose
 
 
