@@ -157,8 +157,9 @@ class OdometryParams:
     relocalise: bool
     bow_candidates: int
     readout_s: float  # rolling-shutter readout, first row to last (0: global shutter)
-    localize: bool  # tracker.mode = "localize": no keyframes, the map is not changed
+    localize: bool  # tracker.mode = "localize": the saved map is not changed, keyframes are temporary
     map_find_frames: int  # frames a saved map may take to find the camera in (tracker/slam.py: SavedMapSearch)
+    map_find_every: int  # while it is looked for, place recognition on every this many frames
     imu: bool  # use the camera's IMU when the stream has one (tracker/imu_fusion.py)
     max_inertial_s: float  # the longest a pose may come from the IMU alone (INERTIAL)
 
@@ -228,12 +229,17 @@ class TrackerConfig:
     # finds the camera in it by place recognition and tracks in its world ("": a new map)
     map: str = ""
     # with a map: "map" extends it where the camera sees new places; "localize" only tracks in it
-    # (no keyframes: neither the tracker's map nor the mapper's changes)
+    # (neither the saved map nor the mapper's changes; temporary keyframes carry the camera where
+    # the view leaves it, and are never published or saved)
     mode: str = "map"
     # with a map: frames the camera may take to be found in it (LOST meanwhile, tracked in a map of its
     # own that is placed in the saved one when found: 5 s at 30 fps, to walk in from an unmapped
     # doorway); then the tracker says so and goes on in that map of its own (separate, not merged)
     map_find_frames: int = 150
+    # with a map, while the camera is not found in it: place recognition against every saved keyframe
+    # on one frame in this many (each try costs ~150 ms for 56 keyframes without a vocabulary; the
+    # frames between are tracked in the map of its own and placed with it when found)
+    map_find_every: int = 3
     # native: fuse the camera's IMU (camera/gyro/sample, camera/accel/sample) when the stream has one:
     # gyro-predicted rotation, biases, gravity and velocity online; false: vision only (a stream
     # without an IMU runs the same either way)
@@ -267,6 +273,7 @@ class TrackerConfig:
         _want(self.mode == "map" or bool(self.map), "mode", self.mode, "localize needs a saved map (tracker.map, --map)")
         _want(not self.map or self.engine == "native", "map", self.map, "a saved map needs engine = native")
         _want(self.map_find_frames >= 1, "map_find_frames", self.map_find_frames, "want >= 1")
+        _want(self.map_find_every >= 1, "map_find_every", self.map_find_every, "want >= 1")
         _want(0.0 <= self.max_inertial_s <= 10.0, "max_inertial_s", self.max_inertial_s, "want 0 to 10 s")
         if self.rolling_shutter_ms is not None:
             _want(0.0 <= self.rolling_shutter_ms <= 100.0, "rolling_shutter_ms", self.rolling_shutter_ms,
@@ -288,7 +295,8 @@ class TrackerConfig:
             bundle_adjustment=self.bundle_adjustment, global_ba_keyframes=self.global_ba_keyframes,
             loop_closing=self.loop_closing, loops=self.loops, relocalise=self.relocalise,
             bow_candidates=self.bow_candidates, readout_s=(self.rolling_shutter_ms or 0.0) / 1e3,
-            localize=self.mode == "localize", map_find_frames=self.map_find_frames, imu=self.imu,
+            localize=self.mode == "localize", map_find_frames=self.map_find_frames,
+            map_find_every=self.map_find_every, imu=self.imu,
             max_inertial_s=self.max_inertial_s,
         )
 

@@ -64,12 +64,11 @@ class MapTracker:
 
     def locate(self, feats: FrameFeatures, predicted: np.ndarray, stamp_ns: int,
                rotation_prior: RotationPrior | None = None,
-               saved_first: bool = False) -> tuple[TrackedFrame | None, bool]:
+               with_saved: bool = False) -> tuple[TrackedFrame | None, bool]:
         """The frame against the map from the prediction, else by place recognition; None when it
         cannot be placed with the evidence its case asks for; and whether it was found again.
-        `saved_first`: against a saved map's points alone first (`localize` mode), kept when they
-        give a confident pose (`CONFIDENT_INLIER_FACTOR` x `min_inliers` inliers), else all points
-        (and that fit when all points give none)."""
+        `with_saved` (`localize` mode): the local map's points and the saved map's in view, these
+        weighed by their own error (`track`)."""
         by_place = False
         motion = self._motion
         continuous = motion.continuous(stamp_ns)
@@ -79,15 +78,7 @@ class MapTracker:
                 self.params.tracking, predicted, invert(t.camera_from_world), t.n_inliers, stamp_ns - motion.last_stamp)
 
         try:
-            tracked = weak = None
-            if saved_first:
-                tracked = self.track(feats, predicted, stamp_ns, rotation_prior, saved_only=True)
-                if tracked is not None and (tracked.n_inliers < CONFIDENT_INLIER_FACTOR * self.params.tracking.min_inliers
-                                            or jumps(tracked)):
-                    tracked, weak = None, tracked
-            if tracked is None:
-                tracked = self.track(feats, predicted, stamp_ns, rotation_prior)
-                tracked = tracked if tracked is not None else weak  # the saved map's fit, on fewer points, is a fit
+            tracked = self.track(feats, predicted, stamp_ns, rotation_prior, with_saved)
             if tracked is None and self.params.relocalise:
                 guess = relocalisation_guess(feats, self._map.keyframes, self._map.index, self.params, self._front.K)
                 if guess is not None:
@@ -122,7 +113,7 @@ class MapTracker:
         return tracked
 
     def track(self, raw: FrameFeatures, predicted_wc: np.ndarray, stamp_ns: int,
-              rotation_prior: RotationPrior | None = None, saved_only: bool = False) -> TrackedFrame | None:
+              rotation_prior: RotationPrior | None = None, with_saved: bool = False) -> TrackedFrame | None:
         """Match and estimate the pose; None when the frame cannot be tracked.
 
         With a rolling shutter the keypoints are moved to mid-readout twice: with the motion
@@ -135,15 +126,15 @@ class MapTracker:
         rolling = self.params.readout_s > 0.0 and motion.tracked
         feats = self._front.unroll(raw, motion.velocity) if rolling and motion.velocity is not None else raw
         guess_cw = invert(predicted_wc)
-        local = self._local(predicted_wc, saved_only)
+        local = self._local(predicted_wc, with_saved)
 
-        best, attempt = self._first_pass(feats, local, guess_cw, rotation_prior, saved_only)
+        best, attempt = self._first_pass(feats, local, guess_cw, rotation_prior, with_saved)
         if best is None:
             return None
         first = (best[0], best[1])
         ki, mi = best[2], best[3]
         if attempt > 0:
-            local = self._local(invert(best[0]), saved_only)
+            local = self._local(invert(best[0]), with_saved)
         T_cw, _ = first
 
         # Second pass: with a good pose, all local points can be matched in a tight window.
@@ -154,7 +145,7 @@ class MapTracker:
             feats2 = self._front.unroll(raw, (so3_log(step[:3, :3]), step[:3, 3].copy(), stamp_ns - motion.last_stamp))
         ki2, mi2, visible = self._guided(feats2, local, T_cw, self.params.tracking.refine_radius_px)
         second = self.solve(feats2, ki2, mi2, T_cw, use_ransac=False, rotation_prior=rotation_prior,
-                            weigh_points=saved_only)
+                            weigh_points=with_saved)
         if second is not None and int(second[1].sum()) >= int(first[1].sum()) // 2:
             T_cw, inl = second
             ki, mi = ki2, mi2
@@ -176,19 +167,23 @@ class MapTracker:
         residual = float(np.sqrt(np.mean(np.sum(scaled * scaled, axis=1)))) if ki.size else float("nan")
         return TrackedFrame(T_cw, ki, mi, int(inl.size), int(inl.sum()), feats, residual)
 
-    def _local(self, world_from_camera: np.ndarray, saved_only: bool) -> np.ndarray:
-        """The points a pose is matched against: the local map's, or the saved map's in view."""
-        if saved_only:
+    def _local(self, world_from_camera: np.ndarray, with_saved: bool) -> np.ndarray:
+        """The points a pose is matched against: the local map's, and the saved map's in view (by
+        view, not by distance: a session walking the other way stands where the saved keyframes
+        looked elsewhere)."""
+        local = self._map.local_points(world_from_camera)
+        if with_saved:
             assert self._front.intrinsics is not None
-            return self._map.saved_points_in_view(world_from_camera, self._front.intrinsics)
-        return self._map.local_points(world_from_camera)
+            local = np.union1d(local, self._map.saved_points_in_view(world_from_camera, self._front.intrinsics))
+        return local
 
     def solve(
         self, feats: FrameFeatures, kp_idx: np.ndarray, map_idx: np.ndarray, guess_cw: np.ndarray, use_ransac: bool,
         rounds: int = 3, rotation_prior: RotationPrior | None = None, weigh_points: bool = False,
     ) -> tuple[np.ndarray, np.ndarray] | None:
         """Pose (camera_from_world) and inlier mask from matches, or None when unreliable.
-        `weigh_points`: each point's own uncertainty (`point_sigmas`) joins its residuals' sigmas."""
+        `weigh_points`: a saved map's points (`LocalMap.frozen_points`) carry their own error
+        (`point_sigmas`) in their residuals' sigmas."""
         K, t = self._front.K, self.params.tracking
         if kp_idx.size < t.min_inliers:
             return None
@@ -213,9 +208,10 @@ class MapTracker:
             init_inl[inl.ravel()] = True
         inv_sigma = self.params.features.scale_factor ** (-feats.octave[kp_idx].astype(np.float64))
         inv_depth_sigma: float | np.ndarray = t.inv_depth_sigma
-        if weigh_points:
-            inv_sigma, inv_depth_sigma = point_sigmas(self._map.points.weight[map_idx], pts_w, guess, K, inv_sigma,
-                                                      t.inv_depth_sigma)
+        if weigh_points and np.any(saved := map_idx < self._map.frozen_points):
+            inv_sigma, inv_depth_sigma = inv_sigma.copy(), np.full(map_idx.size, t.inv_depth_sigma)
+            inv_sigma[saved], inv_depth_sigma[saved] = point_sigmas(
+                self._map.points.weight[map_idx[saved]], pts_w[saved], guess, K, inv_sigma[saved], t.inv_depth_sigma)
         T, inl_mask = optimize_pose(guess, pts_w, uv, inv_sigma, feats.z[kp_idx], K, inv_depth_sigma=inv_depth_sigma,
                                     inliers=init_inl, rounds=rounds, rotation_prior=rotation_prior)
         if int(inl_mask.sum()) < t.min_inliers or not np.all(np.isfinite(T)):
@@ -256,11 +252,11 @@ class MapTracker:
         return n_inliers >= CONFIDENT_INLIER_FACTOR * t.min_inliers and n_inliers >= t.confident_ratio * n_matches
 
     def _first_pass(self, feats: FrameFeatures, local: np.ndarray, guess_cw: np.ndarray,
-                    rotation_prior: RotationPrior | None, saved_only: bool = False
+                    rotation_prior: RotationPrior | None, with_saved: bool = False
                     ) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None, int]:
         """The first pose: matches and a robust fit, escalating while the answer is weak; the best
-        (pose, inliers, keypoint ids, map ids) or None, and the attempt it stopped at. `saved_only`:
-        the saved map's points, and no search beyond the windows (a fit on all points follows)."""
+        (pose, inliers, keypoint ids, map ids) or None, and the attempt it stopped at; `with_saved`:
+        the saved map's points weighed by their own error."""
         # Escalate only while the answer is weak: a tight window around the prediction, wide ones, then
         # descriptor matching against the map around the last tracked pose (after LOST or a jolt the
         # prediction is useless, and that is where tracking resumes). Best inlier count wins.
@@ -270,12 +266,10 @@ class MapTracker:
         # (then a wide one over the seed, then over all). The second pass below matches the whole local map.
         motion = self._motion
         seed = self.last_inlier_ids if motion.tracked else np.zeros(0, np.int64)
-        if saved_only:
-            seed = seed[seed < self._map.frozen_points]
         if seed.size < CONFIDENT_INLIER_FACTOR * self.params.tracking.min_inliers:
             seed = local
         plan = [(seed, 1.0), (seed, WIDE_SEARCH_FACTOR)] + ([(local, WIDE_SEARCH_FACTOR)] if seed is not local else [])
-        for attempt in range(len(plan) + (not saved_only)):
+        for attempt in range(len(plan) + 1):
             if attempt < len(plan):
                 ids, factor = plan[attempt]
                 ki, mi, _ = self._guided(feats, ids, guess_cw, self.params.tracking.search_radius_px * factor)
@@ -289,7 +283,7 @@ class MapTracker:
             # This pose only seeds the tight second matching pass: two rounds suffice.
             trusted = attempt == 0 and motion.tracked and motion.velocity is not None
             sol = self.solve(feats, ki, mi, guess_cw, use_ransac=not trusted, rounds=2, rotation_prior=rotation_prior,
-                             weigh_points=saved_only)
+                             weigh_points=with_saved)
             if sol is not None and (best is None or int(sol[1].sum()) > int(best[1].sum())):
                 best = (sol[0], sol[1], ki, mi)
             if best is not None and self._confident(int(best[1].sum()), best[2].size):

@@ -143,7 +143,7 @@ class RgbdSlam:
             return self._find_in_saved(frame, feats, extracted)
         predicted, propagated = self.imu.predict(self.motion.predict(frame.stamp_ns), frame.stamp_ns)
         tracked, relocalised = self.tracker.locate(feats, predicted, frame.stamp_ns, self.imu.rotation_prior,
-                                                   saved_first=self.params.localize)
+                                                   with_saved=self.params.localize)
         if tracked is not None and not relocalised and self.imu.rejects(tracked.camera_from_world, propagated):
             tracked = None  # a fit the IMU's motion cannot have made: the IMU's pose instead
         if tracked is None:
@@ -426,7 +426,8 @@ class RgbdSlam:
         if own is not None and own.is_keyframe:
             search.held[own.keyframe_id] = frame.seq
         hold = own is not None and own.is_keyframe and not self.params.localize
-        tracked = self.tracker.find(feats, frame.stamp_ns)
+        tried = search.misses % self.params.map_find_every == 0  # tracker.map_find_every
+        tracked = self.tracker.find(feats, frame.stamp_ns) if tried else None
         if tracked is None:
             search.misses += 1
             if search.misses >= self.params.map_find_frames and not self.params.localize:
