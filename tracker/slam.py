@@ -61,8 +61,9 @@ class SavedMapSearch:
 
     In `localize` mode nothing of the saved map changes, and the camera is looked for until the
     stream ends. The keyframes tracking makes are temporary: they carry the camera where the view
-    leaves the saved map (visual odometry on points that are not the map's), the back end ties them
-    back to the saved map when it is seen again (a loop with a frozen old keyframe), and they never
+    leaves the saved map (visual odometry on points that are not the map's), each frame is fitted to
+    them and to the saved map's points in view (`MapTracker.locate(with_saved=True)`), the back end
+    ties them to the saved map (bundle adjustment around its frozen keyframes, loops), and they never
     leave the tracker (no keyframe is published, held or saved). A tracked frame is `localized`
     when at least `tracking.min_inliers` of its inliers are the saved map's points, else `carried`
     by the temporary ones (or the IMU)."""
@@ -164,9 +165,7 @@ class RgbdSlam:
         if int(tracked.feats.has_depth.sum()) >= self.params.tracking.min_init_points and \
                 self.map.need_keyframe(pose, tracked):
             kf_id, loop, deferred, map_moved_m, corrected, pose = self._keyframe(frame, pose, tracked)
-        # localized in a saved map: its frozen keyframes never move, so neither does the frame
-        localized = self.params.localize and on_saved >= self.params.tracking.min_inliers
-        self.frames.add(frame.stamp_ns, self.map.keyframes[0 if localized else -1], pose)
+        self.frames.add(frame.stamp_ns, self.map.keyframes[-1], pose)
         self.imu.observe(frame.stamp_ns, pose, continuous=not relocalised,
                          moved=None if pose is seen else pose @ invert(seen))
         self.motion.remember(frame.stamp_ns, pose, continuous=not relocalised)
