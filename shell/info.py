@@ -186,7 +186,8 @@ def prior_line(p: dict) -> str:
     if p.get("found_at_frame", -1) < 0:
         return f"saved map {p['map']}: the camera was never found in it ({p['frames_before']} frames LOST)"
     n = p.get("placed_keyframes", 0)
-    placed = f"; {n} keyframe{'s' if n != 1 else ''} made while looking placed in it" if n else ""
+    temporary = " (temporary)" if p.get("mode") == "localize" else ""
+    placed = f"; {n} keyframe{'s' if n != 1 else ''} made while looking placed in it{temporary}" if n else ""
     after = (f"; then {p['localized']} frames localized in it, {p['carried']} carried by this session's own "
              f"points or the IMU, {p['lost']} lost, {p.get('relocalised', 0)} relocalisations" if "localized" in p else "")
     return (f"saved map {p['map']} ({p['keyframes']} keyframes){mode}: found at frame {p['found_at_frame']}, "

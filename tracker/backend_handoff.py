@@ -76,11 +76,12 @@ class BackendHandoff:
 
     def final_adjustment(self, K: np.ndarray) -> None:
         """A last bundle adjustment, as ORB-SLAM runs after a loop, so what is written out has the
-        whole map's support: every keyframe (the first fixed) up to `global_ba_keyframes`, else the
-        newest that many, bounded in time and memory (in the worker when there is one). Its result
-        is pending; nothing when the settings ask for none."""
+        whole map's support: every keyframe (the first fixed, and a saved map's) up to
+        `global_ba_keyframes`, else the newest that many, bounded in time and memory (in the worker
+        when there is one). Its result is pending; nothing when the settings ask for none. Localizing,
+        it moves only the temporary keyframes: the trajectory file gets the whole session's support."""
         p = self.params
-        if p.global_ba_keyframes > 0 and p.local_ba and len(self._map.keyframes) >= 2 and not p.localize:
+        if p.global_ba_keyframes > 0 and p.local_ba and len(self._map.keyframes) >= 2:
             window_n = min(len(self._map.keyframes), p.global_ba_keyframes)
             self._start(self._job(K, window_n=window_n, max_points=None, loop_closing=False,
                                   iterations=p.bundle_adjustment.global_iterations))

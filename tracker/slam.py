@@ -57,14 +57,15 @@ class SavedMapSearch:
     in `map` mode, extends it. Not found within `map_find_frames` frames, the tracker gives the
     saved map up: the held map becomes the map (its keyframes go out numbered from 0, in its own
     world: `dropped`). The saved map's keyframes and points are frozen (`LocalMap.frozen_keyframes`):
-    the back end moves only the new ones, so the tracking lives in the saved map's world.
+    the back end moves only the new ones, so the tracking lives in the saved map's world; once found,
+    each frame is fitted to the local map's points and the saved map's points in view
+    (`MapTracker.locate(with_saved=True)`, these weighed by their own depth error).
 
     In `localize` mode nothing of the saved map changes, and the camera is looked for until the
     stream ends. The keyframes tracking makes are temporary: they carry the camera where the view
-    leaves the saved map (visual odometry on points that are not the map's), each frame is fitted to
-    them and to the saved map's points in view (`MapTracker.locate(with_saved=True)`), the back end
-    ties them to the saved map (bundle adjustment around its frozen keyframes, loops), and they never
-    leave the tracker (no keyframe is published, held or saved). A tracked frame is `localized`
+    leaves the saved map (visual odometry on points that are not the map's), the back end ties them
+    to the saved map (bundle adjustment around its frozen keyframes, loops, the final adjustment for
+    the trajectory), and they never leave the tracker (no keyframe is published, held or saved). A tracked frame is `localized`
     when at least `tracking.min_inliers` of its inliers are the saved map's points, else `carried`
     by the temporary ones (or the IMU)."""
 
@@ -144,7 +145,7 @@ class RgbdSlam:
             return self._find_in_saved(frame, feats, extracted)
         predicted, propagated = self.imu.predict(self.motion.predict(frame.stamp_ns), frame.stamp_ns)
         tracked, relocalised = self.tracker.locate(feats, predicted, frame.stamp_ns, self.imu.rotation_prior,
-                                                   with_saved=self.params.localize)
+                                                   with_saved=self.saved.found_at >= 0)
         if tracked is not None and not relocalised and self.imu.rejects(tracked.camera_from_world, propagated):
             tracked = None  # a fit the IMU's motion cannot have made: the IMU's pose instead
         if tracked is None:
@@ -252,7 +253,7 @@ class RgbdSlam:
             self._sync()
         self.backend.close()
         after = self.keyframe_poses()
-        if self.params.localize:  # only temporary keyframes move: nothing of the map
+        if self.params.localize:  # only temporary keyframes moved (for the trajectory): nothing of the map
             return {}
         return {i: T for i, T in after.items() if not np.array_equal(T, before[i])}
 
