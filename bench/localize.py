@@ -13,7 +13,8 @@ elsewhere on the loop. Both with the D455's depth noise and IMU. B runs three ti
 The localize and map runs are measured in A's world: their poses under A's own alignment to the
 truth, no new fit. Prints, per run: the frames with a pose (as published live, and in
 trajectory.txt, where frames tracked before the camera was found in A's map are placed after),
-the ATE there and the worst pose, against B's own-fit ATE and A's, the real-time factor (B's
+the ATE there and the worst pose, the same of the poses as they were published (before the back
+end's later corrections and the final adjustment), against B's own-fit ATE and A's, the real-time factor (B's
 camera time over the run's wall time), and the summary's counts (`prior_map`); per pair, how far
 A's map points stand off the room's true surfaces (what bounds a session placed in A's world).
 """
@@ -30,10 +31,11 @@ from pathlib import Path
 import numpy as np
 
 from octolog.kit import metrics
+from octolog.kit.geometry import matrices_to_quats
 from octolog.kit.mcaplog import read_wire
-from octolog.schemas import codec
+from octolog.schemas import codec, posemsgs
 from octolog.replay.sources import open_source
-from octolog.schemas.topics import TRACKING_STATUS
+from octolog.schemas.topics import POSE, TRACKING_STATUS
 from octolog.tracker.mapfile import load_map
 
 LOST = 2  # TrackingStatus.state (tracker/interface.py)
@@ -63,10 +65,20 @@ def map_error(session: Path, source: str, alignment: np.ndarray) -> tuple[float,
     return float(np.median(d)), float(np.percentile(d, 90))
 
 
-def live_share(folder: Path) -> float:
-    """The share of frames the tracker published a pose for as they came (not LOST)."""
-    states = [codec.decode(m.data, m.msgtype).state for m in read_wire(folder / "session.mcap", [TRACKING_STATUS.name])]
-    return sum(s != LOST for s in states) / max(len(states), 1)
+def _ns(header) -> int:
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+def live(folder: Path) -> tuple[float, metrics.Trajectory]:
+    """The share of frames the tracker published a pose for as they came (not LOST), and those
+    poses as published (before any later correction)."""
+    log = folder / "session.mcap"
+    states = {_ns(m.header): m.state for m in (codec.decode(r.data, r.msgtype) for r in read_wire(log, [TRACKING_STATUS.name]))}
+    kept = [(_ns(m.header), posemsgs.pose_matrix(m.pose)) for m in (codec.decode(r.data, r.msgtype) for r in read_wire(log, [POSE.name]))
+            if states.get(_ns(m.header), LOST) != LOST]
+    T = np.array([t for _, t in kept]).reshape(-1, 4, 4)
+    traj = metrics.Trajectory(np.array([n for n, _ in kept], np.int64), T[:, :3, 3], matrices_to_quats(T[:, :3, :3]))
+    return sum(v != LOST for v in states.values()) / max(len(states), 1), traj
 
 
 def main() -> None:
@@ -78,8 +90,8 @@ def main() -> None:
     root.mkdir(parents=True, exist_ok=True)
     print(f"sessions in {root}")
     print("| pair | B run | poses live / in trajectory.txt | ATE in A's world, cm | worst, cm | / B's own | / A's own "
-          "| real-time factor | found at | localized / carried / lost / relocalised |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "| live poses: ATE, worst, cm | real-time factor | found at | localized / carried / lost / relocalised |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for name in args.pairs.split(","):
         a_src, b_src = PAIRS[name]
         a, alone, loc, slam = (root / f"{name}-{n}" for n in ("A", "B-alone", "B-localize", "B-map"))
@@ -94,13 +106,15 @@ def main() -> None:
             s = summary(folder)
             traj = metrics.read_tum(folder / "trajectory.txt")
             res = metrics.ate(traj, gt_b) if folder is alone else metrics.ate_in(traj, gt_b, a_ate.alignment)
+            share, published = live(folder)
+            now = metrics.ate(published, gt_b) if folder is alone else metrics.ate_in(published, gt_b, a_ate.alignment)
             prior = s.get("prior_map") or {}
             tally = " / ".join(str(prior.get(k, "-")) for k in ("localized", "carried", "lost", "relocalised"))
             found = "dropped" if prior.get("dropped") else prior.get("found_at_frame", "-")
             rtf = (len(gt_b) - 1) / 30.0 / s["wall_s"]
-            print(f"| {name} | {label} | {live_share(folder) * 100:.1f} % / {res.n_pairs / len(gt_b) * 100:.1f} % | "
+            print(f"| {name} | {label} | {share * 100:.1f} % / {res.n_pairs / len(gt_b) * 100:.1f} % | "
                   f"{res.rmse * 100:.2f} | {res.max * 100:.2f} | {res.rmse / own:.2f}x | {res.rmse / a_ate.rmse:.2f}x | "
-                  f"{rtf:.2f} | {found} | {tally} |", flush=True)
+                  f"{now.rmse * 100:.2f}, {now.max * 100:.2f} | {rtf:.2f} | {found} | {tally} |", flush=True)
         med, p90 = map_error(a, a_src, a_ate.alignment)
         print(f"pair {name}: A's own ATE {a_ate.rmse * 100:.2f} cm, B's own {own * 100:.2f} cm; A's map points off "
               f"the room's surfaces: median {med * 100:.2f} cm, p90 {p90 * 100:.2f} cm", flush=True)
