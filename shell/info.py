@@ -188,7 +188,9 @@ def prior_line(p: dict) -> str:
     n = p.get("placed_keyframes", 0)
     temporary = " (temporary)" if p.get("mode") == "localize" else ""
     placed = f"; {n} keyframe{'s' if n != 1 else ''} made while looking placed in it{temporary}" if n else ""
+    n_re = p.get("relocalised", 0)
     after = (f"; then {p['localized']} frames localized in it, {p['carried']} carried by this session's own "
-             f"points or the IMU, {p['lost']} lost, {p.get('relocalised', 0)} relocalisations" if "localized" in p else "")
+             f"points or the IMU, {p['lost']} lost, {n_re} relocalisation{'s' if n_re != 1 else ''}"
+             if "localized" in p else "")
     return (f"saved map {p['map']} ({p['keyframes']} keyframes){mode}: found at frame {p['found_at_frame']}, "
             f"after {p['frames_before']} frames not found (LOST){placed}{after}")

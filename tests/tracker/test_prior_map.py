@@ -235,6 +235,9 @@ def test_a_second_session_lands_in_the_first_sessions_world(split_sessions, mode
     # every frame after the one it was found at is counted once: localized, carried or lost
     assert prior["localized"] + prior["carried"] + prior["lost"] == 150 + summary["frames"]["consumed"] - 1 - prior["found_at_frame"]
     assert prior["localized"] > prior["carried"] + prior["lost"]  # a room the map covers
+    from octolog.shell.info import prior_line  # the summary's line says the same
+
+    assert f"{prior['localized']} frames localized in it, {prior['carried']} carried" in prior_line(prior)
     gt = metrics.read_tum(s["whole"] / "groundtruth.txt")
     whole = metrics.read_tum(s["whole"] / "trajectory.txt")
     n = len(metrics.read_tum(s["first"] / "trajectory.txt"))
