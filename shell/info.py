@@ -35,6 +35,8 @@ def describe_session(folder: Path) -> str:
         head += "\n  " + imu_line(summary["imu"])
     if summary.get("depth_bias"):
         head += "\n" + depth_bias_line(summary["depth_bias"])
+    if summary.get("prior_map"):
+        head += "\n  " + prior_line(summary["prior_map"])
     if not log.is_file():
         return f"{head}\n  no session.mcap"
     return f"{head}\n{describe_mcap(log)}"

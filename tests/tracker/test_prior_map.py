@@ -238,6 +238,7 @@ def test_a_second_session_lands_in_the_first_sessions_world(split_sessions, mode
     from octolog.shell.info import prior_line  # the summary's line says the same
 
     assert f"{prior['localized']} frames localized in it, {prior['carried']} carried" in prior_line(prior)
+    assert prior_line(prior) in octolog("info", str(s[mode])).stdout  # and `octolog info` on the session
     gt = metrics.read_tum(s["whole"] / "groundtruth.txt")
     whole = metrics.read_tum(s["whole"] / "trajectory.txt")
     n = len(metrics.read_tum(s["first"] / "trajectory.txt"))
