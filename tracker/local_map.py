@@ -134,7 +134,8 @@ class LocalMap:
         z = feats.z
         kp_m, ids_m = tracked.kp_idx, tracked.map_idx
         # tracker.mode = "localize": the saved map's points stay as they were
-        mine = ids_m >= self.frozen_points if self.params.localize else np.ones(ids_m.size, bool)
+        keep = self.frozen_points if self.params.localize else 0
+        mine = ids_m >= keep
         with_d = (z[kp_m] > 0.0) & mine
         if local.fuse_depth and np.any(with_d):
             k = kp_m[with_d]
@@ -150,7 +151,7 @@ class LocalMap:
         k = np.flatnonzero(fresh)
         new_ids = mp.add(feats.xyz[k] @ R.T + t, feats.desc[k], depth_weight(z[k]), kf_id)
 
-        mp.cull(local.cull_min_visible, local.cull_min_found_ratio, keep=self.frozen_points if self.params.localize else 0)
+        mp.cull(local.cull_min_visible, local.cull_min_found_ratio, keep=keep)
 
         point_ids = np.unique(np.concatenate([ids_m, new_ids]))
         shared = np.bincount(mp.ref_kf[ids_m], minlength=kf_id) if ids_m.size else np.zeros(kf_id, np.int64)

@@ -67,16 +67,9 @@ class MapTracker:
                with_saved: bool = False) -> tuple[TrackedFrame | None, bool]:
         """The frame against the map from the prediction, else by place recognition; None when it
         cannot be placed with the evidence its case asks for; and whether it was found again.
-        `with_saved` (`localize` mode): the local map's points and the saved map's in view, these
-        weighed by their own error (`track`)."""
+        `with_saved` (a saved map the camera was found in): the local map's points and the saved
+        map's in view, these weighed by their own error (`track`)."""
         by_place = False
-        motion = self._motion
-        continuous = motion.continuous(stamp_ns)
-
-        def jumps(t: TrackedFrame) -> bool:
-            return motion.velocity is not None and continuous and unsupported_jump(
-                self.params.tracking, predicted, invert(t.camera_from_world), t.n_inliers, stamp_ns - motion.last_stamp)
-
         try:
             tracked = self.track(feats, predicted, stamp_ns, rotation_prior, with_saved)
             if tracked is None and self.params.relocalise:
@@ -88,7 +81,11 @@ class MapTracker:
             # Degenerate geometry inside OpenCV or a singular system: this frame is untrackable,
             # the stream is not broken.
             tracked = None
-        if tracked is not None and not by_place and jumps(tracked):
+        motion = self._motion
+        continuous = motion.continuous(stamp_ns)
+        if tracked is not None and not by_place and motion.velocity is not None and continuous and \
+                unsupported_jump(self.params.tracking, predicted, invert(tracked.camera_from_world), tracked.n_inliers,
+                                 stamp_ns - motion.last_stamp):
             self.rejected_jumps += 1
             tracked = None
         # found again, after a longer LOST stretch or by place recognition (the step is unknown): only on

@@ -65,9 +65,9 @@ class SavedMapSearch:
     stream ends. The keyframes tracking makes are temporary: they carry the camera where the view
     leaves the saved map (visual odometry on points that are not the map's), the back end ties them
     to the saved map (bundle adjustment around its frozen keyframes, loops, the final adjustment for
-    the trajectory), and they never leave the tracker (no keyframe is published, held or saved). A tracked frame is `localized`
-    when at least `tracking.min_inliers` of its inliers are the saved map's points, else `carried`
-    by the temporary ones (or the IMU)."""
+    the trajectory), and they never leave the tracker (no keyframe is published, held or saved). A
+    tracked frame is `localized` when at least `tracking.min_inliers` of its inliers are the saved
+    map's points, else `carried` by the temporary ones (or the IMU)."""
 
     keyframes: int = 0  # keyframes the saved map brought
     found_at: int = -1  # the frame seq the camera was first found at in it (-1: not yet, or no map)
@@ -195,8 +195,8 @@ class RgbdSlam:
             if delta is not None:
                 self.motion.move(delta)
                 pose = delta @ pose
-            # tracker.depth.correct_bias: every keyframe moves (not a saved map's: it is the world)
-            found = self.depth.found(self.map) if not self.saved.keyframes else None
+            # tracker.depth.correct_bias: every keyframe moves (not in a frozen saved map: it is the world)
+            found = self.depth.found(self.map) if not self.map.frozen_keyframes else None
             if found is not None:
                 s = self.depth.correct(self.map, found)
                 self.frames.scale(s)
