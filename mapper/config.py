@@ -26,12 +26,19 @@ class MapperConfig:
     backend: str = "numpy"
     colour: bool = True  # colour per occupied voxel (map.ot is a ColorOcTree)
     # OctoMap's sensor model (mapper/sensor_model.py): the probability an end point / a ray's voxel
-    # is occupied, the clamping of the log-odds, and the occupancy threshold; OctoMap's defaults
+    # is occupied, the clamping of the log-odds, and the occupancy threshold; OctoMap's defaults but
+    # clamp_max: 0.9, not 0.97, so where a person stood for five seconds six rays through it clear the
+    # voxel, not nine (people walking through: docs/architecture.md)
     prob_hit: float = _OCTOMAP.prob_hit
     prob_miss: float = _OCTOMAP.prob_miss
     clamp_min: float = _OCTOMAP.clamp_min
-    clamp_max: float = _OCTOMAP.clamp_max
+    clamp_max: float = 0.9
     occupancy_thres: float = _OCTOMAP.occupancy_thres
+    # people walking through (mapper/voxelmap.py): an end point counts in the octree once one of the
+    # confirm_within keyframes before it hit the same voxel too (or the voxel is occupied already);
+    # its ray clears space either way. The files' dense cloud keeps the points in occupied voxels.
+    # 0: every end point counts at once (OctoMap). The numpy backend only.
+    confirm_within: int = 2
     voxel_m: float = 0.01  # dense cloud voxel filter (second layer)
     max_range_m: float = 4.0  # depth readings beyond this are ignored
     pixel_stride: int = 2  # back-project every n-th pixel in each direction
@@ -111,6 +118,8 @@ class MapperConfig:
             raise ConfigError(f"mapper.grid_z_min_m {self.grid_z_min_m} must be below grid_z_max_m {self.grid_z_max_m}")
         if self.backend not in BACKENDS:
             raise ConfigError(f"mapper.backend {self.backend!r}: want numpy or octomap")
+        if self.confirm_within < 0:
+            raise ConfigError(f"mapper.confirm_within {self.confirm_within}: want >= 0 (0: off)")
         if not (math.isfinite(self.robot_stall_s) and self.robot_stall_s >= 0):
             raise ConfigError(f"mapper.robot_stall_s {self.robot_stall_s}: want >= 0 (0: wait for every robot)")
         if self.follow and not self.robots:
@@ -161,7 +170,10 @@ class MapperConfig:
                               sor_first=self.sor_first, outliers=self.outliers,
                               full_per_s=self.full_keyframes_per_s, burst_stride=self.burst_pixel_stride),
             occupancy=OccupancyParams(backend=self.backend, resolution_m=self.resolution_m, colour=self.colour,
-                                      sensor=self.sensor_model()),
+                                      sensor=self.sensor_model(),
+                                      # a fleet's keyframes come in turn, one robot's after another's
+                                      confirm_within=(self.confirm_within * max(1, len(self.robots))
+                                                      if self.backend == "numpy" else 0)),
             grid=GridParams(up=self.grid_up or DEFAULT_UP, camera_height_m=self.grid_camera_height_m, z_min_m=self.grid_z_min_m,
                             z_max_m=self.grid_z_max_m, resolution_m=self.grid_resolution_m),
             max_extent_m=self.max_extent_m,

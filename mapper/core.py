@@ -90,6 +90,9 @@ class Mapper:
         self._stale = False  # poses or the map frame moved since the octree and cloud were built
         self.rebuilds = 0
         self.map_from_world = map_from_world(params.grid)  # 4x4: where the keyframes are put
+        self.last_masked = np.zeros((0, 3))  # the last keyframe's movers: masked voxel centres, map frame
+        self._version = 0  # counts changes to the octree, for `cloud_mask`'s cache
+        self._mask: tuple[int, np.ndarray | None] | None = None
 
     def clear(self) -> None:
         """Forget every keyframe (the map frame and the parameters stay)."""
@@ -97,6 +100,7 @@ class Mapper:
         self._cloud = DenseCloud(voxel_m=self.params.cloud.voxel_m)
         self._octree = self._new_octree()
         self._stale = False
+        self._version += 1
 
     def set_up(self, up: tuple[float, ...]) -> None:
         """A new up direction (in `world`) for the map frame; what is integrated moves into it."""
@@ -131,7 +135,32 @@ class Mapper:
     def _new_octree(self) -> OccupancyMap:
         occ = self.params.occupancy
         return make_occupancy_map(occ.backend, occ.resolution_m, colour=occ.colour, model=occ.sensor,
-                                  region=self.params.tiles)
+                                  region=self.params.tiles, confirm_within=occ.confirm_within)
+
+    def cloud_mask(self) -> np.ndarray | None:
+        """Which points of the merged dense cloud (`cloud.cloud()`) the map keeps: with confirmed end
+        points (`confirm_within`), those in occupied voxels, so what a person walking by or standing
+        and leaving put in the keyframes goes with their voxels; None (all) when off."""
+        octree = self.octree  # a pending correction first
+        if not self.params.occupancy.confirm_within:
+            return None
+        if self._mask is None or self._mask[0] != self._version:
+            self._mask = (self._version, octree.classify(self._cloud.cloud()[0]) == 1)
+        return self._mask[1]
+
+    def map_cloud(self) -> tuple[np.ndarray, np.ndarray]:
+        """The dense cloud as the map files hold it: merged, without what `cloud_mask` leaves out."""
+        pts, cols = self.cloud.cloud()
+        keep = self.cloud_mask()
+        return (pts, cols) if keep is None else (pts[keep], cols[keep])
+
+    def movers(self) -> dict[str, int]:
+        """What was kept out as moving: unconfirmed end-point hits in voxels the map held free (over
+        the whole build) and the dense cloud's points left out; {} when off."""
+        keep = self.cloud_mask()
+        if keep is None:
+            return {}
+        return {"masked_voxels": int(getattr(self.octree, "masked_total", 0)), "cleared_points": int((~keep).sum())}
 
     def _check_pose(self, kf_id: int, T: np.ndarray) -> None:
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
@@ -199,11 +228,17 @@ class Mapper:
         return c.pixel_stride if recent < c.full_per_s else max(c.pixel_stride, c.burst_stride)
 
     def _insert(self, kf_id: int, kf: KeyframeCloud) -> None:
-        if (scan := self._place(kf_id, kf)) is not None:
+        if (scan := self._place(kf_id, kf)) is None:
+            if isinstance(self._octree, VoxelOccupancyMap):
+                self._octree.elsewhere()  # a shard: still one of the scans that confirm end points
+        else:
             pts, origin, colours = scan
             # the range limit was applied when back-projecting (depth <= max_range_m), so the dense
             # cloud and the octree hold the same points; a second, Euclidean cut would make them differ
             self._octree.insert(pts, origin, colours=colours, max_range_m=-1.0)
+            self._version += 1
+            if isinstance(self._octree, VoxelOccupancyMap):
+                self.last_masked = self._octree.masked_centres()
 
     def _place(self, kf_id: int, kf: KeyframeCloud) -> tuple[np.ndarray, np.ndarray, np.ndarray | None] | None:
         """The keyframe's points into the dense cloud at its current pose; its scan for the octree
@@ -264,12 +299,15 @@ class Mapper:
         """Re-integrate every keyframe, in arrival order, with its current pose (and map frame)."""
         self._octree = self._new_octree()
         self._stale = False
-        scans = (scan for kf_id, kf in self.keyframes.items() if (scan := self._place(kf_id, kf)) is not None)
+        self._version += 1
+        scans = (self._place(kf_id, kf) for kf_id, kf in self.keyframes.items())
         if isinstance(self._octree, VoxelOccupancyMap):  # the next keyframe's rays cast while one goes in
             self._octree.insert_all(scans, max_range_m=-1.0)
         else:
-            for pts, origin, colours in scans:
-                self._octree.insert(pts, origin, colours=colours, max_range_m=-1.0)
+            for scan in scans:
+                if scan is not None:
+                    pts, origin, colours = scan
+                    self._octree.insert(pts, origin, colours=colours, max_range_m=-1.0)
         self.rebuilds += 1
 
     def stats(self) -> dict:
@@ -277,8 +315,10 @@ class Mapper:
         (`map_from_world`, row-major 4x4: where the tracker's poses land) and the depth corrections
         its keyframes took (1/m, each distinct value once), for map_stats.json."""
         offsets = sorted({kf.inverse_offset for kf in self.keyframes.values()})
+        movers = self.movers()
         return {**self.octree.stats(), "keyframes": len(self.keyframes), "rebuilds": self.rebuilds,
-                "map_from_world": self.map_from_world.tolist(), "depth_inverse_offsets": offsets}
+                "map_from_world": self.map_from_world.tolist(), "depth_inverse_offsets": offsets,
+                **({"movers": movers} if movers else {})}
 
     def project_grid(self) -> OccupancyGrid2D | None:
         """The 2D grid of the current octree, or None while no known voxel lies in the band."""
@@ -294,7 +334,7 @@ class Mapper:
         octree = self.octree  # a pending correction first: its rebuild re-places the cloud's keyframes too
         out_dir.mkdir(parents=True, exist_ok=True)
         with ThreadPoolExecutor(1, thread_name_prefix="mapper-cloud") as pool:
-            cloud = pool.submit(lambda: _cloud_files(out_dir, *self._cloud.cloud()))
+            cloud = pool.submit(lambda: _cloud_files(out_dir, *self.map_cloud()))
             if meanwhile is not None:
                 meanwhile()
             files = _octree_files(out_dir, octree, stem)

@@ -31,6 +31,8 @@ from octolog.schemas.topics import (
     TRACKER_GRAVITY,
 )
 
+MOVER_COLOUR = (230, 40, 40)  # the viewer's `map/movers` layer
+
 
 def run(cfg: MapperConfig, bus_cfg: BusConfig, *, out_dir: Path, rerun: str = "off",
         recording_id: str = "octolog") -> MapperResult:
@@ -146,6 +148,8 @@ def _integrate_keyframe(r: Received, mapper: Mapper, result: MapperResult, viz: 
         if viz.enabled:
             viz.set_time(stamp, frame.seq)
             viz.scalar("mapper/ms", ms)
+            # this keyframe's movers: the voxels whose hits were kept out of the map (empty: none)
+            viz.boxes("map/movers", mapper.last_masked, mapper.resolution_m, MOVER_COLOUR)
             if publisher.every and result.keyframes % publisher.every == 0:
                 log_map(viz, mapper, stamp, publisher.grid)
 

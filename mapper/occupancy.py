@@ -51,15 +51,18 @@ class OccupancyMap(Protocol):
 
 
 def make_occupancy_map(backend: str = "numpy", resolution: float = 0.05, *, colour: bool = True,
-                       model: SensorModel = SensorModel(), region: Region | None = None) -> OccupancyMap:
+                       model: SensorModel = SensorModel(), region: Region | None = None,
+                       confirm_within: int = 0) -> OccupancyMap:
     """An occupancy map with the common interface (`OccupancyMap`).
 
     backend "numpy": `VoxelOccupancyMap` (own, vectorised); "octomap": `OccupancyOctree`
     (pyoctomap, the reference), with a `ColorOcTree` mirror for colour when `colour` is true.
-    `region` (a shard's tiles) keeps only its voxels: the numpy backend only.
+    `region` (a shard's tiles) keeps only its voxels, `confirm_within` counts an end point once
+    confirmed (keeps people walking by out):
+    the numpy backend only.
     """
     if backend == "numpy":
-        return VoxelOccupancyMap(resolution, model=model, colour=colour, region=region)
+        return VoxelOccupancyMap(resolution, model=model, colour=colour, region=region, confirm_within=confirm_within)
     if region is not None:
         raise MapError("a map shard (mapper.shard) needs mapper.backend = \"numpy\"")
     if backend == "octomap":

@@ -40,6 +40,7 @@ class OccupancyParams:
     resolution_m: float
     colour: bool
     sensor: SensorModel
+    confirm_within: int  # end points count once confirmed by a scan this recent (mapper.voxelmap; 0: off)
 
 
 DEFAULT_UP = (0.0, -1.0, 0.0)  # a level optical-frame camera: image "up" is -y

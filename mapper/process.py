@@ -84,7 +84,7 @@ def finish(mapper: Mapper, result: MapperResult, bus: Bus, viz: Viz, publisher: 
         publisher.frame.resolve()  # the map frame settled before the files' cloud merge starts
     result.files = mapper.write(out_dir, meanwhile=lambda: publisher.now(last_stamp))
     result.stats = mapper.stats()
-    result.cloud_points = len(mapper.cloud.cloud()[0])
+    result.cloud_points = len(mapper.map_cloud()[0])
     if mapper.params.tiles is not None:
         result.stats["shard"] = mapper.params.tiles.name
     (out_dir / "map_stats.json").write_text(json.dumps(
@@ -129,7 +129,7 @@ def log_map(viz: Viz, mapper: Mapper, stamp: int, grid: OccupancyGrid2D | None =
 
 def _log_map(viz: Viz, mapper: Mapper, stamp: int, grid: OccupancyGrid2D | None, final: bool) -> None:
     viz.set_time(stamp)
-    pts, cols = mapper.cloud.cloud() if final else mapper.cloud.preview(CLOUD_STRIDE, PREVIEW_POINTS)
+    pts, cols = mapper.map_cloud() if final else mapper.cloud.preview(CLOUD_STRIDE, PREVIEW_POINTS)
     viz.points3d("map/cloud", pts, cols, radius=0.004 if final else 0.008)
     centres = mapper.octree.occupied_centres()
     if len(centres):

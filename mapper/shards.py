@@ -44,7 +44,10 @@ def write_shard(mapper: Mapper, out_dir: Path, extra: dict[str, object] | None =
         raise ValueError("not a shard: mapper.shard is not set")
     octree = mapper.octree
     keys, logodds, colours = octree.voxels()
-    points, point_colours = mapper.cloud.cloud()
+    points, point_colours = mapper.map_cloud()
+    point_voxels = mapper.cloud.voxel_keys()
+    if (keep := mapper.cloud_mask()) is not None:
+        point_voxels = point_voxels[keep]
     header = {"format": FORMAT, "version": VERSION, **tiles.describe(),
               "resolution_m": mapper.resolution_m, "voxel_m": tiles.voxel_m, "colour": octree.colour,
               "sensor": asdict(octree.model), "grid": asdict(mapper.params.grid),
@@ -52,7 +55,7 @@ def write_shard(mapper: Mapper, out_dir: Path, extra: dict[str, object] | None =
               **(extra or {})}
     path = out_dir / SHARD_FILE
     write_npz(path, header, {"keys": keys, "logodds": logodds, "colours": colours, "points": points,
-                             "point_colours": point_colours, "point_voxels": mapper.cloud.voxel_keys()})
+                             "point_colours": point_colours, "point_voxels": point_voxels})
     return path
 
 

@@ -16,6 +16,18 @@ the same tree, not just a similar one:
   clamped to [logit(clamp_min), logit(clamp_max)]; occupied iff log-odds >= logit(occupancy_thres),
   as OctoMap (the sensor model: mapper/sensor_model.py).
 
+Confirmed end points (`confirm_within` > 0, beyond OctoMap): a person walking by is hit by one
+scan and gone by the next. An end point counts only when one of the `confirm_within` scans before
+also hit that voxel, or the map holds it occupied already; until then its hit is left out (its ray
+still clears the way to it). Until the voxel is occupied, a confirmed hit is three quarters of a
+miss: one ray through it undoes the first (a person who paused for two scans), and space seen free
+takes a few scans to fill (a person standing for a moment). A surface that stays is seen again by the next scans and goes in; a
+person who stood still and left is cleared by the rays that now pass through where they stood.
+The map's first scan counts whole (nothing came before it to confirm it: a camera on a tripod
+makes one keyframe). Unconfirmed hits in voxels the map holds free are movers: something appeared in space seen empty.
+The last scan's (`masked`) and their count over all scans (`masked_total`) are kept for the viewer
+and the summary.
+
 Colour follows `ColorOcTree::averageNodeColor`, applied once per scan and voxel: the scan's mean
 colour of the points in an occupied end-point voxel (rounded half to even) is averaged with the
 previous colour as `(prev + new) // 2`; (255, 255, 255) means "no colour" as in OctoMap.
@@ -42,7 +54,7 @@ from octolog.kit.errors import MapError
 from octolog.kit.files import write_bytes_atomic
 from octolog.mapper.octokeys import TREE_MAX_VAL, key_to_coord, norm32, pack, to_key, unpack
 from octolog.mapper.cloud import column_max, column_min, rows_where
-from octolog.mapper.kernels import accumulate_rows, marked_keys, merge_sorted, walk_rays
+from octolog.mapper.kernels import accumulate_rows, find_sorted, marked_keys, merge_sorted, walk_rays
 from octolog.mapper.sensor_model import SensorModel
 from octolog.mapper.voxelstore import VoxelStore
 from octolog.mapper.treebuild import build_tree
@@ -58,6 +70,8 @@ class Region(Protocol):
     def touches_keys(self, lo: np.ndarray, hi: np.ndarray) -> bool: ...
 
 _DBL_MAX = float(np.finfo(np.float64).max)
+_NO_KEYS = np.zeros(0, np.int64)
+_ELSEWHERE = object()  # insert_all's stand-in for a scan that reaches none of the map
 _DENSE_MAX_CELLS = 1 << 26  # per-scan scratch grid limit (64 MiB of uint8), beyond it use np.unique
 _RAY_CHUNK = 65536  # rays per DDA batch: caps its working arrays (~100 bytes a ray) at a few MB
 
@@ -222,8 +236,10 @@ class VoxelOccupancyMap:
     backend = "numpy"
 
     def __init__(self, resolution: float = 0.05, *, model: SensorModel = SensorModel(), colour: bool = True,
-                 region: Region | None = None) -> None:
+                 region: Region | None = None, confirm_within: int = 0) -> None:
         model.check(resolution)
+        if confirm_within < 0:
+            raise MapError(f"confirm_within must be >= 0 (0: off), got {confirm_within}")
         self.resolution = float(resolution)
         self.region = region  # a shard's tiles (mapper.tiles): only their voxels are kept
         self.model = model
@@ -234,11 +250,17 @@ class VoxelOccupancyMap:
         self._lmin = lo.clamp_min
         self._lmax = lo.clamp_max
         self._thres = lo.occupancy_thres
+        self.confirm_within = int(confirm_within)  # see the module; 0: every end point counts (OctoMap)
+        # a confirmed hit in a voxel not occupied yet: three quarters of a miss (see the module)
+        self._confirming = np.float32(-0.75 * self._miss)
         self.clear()
 
     def clear(self) -> None:
         """Forget everything (e.g. before re-integrating keyframes after a loop closure)."""
         self._store = VoxelStore()  # packed keys sorted and unique, log-odds, colour (255,255,255: none)
+        self._recent: list[np.ndarray] = []  # the last `confirm_within` scans' end-point voxels
+        self.masked = np.zeros(0, np.int64)  # the last scan's masked end-point voxels, packed
+        self.masked_total = 0
 
     def voxels(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Every known voxel: packed keys (sorted), log-odds, colours (copies)."""
@@ -279,8 +301,7 @@ class VoxelOccupancyMap:
         Returns the number of points given.
         """
         scan = self._cast(points_world, origin, colours, max_range_m, discretize)
-        if scan is not None:
-            self._commit(scan)
+        self._commit(scan)
         return int(np.shape(points_world)[0])
 
     def _cast(self, points_world: np.ndarray, origin: np.ndarray, colours: np.ndarray | None, max_range_m: float,
@@ -309,21 +330,26 @@ class VoxelOccupancyMap:
             raise MapError(f"points outside the octree's addressable cube of +/-{limit:g} m")
         return self._scan(pts, org, colours, float(max_range_m), bool(discretize))
 
-    def insert_all(self, scans: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray | None]], *,
+    def insert_all(self, scans: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray | None] | None], *,
                    max_range_m: float = -1.0) -> None:
         """`insert(points, origin, colours=colours, max_range_m=...)` of each (points, origin, colours)
-        in order (a rebuild). The rays of the next scan are cast on a second thread while this one's
-        updates go in: the cast is pure (compiled, without the GIL) and the updates keep their order,
-        so the map is the same bytes as from one `insert` after another."""
+        in order (a rebuild; None: `elsewhere()`). The rays of the next scan are cast on a second thread
+        while this one's updates go in: the cast is pure (compiled, without the GIL) and the updates
+        keep their order, so the map is the same bytes as from one `insert` after another."""
         with ThreadPoolExecutor(1, thread_name_prefix="voxelmap-rays") as pool:
             ahead = None
-            for pts, origin, colours in scans:
-                nxt = pool.submit(self._cast, pts, origin, colours, max_range_m, True)
-                if ahead is not None and (scan := ahead.result()) is not None:
-                    self._commit(scan)
-                ahead = nxt
-            if ahead is not None and (scan := ahead.result()) is not None:
-                self._commit(scan)
+            for item in scans:
+                nxt = pool.submit(self._cast, *item, max_range_m, True) if item is not None else None
+                if ahead is not None:
+                    self._commit(ahead.result() if ahead != _ELSEWHERE else None)
+                ahead = nxt if nxt is not None else _ELSEWHERE
+            if ahead is not None:
+                self._commit(ahead.result() if ahead != _ELSEWHERE else None)
+
+    def elsewhere(self) -> None:
+        """A scan that reaches none of this map (a shard's keyframe away from its tiles): it counts
+        among the recent scans an end point is confirmed by, as it does in the whole map."""
+        self._commit(None)
 
     def _scan(self, pts: np.ndarray, org: np.ndarray, colours: np.ndarray | None,
               max_range: float, discretize: bool) -> _Scan | None:
@@ -381,16 +407,50 @@ class VoxelOccupancyMap:
             colour = self._scan_colour(colours, inverse, ulin, in_range, box, keys, discretize)
         return _Scan(free, occ, colour)
 
-    def _commit(self, scan: _Scan) -> None:
-        """A scan's updates into the map: the misses and hits, then the colours."""
-        self._apply_updates(scan.free, scan.occ)
-        if scan.colour is not None:
-            self._store.average_colour(*scan.colour)
+    def _commit(self, scan: _Scan | None) -> None:
+        """A scan's updates into the map: the misses and the (confirmed, see the module) hits, then
+        the colours. None: a scan with nothing here (it is still one of the recent scans)."""
+        if scan is None:
+            if self.confirm_within:
+                self._recent = [_NO_KEYS, *self._recent[:self.confirm_within - 1]]
+            return
+        occ, hits, colour = scan.occ, None, scan.colour
+        if self.confirm_within:
+            occ, hits, colour = self._confirmed(scan)
+        self._apply_updates(scan.free, occ, hits)
+        if colour is not None:
+            self._store.average_colour(*colour)
 
-    def _apply_updates(self, free: np.ndarray, occ: np.ndarray) -> None:
-        """Free cells get the miss update, occupied cells the hit update (once per scan), clamped."""
+    def _confirmed(self, scan: _Scan) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
+        """The scan's end-point voxels whose hits count (see the module), each one's hit, and their
+        colours."""
+        occ = scan.occ
+        before = self._store.logodds_of(occ)
+        occupied = before >= self._thres
+        ok = occupied.copy() if self._recent else np.ones(occ.shape[0], bool)  # the first scan: none to wait for
+        for earlier in self._recent:
+            ok |= find_sorted(earlier, occ)[1]
+        self._recent = [occ, *self._recent[:self.confirm_within - 1]]
+        self.masked = occ[~ok & (before < 0)]
+        self.masked_total += int(self.masked.shape[0])
+        hits = np.where(occupied, self._hit, self._confirming).astype(np.float32)
+        colour = scan.colour
+        if ok.all():
+            return occ, hits, colour
+        if colour is not None:
+            kept = np.isin(colour[0], occ[ok])
+            colour = (colour[0][kept], colour[1][kept])
+        return occ[ok], hits[ok], colour
+
+    def masked_centres(self) -> np.ndarray:
+        """The centres (N, 3) of the last scan's masked end-point voxels."""
+        return key_to_coord(unpack(self.masked), self.resolution)
+
+    def _apply_updates(self, free: np.ndarray, occ: np.ndarray, hits: np.ndarray | None = None) -> None:
+        """Free cells get the miss update, occupied cells the hit update (`hits`, each its own, or the
+        model's), once per scan, clamped."""
         keys, upd = merge_sorted(free, np.full(free.shape[0], self._miss, np.float32),
-                                 occ, np.full(occ.shape[0], self._hit, np.float32))
+                                 occ, np.full(occ.shape[0], self._hit, np.float32) if hits is None else hits)
         self._store.update(keys, upd, self._lmin, self._lmax)
 
     def _scan_colour(self, colours: np.ndarray, inverse: np.ndarray, ulin: np.ndarray, in_range: np.ndarray,

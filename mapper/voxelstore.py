@@ -93,6 +93,14 @@ class VoxelStore:
         for slab, a, b in _runs(keys):
             self._slabs.setdefault(slab, _Slab()).update(keys[a:b], delta[a:b], lmin, lmax)
 
+    def logodds_of(self, keys: np.ndarray) -> np.ndarray:
+        """The log-odds (float32) of sorted unique `keys`; NaN (unknown) for keys not in the map."""
+        out = np.full(keys.shape[0], np.nan, np.float32)
+        for slab, a, b in (_runs(keys) if keys.shape[0] else []):
+            if slab in self._slabs:
+                out[a:b] = self._slabs[slab].logodds_of(keys[a:b])
+        return out
+
     def average_colour(self, keys: np.ndarray, mean: np.ndarray) -> None:
         """OctoMap's averageNodeColor: each of `keys` (sorted, in the map) takes `mean` (int64),
         averaged with its colour if it has one."""
@@ -139,6 +147,14 @@ class _Slab:
             self._new = insert_sorted(nk, nl, nc, at, keys[ins], fresh, WHITE)
         if self._new[0].shape[0] > max(MERGE_MIN, self._main[0].shape[0] // MERGE_FRACTION):
             self._merge()
+
+    def logodds_of(self, keys: np.ndarray) -> np.ndarray:
+        """The log-odds of sorted unique `keys` (NaN where absent)."""
+        out = np.full(keys.shape[0], np.nan, np.float32)
+        for level in (self._main, self._new):
+            pos, found = _find(level[0], keys)
+            out[found] = level[1][pos[found]]
+        return out
 
     def average_colour(self, keys: np.ndarray, mean: np.ndarray) -> None:
         """OctoMap's averageNodeColor: each of `keys` (in the map) takes `mean` (int64), averaged

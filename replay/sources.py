@@ -281,7 +281,7 @@ def backend_deferred(path: Path) -> list[int]:
 
 SYNTHETIC_SPEC = ("synthetic[:N][:tilt=DEG][:motion=loop|turns][:start=S][:reverse=1][:exposure=MS]"
                   "[:noise=none|kinect|d455][:bias=PX][:seed=S][:imu=HZ][:imunoise=X][:imurot=DEG][:imudt=MS]"
-                  "[:blank=AT+SECONDS]")
+                  "[:blank=AT+SECONDS][:people=cross|stand|round|close[+...]]")
 
 
 @dataclass
@@ -300,6 +300,7 @@ class SyntheticSource:
     imu_rotation_deg: float = 0.0  # `imurot=DEG`: its axes turned DEG from the camera's (the tracker is not told)
     imu_late_ms: float = 0.0  # `imudt=MS`: its clock MS late (the tracker is not told)
     blank: tuple[float, float] = (0.0, 0.0)  # `blank=AT+S`: no texture in sight from AT s for S s
+    people: str = ""  # `people=cross+stand`: people walking through the room (replay/synthetic_people.py)
     readout_s = 0.0  # rendered, every row at once
     encoded = False  # rendered pixels
 
@@ -315,7 +316,7 @@ class SyntheticSource:
                                     depth_bias_px=self.depth_bias_px, seed=self.seed, imu_hz=self.imu_hz,
                                     imu_noise_scale=self.imu_noise_scale, imu_rotation_deg=self.imu_rotation_deg,
                                     imu_late_ms=self.imu_late_ms,
-                                    blank_at_s=self.blank[0], blank_s=self.blank[1])
+                                    blank_at_s=self.blank[0], blank_s=self.blank[1], people=self.people)
         options = {"tilt": f"{self.start_tilt_deg:g}" if self.start_tilt_deg else "",
                    "motion": "" if self.motion == "loop" else self.motion,
                    "start": f"{self.path_start_s:g}" if self.path_start_s else "",
@@ -327,7 +328,7 @@ class SyntheticSource:
                    "imunoise": f"{self.imu_noise_scale:g}" if self.imu_noise_scale != 1.0 else "",
                    "imurot": f"{self.imu_rotation_deg:g}" if self.imu_rotation_deg else "",
                    "imudt": f"{self.imu_late_ms:g}" if self.imu_late_ms else "",
-                   "blank": "{:g}+{:g}".format(*self.blank) if self.blank[1] else ""}
+                   "blank": "{:g}+{:g}".format(*self.blank) if self.blank[1] else "", "people": self.people}
         self.name = ":".join([f"synthetic:{self.n_frames}", *(f"{k}={v}" for k, v in options.items() if v)])
 
     def gravity_up(self) -> np.ndarray | None:
@@ -477,7 +478,7 @@ def _synthetic(spec: str, arg: str) -> SyntheticSource:
     keys = {"tilt": "start_tilt_deg", "motion": "motion", "start": "path_start_s", "reverse": "reverse",
             "exposure": "exposure_ms", "noise": "depth_noise",
             "bias": "depth_bias_px", "seed": "seed", "imu": "imu_hz", "imunoise": "imu_noise_scale",
-            "imurot": "imu_rotation_deg", "imudt": "imu_late_ms", "blank": "blank"}
+            "imurot": "imu_rotation_deg", "imudt": "imu_late_ms", "blank": "blank", "people": "people"}
     kwargs: dict[str, Any] = {}
     try:
         n = int(count) if count else 150
@@ -487,7 +488,7 @@ def _synthetic(spec: str, arg: str) -> SyntheticSource:
                 raise ValueError(option)
             if key == "reverse" and value not in ("0", "1"):
                 raise ValueError(option)
-            kwargs[keys[key]] = (value if key in ("motion", "noise") else int(value) if key == "seed" else
+            kwargs[keys[key]] = (value if key in ("motion", "noise", "people") else int(value) if key == "seed" else
                                  value == "1" if key == "reverse" else
                                  tuple(float(v) for v in value.split("+", 1)) if key == "blank" else float(value))
             if key == "blank" and len(kwargs["blank"]) != 2:

@@ -34,7 +34,8 @@ from octolog.kit import cache, imu, opencv
 from octolog.kit.geometry import Intrinsics, RgbdFrame, matrix_to_pose
 from octolog.kit.up_vector import WINDOW_S, up_from_samples
 from octolog.kit.opencv import baseline_simd
-from octolog.replay import depth_noise, synthetic_imu, synthetic_room, synthetic_textures, synthetic_trajectory
+from octolog.replay import (depth_noise, synthetic_imu, synthetic_people, synthetic_room, synthetic_textures,
+                            synthetic_trajectory)
 from octolog.replay.source_gravity import simulated_up
 from octolog.replay.synthetic_room import OBJECTS, ROOM, scene_faces, scene_triangles
 from octolog.replay.synthetic_textures import Textures, scene_textures
@@ -45,7 +46,7 @@ EPOCH_NS = 1_700_000_000 * 1_000_000_000
 FRAME_FORMAT = 1  # the frame cache's layout: bump it when it changes (a new key)
 # what renders a frame: these modules' source and these libraries' versions key the frame cache
 _RENDERER = (__file__, depth_noise.__file__, synthetic_room.__file__, synthetic_textures.__file__,
-             synthetic_trajectory.__file__, opencv.__file__)
+             synthetic_trajectory.__file__, synthetic_people.__file__, opencv.__file__)
 _RENDER_LIBRARIES = ("numpy", "open3d", "opencv-python-headless")
 BLANK_GREY = 128  # the colour of a textureless stretch (`blank_s`)
 
@@ -83,6 +84,7 @@ class SyntheticConfig:
     imu_late_ms: float = 0.0  # each sample measures the motion this long before its stamp
     blank_at_s: float = 0.0  # with blank_s > 0: from this time on the colour camera sees no texture
     blank_s: float = 0.0  # for this long (a blank wall, a covered lens; depth is unchanged)
+    people: str = ""  # people walking through the room (synthetic_people.crowd: cross, stand, near, joined with +)
 
     def __post_init__(self) -> None:
         """Checked once, where the parameters are built."""
@@ -105,6 +107,8 @@ class SyntheticConfig:
                 and abs(self.imu_late_ms) <= 1000.0 / self.fps):
             raise ValueError(f"imu_noise_scale, imu_rotation_deg, imu_late_ms: want 0-100 times, at most 90 deg and "
                              f"a frame period (got {self.imu_noise_scale}, {self.imu_rotation_deg}, {self.imu_late_ms})")
+        if self.people:
+            synthetic_people.crowd(self.people)  # raises ValueError naming the crowds there are
         if not abs(self.depth_bias_px) <= 1.0:
             raise ValueError(f"depth_bias_px {self.depth_bias_px}: want -1 to 1 px")
 
@@ -315,10 +319,16 @@ class SyntheticScene:
             )
         return out.reshape(-1, 3)[:n]
 
-    def render_pose(self, world_from_camera: np.ndarray,
-                    noise: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
+    @cached_property
+    def people(self) -> tuple[synthetic_people.Walker, ...]:
+        """The people walking through the room (none in a static scene)."""
+        return synthetic_people.crowd(self.config.people) if self.config.people else ()
+
+    def render_pose(self, world_from_camera: np.ndarray, noise: np.random.Generator | None = None,
+                    t: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Colour (H, W, 3) uint8 and depth (H, W) uint16 mm seen from an arbitrary pose; with a
-        `noise` generator and a `depth_noise` sensor, the depth that sensor would read."""
+        `noise` generator and a `depth_noise` sensor, the depth that sensor would read; with `t` (s),
+        the people in the room at that time in front of it."""
         import open3d as o3d  # lazy: ~1.4 s to import, only rendering and geometry need it
 
         cfg, K = self.config, self.intrinsics
@@ -334,6 +344,11 @@ class SyntheticScene:
         z = ans["t_hit"].numpy()
         prim = ans["primitive_ids"].numpy()
         bary = ans["primitive_uvs"].numpy()
+        person = None
+        if t is not None and self.people:
+            pt, prgb = synthetic_people.cast(self.people, t, T[:3, 3], rays[:, 3:])
+            person = pt < z  # misses are inf
+            z = np.where(person, pt, z)
 
         exact = z if noise is not None and cfg.depth_noise != "none" else None
         depth = self._depth_mm(z)
@@ -356,6 +371,8 @@ class SyntheticScene:
         else:
             rgb = np.zeros((len(hit), 3), dtype=np.uint8)
             rgb[hit] = col
+        if person is not None:
+            rgb[person] = prgb[person]
         rgb = rgb.reshape(K.height, K.width, 3)
         if exact is not None:
             sensor = depth_noise.SENSORS[cfg.depth_noise]
@@ -446,7 +463,7 @@ class SyntheticScene:
         """Colour and depth of frame i, rendered (the frame cache's source): the view from its
         ground-truth pose, its sensor's depth noise, its motion blur, its blank stretch."""
         noise = np.random.default_rng([self.config.seed, int(i)]) if self.config.depth_noise != "none" else None
-        rgb, depth = self.render_pose(self.pose(i), noise)
+        rgb, depth = self.render_pose(self.pose(i), noise, i / self.config.fps)
         if self.config.exposure_ms > 0:
             rgb = self._motion_blur(int(i), rgb)
         if self.config.blank_s > 0 and 0.0 <= i / self.config.fps - self.config.blank_at_s < self.config.blank_s:

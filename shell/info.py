@@ -37,6 +37,8 @@ def describe_session(folder: Path) -> str:
         head += "\n" + depth_bias_line(summary["depth_bias"])
     if summary.get("prior_map"):
         head += "\n  " + prior_line(summary["prior_map"])
+    if summary.get("movers"):
+        head += "\n  " + movers_line(summary["movers"])
     if not log.is_file():
         return f"{head}\n  no session.mcap"
     return f"{head}\n{describe_mcap(log)}"
@@ -177,6 +179,12 @@ def uninitialised_line(u: dict) -> str:
     return (f"never initialised: no frame had {u['min_init_points']} corners with depth "
             f"(tracking.min_init_points), the best had {u['best_points']} (a dark, blank or out-of-range view; "
             f"--set tracker.tracking.min_init_points=N starts from fewer)")
+
+
+def movers_line(m: dict) -> str:
+    """What a session's map kept out as moving (people walking through), as summary.json counts it."""
+    return (f"movers: {m['masked_voxels']} end points in space seen free kept out of the octree, "
+            f"{m['cleared_points']} cloud points left out")
 
 
 def prior_line(p: dict) -> str:

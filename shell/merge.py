@@ -82,7 +82,8 @@ def merge_sessions(folders: list[Path], out: Path, cfg: MapperConfig | None = No
     streams = [session_items(f) for f in folders]  # all read before anything is written
     cfg = _first_config(folders[0], cfg or MapperConfig())
     _prepare(out, overwrite)
-    mapper = make_mapper(cfg)
+    # the sessions' keyframes come in turn: each one's confirm their own (mapper.confirm_within)
+    mapper = make_mapper(dataclasses.replace(cfg, confirm_within=cfg.confirm_within * len(folders)))
     fleet = FleetMap(mapper, names, Placement.by_place(len(folders), cfg.relink_after_m))
     for i, item in merged_order(streams):
         fleet.apply(i, item)
@@ -96,7 +97,7 @@ def merge_sessions(folders: list[Path], out: Path, cfg: MapperConfig | None = No
                         f"keyframes are in a map of their own, {where}")
     mapper.write(out)
     per_session = write_trajectories(mapper, names, fleet.trajectories, out)
-    stats = {**mapper.stats(), "cloud_points": len(mapper.cloud.cloud()[0]),
+    stats = {**mapper.stats(), "cloud_points": len(mapper.map_cloud()[0]),
              "sessions": {n: {"folder": str(f.resolve()), **per_session[n]} for n, f in zip(names, folders)},
              "merges": [merge_event(m, names) for m in placement.merges],
              "links": {kind: placement.link_kinds.count(kind) for kind in ("place", "refine", "relink")},

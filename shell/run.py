@@ -43,7 +43,7 @@ from octolog.schemas.topics import RGBD, RGBD_COMPRESSED, TRACKING_STATUS
 from octolog.schemas.wirecompression import SOURCE
 from octolog.shell import errorfile, simcamera
 from octolog.shell.children import HostedRouter, StageProcesses, router_unreachable
-from octolog.shell.info import depth_bias_line, imu_line, prior_line, uninitialised_line
+from octolog.shell.info import depth_bias_line, imu_line, movers_line, prior_line, uninitialised_line
 from octolog.shell.priormap import check_prior, prior_mapper
 from octolog.shell.sessiondir import INCOMPLETE, incomplete_reason, not_a_session, prepare_out
 from octolog.shell.versions import versions
@@ -79,6 +79,7 @@ class SessionSummary:
     imu: dict | None = None  # what the tracker's IMU did (summary.json; None: no IMU, or vision only)
     prior_map: dict | None = None  # what became of the saved map the tracker was given (tracker.map)
     uninitialised: dict | None = None  # the tracker never made a first keyframe: why (tracker.report.json)
+    movers: dict | None = None  # what the mapper kept out as moving (map_stats.json `movers`)
     viewer_missed: dict | None = None  # `--rerun connect`: the viewer no stage could reach (kit/viz.py)
 
 
@@ -457,12 +458,13 @@ def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, re
                                                ImuNoise(*s.imu["noise_measured"]) if s.imu.get("noise_measured") else None))
         s.files["imu.toml"] = str(out / "imu.toml")
     s.uninitialised = errorfile.read_finding(out / "logs" / "tracker.report.json", "uninitialised")
+    s.movers = s.map.get("movers")
     s.viewer_missed = viewer_missed or next((found for p in sorted((out / "logs").glob("*.report.json"))
                                              if (found := errorfile.read_finding(p, "viewer_missed"))), None)
     (out / "summary.json").write_text(json.dumps(
         {"source": source, "frames": frames, "tracked_frames": s.frames, "wall_s": round(wall, 3),
          "malformed": s.malformed, "map_frame": s.map_frame, "cpu_s": cpu, "depth_bias": s.depth_bias, "prior_map": s.prior_map,
-         "imu": s.imu, "uninitialised": s.uninitialised, "viewer_missed": s.viewer_missed,
+         "imu": s.imu, "uninitialised": s.uninitialised, "viewer_missed": s.viewer_missed, "movers": s.movers,
          "duration_s": s.duration_s, "ate": s.ate, "map": s.map, "files": sorted(s.files),
          "recording_id": recording_id, "versions": versions()},
         indent=2, sort_keys=True) + "\n")
@@ -492,6 +494,8 @@ def format_summary(s: SessionSummary) -> str:
         lines.append(depth_bias_line(s.depth_bias))
     if s.prior_map:
         lines.append("  " + prior_line(s.prior_map))
+    if s.movers:
+        lines.append("  " + movers_line(s.movers))
     if s.viewer_missed:
         lines.append(f"  viewer: not reachable at {s.viewer_missed.get('url')}; the stages' recordings are in "
                      f"{s.out / 'rerun'} (`octolog view {s.out}`)")

@@ -31,6 +31,7 @@ WIDE_SEARCH_FACTOR = 3.0
 # A pose with this many times `min_inliers` inliers (and `confident_ratio` of its matches) is final;
 # the previous frame's inliers seed the first match only if there are this many times `min_inliers`.
 CONFIDENT_INLIER_FACTOR = 3
+CHI2_POSE_99 = 16.81  # chi-square, 6 degrees of freedom (a pose), 99 %
 
 RotationPrior = tuple[np.ndarray, float]
 
@@ -61,6 +62,7 @@ class MapTracker:
         self.last_inlier_ids = np.zeros(0, np.int64)  # map points matched by the previous frame
         self.last_local = np.zeros(0, np.int64)  # the local map points the last frame was matched against
         self.rejected_jumps = 0  # tracked frames made LOST: a jump the motion cannot explain, on few inliers
+        self.pulled_frames = 0  # frames whose young points pulled the pose away: fitted to the established (movers)
 
     def locate(self, feats: FrameFeatures, predicted: np.ndarray, stamp_ns: int,
                rotation_prior: RotationPrior | None = None,
@@ -141,8 +143,7 @@ class MapTracker:
             step = invert(motion.last_pose) @ invert(T_cw)
             feats2 = self._front.unroll(raw, (so3_log(step[:3, :3]), step[:3, 3].copy(), stamp_ns - motion.last_stamp))
         ki2, mi2, visible = self._guided(feats2, local, T_cw, self.params.tracking.refine_radius_px)
-        second = self.solve(feats2, ki2, mi2, T_cw, use_ransac=False, rotation_prior=rotation_prior,
-                            weigh_points=with_saved)
+        second = self._established_first(feats2, ki2, mi2, T_cw, rotation_prior, with_saved)
         if second is not None and int(second[1].sum()) >= int(first[1].sum()) // 2:
             T_cw, inl = second
             ki, mi = ki2, mi2
@@ -163,6 +164,49 @@ class MapTracker:
         scaled = (uv - feats.uv[ki]) * level_scale[:, None]
         residual = float(np.sqrt(np.mean(np.sum(scaled * scaled, axis=1)))) if ki.size else float("nan")
         return TrackedFrame(T_cw, ki, mi, int(inl.size), int(inl.sum()), feats, residual)
+
+    def _established_first(self, feats: FrameFeatures, ki: np.ndarray, mi: np.ndarray, guess_cw: np.ndarray,
+                           rotation_prior: RotationPrior | None, with_saved: bool
+                           ) -> tuple[np.ndarray, np.ndarray] | None:
+        """The second pass's pose: fitted to every match, unless the young points (no keyframe has
+        seen them again yet) pull it away from the established ones (seen from two keyframes or
+        more). A keyframe makes points on whatever it sees, a person walking by too; for the next
+        few frames those points move with the person, all together, and a fit to every match
+        follows them. Then the established points' squared reprojection error under the fit to every
+        match exceeds that under their own fit by more than chance allows for a 6-DoF pose (chi-square,
+        99 %, in units of their own scatter), and the pose is theirs; the young points that agree with it count as its inliers
+        but do not pull it. Where few points are established, every match."""
+        t = self.params.tracking
+        every = self.solve(feats, ki, mi, guess_cw, use_ransac=False, rotation_prior=rotation_prior,
+                           weigh_points=with_saved)
+        young = self._map.points.n_obs[mi] <= 1
+        if every is None or not young.any() or int((~young).sum()) < CONFIDENT_INLIER_FACTOR * t.min_inliers:
+            return every
+        old = self.solve(feats, ki[~young], mi[~young], every[0], use_ransac=False, rotation_prior=rotation_prior,
+                         weigh_points=with_saved)
+        if old is None:
+            return every
+        settled = np.flatnonzero(~young)[old[1]]
+        own = self._chi2(feats, ki[settled], mi[settled], old[0])
+        variance = own / max(settled.size - 6, 1)  # the established points' own scatter, per point
+        if self._chi2(feats, ki[settled], mi[settled], every[0]) - own <= CHI2_POSE_99 * variance:
+            return every
+        self.pulled_frames += 1
+        inl = np.zeros(ki.size, bool)
+        inl[settled] = True
+        yk, ym = ki[young], mi[young]
+        assert self._front.intrinsics is not None
+        uv, _ = self._map.project(ym, old[0], self._front.intrinsics)
+        level = self.params.features.scale_factor ** feats.octave[yk].astype(np.float64)
+        inl[np.flatnonzero(young)] = np.linalg.norm(uv - feats.uv[yk], axis=1) <= t.refine_radius_px * level
+        return old[0], inl
+
+    def _chi2(self, feats: FrameFeatures, ki: np.ndarray, mi: np.ndarray, camera_from_world: np.ndarray) -> float:
+        """Sum of the squared reprojection errors of matches under a pose, in their keypoints' sigmas."""
+        assert self._front.intrinsics is not None
+        uv, _ = self._map.project(mi, camera_from_world, self._front.intrinsics)
+        inv_sigma = self.params.features.scale_factor ** (-feats.octave[ki].astype(np.float64))
+        return float(np.sum(np.sum((uv - feats.uv[ki]) ** 2, axis=1) * inv_sigma ** 2))
 
     def _local(self, world_from_camera: np.ndarray, with_saved: bool) -> np.ndarray:
         """The points a pose is matched against: the local map's, and the saved map's in view (by

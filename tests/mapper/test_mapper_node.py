@@ -153,7 +153,8 @@ def test_pcd_and_ply_read_back_in_open3d(scene, tmp_path):
     k, T, f = _keyframes(scene)[0]
     m.integrate(k, T, f)
     files = m.write(tmp_path)
-    pts, cols = m.cloud.cloud()
+    pts, cols = m.map_cloud()
+    assert len(pts) > 1000
     for key in ("ply", "pcd"):
         pc = o3d.io.read_point_cloud(files[key])
         np.testing.assert_allclose(np.asarray(pc.points), pts.astype(np.float32), atol=1e-6)

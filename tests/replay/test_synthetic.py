@@ -377,3 +377,25 @@ def test_an_uncalibrated_imu_is_the_same_samples_turned_late_and_noisier() -> No
     assert 2.7 < spread(c.accel) / spread(a.accel) < 3.3
     with pytest.raises(Exception, match="synthetic"):
         open_source("synthetic:90:imu=200:imunoise=0")
+
+
+def test_people_stand_in_front_of_the_room_while_there_and_nowhere_else() -> None:
+    from octolog.replay import synthetic_people
+
+    people = SyntheticScene(n_frames=240, width=160, height=120, people="stand")
+    twin = SyntheticScene(n_frames=240, width=160, height=120)
+    K = people.intrinsics
+    i = 75  # 2.5 s: the person stands in view
+    depth, depth0 = people.render_frame(i)[1], twin.render_frame(i)[1]
+    moved = depth != depth0
+    assert moved.mean() > 0.01
+    assert np.all(depth[moved] < depth0[moved])  # a person only ever hides the room
+    v, u = np.nonzero(moved)
+    z = depth[moved] * people.depth_scale_m
+    cam = np.stack([(u - K.cx) / K.fx * z, (v - K.cy) / K.fy * z, z], 1)
+    T = people.pose(i)
+    world = cam @ T[:3, :3].T + T[:3, 3]
+    assert synthetic_people.inside(people.people, i / 30.0, world, margin_m=0.01).all()  # on the person
+    late = 210  # 7 s: gone through the door
+    assert np.array_equal(people.render_frame(late)[1], twin.render_frame(late)[1])
+    assert np.array_equal(people.render_frame(late)[0], twin.render_frame(late)[0])

@@ -68,11 +68,12 @@ def test_mapper_config_checks_every_value_once(overrides, fragment):
                                                for k, v in (o.split("=") for o in overrides)}).params()
 
 
-def test_mapper_params_group_the_config_and_keep_octomaps_defaults():
+def test_mapper_params_group_the_config_and_keep_octomaps_defaults_but_the_top_clamp():
     p = load(MapperConfig, None, ["prob_hit=0.8", "voxel_m=0.02", "grid_z_max_m=0.5", "backend=octomap"]).params()
-    assert p.occupancy.sensor == SensorModel(prob_hit=0.8)
+    assert p.occupancy.sensor == SensorModel(prob_hit=0.8, clamp_max=0.9)
     assert (p.occupancy.backend, p.cloud.voxel_m, p.grid.z_max_m, p.max_extent_m) == ("octomap", 0.02, 0.5, 1000.0)
-    assert MapperConfig().params().occupancy.sensor == SensorModel() == SensorModel(0.7, 0.4, 0.12, 0.97, 0.5)
+    assert SensorModel() == SensorModel(0.7, 0.4, 0.12, 0.97, 0.5)  # OctoMap's
+    assert MapperConfig().params().occupancy.sensor == SensorModel(clamp_max=0.9)  # people walk through
     with pytest.raises(dataclasses.FrozenInstanceError):
         p.cloud.voxel_m = 0.5  # type: ignore[misc]
 

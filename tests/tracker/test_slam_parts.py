@@ -249,3 +249,24 @@ def test_imu_fusion_without_samples_changes_nothing() -> None:
     on = ImuFusion(motion)
     on.add(samples)
     assert on.inertial is not None
+
+
+def test_young_points_that_move_together_do_not_pull_the_pose(params, frames) -> None:
+    """A keyframe's points on a person walking by move with them for the next frames: the pose is
+    fitted to the established points (seen from two keyframes), and the young ones that agree."""
+    front, local, tracker = _tracker_over_first_keyframe(params, frames[0])
+    feats = front.features(frames[0], front.extract(frames[0], None, map_made=True), 0.0)
+    pts = local.points
+    n = pts.size
+    kept = local.keyframes[0]
+    uv = kept.feats.uv[kept.obs_kp]  # where each point was made
+    person = np.zeros(n, bool)
+    person[kept.obs_pid[uv[:, 0] < 260]] = True  # the left of the view: a person, young points ...
+    pts.n_obs[:n] = np.where(person, 1, 2)  # ... the rest seen from two keyframes
+    pts.xyz[:n][person] += (0.02, 0.0, 0.0)  # the person has moved 2 cm since the keyframe
+    tracked = tracker.track(feats, _moved(x=0.01), frames[0].stamp_ns)
+    assert tracked is not None
+    assert np.abs(invert(tracked.camera_from_world)[:3, 3]).max() < 1e-3  # the camera did not move
+    pulled = tracker.solve(feats, *tracker._guided(feats, np.arange(n), tracked.camera_from_world, 4.0)[:2],
+                           tracked.camera_from_world, use_ransac=False)
+    assert pulled is not None and np.abs(invert(pulled[0])[:3, 3]).max() > 3e-3  # every match: pulled along
