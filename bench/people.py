@@ -1,7 +1,7 @@
 """People walking through: the map of a session with people in view against its static twin (the
 same camera path and noise, no people).
 
-    .venv/bin/python bench/people.py [--scenes cross,stand] [--keep DIR]
+    .venv/bin/python bench/people.py [--scenes cross,stand] [--octomap] [--keep DIR]
 
 Scenes (replay/synthetic_people.py), 20 s each with the D455's depth noise and IMU:
 - `cross`: two people walk to and fro across the room (seed 0's textures);
@@ -13,7 +13,8 @@ Scenes (replay/synthetic_people.py), 20 s each with the D455's depth noise and I
 Per run: the share of pixels people cover (mean, max, frames above 10 %), ATE and the worst pose
 (cm), the dense cloud's points more than 10 cm from the room's static surfaces (ghosts), the
 occupied octree voxels whose centre is more than 10 cm from them, the 2D grid's occupied cells
-where people walked (their footprints, 10 cm clear of the room's objects), what the mapper masked
+where people walked (their footprints, 10 cm clear of the room's objects), the voxels and cloud
+points left where the person of `stand` stood (more than 10 cm from the room's surfaces), what the mapper masked
 (summary.json `map.movers`: voxel hits kept out, cloud points left out), and the mapper's CPU per keyframe. The maps are put in the room's frame by
 the trajectory's own alignment to the truth.
 """
@@ -38,6 +39,7 @@ SCENES = {"cross": "synthetic:600" + COMMON + ":people=cross",
           "stand": "synthetic:600:seed=1" + COMMON + ":people=stand+round",
           "close": "synthetic:600:seed=2" + COMMON + ":people=close"}
 GHOST_M = 0.10
+OCTOMAP_MODEL = ["--set", "mapper.confirm_within=0", "--set", "mapper.clamp_max=0.97"]
 
 
 def octolog(*args: str) -> None:
@@ -111,37 +113,51 @@ def measure(folder: Path, spec: str) -> dict:
 
     cloud = np.asarray(o3d.io.read_point_cloud(str(folder / "cloud.ply")).points)
     voxels = occupied_centres(folder / "map.bt")
+    stood = "-"
+    if "stand" in spec.split("people=")[-1]:  # where the person stood for 5 s, once they have left
+        def left(p: np.ndarray) -> int:
+            room = p @ room_from_map[:3, :3].T + room_from_map[:3, 3]
+            there = synthetic_people.inside(synthetic_people.crowd("stand"), 2.5, room, margin_m=0.05)
+            return int((there & (off(p) > GHOST_M)).sum())
+        stood = f"{left(voxels)} / {left(cloud)}"
     grid_ghosts, grid_known = grid_cells_on_paths(folder, spec, room_from_map)
     mapper_s = s["cpu_s"]["mapper"]["buckets"].get("mapper", 0.0)
     return {"ate": ate.rmse, "worst": ate.max, "cloud": len(cloud), "cloud_ghosts": int((off(cloud) > GHOST_M).sum()),
             "voxels": len(voxels), "voxel_ghosts": int((off(voxels) > GHOST_M).sum()), "grid_ghosts": grid_ghosts,
             "grid_known": grid_known, "movers": s["map"].get("movers", {}),
-            "ms_per_kf": 1000 * mapper_s / max(s["map"]["keyframes"], 1), "keyframes": s["map"]["keyframes"]}
+            "ms_per_kf": 1000 * mapper_s / max(s["map"]["keyframes"], 1), "keyframes": s["map"]["keyframes"],
+            "stood": stood}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", default="cross,stand")
     ap.add_argument("--keep", help="keep the session folders here")
+    ap.add_argument("--octomap", action="store_true",
+                    help="also map the people with OctoMap's model (every end point at once, clamp 0.97)")
     args = ap.parse_args()
     root = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="octolog-people-"))
     root.mkdir(parents=True, exist_ok=True)
     print(f"sessions in {root}")
     print("| scene | run | people cover (mean / max / frames > 10 %) | ATE, cm | worst, cm | cloud ghosts | "
-          "octree ghost voxels | grid cells occupied on paths (of known) | masked | mapper ms / keyframe |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "octree ghost voxels | grid cells occupied on paths (of known) | where one stood 5 s: voxels / points | "
+          "masked voxels / cleared cloud points | mapper ms / keyframe |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for name in args.scenes.split(","):
         spec = SCENES[name]
         cover = coverage(spec)
-        for label, src in (("people", spec), ("twin", twin(spec))):
-            folder = root / f"{name}-{label}"
-            octolog("run", "--source", src, "--out", str(folder))
+        runs = [("people", spec, []), ("twin", twin(spec), [])]
+        if args.octomap:
+            runs.append(("people, OctoMap's model", spec, OCTOMAP_MODEL))
+        for label, src, sets in runs:
+            folder = root / f"{name}-{label.split(',')[0]}{'-octomap' if sets else ''}"
+            octolog("run", "--source", src, "--out", str(folder), *sets)
             m = measure(folder, spec)
             share = (f"{cover[0] * 100:.1f} % / {cover[1] * 100:.0f} % / {cover[2]}" if label == "people" else "-")
             masked = f"{m['movers']['masked_voxels']} / {m['movers']['cleared_points']}" if m["movers"] else "-"
             print(f"| {name} | {label} | {share} | {m['ate'] * 100:.2f} | {m['worst'] * 100:.2f} | "
                   f"{m['cloud_ghosts'] / max(m['cloud'], 1) * 100:.3f} % ({m['cloud_ghosts']}) | {m['voxel_ghosts']} | "
-                  f"{m['grid_ghosts']} ({m['grid_known']}) | {masked} | {m['ms_per_kf']:.0f} |", flush=True)
+                  f"{m['grid_ghosts']} ({m['grid_known']}) | {m['stood']} | {masked} | {m['ms_per_kf']:.0f} |", flush=True)
 
 
 if __name__ == "__main__":

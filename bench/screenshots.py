@@ -1,11 +1,13 @@
 """Screenshots of the Rerun viewer on a session, as a user sees it: docs/img/*.png.
 
-Runs `octolog demo` and `octolog run` on TUM fr1/xyz first300 (Rerun on, the defaults), opens each
+Runs `octolog demo`, `octolog run` on TUM fr1/xyz first300 and on the synthetic room with two people
+walking through it (`people=cross`: the map without them, what was kept out in red at `map/movers`;
+Rerun on, the defaults), opens each
 session's recordings in the real viewer on a virtual display (Xvfb, Mesa's software Vulkan) and
 captures the screen once the viewer has caught up with the end of the data.
 
     make screenshots        # installs xvfb, mesa-vulkan-drivers, imagemagick, xdotool (apt) first
-    python bench/screenshots.py [--out docs/img] [--tum PATH] [--wait 60]
+    python bench/screenshots.py [--out docs/img] [--tum PATH] [--wait 60] [--shots demo,tum,people]
 
 The viewer opens the recordings with the blueprint they carry (octolog.kit.viz); the script presses
 the time panel's "follow latest data" button so that each shot shows the whole map.
@@ -29,6 +31,7 @@ LOAD_S = 20.0
 FOLLOW_BUTTON = ("54", "985")  # in the viewer's time panel (rerun-sdk 0.41, 1600x1000)
 IDLE_POINTER = ("1100", "18")  # an empty spot of its top bar
 SIZE = "1600x1000"
+PEOPLE = "synthetic:600:noise=d455:imu=200:people=cross"  # bench/people.py's first scene
 
 
 def _need(tool: str) -> str:
@@ -73,19 +76,25 @@ def main() -> None:
                                                  "tum", "rgbd_dataset_freiburg1_xyz_first300"),
                    help="TUM folder for the second shot (default: the shared first300)")
     p.add_argument("--wait", type=float, default=60.0, help="seconds the viewer gets before each capture")
+    p.add_argument("--shots", default="demo,tum,people", help="which shots (default all three)")
     args = p.parse_args()
     # a compositing X server captures black: Xvfb without the Composite extension
     xvfb = subprocess.Popen([_need("Xvfb"), DISPLAY, "-screen", "0", f"{SIZE}x24", "-extension", "Composite"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         with tempfile.TemporaryDirectory() as tmp:
-            demo = _session(["demo"], Path(tmp) / "demo")
-            _shot(demo, Path(args.out) / "viewer-demo.png", args.wait)
-            if Path(args.tum).is_dir():
+            shots = args.shots.split(",")
+            if "demo" in shots:
+                demo = _session(["demo"], Path(tmp) / "demo")
+                _shot(demo, Path(args.out) / "viewer-demo.png", args.wait)
+            if "tum" in shots and Path(args.tum).is_dir():
                 tum = _session(["run", "--source", f"tum:{args.tum}"], Path(tmp) / "tum")
                 _shot(tum, Path(args.out) / "viewer-tum-first300.png", args.wait)
-            else:
+            elif "tum" in shots:
                 print(f"screenshots: {args.tum} not found, no TUM shot")
+            if "people" in shots:
+                people = _session(["run", "--source", PEOPLE], Path(tmp) / "people")
+                _shot(people, Path(args.out) / "viewer-people.png", args.wait)
     finally:
         xvfb.terminate()
         xvfb.wait(timeout=30)

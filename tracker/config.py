@@ -66,6 +66,11 @@ class TrackingParams:
     ransac_iterations: int = 100  # PnP RANSAC iterations
     # sigma of an inverse-depth residual (1/m) in the pose fit: weighs depth against pixels
     inv_depth_sigma: float = 0.03
+    # young points (no keyframe has matched them again) that move the camera's fit more than this
+    # away from the established points' own fit, and beyond chance, pull it (a person walking by):
+    # the established fit is kept (tracker/map_tracking.py). A person moves ~3 cm a frame; the
+    # newest keyframe's own small errors shift it a few mm on real data (fr1/xyz: up to 7 mm). 0: off
+    young_pull_m: float = 0.01
     min_inliers: int = 20  # fewer inliers: the frame is LOST
     # after LOST, a pose found again with fewer inliers stays LOST (ORB-SLAM's relocalisation threshold)
     relocalise_min_inliers: int = 50
@@ -333,6 +338,7 @@ def _validate_front_end(f: FeatureParams, d: DepthParams, t: TrackingParams) -> 
     _want(0.0 < t.match_ratio <= 1.0, "tracking.match_ratio", t.match_ratio, "want in (0, 1]")
     _want(0.0 <= t.confident_ratio <= 1.0, "tracking.confident_ratio", t.confident_ratio, "want 0 to 1")
     _want(t.ransac_iterations >= 1, "tracking.ransac_iterations", t.ransac_iterations, "want >= 1")
+    _want(t.young_pull_m >= 0.0, "tracking.young_pull_m", t.young_pull_m, "want >= 0 (0: off)")
     _want(t.min_inliers >= 6, "tracking.min_inliers", t.min_inliers, "a pose needs at least 6 inliers")
     _want(t.min_init_points >= 1, "tracking.min_init_points", t.min_init_points, "want >= 1")
 

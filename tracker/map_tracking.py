@@ -172,21 +172,25 @@ class MapTracker:
         seen them again yet) pull it away from the established ones (seen from two keyframes or
         more). A keyframe makes points on whatever it sees, a person walking by too; for the next
         few frames those points move with the person, all together, and a fit to every match
-        follows them. Then the established points' squared reprojection error under the fit to every
-        match exceeds that under their own fit by more than chance allows for a 6-DoF pose (chi-square,
-        99 %, in units of their own scatter), and the pose is theirs; the young points that agree with it count as its inliers
+        follows them. Then the two fits' camera centres are more than `tracking.young_pull_m` apart,
+        and the established points' squared reprojection error under the fit to every match exceeds
+        that under their own fit by more than chance allows for a 6-DoF pose (chi-square, 99 %, in
+        units of their own scatter), and the pose is theirs; the young points that agree with it count as its inliers
         but do not pull it. Where few points are established, every match."""
         t = self.params.tracking
         every = self.solve(feats, ki, mi, guess_cw, use_ransac=False, rotation_prior=rotation_prior,
                            weigh_points=with_saved)
         young = self._map.points.n_obs[mi] <= 1
-        if every is None or not young.any() or int((~young).sum()) < CONFIDENT_INLIER_FACTOR * t.min_inliers:
+        if every is None or not t.young_pull_m or not young.any() or int((~young).sum()) < CONFIDENT_INLIER_FACTOR * t.min_inliers:
             return every
         old = self.solve(feats, ki[~young], mi[~young], every[0], use_ransac=False, rotation_prior=rotation_prior,
                          weigh_points=with_saved)
         if old is None:
             return every
         settled = np.flatnonzero(~young)[old[1]]
+        shift = float(np.linalg.norm(invert(every[0])[:3, 3] - invert(old[0])[:3, 3]))
+        if shift <= t.young_pull_m:
+            return every
         own = self._chi2(feats, ki[settled], mi[settled], old[0])
         variance = own / max(settled.size - 6, 1)  # the established points' own scatter, per point
         if self._chi2(feats, ki[settled], mi[settled], every[0]) - own <= CHI2_POSE_99 * variance:

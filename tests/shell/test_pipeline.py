@@ -38,6 +38,11 @@ def test_session_leaves_every_output(runs):
     assert summary["frames"] == {"published": N_FRAMES, "consumed": N_FRAMES, "skipped": 0}
     assert summary["ate"]["rmse_m"] <= 0.005  # synthetic scene, exact depth: the target is <= 0.5 cm
     assert summary["map"]["occupied_voxels"] > 1000 and summary["map"]["keyframes"] >= 2
+    # what the map kept out as moving, counted (a static room: few, its depth edges); the cloud's file
+    # holds what the count leaves
+    movers = summary["movers"]
+    assert movers == summary["map"]["movers"] and set(movers) == {"masked_voxels", "cleared_points"}
+    assert summary["map"]["cloud_points"] > 10 * movers["cleared_points"]
 
 
 DETERMINISTIC_FILES = ("trajectory.txt", "map.bt", "map.ot", "cloud.ply", "cloud.pcd", "map.pgm", "map.yaml",
@@ -225,6 +230,7 @@ def test_eval_and_info_commands(runs):
     assert abs(bias["inverse_offset_per_m"]) < 1e-3 and bias["points"] > 0
     folder = octolog("info", str(a)).stdout
     assert "depth bias (from the map)" in folder and "/camera/rgbd" in folder
+    assert "movers: " in folder and "kept out of the octree" in folder
 
 
 @pytest.mark.slow
