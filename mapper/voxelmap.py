@@ -21,12 +21,12 @@ scan and gone by the next. An end point counts only when one of the `confirm_wit
 also hit that voxel, or the map holds it occupied already; until then its hit is left out (its ray
 still clears the way to it). Until the voxel is occupied, a confirmed hit is three quarters of a
 miss: one ray through it undoes the first (a person who paused for two scans), and space seen free
-takes a few scans to fill (a person standing for a moment). A surface that stays is seen again by the next scans and goes in; a
-person who stood still and left is cleared by the rays that now pass through where they stood.
-The map's first scan counts whole (nothing came before it to confirm it: a camera on a tripod
-makes one keyframe). Unconfirmed hits in voxels the map holds free are movers: something appeared in space seen empty.
-The last scan's (`masked`) and their count over all scans (`masked_total`) are kept for the viewer
-and the summary.
+takes a few scans to fill (a person standing for a moment). A surface that stays is seen again by
+the next scans and goes in; a person who stood still and left is cleared by the rays that now pass
+through where they stood. Every end point of the map's first scan counts (nothing came before it
+to confirm it: a camera on a tripod makes one keyframe). Unconfirmed hits in voxels the map holds
+free are movers, something that appeared in space seen empty: the last scan's (`masked`) and their
+count over all scans (`masked_total`) are kept for the viewer and the summary.
 
 Colour follows `ColorOcTree::averageNodeColor`, applied once per scan and voxel: the scan's mean
 colour of the points in an occupied end-point voxel (rounded half to even) is averaged with the
