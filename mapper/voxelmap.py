@@ -42,7 +42,7 @@ average of the children's set colours).
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -71,9 +71,13 @@ class Region(Protocol):
 
 _DBL_MAX = float(np.finfo(np.float64).max)
 _NO_KEYS = np.zeros(0, np.int64)
-_ELSEWHERE = object()  # insert_all's stand-in for a scan that reaches none of the map
 _DENSE_MAX_CELLS = 1 << 26  # per-scan scratch grid limit (64 MiB of uint8), beyond it use np.unique
 _RAY_CHUNK = 65536  # rays per DDA batch: caps its working arrays (~100 bytes a ray) at a few MB
+
+
+def _no_scan() -> None:
+    """insert_all's stand-in for a scan that reaches none of the map (`elsewhere`)."""
+    return None
 
 
 @dataclass(frozen=True)
@@ -337,14 +341,14 @@ class VoxelOccupancyMap:
         while this one's updates go in: the cast is pure (compiled, without the GIL) and the updates
         keep their order, so the map is the same bytes as from one `insert` after another."""
         with ThreadPoolExecutor(1, thread_name_prefix="voxelmap-rays") as pool:
-            ahead = None
+            ahead: Callable[[], _Scan | None] | None = None  # the scan cast ahead, committed next
             for item in scans:
-                nxt = pool.submit(self._cast, *item, max_range_m, True) if item is not None else None
+                nxt = pool.submit(self._cast, *item, max_range_m, True).result if item is not None else _no_scan
                 if ahead is not None:
-                    self._commit(ahead.result() if ahead != _ELSEWHERE else None)
-                ahead = nxt if nxt is not None else _ELSEWHERE
+                    self._commit(ahead())
+                ahead = nxt
             if ahead is not None:
-                self._commit(ahead.result() if ahead != _ELSEWHERE else None)
+                self._commit(ahead())
 
     def elsewhere(self) -> None:
         """A scan that reaches none of this map (a shard's keyframe away from its tiles): it counts

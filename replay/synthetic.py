@@ -84,7 +84,7 @@ class SyntheticConfig:
     imu_late_ms: float = 0.0  # each sample measures the motion this long before its stamp
     blank_at_s: float = 0.0  # with blank_s > 0: from this time on the colour camera sees no texture
     blank_s: float = 0.0  # for this long (a blank wall, a covered lens; depth is unchanged)
-    people: str = ""  # people walking through the room (synthetic_people.crowd: cross, stand, near, joined with +)
+    people: str = ""  # people walking through the room (synthetic_people.crowd: cross, stand, round, close, joined with +)
 
     def __post_init__(self) -> None:
         """Checked once, where the parameters are built."""

@@ -62,7 +62,6 @@ class MapTracker:
         self.last_inlier_ids = np.zeros(0, np.int64)  # map points matched by the previous frame
         self.last_local = np.zeros(0, np.int64)  # the local map points the last frame was matched against
         self.rejected_jumps = 0  # tracked frames made LOST: a jump the motion cannot explain, on few inliers
-        self.pulled_frames = 0  # frames whose young points pulled the pose away: fitted to the established (movers)
 
     def locate(self, feats: FrameFeatures, predicted: np.ndarray, stamp_ns: int,
                rotation_prior: RotationPrior | None = None,
@@ -195,7 +194,6 @@ class MapTracker:
         variance = own / max(settled.size - 6, 1)  # the established points' own scatter, per point
         if self._chi2(feats, ki[settled], mi[settled], every[0]) - own <= CHI2_POSE_99 * variance:
             return every
-        self.pulled_frames += 1
         inl = np.zeros(ki.size, bool)
         inl[settled] = True
         yk, ym = ki[young], mi[young]
