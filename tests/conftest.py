@@ -86,15 +86,16 @@ def first300_run(octolog_run: RunFn) -> tuple[Path, str]:
     return octolog_run(f"tum:{tum_first300()}")
 
 
-# Seconds of wall time per module in a whole `make test` on two cores (pytest --durations=0, summed
-# per module), for the modules above 15 s: they start longest first, the rest follow, those with more
-# `slow` tests sooner. Only the schedule depends on it; re-measure when a module's time moves a lot.
+# Seconds of wall time per module in a whole `make test` (three workers on two cores; pytest
+# --durations=0, summed per module), for the modules above 15 s: they start longest first, the rest
+# follow, those with more `slow` tests sooner. Only the schedule depends on it; re-measure when a
+# module's time moves a lot.
 MODULE_SECONDS = {
-    "test_fleet": 263, "test_distributed": 205, "test_determinism": 170, "test_prior_map": 149, "test_slam": 136,
-    "test_depth_noise": 120, "test_relink": 115, "test_pipeline": 103, "test_wire": 101, "test_failures": 82,
-    "test_imu": 70, "test_recorder": 61, "test_gravity": 52, "test_fleet_order": 30, "test_tls": 35,
-    "test_odometry": 33, "test_journal": 29, "test_live": 29, "test_hostile": 28, "test_sessions": 27,
-    "test_simcamera": 25, "test_orbslam3": 21, "test_shards": 17,
+    "test_fleet": 229, "test_distributed": 225, "test_slam": 223, "test_depth_noise": 171, "test_prior_map": 166,
+    "test_tour": 122, "test_determinism": 113, "test_relink": 107, "test_pipeline": 103, "test_wire": 74,
+    "test_recorder": 67, "test_imu": 66, "test_failures": 54, "test_gravity": 50, "test_sessions": 37, "test_tls": 35,
+    "test_live": 34, "test_importers": 32, "test_journal": 31, "test_hostile": 31, "test_odometry": 28,
+    "test_simcamera": 24, "test_fleet_order": 22, "test_viz": 21, "test_shards": 19,
 }
 
 
