@@ -14,7 +14,7 @@ import numpy as np
 from octolog.kit.errors import MapError
 from octolog.kit.files import write_bytes_atomic
 from octolog.kit.geometry import Intrinsics
-from octolog.mapper.kernels import accumulate_rows, nearest_mean_distances, unique_keys
+from octolog.mapper.kernels import accumulate_rows, key_triples, nearest_mean_distances, unique_keys, voxel_means
 
 __all__ = [
     "DenseCloud",
@@ -257,9 +257,7 @@ def _merge_voxels(parts: list[tuple[np.ndarray, np.ndarray]], voxel_m: float,
     linear, lo, span = _linear_keys(points, voxel_m)
     unique, inverse, counts = unique_keys(linear, (int(span[0]) * int(span[1]) * int(span[2]) - 1).bit_length())
     if keys is not None:
-        x, rem = np.divmod(unique, span[1] * span[2])
-        y, z = np.divmod(rem, span[2])
-        keys.append(np.stack([x, y, z], axis=1) + lo)
+        keys.append(key_triples(unique, span, lo))
     m = counts.shape[0]
     out_p = np.zeros((m, 3), dtype=np.float64)
     out_c = np.zeros((m, 3), dtype=np.float64)
@@ -268,10 +266,7 @@ def _merge_voxels(parts: list[tuple[np.ndarray, np.ndarray]], voxel_m: float,
         accumulate_rows(inverse, at, p, out_p)
         accumulate_rows(inverse, at, c, out_c)
         at += len(p)
-    out_p /= counts[:, None]
-    out_c /= counts[:, None]
-    out_c = np.clip(np.rint(out_c), 0, 255).astype(np.uint8)
-    return out_p, out_c
+    return out_p, voxel_means(out_p, out_c, counts)  # out_p becomes the means in place
 
 
 def transform(points: np.ndarray, world_from_camera: np.ndarray) -> np.ndarray:
@@ -367,6 +362,10 @@ class DenseCloud:
         """Drop a keyframe's contribution (no error if absent)."""
         if self._parts.pop(int(keyframe_id), None) is not None:
             self._cache = None
+
+    def points_of(self, keyframe_id: int) -> np.ndarray:
+        """Keyframe `keyframe_id`'s points as added (read-only use)."""
+        return self._parts[int(keyframe_id)][0]
 
     def keyframe_ids(self) -> list[int]:
         """Ids of the contributing keyframes, ascending."""

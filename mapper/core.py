@@ -15,7 +15,7 @@ at is the same either way, so the outputs do not depend on when it ran.
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
@@ -295,12 +295,23 @@ class Mapper:
             self._stale = True
         return changed
 
-    def rebuild(self) -> None:
-        """Re-integrate every keyframe, in arrival order, with its current pose (and map frame)."""
+    def rebuild(self, merge_on: Executor | None = None) -> None:
+        """Re-integrate every keyframe, in arrival order, with its current pose (and map frame). With
+        `merge_on` (a whole map), every keyframe's cloud is placed first and the dense cloud merged on
+        that executor while the octree is rebuilt from the placed points: the merge needs no octree,
+        and at a run's end it would otherwise follow the rebuild. The same map either way."""
         self._octree = self._new_octree()
         self._stale = False
         self._version += 1
-        scans = (self._place(kf_id, kf) for kf_id, kf in self.keyframes.items())
+        if merge_on is not None and self.params.tiles is None:
+            for kf_id, kf in self.keyframes.items():
+                self._place(kf_id, kf)  # its points stay in the cloud, where the octree's scans read them
+            merge_on.submit(self._cloud.cloud)
+            colour = self.params.occupancy.colour
+            scans = ((self._cloud.points_of(kf_id), (self.map_from_world @ kf.world_from_camera)[:3, 3],
+                      kf.colours if colour else None) for kf_id, kf in self.keyframes.items())
+        else:
+            scans = (self._place(kf_id, kf) for kf_id, kf in self.keyframes.items())
         if isinstance(self._octree, VoxelOccupancyMap):  # the next keyframe's rays cast while one goes in
             self._octree.insert_all(scans, max_range_m=-1.0)
         else:
@@ -331,10 +342,12 @@ class Mapper:
         and `meanwhile` runs (the run's last snapshot): the merge's compiled kernels and NumPy run
         without the GIL, so at a run's end, the tracker gone, the mapper has both cores. The files
         are the same bytes either way."""
-        octree = self.octree  # a pending correction first: its rebuild re-places the cloud's keyframes too
         out_dir.mkdir(parents=True, exist_ok=True)
         with ThreadPoolExecutor(1, thread_name_prefix="mapper-cloud") as pool:
-            cloud = pool.submit(lambda: _cloud_files(out_dir, *self.map_cloud()))
+            if self._stale:  # a pending correction first: the cloud merges while the octree is rebuilt
+                self.rebuild(merge_on=pool)
+            octree = self.octree
+            cloud = pool.submit(lambda: _cloud_files(out_dir, *self.map_cloud()))  # after the merge: one thread
             if meanwhile is not None:
                 meanwhile()
             files = _octree_files(out_dir, octree, stem)

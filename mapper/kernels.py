@@ -41,8 +41,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["accumulate_rows", "find_sorted", "insert_sorted", "marked_keys", "merge_sorted", "nearest_mean_distances",
-           "unique_keys", "walk_rays"]
+__all__ = ["accumulate_rows", "find_sorted", "insert_sorted", "key_triples", "marked_keys", "merge_sorted",
+           "nearest_mean_distances", "unique_keys", "voxel_means", "walk_rays"]
 
 
 @njit(cache=True, nogil=True)
@@ -153,6 +153,46 @@ def _accumulate(inverse: np.ndarray, offset: int, values: np.ndarray, out: np.nd
 def accumulate_rows(inverse: np.ndarray, offset: int, values: np.ndarray, out: np.ndarray) -> None:
     """`out[inverse[offset + i]] += values[i]` for every row i of `values`, in row order (float64 `out`)."""
     _accumulate(inverse, int(offset), np.ascontiguousarray(values), out)
+
+
+@njit(cache=True, nogil=True)
+def _means(sums: np.ndarray, colour_sums: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    out = np.empty(colour_sums.shape, np.uint8)
+    for g in range(counts.shape[0]):
+        n = np.float64(counts[g])
+        for j in range(3):
+            sums[g, j] = sums[g, j] / n
+            c = np.rint(colour_sums[g, j] / n)
+            out[g, j] = np.uint8(0.0 if c < 0.0 else (255.0 if c > 255.0 else c))
+    return out
+
+
+def voxel_means(sums: np.ndarray, colour_sums: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """A voxel merge's last step in one pass: `sums /= counts` in place (the mean point), and the
+    mean colours rounded half to even and clipped to 0-255 as uint8 (NumPy's `rint` and `clip`:
+    the same bytes). `sums` and `colour_sums` (M,3) float64, `counts` (M,) int64."""
+    return _means(sums, np.ascontiguousarray(colour_sums), np.ascontiguousarray(counts, dtype=np.int64))
+
+
+@njit(cache=True, nogil=True)
+def _triples(unique: np.ndarray, span_y: int, span_z: int, lo: np.ndarray) -> np.ndarray:
+    out = np.empty((unique.shape[0], 3), np.int64)
+    yz = span_y * span_z
+    for g in range(unique.shape[0]):
+        k = unique[g]
+        x = k // yz
+        r = k - x * yz
+        y = r // span_z
+        out[g, 0] = x + lo[0]
+        out[g, 1] = y + lo[1]
+        out[g, 2] = r - y * span_z + lo[2]
+    return out
+
+
+def key_triples(unique: np.ndarray, span: np.ndarray, lo: np.ndarray) -> np.ndarray:
+    """The (M,3) int64 voxel triples of non-negative linear keys `(x * span_y + y) * span_z + z`, plus `lo`."""
+    return _triples(np.ascontiguousarray(unique, dtype=np.int64), int(span[1]), int(span[2]),
+                    np.ascontiguousarray(lo, dtype=np.int64))
 
 
 @njit(cache=True, nogil=True)
