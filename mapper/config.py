@@ -62,6 +62,12 @@ class MapperConfig:
     # publish the map (octomap, occupied voxels, 2D grid) every n keyframes and at the end; 0: end only.
     # Counted in keyframes, not seconds, so the session log stays deterministic.
     publish_every: int = 10
+    # while the session runs, a correction re-integrates the octree from the first keyframe it moved
+    # by more than this many voxels at any of its points (the others keep their voxels where they went
+    # in; every dense-cloud point moves exactly): below a quarter voxel a keyframe's voxels barely
+    # change, and the loop a live session closes costs no rebuild of the whole map. The files are the
+    # exact map of the final poses whatever this is. 0: every snapshot exact too.
+    move_tolerance_voxels: float = 0.25
     # an earlier session's folder whose map this one starts from and extends (mapper/prior.py; `octolog
     # run --map` sets it, with that session's grid_up); "": an empty map
     prior: str = ""
@@ -118,6 +124,8 @@ class MapperConfig:
             raise ConfigError(f"mapper.grid_z_min_m {self.grid_z_min_m} must be below grid_z_max_m {self.grid_z_max_m}")
         if self.backend not in BACKENDS:
             raise ConfigError(f"mapper.backend {self.backend!r}: want numpy or octomap")
+        if not (math.isfinite(self.move_tolerance_voxels) and self.move_tolerance_voxels >= 0):
+            raise ConfigError(f"mapper.move_tolerance_voxels {self.move_tolerance_voxels}: want a number >= 0")
         if self.confirm_within < 0:
             raise ConfigError(f"mapper.confirm_within {self.confirm_within}: want >= 0 (0: off)")
         if not (math.isfinite(self.robot_stall_s) and self.robot_stall_s >= 0):
@@ -178,6 +186,7 @@ class MapperConfig:
                             z_max_m=self.grid_z_max_m, resolution_m=self.grid_resolution_m),
             max_extent_m=self.max_extent_m,
             tiles=self.tiles(),
+            move_tolerance_m=self.move_tolerance_voxels * self.resolution_m,
         )
 
     @property

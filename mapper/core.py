@@ -6,9 +6,13 @@ accelerometer, see mapper.grid), so `map.bt` and `cloud.ply` stand upright in an
 octree's voxel columns are vertical. Each keyframe's filtered cloud is kept in its camera frame, so
 a corrected pose, or a new `map` frame (`set_up`), only needs a new transform. The octree cannot
 subtract one keyframe's contribution (log-odds are clamped), so a correction rebuilds it by
-re-inserting every keyframe in arrival order with the current poses: the result is, byte for byte,
-the map built from scratch with the corrected poses. The rebuild waits until the map is looked at
-(a snapshot, the grid, the files): the loops a live session closes between two snapshots cost one
+re-inserting keyframes in arrival order with the current poses, from a checkpoint of the octree
+taken before the first keyframe that moved (every CHECKPOINT_EVERY keyframes, the newest
+CHECKPOINTS kept): the files are, byte for byte, the map built from scratch with the final poses.
+While the session runs, a keyframe moved by less than `mapper.move_tolerance_voxels` at every point
+keeps its voxels where they went in (its dense cloud moves exactly), so the loop a live session
+closes re-integrates only from the first keyframe it moved that far. The rebuild waits until the map
+is looked at (a snapshot, the grid, the files): the loops closed between two snapshots cost one
 rebuild, not one each, and keyframes that arrive meanwhile are inserted once, by it. What is looked
 at is the same either way, so the outputs do not depend on when it ran.
 """
@@ -30,7 +34,7 @@ from octolog.mapper.grid import OccupancyGrid2D, map_from_world_for_up, project_
 from octolog.mapper.occupancy import OccupancyMap, make_occupancy_map
 from octolog.mapper.params import GridParams, MapperParams
 from octolog.mapper.tiles import Tiles
-from octolog.mapper.voxelmap import VoxelOccupancyMap
+from octolog.mapper.voxelmap import Checkpoint, VoxelOccupancyMap
 
 __all__ = ["FrameRef", "KeyframeCloud", "Mapper", "bt_payload", "make_mapper", "project_grid", "reaches",
            "write_map_files"]
@@ -51,6 +55,42 @@ class KeyframeCloud:
     # correction brings it within reach: then as at arrival, with the depth re-corrections since
     frame: RgbdFrame | FrameRef | None = None
     recorrections: tuple[float, ...] = ()
+
+
+# the octree's checkpoints (Mapper.rebuild): one every CHECKPOINT_EVERY keyframes inserted, the newest
+# CHECKPOINTS kept (each a copy of the octree's voxels: a room's ~10 MB)
+CHECKPOINT_EVERY = 10
+CHECKPOINTS = 3
+
+
+@dataclass(frozen=True)
+class _Inserted:
+    """Where a keyframe's scan went into the octree: its map pose, its depth correction, and the
+    corners of the camera-frame box around its cloud and the camera (None: no cloud), which bound how
+    far a new pose moves its points and rays (a rigid motion moves a box's points at most as far as
+    one of its corners)."""
+
+    map_from_camera: np.ndarray
+    inverse_offset: float
+    corners: np.ndarray | None
+
+    def moved(self, map_from_camera: np.ndarray, inverse_offset: float, tolerance_m: float) -> bool:
+        """Whether the keyframe now at `map_from_camera` moved any point farther than `tolerance_m`
+        (0: at all) since, or took another depth correction."""
+        if inverse_offset != self.inverse_offset:
+            return True
+        if tolerance_m <= 0 or self.corners is None:
+            return not np.array_equal(map_from_camera, self.map_from_camera)
+        d = self.corners @ (map_from_camera[:3, :3] - self.map_from_camera[:3, :3]).T + \
+            (map_from_camera[:3, 3] - self.map_from_camera[:3, 3])
+        return float(np.einsum("ij,ij->i", d, d).max()) > tolerance_m * tolerance_m
+
+
+def _box_corners(points: np.ndarray | None) -> np.ndarray | None:
+    if points is None or len(points) == 0:
+        return None
+    lo, hi = np.minimum(points.min(axis=0), 0.0), np.maximum(points.max(axis=0), 0.0)  # the camera's rays too
+    return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
 
 
 @dataclass
@@ -88,6 +128,9 @@ class Mapper:
         self._cloud = DenseCloud(voxel_m=params.cloud.voxel_m)
         self._octree = self._new_octree()
         self._stale = False  # poses or the map frame moved since the octree and cloud were built
+        self._inexact = False  # some keyframe's voxels lie where it was before a move within the tolerance
+        self._inserted: dict[int, _Inserted] = {}  # the keyframes in the octree: the first n in arrival order
+        self._checkpoints: list[tuple[int, Checkpoint]] = []  # (n keyframes inserted, the octree then)
         self.rebuilds = 0
         self.map_from_world = map_from_world(params.grid)  # 4x4: where the keyframes are put
         self.last_masked = np.zeros((0, 3))  # the last keyframe's movers: masked voxel centres, map frame
@@ -99,7 +142,8 @@ class Mapper:
         self.keyframes = {}
         self._cloud = DenseCloud(voxel_m=self.params.cloud.voxel_m)
         self._octree = self._new_octree()
-        self._stale = False
+        self._stale = self._inexact = False
+        self._inserted, self._checkpoints = {}, []
         self._version += 1
 
     def set_up(self, up: tuple[float, ...]) -> None:
@@ -115,16 +159,16 @@ class Mapper:
     @property
     def octree(self) -> OccupancyMap:
         """The occupancy map of every integrated keyframe at its current pose (rebuilt here when a
-        correction or a new map frame left it stale)."""
+        correction or a new map frame left it stale, within `move_tolerance_m`)."""
         if self._stale:
-            self.rebuild()
+            self.rebuild(self.params.move_tolerance_m)
         return self._octree
 
     @property
     def cloud(self) -> DenseCloud:
         """The dense cloud of every integrated keyframe at its current pose (as `octree`)."""
         if self._stale:
-            self.rebuild()
+            self.rebuild(self.params.move_tolerance_m)
         return self._cloud
 
     @property
@@ -239,6 +283,15 @@ class Mapper:
             self._version += 1
             if isinstance(self._octree, VoxelOccupancyMap):
                 self.last_masked = self._octree.masked_centres()
+        self._inserted_now(kf_id, kf)
+
+    def _inserted_now(self, kf_id: int, kf: KeyframeCloud) -> None:
+        """Keyframe `kf_id` (the next in arrival order) just went into the octree; a checkpoint when due."""
+        self._inserted[kf_id] = _Inserted(self.map_from_world @ kf.world_from_camera, kf.inverse_offset,
+                                          _box_corners(kf.points_cam))
+        n = len(self._inserted)
+        if n % CHECKPOINT_EVERY == 0 and isinstance(self._octree, VoxelOccupancyMap):
+            self._checkpoints = [*self._checkpoints, (n, self._octree.checkpoint())][-CHECKPOINTS:]
 
     def _place(self, kf_id: int, kf: KeyframeCloud) -> tuple[np.ndarray, np.ndarray, np.ndarray | None] | None:
         """The keyframe's points into the dense cloud at its current pose; its scan for the octree
@@ -295,12 +348,32 @@ class Mapper:
             self._stale = True
         return changed
 
-    def rebuild(self, merge_on: Executor | None = None) -> None:
-        """Re-integrate every keyframe, in arrival order, with its current pose (and map frame). With
-        `merge_on` (a whole map), every keyframe's cloud is placed first and the dense cloud merged on
-        that executor while the octree is rebuilt from the placed points: the merge needs no octree,
-        and at a run's end it would otherwise follow the rebuild. The same map either way."""
-        self._octree = self._new_octree()
+    def rebuild(self, tolerance_m: float = 0.0, merge_on: Executor | None = None) -> None:
+        """Bring the map to the keyframes' current poses (and map frame): every keyframe's cloud placed
+        anew, and the octree re-integrated, in arrival order, from the newest checkpoint before the
+        first keyframe that moved more than `tolerance_m` at any point (0: at all) or arrived since;
+        nothing when none did. With `merge_on` (a whole map), the clouds are placed first and the dense
+        cloud merged on that executor while the octree is rebuilt from the placed points: the merge
+        needs no octree, and at a run's end it would otherwise follow the rebuild. The same map either way."""
+        ids = list(self.keyframes)
+        current = {k: (self.map_from_world @ kf.world_from_camera, kf.inverse_offset) for k, kf in self.keyframes.items()}
+
+        def moved(k: int, tol: float) -> bool:
+            return k not in self._inserted or self._inserted[k].moved(*current[k], tol)
+
+        start = next((i for i, k in enumerate(ids) if moved(k, tolerance_m)), len(ids))
+        self._inexact = tolerance_m > 0 and any(moved(k, 0.0) for k in ids[:start])
+        at = len(ids)
+        if start < len(ids):
+            at, checkpoint = max(((n, c) for n, c in self._checkpoints if n <= start), default=(0, None),
+                                 key=lambda nc: nc[0])
+            self._checkpoints = [(n, c) for n, c in self._checkpoints if n <= at]
+            for k in ids[at:]:
+                self._inserted.pop(k, None)
+            if checkpoint is None:
+                self._octree = self._new_octree()
+            else:
+                self._octree.restore(checkpoint)
         self._stale = False
         self._version += 1
         if merge_on is not None and self.params.tiles is None:
@@ -308,17 +381,28 @@ class Mapper:
                 self._place(kf_id, kf)  # its points stay in the cloud, where the octree's scans read them
             merge_on.submit(self._cloud.cloud)
             colour = self.params.occupancy.colour
-            scans = ((self._cloud.points_of(kf_id), (self.map_from_world @ kf.world_from_camera)[:3, 3],
-                      kf.colours if colour else None) for kf_id, kf in self.keyframes.items())
+            scans = ((self._cloud.points_of(k), current[k][0][:3, 3], self.keyframes[k].colours if colour else None)
+                     for k in ids[at:])
         else:
-            scans = (self._place(kf_id, kf) for kf_id, kf in self.keyframes.items())
+            for k in ids[:at]:
+                self._place(k, self.keyframes[k])
+            scans = (self._place(k, self.keyframes[k]) for k in ids[at:])
+        if at == len(ids):
+            return
+        pending = iter(ids[at:])
+
+        def committed() -> None:
+            k = next(pending)
+            self._inserted_now(k, self.keyframes[k])
+
         if isinstance(self._octree, VoxelOccupancyMap):  # the next keyframe's rays cast while one goes in
-            self._octree.insert_all(scans, max_range_m=-1.0)
+            self._octree.insert_all(scans, max_range_m=-1.0, committed=committed)
         else:
             for scan in scans:
                 if scan is not None:
                     pts, origin, colours = scan
                     self._octree.insert(pts, origin, colours=colours, max_range_m=-1.0)
+                committed()
         self.rebuilds += 1
 
     def stats(self) -> dict:
@@ -344,7 +428,7 @@ class Mapper:
         are the same bytes either way."""
         out_dir.mkdir(parents=True, exist_ok=True)
         with ThreadPoolExecutor(1, thread_name_prefix="mapper-cloud") as pool:
-            if self._stale:  # a pending correction first: the cloud merges while the octree is rebuilt
+            if self._stale or self._inexact:  # the exact map of the final poses: the cloud merges meanwhile
                 self.rebuild(merge_on=pool)
             octree = self.octree
             cloud = pool.submit(lambda: _cloud_files(out_dir, *self.map_cloud()))  # after the merge: one thread

@@ -66,3 +66,4 @@ class MapperParams:
     grid: GridParams
     max_extent_m: float  # cameras farther than this from the origin are refused
     tiles: Tiles | None  # a shard of the map: only these tiles' voxels (mapper.tiles)
+    move_tolerance_m: float  # a keyframe moved less at every point keeps its voxels in a snapshot (0: exact)

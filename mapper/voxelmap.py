@@ -90,6 +90,17 @@ class _Scan:
     colour: tuple[np.ndarray, np.ndarray] | None
 
 
+@dataclass(frozen=True)
+class Checkpoint:
+    """A VoxelOccupancyMap's whole state (`checkpoint`): its voxels, the recent scans' end points
+    that confirm hits, the masked end points."""
+
+    store: VoxelStore
+    recent: list[np.ndarray]
+    masked: np.ndarray
+    masked_total: int
+
+
 BT_HEADER = "# Octomap OcTree binary file"
 OT_HEADER = "# Octomap OcTree file"
 _COMMENT = "\n# (feel free to add / change comments, but leave the first line as it is!)\n#\n"
@@ -266,6 +277,16 @@ class VoxelOccupancyMap:
         self.masked = np.zeros(0, np.int64)  # the last scan's masked end-point voxels, packed
         self.masked_total = 0
 
+    def checkpoint(self) -> Checkpoint:
+        """The map's whole state now (a copy): `restore` brings it back, so re-inserting the scans
+        that followed gives the same bytes as if it had never left."""
+        return Checkpoint(self._store.copy(), list(self._recent), self.masked.copy(), self.masked_total)
+
+    def restore(self, cp: Checkpoint) -> None:
+        """Return to the state of `checkpoint` (which stays as it is, for another return)."""
+        self._store, self._recent = cp.store.copy(), list(cp.recent)
+        self.masked, self.masked_total = cp.masked.copy(), cp.masked_total
+
     def voxels(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Every known voxel: packed keys (sorted), log-odds, colours (copies)."""
         return tuple(a.copy() for a in self._store.arrays())
@@ -335,20 +356,25 @@ class VoxelOccupancyMap:
         return self._scan(pts, org, colours, float(max_range_m), bool(discretize))
 
     def insert_all(self, scans: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray | None] | None], *,
-                   max_range_m: float = -1.0) -> None:
+                   max_range_m: float = -1.0, committed: Callable[[], None] | None = None) -> None:
         """`insert(points, origin, colours=colours, max_range_m=...)` of each (points, origin, colours)
-        in order (a rebuild; None: `elsewhere()`). The rays of the next scan are cast on a second thread
-        while this one's updates go in: the cast is pure (compiled, without the GIL) and the updates
-        keep their order, so the map is the same bytes as from one `insert` after another."""
+        in order (a rebuild; None: `elsewhere()`), `committed()` after each. The rays of the next scan
+        are cast on a second thread while this one's updates go in: the cast is pure (compiled, without
+        the GIL) and the updates keep their order, so the map is the same bytes as from one `insert`
+        after another."""
         with ThreadPoolExecutor(1, thread_name_prefix="voxelmap-rays") as pool:
             ahead: Callable[[], _Scan | None] | None = None  # the scan cast ahead, committed next
             for item in scans:
                 nxt = pool.submit(self._cast, *item, max_range_m, True).result if item is not None else _no_scan
                 if ahead is not None:
                     self._commit(ahead())
+                    if committed is not None:
+                        committed()
                 ahead = nxt
             if ahead is not None:
                 self._commit(ahead())
+                if committed is not None:
+                    committed()
 
     def elsewhere(self) -> None:
         """A scan that reaches none of this map (a shard's keyframe away from its tiles): it counts

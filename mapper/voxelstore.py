@@ -72,6 +72,12 @@ class VoxelStore:
     def __len__(self) -> int:
         return sum(len(s) for s in self._slabs.values())
 
+    def copy(self) -> VoxelStore:
+        """An independent copy (the slabs' arrays copied, their two levels as they are)."""
+        store = VoxelStore()
+        store._slabs = {k: slab.copy() for k, slab in self._slabs.items()}
+        return store
+
     @property
     def nbytes(self) -> int:
         return sum(s.nbytes for s in self._slabs.values())
@@ -121,6 +127,12 @@ class _Slab:
 
     def __len__(self) -> int:
         return int(self._main[0].shape[0] + self._new[0].shape[0])
+
+    def copy(self) -> _Slab:
+        slab = _Slab()
+        slab._main = tuple(a.copy() for a in self._main)
+        slab._new = tuple(a.copy() for a in self._new)
+        return slab
 
     @property
     def nbytes(self) -> int:

@@ -72,6 +72,53 @@ def test_corrections_between_looks_cost_one_rebuild_and_change_no_byte(scene, tm
     assert lazy.octree.bt_bytes() == scratch.octree.bt_bytes() and lazy.rebuilds == 1  # fresh now
 
 
+def _shifted(T: np.ndarray, metres: float) -> np.ndarray:
+    out = T.copy()
+    out[:3, 3] += metres
+    return out
+
+
+def test_a_snapshot_reintegrates_from_the_first_keyframe_moved_beyond_the_tolerance(scene, tmp_path):
+    """While the session runs a correction that moves keyframes less than `move_tolerance_voxels` at
+    every point leaves their voxels where they went in (the cloud moves exactly); one that moves a
+    keyframe farther re-integrates from the checkpoint before it (every CHECKPOINT_EVERY keyframes),
+    at the current poses. The files are the exact map of the final poses either way."""
+    from octolog.mapper.core import CHECKPOINT_EVERY
+
+    n = 2 * CHECKPOINT_EVERY + 5
+    frames = [(k, scene.pose(k), scene.render(k)) for k in range(n)]
+    tiny, far = 0.003, 0.05  # m: below and above a quarter of the 5 cm voxel
+    live = make_mapper(MapperConfig())
+    for k, T, f in frames:
+        live.integrate(k, T, f)
+
+    def scratch(poses: list[np.ndarray], cfg: MapperConfig = MapperConfig()):
+        m = make_mapper(cfg)
+        for (k, _, f), T in zip(frames, poses):
+            m.integrate(k, T, f)
+        return m
+
+    original = [T for _, T, _ in frames]
+    nudged = [_shifted(T, tiny) for T in original]
+    before = live.octree.bt_bytes()
+    live.correct(dict(enumerate(nudged)))
+    assert live.octree.bt_bytes() == before and live.rebuilds == 0  # no voxel moved
+    assert np.array_equal(live.cloud.cloud()[0], scratch(nudged).cloud.cloud()[0])  # the cloud did
+    assert scratch(nudged).octree.bt_bytes() != before  # (the nudge does move voxels when it counts)
+    late = 2 * CHECKPOINT_EVERY + 2
+    final = nudged[:late] + [_shifted(T, far) for T in nudged[late:]]
+    live.correct(dict(enumerate(final)))
+    # from the checkpoint at 2 * CHECKPOINT_EVERY keyframes: those before it keep their voxels
+    kept = original[:2 * CHECKPOINT_EVERY] + final[2 * CHECKPOINT_EVERY:]
+    assert live.octree.bt_bytes() == scratch(kept).octree.bt_bytes() and live.rebuilds == 1
+    exact = scratch(final)
+    assert _bytes(live, tmp_path, "live") == _bytes(exact, tmp_path, "exact")
+    # with no tolerance every snapshot is the exact map
+    strict = scratch(original, MapperConfig(move_tolerance_voxels=0))
+    strict.correct(dict(enumerate(nudged)))
+    assert strict.octree.bt_bytes() == scratch(nudged).octree.bt_bytes()
+
+
 @pytest.mark.parametrize(
     ("pose", "depth_zero", "message"),
     [

@@ -136,6 +136,27 @@ def test_insert_all_is_one_insert_after_another():
     assert partial.ot_bytes() == first.ot_bytes()
 
 
+def test_a_checkpoint_restored_goes_on_as_if_it_had_never_left():
+    """`checkpoint` then `restore` (twice: the checkpoint stays as it was): the scans inserted after a
+    restore give the bytes of a map that took them straight after the checkpointed ones, confirmation
+    window and masked end points included."""
+    clouds = raw_clouds(stride=4, n=3)
+    (a, ca, Ta), (b, cb, Tb), (c, cc, Tc) = clouds
+    m = VoxelOccupancyMap(RES, confirm_within=2)
+    m.insert(a, Ta[:3, 3], colours=ca)
+    m.insert(b, Tb[:3, 3], colours=cb)
+    cp = m.checkpoint()
+    m.insert(c, Tc[:3, 3], colours=cc)
+    straight = VoxelOccupancyMap(RES, confirm_within=2)
+    for pts, cols, T in ((a, ca, Ta), (b, cb, Tb), (a, ca, Tc)):
+        straight.insert(pts, T[:3, 3], colours=cols)
+    for _ in range(2):
+        m.restore(cp)
+        m.insert(a, Tc[:3, 3], colours=ca)  # another scan than the one the checkpoint was followed by
+        assert m.ot_bytes() == straight.ot_bytes() and m.masked_total == straight.masked_total
+        assert np.array_equal(m.masked, straight.masked)
+
+
 def test_same_tree_as_octomap_on_filtered_clouds():
     depth, rgb = scene()
     clouds = []
