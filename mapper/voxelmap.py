@@ -134,7 +134,8 @@ class _ScanGrid:
 
     def result(self, occ_lin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(free, occupied) packed keys, each sorted and unique, disjoint (occupied wins)."""
-        occ_lin = np.unique(occ_lin)
+        if occ_lin.shape[0] > 1 and not np.all(occ_lin[1:] > occ_lin[:-1]):  # voxel centres' keys come sorted
+            occ_lin = np.unique(occ_lin)
         if self.dense:  # the marked cells in the grid's order are sorted packed keys already
             self.grid[occ_lin] = 0
             return marked_keys(self.grid, self.shape, self.lo), self._to_packed(occ_lin)
@@ -468,7 +469,7 @@ class VoxelOccupancyMap:
         if ok.all():
             return occ, hits, colour
         if colour is not None:
-            kept = np.isin(colour[0], occ[ok])
+            kept = find_sorted(occ[ok], colour[0])[1]  # both sorted and unique
             colour = (colour[0][kept], colour[1][kept])
         return occ[ok], hits[ok], colour
 
