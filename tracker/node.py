@@ -454,13 +454,22 @@ class VizLog:
                 self.error = self.error or exc
 
 
+KEYFRAME_DEPTH_STEP = 2  # the viewer's keyframe depth: every n-th pixel in each direction
+
+
+def _every(intr: Intrinsics, step: int) -> Intrinsics:
+    """The camera of an image that keeps every `step`-th pixel of `intr`'s in each direction."""
+    return replace(intr, width=-(-intr.width // step), height=-(-intr.height // step), fx=intr.fx / step,
+                   fy=intr.fy / step, cx=intr.cx / step, cy=intr.cy / step)
+
+
 def _log(viz: Viz, shown: _Shown) -> None:
     frame, res = shown.frame, shown.res
     viz.set_time(frame.stamp_ns, frame.seq)
     if shown.first:
         viz.camera("world/tracker/camera", frame.intrinsics)
     viz.pose("world/tracker/camera", res.world_from_camera)
-    colour, depth = frame.extra.get("wire", (None, None))
+    colour, _ = frame.extra.get("wire", (None, None))
     jpeg = colour.data if colour is not None and "jpeg" in colour.format else frame.extra.get("jpeg")
     viz.rgb("world/tracker/camera/image", frame.rgb, jpeg)  # the one place the images are logged
     viz.scalar("tracker/inliers", float(res.n_inliers))
@@ -475,12 +484,14 @@ def _log(viz: Viz, shown: _Shown) -> None:
                      radius=0.02)
         viz.text("tracker/events", f"keyframe {res.keyframe_id} at frame {frame.seq}")
         # the keyframe's depth at the keyframe's pose (per frame it would add 100 kB a frame and
-        # nothing a keyframe does not show); its own entity, so it stays where it was taken
+        # nothing a keyframe does not show); its own entity, so it stays where it was taken. Every
+        # KEYFRAME_DEPTH_STEP-th pixel: the full image's PNG was the largest part of a live tracker's
+        # Rerun logging; the map's dense cloud shows the keyframes whole
         if shown.first_keyframe:
-            viz.camera("world/tracker/keyframe", frame.intrinsics)
+            viz.camera("world/tracker/keyframe", _every(frame.intrinsics, KEYFRAME_DEPTH_STEP))
         viz.pose("world/tracker/keyframe", res.world_from_camera)
-        png = depth.data if depth is not None and depth.format == wirecompression.DEPTH_PNG_FORMAT else None
-        viz.depth("world/tracker/keyframe/depth", frame.depth, frame.depth_scale_m, png)
+        viz.depth("world/tracker/keyframe/depth", frame.depth[::KEYFRAME_DEPTH_STEP, ::KEYFRAME_DEPTH_STEP],
+                  frame.depth_scale_m)
         if shown.local_map is not None:
             viz.points3d("world/tracker/local_map", shown.local_map, [255, 255, 255], radius=0.004)
     if res.loop is not None:
