@@ -178,11 +178,13 @@ class TrackerConfig:
     # as a SKIPPED status, so the session log says exactly which frames were consumed)
     live: bool = False
     # live: frames are tracked in order while the newest one waiting is at most this much sensor
-    # time ahead of the next (one frame at 30 fps, and a camera's or the bus's jitter); beyond it
-    # every other frame is skipped until the tracker is back within it, and beyond 4 times it the
-    # newest wins at once (tracker/node.py: _skip_behind). 0: the newest always wins. The latency a
-    # live tracker may add to catch up
-    live_lag_ms: float = 50.0
+    # time ahead of the next (three frames at 30 fps: a keyframe and its hand-off to the back end take
+    # two to three frame times on two cores, and a tracker that waits one out catches up on the frames
+    # after it; at one frame's lag, a live walk's camera held back 13 % of its frames, at three 2-4 %);
+    # beyond it every other frame is skipped until the tracker is back within it, and beyond 4 times
+    # it the newest wins at once (tracker/node.py: _skip_behind). 0: the newest always wins. The
+    # latency a live tracker may add to catch up
+    live_lag_ms: float = 100.0
     # live: a keyframe goes in without waiting for a busy back end, at most this many in a row (its
     # result lands at a later keyframe; each such keyframe is on record, tracker/backend_deferred,
     # which `octolog replay` follows); 0: always wait, as a file replay does

@@ -10,7 +10,7 @@ The convention docs/*.md and README.md follow (and this test resolves, by readin
 - a config key: `tracker.live_lag_ms`, also as `--set` takes it (`tracker.live=true`), for the
   sections `recorder`, `replay`, `tracker`, `mapper`;
 - a value: a symbol or key followed by its value in parentheses, `schemas/checks.py: MAX_SIDE` (8192),
-  `tracker.live_lag_ms` (50 ms); the number must equal the constant's literal value or the key's
+  `tracker.live_lag_ms` (100 ms); the number must equal the constant's literal value or the key's
   default. (A `key=value` inside the span is a setting, not a claim about the default.)
 Names without a file (`Mapper.rebuild`) are prose and are not resolved.
 """
@@ -273,7 +273,7 @@ def test_every_symbol_the_docs_name_exists_with_its_value():
 def test_the_check_fails_on_wrong_mentions():
     """Made-up mentions, each wrong in one way, are all reported; their right forms are not."""
     right = ("`schemas/checks.py: MAX_SIDE` (8192) `kit/bus/session.py` `session.py` "
-             "`octolog.kit.tum.TUM_READOUT_S` `tracker.live_lag_ms` (50 ms) `tracker.live=true` "
+             "`octolog.kit.tum.TUM_READOUT_S` `tracker.live_lag_ms` (100 ms) `tracker.live=true` "
              "`mapper/core.py: Mapper.integrate` `octolog.kit.bus.Bus`")
     assert mention_problems(right, "right") == []
     wrong = {
@@ -285,7 +285,7 @@ def test_the_check_fails_on_wrong_mentions():
         "`octolog.kit.tum.NO_SUCH`": "defines no NO_SUCH",
         "`octolog.kit.no_such`": "defines no no_such",
         "`tracker.no_such_key`": "has no key no_such_key",
-        "`tracker.live_lag_ms` (15 ms)": "the code says 50",
+        "`tracker.live_lag_ms` (15 ms)": "the code says 100",
     }
     for mention, expected in wrong.items():
         problems = mention_problems(mention, "made-up")
