@@ -28,7 +28,8 @@ import numpy as np
 
 from octolog.kit.errors import InputError, MapError
 from octolog.kit.geometry import Intrinsics, RgbdFrame
-from octolog.mapper.cloud import DenseCloud, keyframe_cloud, rows_where, transform, write_pcd, write_ply
+from octolog.mapper.cloud import DenseCloud, column_max, column_min, keyframe_cloud, rows_where, transform
+from octolog.mapper.cloud import write_pcd, write_ply
 from octolog.mapper.config import MapperConfig
 from octolog.mapper.grid import OccupancyGrid2D, map_from_world_for_up, project_octree, write_map_server
 from octolog.mapper.occupancy import OccupancyMap, make_occupancy_map
@@ -89,7 +90,7 @@ class _Inserted:
 def _box_corners(points: np.ndarray | None) -> np.ndarray | None:
     if points is None or len(points) == 0:
         return None
-    lo, hi = np.minimum(points.min(axis=0), 0.0), np.maximum(points.max(axis=0), 0.0)  # the camera's rays too
+    lo, hi = np.minimum(column_min(points), 0.0), np.maximum(column_max(points), 0.0)  # the camera's rays too
     return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
 
 
