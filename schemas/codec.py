@@ -7,33 +7,18 @@ rgbdmsgs, mapmsgs); their classes are in msgtypes.
 
 from __future__ import annotations
 
-from functools import cache
-from pathlib import Path
 from typing import Any
 
-from rosbags.interfaces.typing import Typesdict
-from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
 from octolog.kit.errors import InputError
 from octolog.schemas.msgtypes import Header, Time
-
-MSG_DIR = Path(__file__).with_name("msg")
-OWN_PACKAGE = "octolog_msgs"
-# Types from outside ROS 2's core that we vendor as .msg text.
-VENDORED = {"Octomap": "octomap_msgs"}
+from octolog.schemas.typestore import MSG_DIR, OWN_PACKAGE, STORE, VENDORED  # noqa: F401  (codec's names)
 
 
-@cache
 def typestore() -> Typestore:
-    """ROS 2 (Jazzy) type store with octolog's own message types registered."""
-    store = get_typestore(Stores.ROS2_JAZZY)
-    types: Typesdict = {}
-    for path in sorted(MSG_DIR.glob("*.msg")):
-        pkg = VENDORED.get(path.stem, OWN_PACKAGE)
-        types.update(get_types_from_msg(path.read_text(), f"{pkg}/msg/{path.stem}"))
-    store.register(types)
-    return store
+    """The type store: ROS 2 (Jazzy) standard types and octolog's own (schemas/typestore.py)."""
+    return STORE
 
 
 def msgtype(name: str) -> Any:  # Any: a class made at run time (own types: a Protocol in msgtypes)

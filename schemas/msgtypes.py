@@ -1,39 +1,71 @@
 """The wire contract's message classes, for type hints and for building stock messages.
 
-Stock ROS 2 types are rosbags' own generated dataclasses of the Jazzy store, the very classes
-`codec.typestore()` builds and decodes with. octolog's own types (`msg/*.msg`) are registered at run
-time, so rosbags generates their classes then; the Protocols here spell out the same fields, in the
-same order and with the same types (tests/schemas/test_schemas.py checks them against the type store).
+Stock ROS 2 types are the type store's classes of Jazzy's types (schemas/typestore.py), the very
+classes `codec.typestore()` decodes into; type checkers see rosbags' static Jazzy classes of the same
+fields. octolog's own types (`msg/*.msg`) are registered at run time, so rosbags generates their
+classes then; the Protocols here spell out the same fields, in the same order and with the same
+types (tests/schemas/test_schemas.py checks them against the type store).
 """
 
 from __future__ import annotations
 
-from typing import ClassVar, Protocol
+from typing import TYPE_CHECKING, ClassVar, Protocol
 
 import numpy as np
-from rosbags.typesys.stores.ros2_jazzy import builtin_interfaces__msg__Time as Time
-from rosbags.typesys.stores.ros2_jazzy import diagnostic_msgs__msg__DiagnosticArray as DiagnosticArray
-from rosbags.typesys.stores.ros2_jazzy import geometry_msgs__msg__Point as Point
-from rosbags.typesys.stores.ros2_jazzy import geometry_msgs__msg__Pose as Pose
-from rosbags.typesys.stores.ros2_jazzy import geometry_msgs__msg__PoseStamped as PoseStamped
-from rosbags.typesys.stores.ros2_jazzy import geometry_msgs__msg__Quaternion as Quaternion
-from rosbags.typesys.stores.ros2_jazzy import geometry_msgs__msg__Transform as Transform
-from rosbags.typesys.stores.ros2_jazzy import geometry_msgs__msg__TransformStamped as TransformStamped
-from rosbags.typesys.stores.ros2_jazzy import geometry_msgs__msg__Vector3 as Vector3
-from rosbags.typesys.stores.ros2_jazzy import geometry_msgs__msg__Vector3Stamped as Vector3Stamped
-from rosbags.typesys.stores.ros2_jazzy import nav_msgs__msg__MapMetaData as MapMetaData
-from rosbags.typesys.stores.ros2_jazzy import nav_msgs__msg__OccupancyGrid as OccupancyGrid
-from rosbags.typesys.stores.ros2_jazzy import nav_msgs__msg__Path as Path
-from rosbags.typesys.stores.ros2_jazzy import sensor_msgs__msg__CameraInfo as CameraInfo
-from rosbags.typesys.stores.ros2_jazzy import sensor_msgs__msg__CompressedImage as CompressedImage
-from rosbags.typesys.stores.ros2_jazzy import sensor_msgs__msg__Image as Image
-from rosbags.typesys.stores.ros2_jazzy import sensor_msgs__msg__Imu as Imu
-from rosbags.typesys.stores.ros2_jazzy import sensor_msgs__msg__PointCloud2 as PointCloud2
-from rosbags.typesys.stores.ros2_jazzy import sensor_msgs__msg__PointField as PointField
-from rosbags.typesys.stores.ros2_jazzy import sensor_msgs__msg__RegionOfInterest as RegionOfInterest
-from rosbags.typesys.stores.ros2_jazzy import std_msgs__msg__Header as Header
-from rosbags.typesys.stores.ros2_jazzy import std_msgs__msg__String as String
-from rosbags.typesys.stores.ros2_jazzy import tf2_msgs__msg__TFMessage as TFMessage
+
+from octolog.schemas.typestore import STORE
+
+# Type checkers see rosbags' static Jazzy classes; at run time the names are the type store's own
+# classes of the same fields (schemas/stocktypes.py), which is what decode() returns.
+if TYPE_CHECKING:
+    from rosbags.typesys.stores.ros2_jazzy import builtin_interfaces__msg__Time as Time
+    from rosbags.typesys.stores.ros2_jazzy import diagnostic_msgs__msg__DiagnosticArray as DiagnosticArray
+    from rosbags.typesys.stores.ros2_jazzy import geometry_msgs__msg__Point as Point
+    from rosbags.typesys.stores.ros2_jazzy import geometry_msgs__msg__Pose as Pose
+    from rosbags.typesys.stores.ros2_jazzy import geometry_msgs__msg__PoseStamped as PoseStamped
+    from rosbags.typesys.stores.ros2_jazzy import geometry_msgs__msg__Quaternion as Quaternion
+    from rosbags.typesys.stores.ros2_jazzy import geometry_msgs__msg__Transform as Transform
+    from rosbags.typesys.stores.ros2_jazzy import geometry_msgs__msg__TransformStamped as TransformStamped
+    from rosbags.typesys.stores.ros2_jazzy import geometry_msgs__msg__Vector3 as Vector3
+    from rosbags.typesys.stores.ros2_jazzy import geometry_msgs__msg__Vector3Stamped as Vector3Stamped
+    from rosbags.typesys.stores.ros2_jazzy import nav_msgs__msg__MapMetaData as MapMetaData
+    from rosbags.typesys.stores.ros2_jazzy import nav_msgs__msg__OccupancyGrid as OccupancyGrid
+    from rosbags.typesys.stores.ros2_jazzy import nav_msgs__msg__Path as Path
+    from rosbags.typesys.stores.ros2_jazzy import sensor_msgs__msg__CameraInfo as CameraInfo
+    from rosbags.typesys.stores.ros2_jazzy import sensor_msgs__msg__CompressedImage as CompressedImage
+    from rosbags.typesys.stores.ros2_jazzy import sensor_msgs__msg__Image as Image
+    from rosbags.typesys.stores.ros2_jazzy import sensor_msgs__msg__Imu as Imu
+    from rosbags.typesys.stores.ros2_jazzy import sensor_msgs__msg__PointCloud2 as PointCloud2
+    from rosbags.typesys.stores.ros2_jazzy import sensor_msgs__msg__PointField as PointField
+    from rosbags.typesys.stores.ros2_jazzy import sensor_msgs__msg__RegionOfInterest as RegionOfInterest
+    from rosbags.typesys.stores.ros2_jazzy import std_msgs__msg__Header as Header
+    from rosbags.typesys.stores.ros2_jazzy import std_msgs__msg__String as String
+    from rosbags.typesys.stores.ros2_jazzy import tf2_msgs__msg__TFMessage as TFMessage
+else:
+    _CLASSES = STORE.types
+    Time = _CLASSES["builtin_interfaces/msg/Time"]
+    DiagnosticArray = _CLASSES["diagnostic_msgs/msg/DiagnosticArray"]
+    Point = _CLASSES["geometry_msgs/msg/Point"]
+    Pose = _CLASSES["geometry_msgs/msg/Pose"]
+    PoseStamped = _CLASSES["geometry_msgs/msg/PoseStamped"]
+    Quaternion = _CLASSES["geometry_msgs/msg/Quaternion"]
+    Transform = _CLASSES["geometry_msgs/msg/Transform"]
+    TransformStamped = _CLASSES["geometry_msgs/msg/TransformStamped"]
+    Vector3 = _CLASSES["geometry_msgs/msg/Vector3"]
+    Vector3Stamped = _CLASSES["geometry_msgs/msg/Vector3Stamped"]
+    MapMetaData = _CLASSES["nav_msgs/msg/MapMetaData"]
+    OccupancyGrid = _CLASSES["nav_msgs/msg/OccupancyGrid"]
+    Path = _CLASSES["nav_msgs/msg/Path"]
+    CameraInfo = _CLASSES["sensor_msgs/msg/CameraInfo"]
+    CompressedImage = _CLASSES["sensor_msgs/msg/CompressedImage"]
+    Image = _CLASSES["sensor_msgs/msg/Image"]
+    Imu = _CLASSES["sensor_msgs/msg/Imu"]
+    PointCloud2 = _CLASSES["sensor_msgs/msg/PointCloud2"]
+    PointField = _CLASSES["sensor_msgs/msg/PointField"]
+    RegionOfInterest = _CLASSES["sensor_msgs/msg/RegionOfInterest"]
+    Header = _CLASSES["std_msgs/msg/Header"]
+    String = _CLASSES["std_msgs/msg/String"]
+    TFMessage = _CLASSES["tf2_msgs/msg/TFMessage"]
 
 STOCK = (Time, Header, String, Point, Quaternion, Pose, PoseStamped, Vector3, Vector3Stamped, Transform,
          TransformStamped, TFMessage, Path, Image, CompressedImage, CameraInfo, RegionOfInterest, Imu,

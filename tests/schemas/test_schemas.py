@@ -7,7 +7,7 @@ import pytest
 
 from octolog.kit.errors import InputError
 from octolog.kit.geometry import Intrinsics, RgbdFrame, pose_to_matrix
-from octolog.schemas import codec, msgtypes, posemsgs, rgbdmsgs, topics
+from octolog.schemas import codec, logview, msgtypes, posemsgs, rgbdmsgs, topics
 
 
 def _frame(seq: int = 3) -> RgbdFrame:
@@ -90,10 +90,9 @@ def test_a_pose_that_is_not_rigid_is_screened_out_of_every_message_that_carries_
 
 
 def _store_hints(cls: type) -> dict[str, object]:
-    """A generated message class's annotations, resolved against rosbags' Jazzy classes."""
-    from rosbags.typesys.stores import ros2_jazzy
-
-    names = {**vars(ros2_jazzy), "np": np, "ClassVar": typing.ClassVar}
+    """A generated message class's annotations, resolved against the type store's classes."""
+    classes = {name.replace("/", "__"): c for name, c in codec.typestore().types.items()}
+    names = {**classes, "np": np, "ClassVar": typing.ClassVar}
     return {k: eval(v, names) for k, v in cls.__annotations__.items() if k != "__msgtype__"}  # noqa: S307
 
 
@@ -117,3 +116,18 @@ def test_every_own_type_has_its_message_class_and_stock_classes_are_the_stores()
     assert own == set(msgtypes.OWN)
     for cls in msgtypes.STOCK:
         assert store.types[cls.__msgtype__] is cls
+
+
+def test_the_stock_types_are_rosbags_jazzy_types_field_for_field():
+    """schemas/stocktypes.py copies rosbags' Jazzy tables: each type, its constants and fields, and the
+    schema text MCAP files carry for it, as rosbags' own Jazzy store has them."""
+    from rosbags.typesys import Stores, get_typestore
+
+    from octolog.schemas.stocktypes import FIELDDEFS
+
+    jazzy = get_typestore(Stores.ROS2_JAZZY)
+    for name, defs in FIELDDEFS.items():
+        assert defs == jazzy.fielddefs[name], name
+        assert codec.msgdef(name) == jazzy.generate_msgdef(name, ros_version=2)[0], name
+    used = [cls.__msgtype__ for cls in msgtypes.STOCK] + [logview.POSE_ARRAY, logview.DIAGNOSTICS]
+    assert set(used) <= set(FIELDDEFS)
