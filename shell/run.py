@@ -81,6 +81,7 @@ class SessionSummary:
     uninitialised: dict | None = None  # the tracker never made a first keyframe: why (tracker.report.json)
     movers: dict | None = None  # what the mapper kept out as moving (map_stats.json `movers`)
     viewer_missed: dict | None = None  # `--rerun connect`: the viewer no stage could reach (kit/viz.py)
+    frame_counts: dict = field(default_factory=dict)  # summary.json `frames`: published, consumed, skipped, ...
 
 
 # Live sources: a D455 (pyrealsense2) or the simulated one (its software device, paced at the
@@ -424,7 +425,7 @@ def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, re
     frames, status_span_ns = frame_counts(out / "session.mcap", camera_frames(out / "recording.mcap") if live else None)
     played = src.duration_ns if isinstance(src, LiveSource) else \
         (status_span_ns or played_ns(src.duration_ns, len(src), loop))
-    s = SessionSummary(out=out, source=source, wall_s=wall, duration_s=played * 1e-9)
+    s = SessionSummary(out=out, source=source, wall_s=wall, duration_s=played * 1e-9, frame_counts=frames)
     s.map = json.loads((out / "map_stats.json").read_text())
     if "map_frame" in s.map:  # the mapper found up: a live camera's accelerometer, the tracker's IMU
         _keep_live_up(out, s.map["map_frame"])
@@ -471,10 +472,25 @@ def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, re
     return s
 
 
+def skipped_line(frames: dict) -> str:
+    """The frames a live tracker did not take (`frame_counts`): it takes what it keeps up with, so the
+    user sees how much of the stream that was and where the rest stayed."""
+    held = frames.get("held_back", 0)
+    parts = [f"{held} held back by the camera while the tracker had frames in hand"] if held else []
+    if frames["skipped"] > held:
+        parts.append(f"{frames['skipped'] - held} skipped by the tracker")
+    total = frames.get("camera", frames["published"])
+    source = "the camera's" if "camera" in frames else "the published"
+    return (f"frames: the tracker took {frames['consumed']} of {source} {total}, kept up with "
+            f"{100 * frames['consumed'] / max(total, 1):.0f} % ({'; '.join(parts)})")
+
+
 def format_summary(s: SessionSummary) -> str:
     """The summary `octolog run` prints: frames and rate, ATE, map, files."""
     lines = [f"session {s.out}: {s.frames} frames from {s.source} in {s.wall_s:.1f} s "
              f"(real-time factor {s.duration_s / s.wall_s if s.wall_s else 0:.2f})"]
+    if s.frame_counts.get("skipped"):
+        lines.append("  " + skipped_line(s.frame_counts))
     if not s.frames and (s.out / "trajectory.txt").exists():
         lines.append(f"  no frame tracked: every frame LOST (the tracker's count: {s.out / 'logs' / 'tracker.log'}), "
                      "so nothing is mapped")

@@ -14,7 +14,7 @@ from helpers import ROOT
 
 from octolog.shell import cli, errorfile, statusline
 from octolog.shell.children import Launch, StageProcesses, launch
-from octolog.shell.run import STAGES
+from octolog.shell.run import STAGES, SessionSummary, format_summary
 from octolog.shell.statusline import StatusLine
 
 
@@ -193,3 +193,20 @@ def test_the_run_says_what_it_finishes_once_the_frames_end(tmp_path, capsys):
     assert capsys.readouterr().err.splitlines() == [
         "octolog run: the camera stopped; finishing the tracker's last adjustment and the map and its files",
         "octolog run: the replay sent its last frame; finishing the map and its files"]
+
+
+def test_the_summary_says_how_much_of_a_live_stream_the_tracker_kept_up_with(tmp_path):
+    """A live run's printed summary names the frames the tracker did not take and where they stayed
+    (held back by the camera, skipped by the tracker); a run that took every frame says nothing of it."""
+    live = SessionSummary(out=tmp_path, source="d455:software", frames=117, frame_counts={
+        "camera": 150, "published": 120, "consumed": 117, "skipped": 33, "held_back": 30})
+    line = next(ln for ln in format_summary(live).splitlines() if "frames:" in ln)
+    assert line == ("  frames: the tracker took 117 of the camera's 150, kept up with 78 % (30 held back by the "
+                    "camera while the tracker had frames in hand; 3 skipped by the tracker)")
+    paced = SessionSummary(out=tmp_path, source="mcap:x", frames=280,
+                           frame_counts={"published": 294, "consumed": 280, "skipped": 14})
+    assert "the tracker took 280 of the published 294, kept up with 95 % (14 skipped by the tracker)" in \
+        format_summary(paced)
+    whole = SessionSummary(out=tmp_path, source="tum:x", frames=294,
+                           frame_counts={"published": 294, "consumed": 294, "skipped": 0})
+    assert "frames:" not in format_summary(whole)
