@@ -79,6 +79,12 @@ class LiveUp:
         with self._lock:
             self._parent_from_child[child] = (parent, rotation)
 
+    @property
+    def heard(self) -> bool:
+        """Whether any accelerometer sample has arrived."""
+        with self._lock:
+            return bool(self._samples)
+
     def up_at(self, stamp_ns: int, color_frame: str, where: str) -> np.ndarray | None:
         """Up in `color_frame` from the samples within WINDOW_S of `stamp_ns` (None without any);
         InputError when their mean is not about g."""

@@ -103,6 +103,10 @@ class MapFrame:
                     up, levelled = level_on_plane(up, self._first_frame)
                     on = ", levelled on a horizontal plane of the first keyframe" if levelled else ""
                     self._apply(up, f"gravity-aligned (the live camera's accelerometer{on})")
+                elif self._live.heard:  # the mapper came up after the first keyframe's samples went by
+                    self.found = {"up": [float(v) for v in DEFAULT_UP],
+                                  "note": "not gravity-aligned: the mapper heard no accelerometer sample near the "
+                                          "first keyframe (it came up later); the first camera taken as level"}
         self._announce()
 
     def from_tracker(self, msg: object) -> None:

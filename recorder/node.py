@@ -134,6 +134,9 @@ def open_sinks(stack: ExitStack, cfg: RecorderConfig, device: DeviceDescription,
         bus = stack.enter_context(Bus(bus_cfg, "recorder"))
         pub = BusPublisher(bus, device, frame_names(cfg.frame_prefix), compressed=cfg.color_codec == "jpeg",
                            window=cfg.publish_window, lag_ms=cfg.publish_lag_ms, wire_depth=cfg.wire_depth)
+        # a file's replay serves up on camera/gravity; a live camera has none to give (the mapper reads
+        # its accelerometer): this queryable says so at once, where no answerer costs an asker its timeout
+        bus.serve(T.GRAVITY, lambda: None)
         bus.watch(cfg.wait_for)
         bus.wait_for(cfg.wait_for, cfg.wait_timeout_s)
         sink = LiveSink("bus", pub, size=cfg.live_queue_frames, on_close=pub.end)
@@ -230,9 +233,10 @@ class BusPublisher:
     def end(self) -> None:
         """Tell consumers how many RGB-D frames went out (the tracker's end-of-stream), then stay
         until the tracker has taken them: a live tracker may be far behind, and a producer gone
-        before its consumer reached the end would be taken for a dead one."""
+        before its consumer reached the end would be taken for a dead one. Not until the tracker has
+        finished: the camera closes, and its recording with it, while the map is completed."""
         self._rgbd_end.put(streammsgs.stream_end_msg(self._rgbd.topic.name, self._rgbd.count))
-        self._bus.linger("tracker")
+        self._bus.linger("tracker", taken=T.FRAMES_TAKEN)
 
 
 class VizLogger:

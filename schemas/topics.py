@@ -108,6 +108,9 @@ BY_NAME = {t.name: t for t in ALL + CAMERA_TOPICS}
 
 # Liveliness tokens: a stage declares `<ns>/_octolog/stage/<name>` once it is subscribed and ready.
 STAGE_TOKEN = "_octolog/stage"
+# what the tracker says once it has taken every camera frame (kit/bus `say_taken`): a live camera
+# lingering for it may close then, while the tracker finishes
+FRAMES_TAKEN = "frames"
 
 
 def stage_token(stage: str, namespace: str = "") -> str:

@@ -159,11 +159,15 @@ class StageProcesses:
         self.start(name, argv, show_stderr=show_stderr, append=True)
         return True
 
-    def wait_all(self, on_done: Callable[[str, list[str]], None] | None = None) -> None:
+    def wait_all(self, on_done: Callable[[str, list[str]], None] | None = None,
+                 on_wait: Callable[[list[str]], None] | None = None) -> None:
         """Wait until every stage has exited; restart a killed mapper; raise StageFailed for a failed
-        stage. `on_done(stage, still running)`: a stage finished without error."""
+        stage. `on_done(stage, still running)`: a stage finished without error; `on_wait(still
+        running)`: between looks, every 0.1 s."""
         pending = dict(self.procs)
         while pending:
+            if on_wait is not None:
+                on_wait(sorted(pending))
             for name, proc in list(pending.items()):
                 code = proc.poll()
                 if code is None:

@@ -17,6 +17,7 @@ import subprocess
 import sys
 import time
 import tomllib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -41,7 +42,7 @@ from octolog.schemas import codec
 from octolog.schemas import topics as T
 from octolog.schemas.topics import RGBD, RGBD_COMPRESSED, TRACKING_STATUS
 from octolog.schemas.wirecompression import SOURCE
-from octolog.shell import errorfile, simcamera
+from octolog.shell import errorfile, simcamera, statusline
 from octolog.shell.children import HostedRouter, StageProcesses, router_unreachable
 from octolog.shell.info import depth_bias_line, imu_line, movers_line, prior_line, uninitialised_line
 from octolog.shell.priormap import check_prior, prior_mapper
@@ -149,10 +150,14 @@ def _resolve_configs(source: str, config: str | None, per: dict[str, list[str]])
                                per["recorder"])
         backend = LIVE_SOURCES[source]
         software = dataclasses.replace(rec.software, paced=True) if backend == "software" else rec.software
-        # capture starts once every consumer listens: the session log misses no frame
-        cfgs["recorder"] = dataclasses.replace(rec, backend=backend, software=software, wait_for=consumers)
+        # capture starts once the tracker and the session log listen: neither misses a frame. The
+        # mapper joins when it is up (its start costs more CPU than the tracker's, and it is niced):
+        # the keyframes it missed come from the tracker's history (kit/bus, `keep_mb`)
+        cfgs["recorder"] = dataclasses.replace(rec, backend=backend, software=software, wait_for=LIVE_CONSUMERS)
     return cfgs
 
+
+LIVE_CONSUMERS = ("tracker", "log")  # the stages a live camera waits for before it captures
 
 # A live session's camera, unless the config file or --set says otherwise: what the tracker and mapper
 # are measured at. At the recorder's own default (1280x720 colour, 848x480 depth, for recording alone)
@@ -333,7 +338,8 @@ def _run(plan: SessionPlan) -> SessionSummary:
         try:
             _start_stages(children, plan, router.endpoint, rerun, config_path)
             router.ready()
-            children.wait_all(lambda stage, running: _finishing(children, plan, stage, running))
+            finishing = Finishing(children, plan)
+            children.wait_all(finishing.done, finishing.waiting)
         finally:
             children.stop_all()
             children.end_line()
@@ -343,14 +349,40 @@ def _run(plan: SessionPlan) -> SessionSummary:
                                                                  "saved": str(plan.out / "rerun")})
 
 
-def _finishing(children: StageProcesses, plan: SessionPlan, stage: str, running: list[str]) -> None:
-    """Said when the frames' source ends and other stages still work: a log or terminal is not silent
-    through the tracker's last adjustment and the map's files (seconds, for a long session)."""
-    left = [work for name, work in (("tracker", "the tracker's last adjustment"), ("mapper", "the map and its files"))
-            if name in running]
-    if stage in ("recorder", "replay") and not plan.quiet and left:
-        what = "the camera stopped" if plan.live else "the replay sent its last frame"
-        children.say(f"octolog run: {what}; finishing {' and '.join(left)}")
+class Finishing:
+    """What `octolog run` says once the frames' source has ended and other stages still work: a log
+    or terminal is not silent through the tracker's last adjustment and the map's files (seconds,
+    more on a busy machine): a line when the source ends, then one every `statusline.INTERVAL_S`."""
+
+    WORK = (("tracker", "the tracker's last adjustment"), ("mapper", "the map and its files"))
+
+    def __init__(self, children: StageProcesses, plan: SessionPlan, clock: Callable[[], float] = time.monotonic) -> None:
+        self.children, self.plan, self.clock = children, plan, clock
+        self.since: float | None = None  # when the source ended
+        self._said = 0.0  # when the last line went out
+
+    def done(self, stage: str, running: list[str]) -> None:
+        """A stage finished without error (`StageProcesses.wait_all`)."""
+        left = self._left(running)
+        if stage in ("recorder", "replay") and not self.plan.quiet and left:
+            what = "the camera stopped" if self.plan.live else "the replay sent its last frame"
+            self.children.say(f"octolog run: {what}; finishing {left}")
+            self.since = self._said = self.clock()
+
+    def waiting(self, running: list[str]) -> None:
+        """Stages still run (`StageProcesses.wait_all`, every poll): after the source's end, a line
+        every few seconds with what is left."""
+        if self.since is None or not (left := self._left(running)):
+            return
+        now = self.clock()
+        if now - self._said >= statusline.INTERVAL_S:
+            self.children.say(f"octolog run: still finishing {left} ({now - self.since:.0f} s since the "
+                              f"{'camera stopped' if self.plan.live else 'last frame'})")
+            self._said = now
+
+    @classmethod
+    def _left(cls, running: list[str]) -> str:
+        return " and ".join(work for name, work in cls.WORK if name in running)
 
 
 def _keep_live_up(out: Path, found: dict) -> None:

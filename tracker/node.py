@@ -31,6 +31,7 @@ from octolog.schemas.topics import (
     BACKEND_DEFERRED,
     CAMERA_PROPERTIES,
     CONFIGS,
+    FRAMES_TAKEN,
     KEYFRAME,
     KEYFRAME_COMPRESSED,
     KEYFRAME_END,
@@ -220,6 +221,11 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
                 r, prep = _skip_behind(intake, r, prep, out, result, far=far)
             mark = _feed_imu(odometry, intake, r, tree) if imu_topics else (0, 0)
             _track_frame(odometry, cfg, functools.partial(intake.prepared, r, prep), out, tree, result, shown, mark)
+    # every frame is in: a live camera may close while the last adjustment runs (its producer gone
+    # from here on is no loss)
+    for producer in FRAME_PRODUCERS:
+        bus.unwatch(producer)
+    bus.say_taken(FRAMES_TAKEN)
     out.finish(odometry, result)
     estimate = getattr(odometry, "depth_bias", None)  # the native tracker's; ORB-SLAM3 has none
     result.depth_bias = estimate() if estimate is not None else None

@@ -196,7 +196,13 @@ class Bus:
         """Stop caring about a peer (it finished its stream and may leave)."""
         self._membership.unwatch(stage)
 
-    def linger(self, stage: str, on_received: Callable[[Received], None] | None = None) -> bool:
+    def say_taken(self, what: str) -> None:
+        """Tell producers lingering for this stage's input `what` (`linger(..., taken=what)`) that it
+        has taken every sample of it: they may go while this stage works on."""
+        self._membership.say_taken(what)
+
+    def linger(self, stage: str, on_received: Callable[[Received], None] | None = None, *,
+               taken: str = "") -> bool:
         """Stay up, histories and all, until `stage` has finished, so that a consumer restarted
         meanwhile still recovers everything it needs. Follow the stage from the start
         (`watch([stage], required=False)`).
@@ -204,6 +210,8 @@ class Bus:
         What this stage's subscriptions still receive meanwhile goes to `on_received` (default:
         dropped): left in a full inbox it would block the receive thread, and with it the very
         news that `stage` finished.
+
+        With `taken` (an input of `stage`), until it has taken all of that input, or finished.
 
         Returns True once it said it finished; False at once if it never showed up, or once it has
         been gone for `peer_timeout_s` (dead for good: nothing left to wait for).
@@ -213,7 +221,7 @@ class Bus:
                 if on_received is not None:
                     on_received(r)
 
-        return self._membership.linger(stage, drain)
+        return self._membership.linger(stage, drain, taken=taken)
 
     def check_peers(self) -> None:
         """Raise StageError if samples were lost for good or a watched peer stage is dead."""

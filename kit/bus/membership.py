@@ -27,6 +27,9 @@ log = logging.getLogger(__name__)
 SAY_WAITING_S = 5.0  # a wait for other stages longer than this is said (see Membership.wait_for)
 
 DONE = "_octolog/done"  # `<ns>/_octolog/done/<stage>`: put by a stage that finished without error
+# `<ns>/_octolog/done/<stage>:<input>`: put by a stage that has taken every sample of one of its inputs
+# (the tracker its frames): a producer of that input lingering for it may go while it works on
+TAKEN_SEP = ":"
 
 
 class Membership:
@@ -58,6 +61,11 @@ class Membership:
         """Tell the stages lingering for this one that it finished (if it ever announced itself)."""
         if self.announced and self._session.is_open:
             self._session.put_marker(self._key(f"{DONE}/{self._stage}"))
+
+    def say_taken(self, what: str) -> None:
+        """Tell the stages lingering for this one's input `what` that it has taken all of it."""
+        if self.announced and self._session.is_open:
+            self._session.put_marker(self._key(f"{DONE}/{self._stage}{TAKEN_SEP}{what}"))
 
     def watch(self, stages: Iterable[str], *, required: bool = True) -> None:
         """Track the liveliness of peer stages; `check` raises once a required one has been gone
@@ -124,13 +132,14 @@ class Membership:
             if stage not in self._followed:
                 self._lost.pop(stage, None)
 
-    def linger(self, stage: str, poll: Callable[[], None] | None = None) -> bool:
-        """Wait until `stage` has finished. True once it said so; False at once if it never showed
-        up, or once it has been gone for `peer_timeout_s` (dead for good: nothing to wait for).
-        `poll` runs between looks, without the lock held (the caller draining its inbox)."""
+    def linger(self, stage: str, poll: Callable[[], None] | None = None, *, taken: str = "") -> bool:
+        """Wait until `stage` has finished, or (`taken`) has taken all of that input of its. True once
+        it said so; False at once if it never showed up, or once it has been gone for `peer_timeout_s`
+        (dead for good: nothing to wait for). `poll` runs between looks, without the lock held (the
+        caller draining its inbox)."""
         while True:
             with self._changed:
-                if stage in self._done:
+                if stage in self._done or (taken and f"{stage}{TAKEN_SEP}{taken}" in self._done):
                     return True
                 since = self._lost.get(stage)
                 if stage not in self._alive and (since is None or time.monotonic() - since > self._cfg.peer_timeout_s):

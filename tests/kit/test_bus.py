@@ -291,6 +291,24 @@ def test_a_producer_lingers_until_its_consumer_is_done(endpoints):
         assert prod.linger("mapper") is True  # it said it finished
 
 
+def test_a_producer_lingers_only_until_its_consumer_has_taken_its_input(endpoints):
+    """A live camera waits for the tracker to take its frames, not for the tracker's last adjustment
+    and the map behind it: the tracker's "taken" ends that linger while the tracker still runs."""
+    server, client = endpoints
+    with Bus(server, "recorder") as prod:
+        prod.watch(["tracker"], required=False)
+        with Bus(client, "tracker") as cons:
+            cons.announce()
+            prod.wait_for(["tracker"], timeout_s=20)
+            cons.say_taken("frames")
+            done: list[bool] = []
+            t = threading.Thread(target=lambda: done.append(prod.linger("tracker", taken="frames")))
+            t.start()
+            t.join(120)  # a linger that missed the news would never return: a hang fails here
+            assert done == [True]
+            assert "tracker" not in prod._membership._done  # the tracker itself has not finished
+
+
 def test_a_lingering_producer_drains_what_it_still_receives(endpoints):
     """A producer subscribed to its consumer's replies (a replay's status line) lingers while the
     consumer sends more than its inbox holds, then finishes: the replies reach `on_received` in

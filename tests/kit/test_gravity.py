@@ -161,7 +161,8 @@ def test_the_grid_does_not_depend_on_how_the_camera_was_held_at_the_start(tmp_pa
 def test_a_live_cameras_up_is_levelled_on_the_first_keyframes_floor(tmp_path: Path) -> None:
     """The mapper's live path (mapper/mapframe.py): accelerometer samples around the first keyframe
     give up within the accelerometer's error; a floor in that keyframe then levels it, as a file's
-    frame 0 is levelled. A first keyframe that sees no floor keeps the accelerometer's up."""
+    frame 0 is levelled. A first keyframe that sees no floor keeps the accelerometer's up. A mapper
+    that came up after the first keyframe's samples went by says its map is not gravity-aligned."""
     from octolog.kit.bus import Bus
     from octolog.kit.busconfig import BusConfig
     from octolog.kit.viz import Viz
@@ -170,7 +171,7 @@ def test_a_live_cameras_up_is_levelled_on_the_first_keyframes_floor(tmp_path: Pa
     from octolog.mapper.mapframe import MapFrame
     from octolog.schemas import sensormsgs
 
-    def live_up(source: str) -> tuple[dict, np.ndarray]:
+    def live_up(source: str, late: int = 0) -> tuple[dict, np.ndarray]:
         src = open_source(source)
         frame = next(iter(src.frames(0, 1)))
         truth = _true_up(src.scene.pose(0))
@@ -179,7 +180,7 @@ def test_a_live_cameras_up_is_levelled_on_the_first_keyframes_floor(tmp_path: Pa
         mapper = make_mapper(MapperConfig())
         with Bus(BusConfig(multicast_scouting=False), "mapper") as bus, Viz("off", "mapper", "t") as viz:
             live = MapFrame(mapper, bus, viz, from_imu=True)
-            for k in range(-40, 41):
+            for k in range(-40 + late, 41 + late):
                 a = tuple(float(v) for v in 9.80665 * biased)
                 live._on_accel(sensormsgs.imu_msg(frame.stamp_ns + k * 5_000_000, frame.frame_id,
                                                   linear_acceleration=a))
@@ -197,3 +198,5 @@ def test_a_live_cameras_up_is_levelled_on_the_first_keyframes_floor(tmp_path: Pa
     found, truth = live_up("synthetic:2")  # sees the walls
     assert found["note"] == "gravity-aligned (the live camera's accelerometer)"
     assert 1.9 < angle_deg(np.array(found["up"]), truth) < 2.1
+    found, _ = live_up("synthetic:2", late=200)  # its samples from 0.8 s after the first keyframe on
+    assert found["note"].startswith("not gravity-aligned: the mapper heard no accelerometer sample near the first")

@@ -6,6 +6,7 @@ import json
 import os
 import re
 import subprocess
+import sys
 
 import numpy as np
 from helpers import free_port, octolog, rerun_cli
@@ -51,3 +52,18 @@ def test_a_viewer_address_is_probed_before_anything_streams():
     without a host."""
     assert "nothing listens at 127.0.0.1:" in viz.viewer_unreachable(f"rerun+http://127.0.0.1:{free_port()}/proxy")
     assert viz.viewer_unreachable("rerun+http:///proxy") == "rerun+http:///proxy names no host"
+
+
+def test_a_stage_that_logs_to_rerun_does_not_load_pandas(tmp_path):
+    """pyarrow's first conversion would import pandas (0.15 s of CPU per stage, for no use): a Viz
+    keeps it out, and pandas still imports afterwards for whoever needs it (evo)."""
+    code = ("import sys, numpy as np\n"
+            "from octolog.kit.viz import Viz\n"
+            f"v = Viz('save:{tmp_path}', 'tracker', 'x')\n"
+            "v.scalar('tracker/ms', 1.0)\n"
+            "v.close()\n"
+            "assert 'pandas' not in sys.modules, 'pandas was loaded'\n"
+            "import pandas, pyarrow\n"
+            "assert pyarrow.array(pandas.Series([1, 2])).to_pylist() == [1, 2]\n")
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+    assert (tmp_path / "tracker.rrd").stat().st_size > 0

@@ -172,27 +172,44 @@ def test_the_live_camera_is_a_job_of_its_own():
 
 
 def test_the_run_says_what_it_finishes_once_the_frames_end(tmp_path, capsys):
-    """When the frames' source ends and the tracker or the mapper still works, one line says so
-    (the seconds of a last adjustment and a map's files are not silent); `--quiet` says nothing,
-    nor does a stage's end that leaves nothing to wait for. The stages' exits drive it."""
+    """When the frames' source ends and the tracker or the mapper still works, one line says so,
+    then one every few seconds while they work (the seconds of a last adjustment and a map's files
+    are not silent); `--quiet` says nothing, nor does a stage's end that leaves nothing to wait for.
+    The stages' exits drive it."""
     from types import SimpleNamespace
 
-    from octolog.shell.run import _finishing
+    from octolog.shell.run import Finishing
+    from octolog.shell.statusline import INTERVAL_S
 
     children = StageProcesses(tmp_path)
     children.start("replay", ["--version"])
     done: list[tuple[str, list[str]]] = []
-    children.wait_all(lambda stage, running: done.append((stage, running)))
-    assert done == [("replay", [])]
+    polls: list[list[str]] = []
+    children.wait_all(lambda stage, running: done.append((stage, running)), polls.append)
+    assert done == [("replay", [])] and polls and polls[0] == ["replay"]
     for plan, stage, running in ((SimpleNamespace(quiet=False, live=True), "recorder", ["log", "mapper", "tracker"]),
                                  (SimpleNamespace(quiet=False, live=False), "replay", ["log", "mapper"]),
                                  (SimpleNamespace(quiet=False, live=False), "tracker", ["log", "mapper"]),
                                  (SimpleNamespace(quiet=False, live=False), "replay", ["log"]),
                                  (SimpleNamespace(quiet=True, live=True), "recorder", ["mapper", "tracker"])):
-        _finishing(children, plan, stage, running)
+        Finishing(children, plan).done(stage, running)
     assert capsys.readouterr().err.splitlines() == [
         "octolog run: the camera stopped; finishing the tracker's last adjustment and the map and its files",
         "octolog run: the replay sent its last frame; finishing the map and its files"]
+    now = [100.0]
+    finishing = Finishing(children, SimpleNamespace(quiet=False, live=True), clock=lambda: now[0])
+    finishing.waiting(["log", "mapper", "recorder", "tracker"])  # the camera still runs: nothing
+    finishing.done("recorder", ["log", "mapper", "tracker"])
+    for t, running in ((101.0, ["log", "mapper", "tracker"]), (100.0 + INTERVAL_S, ["log", "mapper", "tracker"]),
+                       (101.0 + INTERVAL_S, ["log", "mapper"]), (100.0 + 2 * INTERVAL_S, ["log", "mapper"]),
+                       (100.0 + 4 * INTERVAL_S, ["log"])):
+        now[0] = t
+        finishing.waiting(running)
+    assert capsys.readouterr().err.splitlines() == [
+        "octolog run: the camera stopped; finishing the tracker's last adjustment and the map and its files",
+        f"octolog run: still finishing the tracker's last adjustment and the map and its files ({INTERVAL_S:.0f} s "
+        "since the camera stopped)",
+        f"octolog run: still finishing the map and its files ({2 * INTERVAL_S:.0f} s since the camera stopped)"]
 
 
 def test_the_summary_says_how_much_of_a_live_stream_the_tracker_kept_up_with(tmp_path):
