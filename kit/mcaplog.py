@@ -209,9 +209,9 @@ def _require_magic(f: BinaryIO, p: Path) -> None:
         raise McapError(f"{p}: not an MCAP file ({what}); nothing to read")
 
 
-def message_counts(path: str | Path) -> dict[str, int] | None:
-    """Messages per topic from a complete file's summary section (read from its end, not scanned);
-    None when the file has no statistics (truncated, or written without a summary)."""
+def _summary_section(path: str | Path) -> Any:
+    """A complete file's summary section (read from its end, not scanned); None when the file has no
+    statistics (truncated, or written without a summary)."""
     from mcap.reader import make_reader
 
     try:
@@ -219,11 +219,25 @@ def message_counts(path: str | Path) -> dict[str, int] | None:
             summary = make_reader(_Clamped(f)).get_summary()
     except (*_DAMAGE, OSError):
         return None
-    if summary is None or summary.statistics is None:
+    return None if summary is None or summary.statistics is None else summary
+
+
+def message_counts(path: str | Path) -> dict[str, int] | None:
+    """Messages per topic from a complete file's summary section (read from its end, not scanned);
+    None when the file has no statistics (truncated, or written without a summary)."""
+    if (summary := _summary_section(path)) is None:
         return None
     channels = summary.channels
     return {channels[c].topic.lstrip("/"): n for c, n in summary.statistics.channel_message_counts.items()
             if c in channels}
+
+
+def time_span(path: str | Path) -> tuple[int, int] | None:
+    """The log times of a complete file's first and last message (ns), from its summary section;
+    None as for `message_counts`."""
+    if (summary := _summary_section(path)) is None or not summary.statistics.message_count:
+        return None
+    return summary.statistics.message_start_time, summary.statistics.message_end_time
 
 
 def damaged(path: str | Path, problem: str) -> str:

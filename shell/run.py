@@ -30,7 +30,7 @@ from octolog.kit.calibration import imu_keys
 from octolog.kit.config import load, to_dict, to_toml
 from octolog.kit.errors import ConfigError, InputError, OctologError, StageError
 from octolog.kit.imu import ImuNoise
-from octolog.kit.mcaplog import message_counts, read_wire, summarize
+from octolog.kit.mcaplog import message_counts, read_wire, summarize, time_span
 from octolog.kit.viz import COPY_ENV, DEFAULT_VIEWER, parse_spec, viewer_unreachable
 from octolog.mapper.config import MapperConfig
 from octolog.recorder.config import RecorderConfig
@@ -449,11 +449,9 @@ def played_ns(duration_ns: int, frames: int, loop: int) -> int:
 
 def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, recording_id: str, *,
                loop: int = 1, viewer_missed: dict | None = None) -> SessionSummary:
-    if isinstance(src, LiveSource):  # how long the camera ran: the frames the session log holds
-        t = next((t for name, t in summarize(out / "session.mcap").topics.items() if name in (RGBD.name,
-                  RGBD_COMPRESSED.name)), None)
-        src.duration_ns = t.last_ns - t.first_ns if t is not None else 0
     live = isinstance(src, LiveSource) and (out / "recording.mcap").exists()
+    if isinstance(src, LiveSource):  # how long the camera ran: its recording's span (its summary, not a scan)
+        src.duration_ns = _live_span_ns(out, live)
     frames, status_span_ns = frame_counts(out / "session.mcap", camera_frames(out / "recording.mcap") if live else None)
     played = src.duration_ns if isinstance(src, LiveSource) else \
         (status_span_ns or played_ns(src.duration_ns, len(src), loop))
@@ -502,6 +500,16 @@ def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, re
          "recording_id": recording_id, "versions": versions()},
         indent=2, sort_keys=True) + "\n")
     return s
+
+
+def _live_span_ns(out: Path, recorded: bool) -> int:
+    """How long a live camera ran: its recording's span from the file's summary, else (no recording,
+    or one without a summary) the span of the frames in the session log, which takes a whole scan."""
+    if recorded and (span := time_span(out / "recording.mcap")) is not None:
+        return span[1] - span[0]
+    t = next((t for name, t in summarize(out / "session.mcap").topics.items() if name in (RGBD.name,
+              RGBD_COMPRESSED.name)), None)
+    return t.last_ns - t.first_ns if t is not None else 0
 
 
 def skipped_line(frames: dict) -> str:

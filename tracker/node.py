@@ -90,8 +90,18 @@ class TrackerRunSummary:
 def run(cfg: TrackerConfig, bus_cfg: BusConfig, *, trajectory: Path | None = None, rerun: str = "off",
         recording_id: str = "octolog", save_map: Path | None = None) -> TrackerRunSummary:
     odometry = make_odometry(cfg)
-    with Bus(bus_cfg, "tracker") as bus, Viz(rerun, "tracker", recording_id) as viz:
-        result = track(odometry, cfg, bus, viz)
+    with Bus(bus_cfg, "tracker") as bus:
+        with Viz(rerun, "tracker", recording_id) as viz:
+            result = track(odometry, cfg, bus, viz)
+        _conclude(odometry, cfg, result, trajectory, save_map)  # while the mapper finishes the map
+        # a mapper started again recovers every keyframe from this stage's history: it stays until the mapper is done
+        bus.linger("mapper")
+    return result
+
+
+def _conclude(odometry: Tracker, cfg: TrackerConfig, result: TrackerRunSummary, trajectory: Path | None,
+              save_map: Path | None) -> None:
+    """The run's findings into `result`; the saved SLAM map and the trajectory file written."""
     if cfg.map:
         result.prior = {"map": cfg.map, "mode": cfg.mode, "keyframes": odometry.prior_keyframes,
                         "found_at_frame": odometry.prior_found_at, "frames_before": odometry.prior_misses,
@@ -106,7 +116,6 @@ def run(cfg: TrackerConfig, bus_cfg: BusConfig, *, trajectory: Path | None = Non
         # native: every tracked frame through the final pose of its keyframe, so what BA and loop
         # closing corrected reaches the whole trajectory (LOST frames have no pose to give)
         write_tum(trajectory, *odometry.trajectory())
-    return result
 
 
 class _Outputs:
@@ -233,7 +242,6 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
         result.imu = {**dataclasses.asdict(imu), "inertial_frames": result.inertial}
     if result.depth_bias is not None:
         viz.text("tracker/events", result.depth_bias.summary())
-    bus.linger("mapper")
     return result
 
 

@@ -153,15 +153,15 @@ def _forged_length() -> bytes:
 @example(_session_log()[:2000])  # found: lz4's RuntimeError for a cut chunk
 @example(_forged_length())  # found: MemoryError, the reader allocating a forged record length
 def test_mcap_readers_and_recover(data):
-    """summarize, message_counts, read_messages and `recover` on a damaged session log."""
-    from octolog.kit.mcaplog import message_counts, read_messages, read_wire, summarize
+    """summarize, message_counts, time_span, read_messages and `recover` on a damaged session log."""
+    from octolog.kit.mcaplog import message_counts, read_messages, read_wire, summarize, time_span
     from octolog.recorder.recover import recover
 
     d = _scratch()
     try:
         src = d / "in.mcap"
         src.write_bytes(data)
-        for read in (summarize, message_counts, lambda p: list(read_messages(p)),
+        for read in (summarize, message_counts, time_span, lambda p: list(read_messages(p)),
                      lambda p: list(read_messages(p, [topics.RGBD.name])), lambda p: list(read_wire(p)),
                      lambda p: list(read_wire(p, [topics.RGBD.name]))):
             try:

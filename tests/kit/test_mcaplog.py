@@ -7,7 +7,7 @@ import pytest
 
 from octolog.kit.errors import McapError
 from octolog.kit.geometry import pose_to_matrix
-from octolog.kit.mcaplog import McapWriter, read_messages, salvage, summarize
+from octolog.kit.mcaplog import McapWriter, read_messages, salvage, summarize, time_span
 from octolog.schemas import codec, posemsgs, topics
 
 
@@ -34,6 +34,7 @@ def test_round_trip_every_compression(tmp_path, compression):
     assert s.complete and s.profile == "ros2"
     assert s.topics["tracker/pose"].count == 50
     assert s.metadata["config"] == {"tracker": '{"n_features": 1000}'}
+    assert time_span(path) == (1_000, 1_049)  # from the summary section, as the scan has it
 
 
 def test_rosbags_reads_our_file_without_our_types(tmp_path):
@@ -56,6 +57,7 @@ def test_truncated_file_is_reported_not_crashed(tmp_path):
     cut.write_bytes(data[: len(data) * 2 // 3])
     s = summarize(cut)
     assert not s.complete and s.problem
+    assert time_span(cut) is None  # no summary section: nothing to read the span from
     assert 0 < s.topics["tracker/pose"].count < 200
     with pytest.raises(McapError, match=r"cut\.mcap: truncated or corrupt MCAP \(after \d+ messages.*`octolog recover "):
         list(read_messages(cut))
