@@ -15,6 +15,8 @@ from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from octolog.kit import depthmodel
 from octolog.kit.bus import Bus
 from octolog.kit.errors import DeviceLost, RecorderError
@@ -174,10 +176,34 @@ class BusPublisher:
         self.window, self.answered, self.held_back = window, 0, 0
         self._lag_ns = round(lag_ms * 1e6)
         self._unanswered: deque[int] = deque()
+        self._warm_up()
         if window:
             bus.listen(T.TRACKING_STATUS, self._answered)
         bus.announce()
         bus.watch(["tracker"], required=False)  # see `end`
+
+    def _warm_up(self) -> None:
+        """Each message this publisher makes, made and encoded once on blank data before the camera
+        starts: the codec's lazy set-up (~45 ms) then does not hold up the first frame; a late first
+        frame comes out with the next ones right behind it, a burst a cold tracker falls behind on."""
+        intrinsics, scale = self._device.color, self._device.depth_scale_m
+        if intrinsics is None:
+            return  # no colour: nothing goes out but the recorded messages as they are
+        codec.encode(posemsgs.tf_msg(camera_transforms(self._device, self._frames), 0), T.TF_STATIC.msgtype)
+        codec.encode(self._properties(0), T.CAMERA_PROPERTIES.msgtype)
+        blank = np.zeros((2, 2), np.uint16)
+        if self._rgbd.topic is T.RGBD:
+            msg = rgbdmsgs.rgbd_msg(RgbdFrame(0, 0, np.zeros((2, 2, 3), np.uint8), blank, scale, intrinsics, self._frame))
+        else:
+            msg = rgbdmsgs.encoded_rgbd_msg(EncodedRgbd(0, 0, b"", "jpeg", imagecodec.depth_zstd(blank),
+                                                        wirecompression.DEPTH_ZSTD_FORMAT, scale, intrinsics, self._frame))
+        codec.encode(msg, self._rgbd.topic.msgtype)
+
+    def _properties(self, stamp_ns: int) -> Any:
+        """The camera's properties message: the D455's colour camera has a global shutter; its depth error model."""
+        depth = self._device.depth
+        model = depthmodel.realsense(self._device.name, depth.fx) if depth is not None else None
+        return streammsgs.camera_properties_msg(self._device.name, 0.0, stamp_ns, model)
 
     def _answered(self, _status: Any) -> None:
         self.answered += 1  # on Zenoh's thread; read by the publishing thread
@@ -192,10 +218,8 @@ class BusPublisher:
         if cap.color is not None and cap.aligned_depth is not None:
             assert self._device.color is not None
             c, d = cap.color, cap.aligned_depth
-            if self._props.count == 0:  # before the first frame: the D455's colour camera has a global shutter
-                depth = self._device.depth
-                model = depthmodel.realsense(self._device.name, depth.fx) if depth is not None else None
-                self._props.put(streammsgs.camera_properties_msg(self._device.name, 0.0, c.stamp_ns, model))
+            if self._props.count == 0:  # before the first frame
+                self._props.put(self._properties(c.stamp_ns))
             if self._behind(c.stamp_ns):
                 self.held_back += 1  # the tracker would skip this one
                 return
