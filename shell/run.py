@@ -195,6 +195,8 @@ def run_session(*, source: str, out: Path, config: str | None = None, overrides:
     # a live camera: the tracker keeps up by skipping frames (each skip on record), and the camera
     # publishes no frame while the tracker has two in hand and lags (it would skip it), unless told otherwise
     live_sets = ["tracker.live=true", "recorder.publish_window=2"] if live else []
+    # the camera does not wait for the mapper (LIVE_CONSUMERS): the tracker keeps its keyframes until it came
+    live_sets += ['tracker.keep_for=["mapper"]'] if live else []
     if prior_map:  # `--map`: the tracker's saved map, read here first so a bad one stops the run before it starts
         live_sets.append(f"tracker.map={map_path(prior_map).resolve()}")
     cfgs = _resolve_configs(source, config, _split_overrides(live_sets + (overrides or []), live=live))

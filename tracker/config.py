@@ -199,6 +199,10 @@ class TrackerConfig:
     # stages that must be up before this one announces itself (e.g. "mapper" when run by hand)
     wait_for: tuple[str, ...] = ()
     wait_timeout_s: float = 60.0
+    # stages the tracker keeps its keyframes for at the end of its stream: it waits up to
+    # `wait_timeout_s` for one that has not appeared yet (a mapper that joins a live run late), then
+    # until it is done (`octolog run` names its mapper; by hand, a mapper that never came is not waited for)
+    keep_for: tuple[str, ...] = ()
     # keyframes on the wire: "source" (default): with the images as the frame came (compressed frames
     # give tracker/keyframe/compressed, not re-encoded; raw ones tracker/keyframe); "" or "raw": raw;
     # COLOUR[,DEPTH] with COLOUR jpeg[:QUALITY] or png[:LEVEL], DEPTH png or zstd: re-encoded (see

@@ -94,8 +94,11 @@ def run(cfg: TrackerConfig, bus_cfg: BusConfig, *, trajectory: Path | None = Non
         with Viz(rerun, "tracker", recording_id) as viz:
             result = track(odometry, cfg, bus, viz)
         _conclude(odometry, cfg, result, trajectory, save_map)  # while the mapper finishes the map
-        # a mapper started again recovers every keyframe from this stage's history: it stays until the mapper is done
-        bus.linger("mapper")
+        # a mapper that joins late, or starts again, recovers every keyframe from this stage's history:
+        # it stays until the mapper is done
+        bus.wait_for(cfg.keep_for, cfg.wait_timeout_s)
+        for stage in dict.fromkeys(["mapper", *cfg.keep_for]):
+            bus.linger(stage)
     return result
 
 
@@ -206,7 +209,8 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
               timeout_s=cfg.wait_timeout_s)
     bus.publisher(CONFIGS["tracker"]).put(streammsgs.config_msg("tracker", to_dict(cfg)))
     bus.watch(FRAME_PRODUCERS)  # whichever sends the frames: a replay, or a recorder publishing live
-    bus.watch(["mapper"], required=False)  # a mapper may restart: keep its keyframes until it is done
+    # a mapper may restart, or join late: keep its keyframes until it is done
+    bus.watch(dict.fromkeys(["mapper", *cfg.keep_for]), required=False)
     result = TrackerRunSummary()
     expected: int | None = None
     with Intake(bus, odometry, viz=viz.enabled, live=cfg.live, lag_ms=cfg.live_lag_ms) as intake, \

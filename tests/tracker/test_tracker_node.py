@@ -156,3 +156,43 @@ def test_a_live_tracker_behind_skips_one_frame_far_behind_jumps_to_the_newest():
         r, _ = _skip_behind(intake, _Msg(0), None, out, result, far=far)
         assert (out.skipped, r.seq) == (want_skipped, want_taken)
         assert result.skipped == result.frames == len(want_skipped)
+
+
+def test_a_mapper_that_comes_after_the_stream_still_gets_every_keyframe(tmp_path):
+    """A live camera does not wait for the mapper (it may come up late on a loaded machine): a
+    tracker told to keep its keyframes for it (`keep_for`, as `octolog run` does live) waits for it
+    after its stream, then until it is done. Here the mapper starts only once the tracker has taken
+    every frame: it still maps every keyframe, and both exit cleanly."""
+    frames = list(SyntheticScene(n_frames=20).frames())
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    tracker = subprocess.Popen([sys.executable, "-m", "octolog", "track", "--connect", ep, "--no-multicast",
+                                "--set", 'keep_for=["mapper"]'], cwd=ROOT, stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+    mapper = None
+    try:
+        with Bus(BusConfig(listen=(ep,), multicast_scouting=False), "replay") as bus:
+            bus.subscribe([TRACKING_STATUS])
+            bus.announce()
+            bus.watch(["tracker"])
+            bus.wait_for(["tracker"], timeout_s=60)
+            pub, end = bus.publisher(RGBD), bus.publisher(RGBD_END)
+            for f in frames:
+                pub.put(rgbdmsgs.rgbd_msg(f))
+            end.put(streammsgs.stream_end_msg(RGBD.name, pub.count))
+            seen = 0
+            while seen < len(frames):  # every frame taken: the tracker's stream is over
+                r = bus.receive(timeout_s=1.0)
+                seen += r is not None and r.topic == TRACKING_STATUS
+                assert tracker.poll() is None, tracker.stderr.read()
+            mapper = subprocess.Popen([sys.executable, "-m", "octolog", "map", "--connect", ep, "--no-multicast",
+                                       "--out", str(tmp_path / "map")], cwd=ROOT, stdout=subprocess.PIPE,
+                                      stderr=subprocess.PIPE, text=True)
+            m_out, m_err = mapper.communicate(timeout=180)
+            t_out, t_err = tracker.communicate(timeout=120)
+    finally:
+        for proc in (tracker, mapper):
+            if proc is not None and proc.poll() is None:
+                proc.kill()
+    assert tracker.returncode == 0 and mapper.returncode == 0, (t_err, m_err)
+    kf = int(t_out.split(" keyframes,")[0].rsplit(" ", 1)[-1])
+    assert kf >= 2 and f"mapper: {kf} keyframes (0 skipped)" in m_out, (t_out, m_out)
