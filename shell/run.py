@@ -17,7 +17,6 @@ import subprocess
 import sys
 import time
 import tomllib
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -42,8 +41,9 @@ from octolog.schemas import codec
 from octolog.schemas import topics as T
 from octolog.schemas.topics import RGBD, RGBD_COMPRESSED, TRACKING_STATUS
 from octolog.schemas.wirecompression import SOURCE
-from octolog.shell import errorfile, simcamera, statusline
+from octolog.shell import errorfile, simcamera
 from octolog.shell.children import HostedRouter, StageProcesses, router_unreachable
+from octolog.shell.finishing import Finishing
 from octolog.shell.info import depth_bias_line, imu_line, movers_line, prior_line, uninitialised_line
 from octolog.shell.priormap import check_prior, prior_mapper
 from octolog.shell.sessiondir import INCOMPLETE, incomplete_reason, not_a_session, prepare_out
@@ -340,7 +340,7 @@ def _run(plan: SessionPlan) -> SessionSummary:
         try:
             _start_stages(children, plan, router.endpoint, rerun, config_path)
             router.ready()
-            finishing = Finishing(children, plan)
+            finishing = Finishing(children, live=plan.live, quiet=plan.quiet)
             children.wait_all(finishing.done, finishing.waiting)
         finally:
             children.stop_all()
@@ -349,42 +349,6 @@ def _run(plan: SessionPlan) -> SessionSummary:
     return _summarize(plan.out, plan.source, plan.src, wall, plan.recording_id, loop=plan.cfgs["replay"].loop,
                       viewer_missed=None if missed is None else {"url": viewer, "reason": missed,
                                                                  "saved": str(plan.out / "rerun")})
-
-
-class Finishing:
-    """What `octolog run` says once the frames' source has ended and other stages still work: a log
-    or terminal is not silent through the tracker's last adjustment and the map's files (seconds,
-    more on a busy machine): a line when the source ends, then one every `statusline.INTERVAL_S`."""
-
-    WORK = (("tracker", "the tracker's last adjustment"), ("mapper", "the map and its files"))
-
-    def __init__(self, children: StageProcesses, plan: SessionPlan, clock: Callable[[], float] = time.monotonic) -> None:
-        self.children, self.plan, self.clock = children, plan, clock
-        self.since: float | None = None  # when the source ended
-        self._said = 0.0  # when the last line went out
-
-    def done(self, stage: str, running: list[str]) -> None:
-        """A stage finished without error (`StageProcesses.wait_all`)."""
-        left = self._left(running)
-        if stage in ("recorder", "replay") and not self.plan.quiet and left:
-            what = "the camera stopped" if self.plan.live else "the replay sent its last frame"
-            self.children.say(f"octolog run: {what}; finishing {left}")
-            self.since = self._said = self.clock()
-
-    def waiting(self, running: list[str]) -> None:
-        """Stages still run (`StageProcesses.wait_all`, every poll): after the source's end, a line
-        every few seconds with what is left."""
-        if self.since is None or not (left := self._left(running)):
-            return
-        now = self.clock()
-        if now - self._said >= statusline.INTERVAL_S:
-            self.children.say(f"octolog run: still finishing {left} ({now - self.since:.0f} s since the "
-                              f"{'camera stopped' if self.plan.live else 'last frame'})")
-            self._said = now
-
-    @classmethod
-    def _left(cls, running: list[str]) -> str:
-        return " and ".join(work for name, work in cls.WORK if name in running)
 
 
 def _keep_live_up(out: Path, found: dict) -> None:

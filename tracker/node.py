@@ -97,9 +97,15 @@ def run(cfg: TrackerConfig, bus_cfg: BusConfig, *, trajectory: Path | None = Non
         # a mapper that joins late, or starts again, recovers every keyframe from this stage's history:
         # it stays until the mapper is done
         bus.wait_for(cfg.keep_for, cfg.wait_timeout_s)
-        for stage in dict.fromkeys(["mapper", *cfg.keep_for]):
+        for stage in _kept_for(cfg):
             bus.linger(stage)
     return result
+
+
+def _kept_for(cfg: TrackerConfig) -> list[str]:
+    """The stages the tracker keeps its keyframes for: a mapper if one comes (it may restart), and
+    `keep_for`, waited for."""
+    return list(dict.fromkeys(["mapper", *cfg.keep_for]))
 
 
 def _conclude(odometry: Tracker, cfg: TrackerConfig, result: TrackerRunSummary, trajectory: Path | None,
@@ -210,7 +216,7 @@ def track(odometry: Tracker, cfg: TrackerConfig, bus: Bus, viz: Viz) -> TrackerR
     bus.publisher(CONFIGS["tracker"]).put(streammsgs.config_msg("tracker", to_dict(cfg)))
     bus.watch(FRAME_PRODUCERS)  # whichever sends the frames: a replay, or a recorder publishing live
     # a mapper may restart, or join late: keep its keyframes until it is done
-    bus.watch(dict.fromkeys(["mapper", *cfg.keep_for]), required=False)
+    bus.watch(_kept_for(cfg), required=False)
     result = TrackerRunSummary()
     expected: int | None = None
     with Intake(bus, odometry, viz=viz.enabled, live=cfg.live, lag_ms=cfg.live_lag_ms) as intake, \

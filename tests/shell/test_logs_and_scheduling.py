@@ -178,7 +178,7 @@ def test_the_run_says_what_it_finishes_once_the_frames_end(tmp_path, capsys):
     The stages' exits drive it."""
     from types import SimpleNamespace
 
-    from octolog.shell.run import Finishing
+    from octolog.shell.finishing import Finishing
     from octolog.shell.statusline import INTERVAL_S
 
     children = StageProcesses(tmp_path)
@@ -192,12 +192,12 @@ def test_the_run_says_what_it_finishes_once_the_frames_end(tmp_path, capsys):
                                  (SimpleNamespace(quiet=False, live=False), "tracker", ["log", "mapper"]),
                                  (SimpleNamespace(quiet=False, live=False), "replay", ["log"]),
                                  (SimpleNamespace(quiet=True, live=True), "recorder", ["mapper", "tracker"])):
-        Finishing(children, plan).done(stage, running)
+        Finishing(children, live=plan.live, quiet=plan.quiet).done(stage, running)
     assert capsys.readouterr().err.splitlines() == [
         "octolog run: the camera stopped; finishing the tracker's last adjustment and the map and its files",
         "octolog run: the replay sent its last frame; finishing the map and its files"]
     now = [100.0]
-    finishing = Finishing(children, SimpleNamespace(quiet=False, live=True), clock=lambda: now[0])
+    finishing = Finishing(children, live=True, quiet=False, clock=lambda: now[0])
     finishing.waiting(["log", "mapper", "recorder", "tracker"])  # the camera still runs: nothing
     finishing.done("recorder", ["log", "mapper", "tracker"])
     for t, running in ((101.0, ["log", "mapper", "tracker"]), (100.0 + INTERVAL_S, ["log", "mapper", "tracker"]),

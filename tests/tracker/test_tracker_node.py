@@ -18,6 +18,19 @@ from octolog.tracker.interface import TrackingState
 from octolog.tracker.node import status_code
 
 
+def _play(bus: Bus, frames: list) -> None:
+    """Stand in for the replay: once the tracker is up, every frame and the stream's end; the
+    tracker's statuses come back on `bus`."""
+    bus.subscribe([TRACKING_STATUS])
+    bus.announce()
+    bus.watch(["tracker"])
+    bus.wait_for(["tracker"], timeout_s=60)
+    pub, end = bus.publisher(RGBD), bus.publisher(RGBD_END)
+    for f in frames:
+        pub.put(rgbdmsgs.rgbd_msg(f))
+    end.put(streammsgs.stream_end_msg(RGBD.name, pub.count))
+
+
 def test_bad_frames_are_lost_and_tracking_goes_on(tmp_path):
     frames = list(SyntheticScene(n_frames=16).frames())
     bad = {
@@ -37,14 +50,7 @@ def test_bad_frames_are_lost_and_tracking_goes_on(tmp_path):
     states: dict[int, int] = {}
     try:
         with Bus(BusConfig(listen=(ep,), multicast_scouting=False), "replay") as bus:
-            bus.subscribe([TRACKING_STATUS])
-            bus.announce()
-            bus.watch(["tracker"])
-            bus.wait_for(["tracker"], timeout_s=60)
-            pub, end = bus.publisher(RGBD), bus.publisher(RGBD_END)
-            for k, f in enumerate(frames):
-                pub.put(rgbdmsgs.rgbd_msg(bad.get(k, f)))
-            end.put(streammsgs.stream_end_msg(RGBD.name, pub.count))
+            _play(bus, [bad.get(k, f) for k, f in enumerate(frames)])
             while len(states) < len(frames):
                 r = bus.receive(timeout_s=1.0)
                 if r is not None and r.topic == TRACKING_STATUS:
@@ -171,14 +177,7 @@ def test_a_mapper_that_comes_after_the_stream_still_gets_every_keyframe(tmp_path
     mapper = None
     try:
         with Bus(BusConfig(listen=(ep,), multicast_scouting=False), "replay") as bus:
-            bus.subscribe([TRACKING_STATUS])
-            bus.announce()
-            bus.watch(["tracker"])
-            bus.wait_for(["tracker"], timeout_s=60)
-            pub, end = bus.publisher(RGBD), bus.publisher(RGBD_END)
-            for f in frames:
-                pub.put(rgbdmsgs.rgbd_msg(f))
-            end.put(streammsgs.stream_end_msg(RGBD.name, pub.count))
+            _play(bus, frames)
             seen = 0
             while seen < len(frames):  # every frame taken: the tracker's stream is over
                 r = bus.receive(timeout_s=1.0)
