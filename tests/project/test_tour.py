@@ -34,7 +34,7 @@ from octolog.kit.errors import ConfigError
 
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 TUM_DOC_PATH = "../shared/data/tum/rgbd_dataset_freiburg1_xyz_first300"
-TOUR_FRAMES = 40  # frames of the short TUM folder and at most of a synthetic source
+TOUR_FRAMES = 20  # frames of the short TUM folder and at most of a synthetic source
 NO_CAMERA = "no RealSense device found"
 
 # short inputs: (pattern, replacement) applied to every line before it runs
