@@ -134,14 +134,14 @@ def _grid_cells(session: Path) -> dict[tuple[int, int], int]:
 
 @pytest.mark.slow
 def test_the_grid_does_not_depend_on_how_the_camera_was_held_at_the_start(tmp_path: Path) -> None:
-    """The synthetic room, the same path twice: once from a (nearly) level start, once starting 30
-    degrees further down and levelling out over one second. With up from the simulated IMU, the two
-    grids agree on 99.7 % of the cells both know (the tilted start sees some more floor at first:
-    coverage differs, placement does not). The control: the tilted session's mapper re-run under the
-    old assumption (up = the first camera's -y) agrees on about 40 %."""
+    """The synthetic room, the same 2 s path (60 frames) twice: once from a (nearly) level start, once
+    starting 30 degrees further down and levelling out over its first second. With up from the
+    simulated IMU, the two grids agree on 99.6 % of the cells both know (the tilted start sees some
+    more floor at first: coverage differs, placement does not). The control: the tilted session's
+    mapper re-run under the old assumption (up = the first camera's -y) agrees on about 40 %."""
     level, tilted, assumed = tmp_path / "level", tmp_path / "tilted", tmp_path / "assumed"
-    octolog("run", "--source", "synthetic:90", "--out", str(level), "--quiet", "--rerun", "off")
-    octolog("run", "--source", "synthetic:90:tilt=30", "--out", str(tilted), "--quiet", "--rerun", "off")
+    octolog("run", "--source", "synthetic:60", "--out", str(level), "--quiet", "--rerun", "off")
+    octolog("run", "--source", "synthetic:60:tilt=30", "--out", str(tilted), "--quiet", "--rerun", "off")
     octolog("replay", str(tilted), "--from", "tracker", "--set", "mapper.grid_up=[0.0,-1.0,0.0]", "--out",
             str(assumed), "--quiet", "--rerun", "off")
 
@@ -153,7 +153,9 @@ def test_the_grid_does_not_depend_on_how_the_camera_was_held_at_the_start(tmp_pa
     ref = _grid_cells(level)
     assert agreement(ref, _grid_cells(tilted)) >= 0.98
     assert agreement(ref, _grid_cells(assumed)) < 0.8
-    # and the tilted session's map frame is upright: 0.6 degrees from the room's z (measured)
+    # and the tilted session's map frame is upright: 0.2 degrees from the room's z (measured; the
+    # alignment onto the ground truth needs a path that bends: on 40 frames, nearly a straight line,
+    # its rotation about the line is not pinned down)
     up = np.array(tomllib.loads((tilted / "config.toml").read_text())["mapper"]["grid_up"])
     assert z_tilt(tilted, map_from_world_for_up(up)) <= 2.0
 

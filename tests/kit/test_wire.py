@@ -152,19 +152,17 @@ def test_jpeg_is_deterministic_close_to_raw_and_its_log_replays(raw, tmp_path):
 
 
 @pytest.mark.slow
-def test_tum_frames_travel_and_are_logged_as_their_png_files(tmp_path):
+def test_tum_frames_travel_and_are_logged_as_their_png_files(tmp_path, octolog_run):
     """The default (`source`) publishes a TUM folder's PNG files untouched: the session log holds
-    their bytes, keyframes carry them on to the mapper, and every output equals a raw run's."""
+    their bytes, keyframes carry them on to the mapper, and every output equals a raw run's. The
+    default run on the first 40 frames is the shared one (tests/shell/test_distributed.py reads it
+    too), read-only."""
     folder = tum_first300()
     window = ("--set", "replay.end=40")
-
-    def run(name: str, *sets: str) -> Path:
-        out = tmp_path / name
-        octolog("run", "--source", f"tum:{folder}", "--out", str(out), "--quiet", "--rerun", "off", *window,
-                *[a for s in sets for a in ("--set", s)], timeout=600)
-        return out
-
-    source, raw = run("source"), run("raw", "replay.wire_compression=raw", "tracker.wire_compression=raw")
+    source = octolog_run(f"tum:{folder}", *window)[0]
+    raw = tmp_path / "raw"
+    octolog("run", "--source", f"tum:{folder}", "--out", str(raw), "--quiet", "--rerun", "off", *window,
+            "--set", "replay.wire_compression=raw", "--set", "tracker.wire_compression=raw", timeout=600)
     for name in ("trajectory.txt", "map.bt", "cloud.ply"):
         assert (source / name).read_bytes() == (raw / name).read_bytes(), name
     pngs = sorted((folder / "rgb").iterdir())[:2]

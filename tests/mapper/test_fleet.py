@@ -128,7 +128,8 @@ def test_a_fleet_of_five_robots_completes(tmp_path, octolog_run):
     three robots, the same windows: a run of its own would add nothing): a router, one
     mapper for every robot, and per robot its tracker's keyframe stream replayed from a session log
     (`replay.play = "tracker"`). Each robot replays another window of the log: robot k the keyframes
-    made from frame 4k on, so each starts at a view of its own and shares places with the first.
+    made from frames 4k to 23 (the first robot five, the fifth robot the last two of those), so each
+    starts at a view of its own and shares places with the first.
     The mapper ends; every robot is placed, every keyframe of every robot is in the map, and each
     keyframe lies where the first robot has it (the log's one world), within 2 cm."""
     from octolog.kit.metrics import read_tum
@@ -136,7 +137,7 @@ def test_a_fleet_of_five_robots_completes(tmp_path, octolog_run):
     log = octolog_run(f"synthetic:{FRAMES}")[0] / "session.mcap"
     n_robots = 5
     robots = [f"r{k + 1}" for k in range(n_robots)]
-    starts = [4 * k for k in range(n_robots)]
+    starts, end = [4 * k for k in range(n_robots)], 24
     out = tmp_path / "fleet"
     procs, bus = start_router(out)
     try:
@@ -145,7 +146,7 @@ def test_a_fleet_of_five_robots_completes(tmp_path, octolog_run):
         for robot, start in zip(robots, starts):
             procs[robot] = spawn(out / f"{robot}.log", "replay", *bus, "--namespace", robot, "--quiet",
                                  "--source", f"mcap:{log}", "--set", "play=tracker", "--set", f"start={start}",
-                                 "--set", 'wait_for=["mapper"]')
+                                 "--set", f"end={end}", "--set", 'wait_for=["mapper"]')
         for name in ("mapper", *robots):
             assert procs[name].wait(timeout=600) == 0, (name, (out / f"{name}.log").read_text())
     finally:
@@ -153,7 +154,7 @@ def test_a_fleet_of_five_robots_completes(tmp_path, octolog_run):
     stats = json.loads((out / "map_stats.json").read_text())
     per_robot = [stats["robots"][r]["keyframes"] for r in robots]
     assert all(stats["robots"][r]["merged"] for r in robots), stats["robots"]
-    assert per_robot[0] > per_robot[-1] >= 1 and stats["keyframes"] == sum(per_robot), per_robot
+    assert per_robot[0] > per_robot[-1] >= 2 and stats["keyframes"] == sum(per_robot), per_robot
     first = read_tum(out / "keyframes_r1.txt")
     where = dict(zip(first.stamps_ns.tolist(), first.positions))
     for robot in robots[1:]:
@@ -358,7 +359,10 @@ def test_rerun_has_a_trajectory_per_robot(fleet):
         assert f"/world/{robot}/trajectory" in text, text[-2000:]
 
 
-# --- real data: the two halves of TUM fr1/xyz first300 --------------------------------------------------
+# --- real data: TUM fr1/xyz first300's first 200 frames in two halves ------------------------------------
+
+
+TUM_FRAMES = 200  # r1 plays frames 0-99, r2 frames 100-199
 
 
 @dataclasses.dataclass(frozen=True)
@@ -378,14 +382,15 @@ class _Halves:
 
 
 def _tum_halves() -> _Halves:
-    """TUM fr1/xyz first300 as two robots: the first half and the second, shifted to run alongside."""
+    """The first TUM_FRAMES frames of TUM fr1/xyz first300 as two robots: the first half and the second,
+    shifted to run alongside."""
     from octolog.kit.geometry import invert, matrix_to_pose
     from octolog.kit.metrics import parse_tum
     from octolog.replay.sources import open_source
 
     source = f"tum:{tum_first300()}"
     src = open_source(source)
-    n = len(src)
+    n = TUM_FRAMES
     windows = ((0, n // 2), (n // 2, n))
     stamps = [f.stamp_ns for f in src.frames(0, n)]
     shifts = (0.0, -round((stamps[n // 2] - stamps[0]) * 1e-9, 2) + 0.01)
@@ -398,7 +403,7 @@ def _tum_halves() -> _Halves:
 
 @pytest.fixture(scope="module")
 def tum_halves_placed(tmp_path_factory) -> Path:
-    """The two halves of first300 through the real processes, r2 placed by its ground-truth start pose:
+    """The two halves (`_tum_halves`) through the real processes, r2 placed by its ground-truth start pose:
     one run read by the byte-for-byte check against the reference and by the merge's map check."""
     h = _tum_halves()
     out = tmp_path_factory.mktemp("tum-halves") / "processes"
@@ -408,9 +413,9 @@ def tum_halves_placed(tmp_path_factory) -> Path:
 
 @pytest.mark.slow
 def test_two_halves_of_a_tum_sequence_fuse_like_on_one_host(tmp_path, tum_halves_placed):
-    """Two robots on real frames: r1 the first half, r2 the second, shifted to run alongside; r2's
-    start pose from the TUM ground truth. Byte-identical to the in-process reference, and each
-    robot's keyframes near the ground truth in the common world."""
+    """Two robots on real frames: r1 frames 0-99 of first300, r2 frames 100-199, shifted to run
+    alongside; r2's start pose from the TUM ground truth. Byte-identical to the in-process reference,
+    and each robot's keyframes near the ground truth in the common world."""
     from octolog.kit.geometry import invert
     from octolog.kit.metrics import read_tum
 
@@ -423,17 +428,22 @@ def test_two_halves_of_a_tum_sequence_fuse_like_on_one_host(tmp_path, tum_halves
         assert (tum_halves_placed / name).read_bytes() == (tmp_path / "reference" / name).read_bytes(), name
     r1, r2 = (read_tum(tum_halves_placed / f"keyframes_{r}.txt") for r in ROBOTS)
     assert r2.stamps_ns[0] < r1.stamps_ns[-1]  # interleaved
+    worst = 0.0
     for traj, shift in ((r1, shifts[0]), (r2, shifts[1])):
         for stamp, p in zip(traj.stamps_ns, traj.positions):
             truth = (invert(world_from_first) @ gt_pose(int(stamp) - round(shift * 1e9)))[:3, 3]
+            worst = max(worst, float(np.linalg.norm(p - truth)))
             assert np.linalg.norm(p - truth) < 0.05, (stamp, p, truth)
+    print(f"{len(r1.stamps_ns)} + {len(r2.stamps_ns)} keyframes vs ground truth: max {worst * 100:.1f} cm")
 
 
 @pytest.mark.slow
 def test_two_halves_merge_without_start_poses(tmp_path, first300_run, tum_halves_placed):
-    """Robot r1 the first half of first300, r2 the second, no start poses. The mapper
+    """Robot r1 frames 0-99 of first300, r2 frames 100-199, no start poses. The mapper
     places r2 from a place both saw; every keyframe of both lies within 5 cm of the ground truth
-    after one rigid alignment of the merged trajectory, and the map agrees with one robot's."""
+    after one rigid alignment of the merged trajectory, and the map agrees with one robot's. (That
+    placing happens at defined points of the merge order, so another run gives the same bytes:
+    test_relink.py's fleet without start poses, run twice.)"""
     from octolog.kit.metrics import associate, read_tum, umeyama
 
     h = _tum_halves()
@@ -452,11 +462,13 @@ def test_two_halves_merge_without_start_poses(tmp_path, first300_run, tum_halves
     est_all, truth_all = np.vstack(est), np.vstack(truth)
     R, t, _ = umeyama(est_all, truth_all, with_scale=False)
     err = np.linalg.norm(est_all @ R.T + t - truth_all, axis=1)
-    print(f"merged keyframes vs ground truth: max {err.max() * 100:.1f} cm, mean {err.mean() * 100:.1f} cm")
+    print(f"merged keyframes vs ground truth: max {err.max() * 100:.1f} cm, mean {err.mean() * 100:.1f} cm; "
+          f"placed by {stats['merges'][0]['inliers'] if stats['merges'] else 0} inliers")
     assert err.max() < 0.05, err
     # the map: against the same two robots placed by their ground-truth start poses (what the merge
-    # should reproduce), and, for the record, against one robot tracking the whole sequence (two
-    # trackers choose other keyframes: surfaces move by a voxel here and there whatever the merge)
+    # should reproduce), and, for the record, against one robot tracking the whole of first300 (on the
+    # voxels both maps know; two trackers choose other keyframes: surfaces move by a voxel here and
+    # there whatever the merge)
     known = tum_halves_placed
     single = first300_run[0]
     disagree, n_cells = occupied_disagreement(out / "map.bt", known / "map.bt")
@@ -476,11 +488,6 @@ def test_two_halves_merge_without_start_poses(tmp_path, first300_run, tum_halves
           + ", ".join(f"{x:.1%}" for x in off))
     assert near_single <= 0.02 < min(off), (near_single, off)
     assert [m["robot"] for m in stats["merges"]] == ["r2"] and stats["merges"][0]["inliers"] >= 60
-    # placing happens at defined points of the merge order: another run (other arrival timing)
-    # places r2 at the same keyframes and gives the same map, byte for byte
-    run_fleet(tmp_path / "again", [], source=source, windows=windows, shifts=shifts)
-    for name in ("map.bt", "keyframes_r1.txt", "keyframes_r2.txt", "map_stats.json"):
-        assert (tmp_path / "again" / name).read_bytes() == (out / name).read_bytes(), name
 
 
 # --- placing by place: the verification (mapper/fleet/align.py) ------------------------------------------
@@ -511,7 +518,7 @@ def test_a_robot_that_shares_no_place_stays_out_with_a_map_of_its_own(tmp_path):
     """Robot r1 in the synthetic room, r2 at the TUM desk, no start poses. No merge;
     r2 is reported unmerged with a map of its own; the fused map is r1's alone, byte for byte the
     map `octolog run` makes of r1's frames."""
-    n = 40
+    n = 20
     out = tmp_path / "fleet"
     run_fleet(out, [], windows=((0, n), (0, n)), shifts=(0.0, 0.0),
               sources=(f"synthetic:{n}", f"tum:{tum_first300()}"))

@@ -126,7 +126,8 @@ def test_a_paused_robot_holds_the_others_back_no_longer_and_the_defined_order_st
 @pytest.mark.slow
 def test_a_robot_that_tracks_without_keyframes_holds_the_others_back_no_longer(tmp_path):
     """The watermark through the real processes: r2's camera stands still (one synthetic
-    frame played 600 times at the camera's rate: 20 s of wall time however fast the machine), so after
+    frame played 120 times at a fifth of the camera's rate, 6 frames a second: 20 s of wall time
+    however fast the machine, a status from its tracker every 0.17 s), so after
     its first keyframe its tracker makes none for 20 s, while r1 maps the room. With
     `mapper.robot_stall_s` 10 s, a mapper that heard nothing from r2 would pause it and build the map
     again at the end; its tracker's statuses tell the mapper r2 is alive and how far it got, so r1's
@@ -138,7 +139,7 @@ def test_a_robot_that_tracks_without_keyframes_holds_the_others_back_no_longer(t
     bus = ["--mode", "client", "--connect", endpoint, "--no-multicast"]
     procs = {"router": spawn(out / "router.log", "router", "--listen", endpoint)}
     frames = 40
-    still = 600
+    still, rate = 120, 0.2
     try:
         procs["mapper"] = spawn(None, "map", *bus, "--out", str(out), "--rerun", "off",
                                 "--set", 'robots=["r1", "r2"]', "--set", "robot_stall_s=10.0",
@@ -146,7 +147,7 @@ def test_a_robot_that_tracks_without_keyframes_holds_the_others_back_no_longer(t
         for robot in ROBOTS:
             procs[f"tracker-{robot}"] = spawn(out / f"tracker-{robot}.log", "track", *bus, "--namespace", robot)
         window = {"r1": ("--set", "start=0", "--set", f"end={frames}"),
-                  "r2": ("--set", "start=0", "--set", "end=1", "--set", f"loop={still}", "--set", "rate=1.0")}
+                  "r2": ("--set", "start=0", "--set", "end=1", "--set", f"loop={still}", "--set", f"rate={rate}")}
         for robot in ROBOTS:
             procs[f"replay-{robot}"] = spawn(out / f"replay-{robot}.log", "replay", *bus, "--namespace", robot,
                                              "--quiet", "--source", f"synthetic:{frames}", *window[robot],

@@ -213,19 +213,22 @@ def _link_bytes(ns: str, dev: str) -> int:
 
 @pytest.mark.root
 @pytest.mark.slow
-def test_deployment_doc_robot_and_server_give_the_run_bytes(hosts, tmp_path, first300_run):
+def test_deployment_doc_robot_and_server_give_the_run_bytes(hosts, tmp_path, octolog_run):
     """docs/deployment.md as written, with TLS: the server (router, mapper, log) on one host, robot1
-    (its own router, replay + `octolog track`, frames from TUM fr1 first300) on another. No
-    rolling-shutter setting anywhere: the readout comes with the frames (`camera/rgbd/properties`),
-    so the trajectory and map.bt are those of `octolog run` on this host. The camera frames stay on
-    the robot (the server logs `--no-frames`); the server's log folder replays to the same map and
-    holds the robot's trajectory."""
+    (its own router, replay + `octolog track`, the first 40 frames of TUM fr1 first300) on another.
+    No rolling-shutter setting anywhere: the readout comes with the frames (`camera/rgbd/properties`),
+    so the trajectory and map.bt are those of `octolog run` on this host on the same frames (the
+    shared run, tests/kit/test_wire.py reads it too). The camera frames stay on the robot (the server
+    logs `--no-frames`); the server's log folder replays to the same map and holds the robot's
+    trajectory."""
     from helpers import tum_first300
+
+    from octolog.kit.tum import open_tum
 
     if shutil.which("openssl") is None:
         pytest.skip("openssl not installed")
     folder = tum_first300()
-    source = f"tum:{folder}"
+    source, frames = f"tum:{folder}", 40
     names, addr = hosts
     robot_ip, link = addr["a"]  # how the robot reaches the server; the server's end of that link
     examples = ROOT / "docs" / "examples"
@@ -263,22 +266,23 @@ def test_deployment_doc_robot_and_server_give_the_run_bytes(hosts, tmp_path, fir
         procs["tracker"] = _start(names["a"], "track", *robot, "--trajectory", str(out / "traj.txt"), "--set",
                                   "wire_compression=jpeg:90", log=out / "tracker.log")
         before = _link_bytes(names["d"], link)
-        procs["replay"] = _start(names["a"], "replay", *robot, "--source", source, "--set",
-                                 'wait_for=["tracker", "mapper"]', "--quiet", log=out / "replay.log")
+        procs["replay"] = _start(names["a"], "replay", *robot, "--source", source, "--set", f"end={frames}",
+                                 "--set", 'wait_for=["tracker", "mapper"]', "--quiet", log=out / "replay.log")
         for stage in ("replay", "tracker", "mapper", "log"):
             log = out / f"{'map' if stage == 'mapper' else stage}.log"
             assert procs[stage].wait(timeout=600) == 0, log.read_text()
         crossed = _link_bytes(names["d"], link) - before
     finally:
         stop_all(procs)
-    single = first300_run[0]
+    single = octolog_run(source, "--set", f"replay.end={frames}")[0]
     assert "warning" not in (out / "tracker.log").read_text()
     assert (out / "traj.txt").read_bytes() == (single / "trajectory.txt").read_bytes()
     # map.bt: occupancy comes from depth (lossless PNG either way); the JPEG colour only tints the cloud
     assert (out / "maps" / "robot1" / "map.bt").read_bytes() == (single / "map.bt").read_bytes()
     # the frames (the PNG files, sent as they are) stayed on the robot: what crossed is keyframes
     # (one in ten frames, JPEG colour), poses and the protocol
-    pngs = sum(p.stat().st_size for d in ("rgb", "depth") for p in (folder / d).iterdir())
+    sent = [f for _, rgb, _, depth in open_tum(folder).pairs[:frames] for f in (rgb, depth)]
+    pngs = sum((folder / f).stat().st_size for f in sent)
     print(f"robot -> server: {crossed / 1e6:.1f} MB for {pngs / 1e6:.1f} MB of frames")
     assert crossed < 0.25 * pngs, (crossed, pngs)
     # the server's log folder: the robot's trajectory, and a session that replays to the same map
