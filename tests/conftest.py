@@ -91,11 +91,12 @@ def first300_run(octolog_run: RunFn) -> tuple[Path, str]:
 # follow, those with more `slow` tests sooner. Only the schedule depends on it; re-measure when a
 # module's time moves a lot.
 MODULE_SECONDS = {
-    "test_fleet": 229, "test_distributed": 225, "test_slam": 223, "test_depth_noise": 171, "test_prior_map": 166,
-    "test_tour": 122, "test_determinism": 113, "test_relink": 107, "test_pipeline": 103, "test_wire": 74,
-    "test_recorder": 67, "test_imu": 66, "test_failures": 54, "test_gravity": 50, "test_sessions": 37, "test_tls": 35,
-    "test_live": 34, "test_importers": 32, "test_journal": 31, "test_hostile": 31, "test_odometry": 28,
-    "test_simcamera": 24, "test_fleet_order": 22, "test_viz": 21, "test_shards": 19,
+    "test_tour": 266, "test_distributed": 203, "test_fleet": 190, "test_slam": 176, "test_prior_map": 154,
+    "test_depth_noise": 153, "test_determinism": 121, "test_pipeline": 90, "test_recorder": 77, "test_wire": 62,
+    "test_relink": 60, "test_imu": 59, "test_importers": 43, "test_failures": 40, "test_journal": 39,
+    "test_shell_errors": 38, "test_tls": 36, "test_hostile": 33, "test_gravity": 32, "test_simcamera": 28,
+    "test_odometry": 27, "test_fleet_order": 22, "test_viz": 20, "test_live": 20, "test_orbslam3": 19,
+    "test_voxelmap": 19, "test_shards": 19, "test_sessions": 17,
 }
 
 

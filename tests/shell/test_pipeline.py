@@ -307,15 +307,19 @@ def test_tum_first300_map_frame_is_gravity_aligned(tum_run) -> None:
 
 
 @pytest.mark.slow
-def test_imported_tum_replays_to_the_same_trajectory(tum_run, tmp_path):
-    """`octolog import` of the folder, then the pipeline on the MCAP: byte-identical to the folder's run."""
+def test_imported_tum_replays_to_the_same_trajectory(octolog_run, tmp_path):
+    """`octolog import` of the folder, then the pipeline on the MCAP's first 40 frames: byte-identical
+    to the folder's run on them (the shared run, tests/kit/test_wire.py reads it too)."""
+    window = ("--set", "replay.end=40")
     octolog("import", str(tum_first300()), str(tmp_path / "fr1.mcap"), "--compression", "lz4")
-    octolog("run", "--source", f"mcap:{tmp_path / 'fr1.mcap'}", "--out", str(tmp_path / "o"), "--quiet", "--rerun", "off")
+    octolog("run", "--source", f"mcap:{tmp_path / 'fr1.mcap'}", "--out", str(tmp_path / "o"), "--quiet", "--rerun", "off",
+            *window)
+    folder_run = octolog_run(f"tum:{tum_first300()}", *window)[0]
     for name in ("trajectory.txt", "map.bt"):
-        assert (tmp_path / "o" / name).read_bytes() == (tum_run[0] / name).read_bytes(), name
+        assert (tmp_path / "o" / name).read_bytes() == (folder_run / name).read_bytes(), name
     # the accelerometer travels with it (its axes as a /tf_static): the same up, the same grid
     for name in ("map.pgm", "map.yaml"):
-        assert (tmp_path / "o" / name).read_bytes() == (tum_run[0] / name).read_bytes(), name
+        assert (tmp_path / "o" / name).read_bytes() == (folder_run / name).read_bytes(), name
 
 
 # --- failures ----------------------------------------------------------------------------------
