@@ -13,7 +13,10 @@ keeps each frame in octolog's cache (octolog.kit.cache, `synthetic/frames-KEY/`,
 as they are: 1.5 MB a frame at 640x480), keyed by everything that decides its bytes (the scene's
 parameters but its length, this package's renderer source, the rendering libraries' versions).
 Frame i does not depend on the sequence's length, so a longer run renders only the frames a
-shorter one did not; a replay of a rendered sequence reads one file a frame.
+shorter one did not; a replay of a rendered sequence reads one file a frame. A scene with a depth
+sensor (`depth_noise`) also keeps each frame's exact view (`synthetic/views-KEY/`: colour and float
+depth before the sensor model, the motion blur and the blank stretch), so scenes that differ only
+in those render the room once and pay ~15 ms a frame for the sensor.
 """
 
 from __future__ import annotations
@@ -329,6 +332,12 @@ class SyntheticScene:
         """Colour (H, W, 3) uint8 and depth (H, W) uint16 mm seen from an arbitrary pose; with a
         `noise` generator and a `depth_noise` sensor, the depth that sensor would read; with `t` (s),
         the people in the room at that time in front of it."""
+        rgb, z = self.view(world_from_camera, t)
+        return rgb, self._sensed(rgb, z, noise)
+
+    def view(self, world_from_camera: np.ndarray, t: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Colour (H, W, 3) uint8 and exact depth (H, W) float32 m (inf where a ray hits nothing)
+        seen from an arbitrary pose, with the people in the room at time `t` (s) when given."""
         import open3d as o3d  # lazy: ~1.4 s to import, only rendering and geometry need it
 
         cfg, K = self.config, self.intrinsics
@@ -349,9 +358,7 @@ class SyntheticScene:
             pt, prgb = synthetic_people.cast(self.people, t, T[:3, 3], rays[:, 3:])
             person = pt < z  # misses are inf
             z = np.where(person, pt, z)
-
-        exact = z if noise is not None and cfg.depth_noise != "none" else None
-        depth = self._depth_mm(z)
+        z_all = z
 
         hit = np.isfinite(z)
         all_hit = bool(hit.all())
@@ -373,11 +380,15 @@ class SyntheticScene:
             rgb[hit] = col
         if person is not None:
             rgb[person] = prgb[person]
-        rgb = rgb.reshape(K.height, K.width, 3)
-        if exact is not None:
-            sensor = depth_noise.SENSORS[cfg.depth_noise]
-            depth = self._depth_mm(depth_noise.apply(exact.reshape(K.height, K.width), rgb, sensor, noise, cfg.depth_bias_px).ravel())
-        return rgb, depth.reshape(K.height, K.width)
+        return rgb.reshape(K.height, K.width, 3), z_all.reshape(K.height, K.width)
+
+    def _sensed(self, rgb: np.ndarray, z: np.ndarray, noise: np.random.Generator | None) -> np.ndarray:
+        """uint16 depth (H, W) of the exact view (`z`, float32 m, inf for a miss): what the scene's
+        `depth_noise` sensor reads with `noise`, else the exact depth rounded to the depth unit."""
+        if noise is not None and self.config.depth_noise != "none":
+            sensor = depth_noise.SENSORS[self.config.depth_noise]
+            z = depth_noise.apply(z, rgb, sensor, noise, self.config.depth_bias_px)
+        return self._depth_mm(z.ravel()).reshape(z.shape)
 
     def _texture_colour(self, prim: np.ndarray, tu: np.ndarray, tv: np.ndarray, z: np.ndarray, dirs: np.ndarray,
                         inv_len: np.ndarray) -> np.ndarray:
@@ -427,26 +438,44 @@ class SyntheticScene:
                                            borderMode=cv2.BORDER_REPLICATE)
         return (acc * np.float32(1.0 / len(rot)) + np.float32(0.5)).astype(np.uint8)
 
+    def _frame_config(self, **fixed: Any) -> SyntheticConfig:
+        """The parameters that decide a frame's bytes (with `fixed` ones set): the sequence's length,
+        the ray caster's thread count and the IMU do not."""
+        return dataclasses.replace(self.config, n_frames=0, nthreads=0, imu_hz=0.0, imu_noise_scale=1.0,
+                                   imu_rotation_deg=0.0, imu_late_ms=0.0, **fixed)
+
     @cached_property
     def _frame_folder(self) -> Path:
-        """Where this scene's rendered frames are kept (see the module's docstring); the sequence's
-        length, the ray caster's thread count and the IMU do not change a frame's bytes."""
-        cfg = dataclasses.replace(self.config, n_frames=0, nthreads=0, imu_hz=0.0, imu_noise_scale=1.0,
-                                  imu_rotation_deg=0.0, imu_late_ms=0.0)
-        key = cache.key_of((FRAME_FORMAT, cfg), [str(f) for f in _RENDERER], _RENDER_LIBRARIES)
+        """Where this scene's rendered frames are kept (see the module's docstring)."""
+        key = cache.key_of((FRAME_FORMAT, self._frame_config()), [str(f) for f in _RENDERER], _RENDER_LIBRARIES)
         return cache.cache_root("synthetic") / f"frames-{key}"
+
+    @cached_property
+    def _view_folder(self) -> Path:
+        """Where the exact views behind a depth sensor's frames are kept (`_exact_view`): scenes that
+        differ only in the sensor model, the motion blur or the blank stretch share them."""
+        cfg = self._frame_config(depth_noise="none", depth_bias_px=0.0, exposure_ms=0.0, blank_at_s=0.0, blank_s=0.0)
+        key = cache.key_of((FRAME_FORMAT, "view", cfg), [str(f) for f in _RENDERER], _RENDER_LIBRARIES)
+        return cache.cache_root("synthetic") / f"views-{key}"
+
+    def _load(self, path: Path, depth_name: str, depth_dtype: type) -> tuple[np.ndarray, np.ndarray] | None:
+        """Colour and depth kept at `path` (None when missing, unreadable or not this scene's shape)."""
+        K = self.intrinsics
+        kept = cache.load_arrays(path)
+        if (kept is not None and set(kept) == {"rgb", depth_name} and kept["rgb"].shape == (K.height, K.width, 3)
+                and kept["rgb"].dtype == np.uint8 and kept[depth_name].shape == (K.height, K.width)
+                and kept[depth_name].dtype == depth_dtype):
+            return kept["rgb"], kept[depth_name]
+        return None
 
     def render(self, i: int) -> RgbdFrame:
         """The RGB-D frame i (seq = i) at its ground-truth pose (mid-exposure), from the frame cache
         when it is there (a missing or unreadable file is rendered again)."""
         i = self._check(i)
-        K = self.intrinsics
         path = self._frame_folder / f"{i:06d}.npz"
-        kept = cache.load_arrays(path)
-        if (kept is not None and set(kept) == {"rgb", "depth"} and kept["rgb"].shape == (K.height, K.width, 3)
-                and kept["rgb"].dtype == np.uint8 and kept["depth"].shape == (K.height, K.width)
-                and kept["depth"].dtype == np.uint16):
-            rgb, depth = kept["rgb"], kept["depth"]
+        kept = self._load(path, "depth", np.uint16)
+        if kept is not None:
+            rgb, depth = kept
         else:
             rgb, depth = self.render_frame(i)
             cache.store_arrays(path, {"rgb": rgb, "depth": depth})
@@ -456,17 +485,32 @@ class SyntheticScene:
             rgb=rgb,
             depth=depth,
             depth_scale_m=self.depth_scale_m,
-            intrinsics=K,
+            intrinsics=self.intrinsics,
         )
+
+    def _exact_view(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """`view` of frame i (colour, exact depth), kept in the cache beside the frames: a depth
+        sensor's frame is this view through the sensor model (~15 ms), where the view costs ~0.1 s."""
+        path = self._view_folder / f"{i:06d}.npz"
+        kept = self._load(path, "z", np.float32)
+        if kept is not None:
+            return kept
+        rgb, z = self.view(self.pose(i), i / self.config.fps)
+        cache.store_arrays(path, {"rgb": rgb, "z": z})
+        return rgb, z
 
     def render_frame(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """Colour and depth of frame i, rendered (the frame cache's source): the view from its
         ground-truth pose, its sensor's depth noise, its motion blur, its blank stretch."""
-        noise = np.random.default_rng([self.config.seed, int(i)]) if self.config.depth_noise != "none" else None
-        rgb, depth = self.render_pose(self.pose(i), noise, i / self.config.fps)
-        if self.config.exposure_ms > 0:
+        cfg = self.config
+        if cfg.depth_noise != "none":
+            rgb, z = self._exact_view(int(i))
+            depth = self._sensed(rgb, z, np.random.default_rng([cfg.seed, int(i)]))
+        else:
+            rgb, depth = self.render_pose(self.pose(i), None, i / cfg.fps)
+        if cfg.exposure_ms > 0:
             rgb = self._motion_blur(int(i), rgb)
-        if self.config.blank_s > 0 and 0.0 <= i / self.config.fps - self.config.blank_at_s < self.config.blank_s:
+        if cfg.blank_s > 0 and 0.0 <= i / cfg.fps - cfg.blank_at_s < cfg.blank_s:
             rgb = np.full_like(rgb, BLANK_GREY)
         return rgb, depth
 

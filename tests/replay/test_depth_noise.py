@@ -92,6 +92,20 @@ def test_noisy_frames_are_deterministic_and_differ_from_exact_ones():
         SyntheticScene(depth_noise="lidar")
 
 
+def test_sensor_models_share_the_rendered_view_and_read_it_as_a_fresh_render_would(monkeypatch, tmp_path):
+    """Scenes that differ only in the depth sensor, its offset, the blur or the blank stretch render
+    the room once (the exact view beside the frame cache); each frame's depth is still the one its
+    own sensor reads from an uncached render."""
+    monkeypatch.setenv("OCTOLOG_CACHE", str(tmp_path))
+    size = {"n_frames": 3, "width": 160, "height": 120}
+    SyntheticScene(**size, depth_noise="kinect").render(1)
+    other = SyntheticScene(**size, depth_noise="d455", depth_bias_px=0.1, exposure_ms=5.0, blank_s=0.01)
+    fresh = other.render_pose(other.pose(1), np.random.default_rng([0, 1]), 1 / 30)
+    monkeypatch.setattr(SyntheticScene, "view", lambda *_a, **_k: pytest.fail("the view was rendered again"))
+    frame = other.render(1)
+    assert np.array_equal(frame.depth, fresh[1]) and not np.array_equal(frame.rgb, fresh[0])  # blurred
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize(("noise", "every"), [("kinect", 1), ("kinect", 3), ("d455", 1), ("d455", 3)],
                          ids=["kinect-slow", "kinect-fast", "d455-slow", "d455-fast"])
