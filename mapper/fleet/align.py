@@ -14,7 +14,7 @@ edges and corners, where a Kinect-class depth is least sure; the surfaces pin th
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -147,7 +147,19 @@ def _mutual_matches(a: Features, b: Features) -> np.ndarray:
 
 
 def align(a: Features, b: Features, *, seed: int = 0) -> Alignment | None:
-    """a_from_b if the two keyframes verifiably see the same place, else None."""
+    """a_from_b if the two keyframes verifiably see the same place, refined on their surfaces, else None."""
+    found = verify(a, b, seed=seed)
+    return None if found is None else refined(a, b, found)
+
+
+def refined(a: Features, b: Features, found: Alignment) -> Alignment:
+    """`verify`'s alignment of a and b with its transform refined on their surfaces (`refine`)."""
+    return replace(found, a_from_b=refine(a, b, found.a_from_b))
+
+
+def verify(a: Features, b: Features, *, seed: int = 0) -> Alignment | None:
+    """`align`'s answer before the refinement (its inliers and RMSE are the same): a caller choosing
+    the best of several candidates refines only the one it keeps (`refined`), at ~0.3 s each."""
     pairs = _mutual_matches(a, b)
     if len(pairs) < MIN_INLIERS:
         return None
@@ -172,4 +184,4 @@ def align(a: Features, b: Features, *, seed: int = 0) -> Alignment | None:
     spread = a.pixels[pairs[best, 0]].std(axis=0)
     if n < MIN_INLIER_SHARE * len(pairs) or spread.min() < MIN_SPREAD_PX:
         return None
-    return Alignment(refine(a, b, T), n, len(pairs), float(np.sqrt(np.mean(err[best] ** 2))))
+    return Alignment(T, n, len(pairs), float(np.sqrt(np.mean(err[best] ** 2))))

@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from octolog.kit.geometry import RgbdFrame, invert
-from octolog.mapper.fleet.align import Alignment, Features, align, features
+from octolog.mapper.fleet.align import Alignment, Features, align, features, refined, verify
 
 REFINE_MATCHES = 5  # verified matches whose mean places a robot (the first one places it at once)
 # Bounds, so that a robot that never meets the others costs the same per keyframe in minute ten as in
@@ -119,12 +119,13 @@ class Placement:
             self.waiting[robot][-TRIES - 1].features = None
         best = None
         for _, gid, world_from_cam, f in self._library:
-            a = align(f, w.features)
+            a = verify(f, w.features)
             if a is not None and (best is None or a.inliers > best[2].inliers):
-                best = (gid, world_from_cam, a)
+                best = (gid, world_from_cam, a, f)
         if best is None:
             return None
-        return self._place(robot, w, *best)
+        gid, world_from_cam, a, f = best
+        return self._place(robot, w, gid, world_from_cam, refined(f, w.features, a))
 
     def remember(self, robot_of: int, kf_id: int, gid: int, world_from_camera: np.ndarray,
                  frame: RgbdFrame) -> tuple[list[Merge], bool]:
@@ -174,12 +175,12 @@ class Placement:
         for other, gid, _, g in self._library:
             if other == robot:
                 continue
-            a = align(g, f)
+            a = verify(g, f)
             if a is not None and (best is None or a.inliers > best[1].inliers):
-                best = (gid, a)
+                best = (gid, a, g)
         if best is None:
             return False
-        self.links.append((best[0], robot, kf_id, best[1]))
+        self.links.append((best[0], robot, kf_id, refined(best[2], f, best[1])))
         self.link_kinds.append("refine")
         self._matches[robot] += 1
         return True
@@ -195,12 +196,12 @@ class Placement:
                 near.append((d, gid, other, g))
         best = None
         for _, gid, other, g in sorted(near, key=lambda c: (c[0], c[1]))[:RELINK_TRIES]:
-            a = align(g, f)
+            a = verify(g, f)
             if a is not None and (best is None or a.inliers > best[2].inliers):
-                best = (gid, other, a)
+                best = (gid, other, a, g)
         if best is None:
             return False
-        self.links.append((best[0], robot, kf_id, best[2]))
+        self.links.append((best[0], robot, kf_id, refined(best[3], f, best[2])))
         self.link_kinds.append("relink")
         self._since_link[robot] = self._since_link[best[1]] = 0.0
         if self._refining(best[1]):  # a robot placed ahead of the others refines by their relinks too
