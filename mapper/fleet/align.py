@@ -129,7 +129,8 @@ def _kabsch(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
 
 
 def _mutual_matches(a: Features, b: Features) -> np.ndarray:
-    """(K, 2) index pairs (a, b) that pass the ratio test both ways."""
+    """(K, 2) index pairs (a, b) that pass the ratio test both ways (none when fewer than
+    MIN_INLIERS pass it one way: no place to verify)."""
     if len(a.descriptors) < 2 or len(b.descriptors) < 2:
         return np.zeros((0, 2), dtype=int)
     bf = cv2.BFMatcher(cv2.NORM_HAMMING)
@@ -141,7 +142,10 @@ def _mutual_matches(a: Features, b: Features) -> np.ndarray:
                 out[pair[0].queryIdx] = pair[0].trainIdx
         return out
 
-    ab, ba = one_way(a.descriptors, b.descriptors), one_way(b.descriptors, a.descriptors)
+    ab = one_way(a.descriptors, b.descriptors)
+    if len(ab) < MIN_INLIERS:  # the mutual pairs are among these: too few for `align` either way
+        return np.zeros((0, 2), dtype=int)
+    ba = one_way(b.descriptors, a.descriptors)
     pairs = sorted((i, j) for i, j in ab.items() if ba.get(j) == i)
     return np.array(pairs, dtype=int).reshape(-1, 2)
 
