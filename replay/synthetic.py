@@ -358,7 +358,7 @@ class SyntheticScene:
             pt, prgb = synthetic_people.cast(self.people, t, T[:3, 3], rays[:, 3:])
             person = pt < z  # misses are inf
             z = np.where(person, pt, z)
-        z_all = z
+        exact = z  # every pixel's depth (below, z keeps the hits only)
 
         hit = np.isfinite(z)
         all_hit = bool(hit.all())
@@ -380,7 +380,7 @@ class SyntheticScene:
             rgb[hit] = col
         if person is not None:
             rgb[person] = prgb[person]
-        return rgb.reshape(K.height, K.width, 3), z_all.reshape(K.height, K.width)
+        return rgb.reshape(K.height, K.width, 3), exact.reshape(K.height, K.width)
 
     def _sensed(self, rgb: np.ndarray, z: np.ndarray, noise: np.random.Generator | None) -> np.ndarray:
         """uint16 depth (H, W) of the exact view (`z`, float32 m, inf for a miss): what the scene's
