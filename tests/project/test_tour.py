@@ -4,7 +4,7 @@ short inputs, so a documented command that stops working fails here.
 The tour works in a folder laid out like a checkout beside `../shared`: its `../shared/data` holds the
 first 40 frames of TUM fr1/xyz under the documented folder name and the RealSense bags. Lines run in
 the order the docs give them; a line reads its inputs from the lines before it (`out/fr1xyz`, ...).
-"Short inputs" is the only change to a line: fewer synthetic frames, a 3 s camera, a later start
+"Short inputs" is the only change to a line: fewer synthetic frames, a 1 s camera, a later start
 within the short TUM folder, the docs' `tum:PATH` placeholder filled. What a line cannot do here is
 named in one place each:
 
@@ -40,7 +40,7 @@ NO_CAMERA = "no RealSense device found"
 # short inputs: (pattern, replacement) applied to every line before it runs
 SHORTER = [
     (r"tum:PATH", f"tum:{TUM_DOC_PATH}"),
-    (r"--duration \d+", "--duration 3"),
+    (r"--duration \d+", "--duration 1"),  # the simulated camera renders 1 s + 1 s of frames
     (r"synthetic:(\d+)", lambda m: f"synthetic:{min(int(m.group(1)), TOUR_FRAMES)}"),
     (r"blank=[\d.]+\+[\d.]+", "blank=0.5+0.3"),
     (r"replay\.start=\d+", f"replay.start={TOUR_FRAMES // 2}"),
@@ -151,7 +151,7 @@ def test_the_docs_hold_commands_the_tour_reads():
     assert any("--set replay.rate=1.0 --set tracker.live=true" in line for line in lines)
     assert not any("#" in line for line in lines)
     assert shorter("octolog run --source synthetic:600:motion=turns --duration 60") == \
-        f"octolog run --source synthetic:{TOUR_FRAMES}:motion=turns --duration 3"
+        f"octolog run --source synthetic:{TOUR_FRAMES}:motion=turns --duration 1"
     _parses("octolog map --connect tcp/HOST:7447 --set publish_every=5 --out out/map")
     with pytest.raises(SystemExit):
         _parses("octolog map --connect tcp/HOST:7447 --no-such-option")
