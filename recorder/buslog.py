@@ -25,7 +25,7 @@ from octolog.kit.config import to_toml
 from octolog.kit.errors import StageError
 from octolog.kit.mcaplog import McapWriter
 from octolog.kit.metrics import write_tum
-from octolog.schemas import logview, posemsgs
+from octolog.schemas import codec, logview, posemsgs
 from octolog.schemas import topics as T
 
 # end message -> (producing stage, the data topics it may close: the one its `topic` field names,
@@ -51,10 +51,37 @@ def _standard(topic: T.Topic, payload: bytes, checked: set[str]) -> list[tuple[s
 
 
 @dataclass
+class StatusTally:
+    """The tracker's statuses as the log holds them: frames consumed (tracked, lost or placed by the
+    IMU) and skipped, and the first and last status stamps (sensor time; 0 before any). Counted as
+    they are written, so the run's summary need not read the whole log back for them."""
+
+    consumed: int = 0
+    skipped: int = 0
+    first_ns: int = 0
+    last_ns: int = 0
+
+    def take(self, r: Any) -> None:
+        msg = r.decode()
+        t = codec.stamp_ns(msg.header)
+        first = not (self.consumed or self.skipped)
+        self.first_ns = t if first else min(self.first_ns, t)
+        self.last_ns = t if first else max(self.last_ns, t)
+        if msg.state == _SKIPPED:
+            self.skipped += 1
+        else:
+            self.consumed += 1
+
+
+_SKIPPED = codec.msgtype(T.TRACKING_STATUS.msgtype).SKIPPED
+
+
+@dataclass
 class LogResult:
     counts: dict[str, int] = field(default_factory=dict)
     path: str = ""
     files: list[str] = field(default_factory=list)
+    statuses: StatusTally = field(default_factory=StatusTally)
 
 
 @dataclass
@@ -128,6 +155,8 @@ def run(bus_cfg: BusConfig, out: Path, *, compression: str = "zstd", metadata: d
                 mcap.write(name, msgtype, data, log_time_ns=now, publish_time_ns=now)
             result.counts[r.topic.name] = result.counts.get(r.topic.name, 0) + 1
             kept.take(r)
+            if r.topic is T.TRACKING_STATUS:
+                result.statuses.take(r)
             if r.topic in ends:
                 stage, closes = ends[r.topic]
                 end = r.decode()

@@ -170,6 +170,7 @@ def cmd_log(args: argparse.Namespace) -> int:
     metadata = json.loads(Path(args.metadata).read_text()) if args.metadata else None
     res = buslog.run(bus_config(args), Path(args.out), compression=args.compression, metadata=metadata,
                      stages=tuple(args.stages.split(",")), frames=args.frames)
+    errorfile.FINDINGS["statuses"] = dataclasses.asdict(res.statuses)  # for the run's summary (shell/run.py)
     also = f" (+ {', '.join(res.files)})" if res.files else ""
     print(f"log: {sum(res.counts.values())} messages → {res.path}{also}")
     return 0

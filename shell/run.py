@@ -370,13 +370,15 @@ def camera_frames(recording: Path) -> int:
     return min(colour, counts.get(T.ALIGNED_DEPTH.name, 0) + counts.get(T.ALIGNED_DEPTH_PNG.name, 0))
 
 
-def frame_counts(log: Path, camera: int | None = None) -> tuple[dict[str, int], int]:
+def frame_counts(log: Path, camera: int | None = None, tally: dict | None = None) -> tuple[dict[str, int], int]:
     """What the session log says about frames: published, consumed by the tracker, skipped; and the
     sensor time between the first and the last frame the tracker consumed (its statuses' stamps:
     what a replay played, a start/end window or loops included; 0 without statuses). One pass over
-    the log. With the frames a live camera delivered (`camera`), the ones it did not publish count as
-    skipped too (`held_back`: the tracker had RecorderConfig.publish_window frames in hand, or the
-    recorder's live queue was full; the recorder's own summary line tells the two apart)."""
+    the log, or none with the logger's `tally` of the statuses it wrote (recorder/buslog.py:
+    StatusTally, in its report) and a complete file. With the frames a live camera delivered
+    (`camera`), the ones it did not publish count as skipped too (`held_back`: the tracker had
+    RecorderConfig.publish_window frames in hand, or the recorder's live queue was full; the
+    recorder's own summary line tells the two apart)."""
     status = codec.msgtype(TRACKING_STATUS.msgtype)
     published = consumed = skipped = 0
     first_ns = last_ns = None
@@ -384,7 +386,14 @@ def frame_counts(log: Path, camera: int | None = None) -> tuple[dict[str, int], 
     frame_topics = [] if counts is not None else [RGBD.name, RGBD_COMPRESSED.name]
     if counts is not None:
         published = counts.get(RGBD.name, 0) + counts.get(RGBD_COMPRESSED.name, 0)
-    for m in read_wire(log, [*frame_topics, TRACKING_STATUS.name]):
+    if counts is not None and tally is not None and tally["consumed"] + tally["skipped"] == counts.get(TRACKING_STATUS.name, 0):
+        consumed, skipped = tally["consumed"], tally["skipped"]
+        if consumed + skipped:
+            first_ns, last_ns = tally["first_ns"], tally["last_ns"]
+        status_topics = []  # the logger counted them as it wrote them: not read back
+    else:
+        status_topics = [TRACKING_STATUS.name]
+    for m in read_wire(log, [*frame_topics, *status_topics]) if frame_topics or status_topics else ():
         if m.topic in (RGBD.name, RGBD_COMPRESSED.name):
             published += 1
             continue
@@ -418,7 +427,8 @@ def _summarize(out: Path, source: str, src: Source | LiveSource, wall: float, re
     live = isinstance(src, LiveSource) and (out / "recording.mcap").exists()
     if isinstance(src, LiveSource):  # how long the camera ran: its recording's span (its summary, not a scan)
         src.duration_ns = _live_span_ns(out, live)
-    frames, status_span_ns = frame_counts(out / "session.mcap", camera_frames(out / "recording.mcap") if live else None)
+    frames, status_span_ns = frame_counts(out / "session.mcap", camera_frames(out / "recording.mcap") if live else None,
+                                          errorfile.read_finding(out / "logs" / "log.report.json", "statuses"))
     played = src.duration_ns if isinstance(src, LiveSource) else \
         (status_span_ns or played_ns(src.duration_ns, len(src), loop))
     s = SessionSummary(out=out, source=source, wall_s=wall, duration_s=played * 1e-9, frame_counts=frames)

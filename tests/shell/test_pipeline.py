@@ -51,6 +51,25 @@ DETERMINISTIC_TOPICS = ("camera/rgbd", "tracker/pose", "tracker/keyframe", "mapp
                         "mapper/grid", "camera/rgbd/end", "tracker/keyframe/end", "mapper/end")
 
 
+def test_the_summary_counts_the_frames_from_the_loggers_tally_as_the_log_holds_them(runs):
+    """The logger's tally of the tracker's statuses (its report) gives the summary the counts and
+    span a pass over the log gives, without that pass; a tally that is not this log's (another
+    number of statuses than the file holds) is not used."""
+    from octolog.shell.errorfile import read_finding
+    from octolog.shell.run import frame_counts
+
+    a, _ = runs
+    log = a / "session.mcap"
+    tally = read_finding(a / "logs" / "log.report.json", "statuses")
+    assert tally == {**tally, "consumed": N_FRAMES, "skipped": 0}
+    read = frame_counts(log)
+    assert frame_counts(log, tally=tally) == read and read[1] > 0
+    earlier = {**tally, "first_ns": tally["first_ns"] - 10**9}  # what the summary takes is the tally's
+    assert frame_counts(log, tally=earlier) == (read[0], read[1] + 10**9)
+    stale = {**tally, "consumed": N_FRAMES - 1, "first_ns": 0}
+    assert frame_counts(log, tally=stale) == read
+
+
 def test_outputs_are_deterministic_and_independent_of_rerun(runs):
     """Every field docs/architecture.md calls deterministic, across two runs (one with Rerun, one without)."""
     from octolog.kit.mcaplog import read_wire
