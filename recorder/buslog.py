@@ -50,6 +50,9 @@ def _standard(topic: T.Topic, payload: bytes, checked: set[str]) -> list[tuple[s
     return parts
 
 
+_SKIPPED = codec.msgtype(T.TRACKING_STATUS.msgtype).SKIPPED
+
+
 @dataclass
 class StatusTally:
     """The tracker's statuses as the log holds them: frames consumed (tracked, lost or placed by the
@@ -71,9 +74,6 @@ class StatusTally:
             self.skipped += 1
         else:
             self.consumed += 1
-
-
-_SKIPPED = codec.msgtype(T.TRACKING_STATUS.msgtype).SKIPPED
 
 
 @dataclass

@@ -386,7 +386,8 @@ def frame_counts(log: Path, camera: int | None = None, tally: dict | None = None
     frame_topics = [] if counts is not None else [RGBD.name, RGBD_COMPRESSED.name]
     if counts is not None:
         published = counts.get(RGBD.name, 0) + counts.get(RGBD_COMPRESSED.name, 0)
-    if counts is not None and tally is not None and tally["consumed"] + tally["skipped"] == counts.get(TRACKING_STATUS.name, 0):
+    tallied = tally is not None and tally["consumed"] + tally["skipped"] == (counts or {}).get(TRACKING_STATUS.name, -1)
+    if tallied:
         consumed, skipped = tally["consumed"], tally["skipped"]
         if consumed + skipped:
             first_ns, last_ns = tally["first_ns"], tally["last_ns"]
