@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import logging
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,6 +20,8 @@ from octolog.mapper.mapframe import MapFrame
 from octolog.mapper.shards import write_shard
 from octolog.schemas import codec, mapmsgs, streammsgs
 from octolog.schemas.topics import GRID, MAP_END, MAP_QUERY, MAP_SAVE, MAP_UPDATE, OCCUPIED, OCTOMAP
+
+log = logging.getLogger(__name__)
 
 # Keyframes come in bursts (a new place: one every few frames) that the mapper, at ~0.1-0.5 s each,
 # works off later. A full inbox blocks Zenoh's receive thread (back-pressure), and a receive thread
@@ -82,7 +86,11 @@ def finish(mapper: Mapper, result: MapperResult, bus: Bus, viz: Viz, publisher: 
     last_stamp = max((kf.stamp_ns for kf in mapper.keyframes.values()), default=0)
     if publisher.frame is not None:
         publisher.frame.resolve()  # the map frame settled before the files' cloud merge starts
+    t0 = time.monotonic()
+    rebuilds = mapper.rebuilds
     result.files = mapper.write(out_dir, meanwhile=lambda: publisher.now(last_stamp))
+    log.info("the map of the final poses (%s) and its files: %.2f s", "rebuilt" if mapper.rebuilds > rebuilds
+             else "as it stood", time.monotonic() - t0)
     result.stats = mapper.stats()
     result.cloud_points = len(mapper.map_cloud()[0])
     if mapper.params.tiles is not None:

@@ -188,7 +188,10 @@ class _Outputs:
     def finish(self, odometry: Tracker, result: TrackerRunSummary) -> None:
         # the back end's last word: every keyframe at its final pose, so the map matches the
         # trajectory. Sent before the end messages, whose count for it the mapper waits for.
+        t0 = time.monotonic()
         moved = odometry.finish()
+        log.info("the back end's last job and the final adjustment: %.2f s, %d of %d keyframes moved",
+                 time.monotonic() - t0, len(moved), odometry.n_keyframes)
         if moved:
             self.poses.put(posemsgs.keyframe_poses_msg(odometry.keyframe_poses(), result.stamps_ns[-1],
                                                        getattr(odometry, "depth_offset", 0.0)))
