@@ -64,8 +64,8 @@ class StatusTally:
     first_ns: int = 0
     last_ns: int = 0
 
-    def take(self, r: Any) -> None:
-        msg = r.decode()
+    def add(self, msg: Any) -> None:
+        """One status (a decoded TrackingStatus)."""
         t = codec.stamp_ns(msg.header)
         first = not (self.consumed or self.skipped)
         self.first_ns = t if first else min(self.first_ns, t)
@@ -156,7 +156,7 @@ def run(bus_cfg: BusConfig, out: Path, *, compression: str = "zstd", metadata: d
             result.counts[r.topic.name] = result.counts.get(r.topic.name, 0) + 1
             kept.take(r)
             if r.topic is T.TRACKING_STATUS:
-                result.statuses.take(r)
+                result.statuses.add(r.decode())
             if r.topic in ends:
                 stage, closes = ends[r.topic]
                 end = r.decode()

@@ -32,6 +32,7 @@ from octolog.kit.imu import ImuNoise
 from octolog.kit.mcaplog import message_counts, read_wire, summarize, time_span
 from octolog.kit.viz import COPY_ENV, DEFAULT_VIEWER, parse_spec, viewer_unreachable
 from octolog.mapper.config import MapperConfig
+from octolog.recorder.buslog import StatusTally
 from octolog.recorder.config import RecorderConfig
 from octolog.replay import source_gravity
 from octolog.replay.config import ReplayConfig
@@ -379,34 +380,23 @@ def frame_counts(log: Path, camera: int | None = None, tally: dict | None = None
     (`camera`), the ones it did not publish count as skipped too (`held_back`: the tracker had
     RecorderConfig.publish_window frames in hand, or the recorder's live queue was full; the
     recorder's own summary line tells the two apart)."""
-    status = codec.msgtype(TRACKING_STATUS.msgtype)
-    published = consumed = skipped = 0
-    first_ns = last_ns = None
+    published = 0
     counts = message_counts(log)  # the frames counted from the summary: not read (they are gigabytes)
     frame_topics = [] if counts is not None else [RGBD.name, RGBD_COMPRESSED.name]
     if counts is not None:
         published = counts.get(RGBD.name, 0) + counts.get(RGBD_COMPRESSED.name, 0)
-    tallied = tally is not None and tally["consumed"] + tally["skipped"] == (counts or {}).get(TRACKING_STATUS.name, -1)
-    if tallied:
-        consumed, skipped = tally["consumed"], tally["skipped"]
-        if consumed + skipped:
-            first_ns, last_ns = tally["first_ns"], tally["last_ns"]
-        status_topics = []  # the logger counted them as it wrote them: not read back
+    kept = StatusTally(**tally) if tally is not None else None
+    if kept is not None and kept.consumed + kept.skipped == (counts or {}).get(TRACKING_STATUS.name, -1):
+        statuses, status_topics = kept, []  # the logger counted them as it wrote them: not read back
     else:
-        status_topics = [TRACKING_STATUS.name]
-    for m in read_wire(log, [*frame_topics, *status_topics]) if frame_topics or status_topics else ():
-        if m.topic in (RGBD.name, RGBD_COMPRESSED.name):
-            published += 1
-            continue
-        msg = codec.decode(m.data, TRACKING_STATUS.msgtype)
-        t = codec.stamp_ns(msg.header)
-        first_ns = t if first_ns is None else min(first_ns, t)
-        last_ns = t if last_ns is None else max(last_ns, t)
-        if msg.state == status.SKIPPED:
-            skipped += 1
+        statuses, status_topics = StatusTally(), [TRACKING_STATUS.name]
+    topics = [*frame_topics, *status_topics]
+    for m in read_wire(log, topics) if topics else ():
+        if m.topic == TRACKING_STATUS.name:
+            statuses.add(codec.decode(m.data, TRACKING_STATUS.msgtype))
         else:
-            consumed += 1
-    span_ns = 0 if first_ns is None or last_ns is None else last_ns - first_ns
+            published += 1
+    consumed, skipped, span_ns = statuses.consumed, statuses.skipped, statuses.last_ns - statuses.first_ns
     if camera is None:
         return {"published": published, "consumed": consumed, "skipped": skipped}, span_ns
     held_back = max(0, camera - published)
